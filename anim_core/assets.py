@@ -1,0 +1,73 @@
+"""The source data files: where they are in the data directory and what their content must be.
+
+The project never ships these files; it reads them from a data directory (``ANIMSTUDY_DATA_DIR``).  Each file may
+be stored gzip-compressed (``name.gz``, as in the project's mirror) or plain; the checksum is that of the
+uncompressed content, which is what the public origins named in each folder's SOURCE.md publish.
+"""
+
+from __future__ import annotations
+
+import gzip
+import hashlib
+from pathlib import Path
+
+#: path in the data directory (as mirrored, gzip-compressed where marked) -> sha256 of the uncompressed content
+CHECKSUMS: dict[str, str] = {
+    "mocap/cmu/12_03_walk.bvh.gz": "23e0f37e31a07642d09ee1bdc6eb55ca8878f74365abff2f78423759fdaca0ee",
+    "mocap/cmu/02_01_walk.bvh.gz": "c0bdbc2efaa3f5a6c7b74ee8a5baab06b86deda4d506083fb6a28a2d128f11eb",
+    "mocap/cmu/09_11_run.bvh.gz": "fb948896c3791cc8b3f6004b272becde137a0dbf5ac4ab2c62a0dc8fb9417811",
+    "mocap/cmu/115_06_crouch_first164.bvh.gz": "bdc38a38c8268c232a2a4fb470fa70d2b1ddd98bd96670a118c2da33bb8e7f5d",
+    "mocap/cmu/113_21_idle_30fps.bvh.gz": "62b94d6b882fa8a7954c06ddc74f99b088d69ea977bc433c7b9525402d067384",
+    "character/makehuman_cmu_mb/base.obj.gz": "8e761e6624b8f54536409135d1636da63b32486a90d4897f84e121d144f6fb4c",
+    "character/makehuman_cmu_mb/rig.cmu_mb.json": "a751d730091304de2a7f7407a57976e86f71f75125e21fa2626ca5c661a6ad68",
+    "character/makehuman_cmu_mb/weights.cmu_mb.json.gz":
+        "e349f27b120b848858fca21c386b257de0b93e7ec26113f6dd2e8caa8ce11e9b",
+}
+
+
+CHARACTER_DIR = "character/makehuman_cmu_mb"
+CHARACTER_FILES = tuple(f"{CHARACTER_DIR}/{name}" for name in
+                        ("rig.cmu_mb.json", "weights.cmu_mb.json.gz", "base.obj.gz"))
+
+
+class AssetError(ValueError):
+    """A source file is missing, corrupt or not what the project expects."""
+
+
+def check_data_dir(data_dir: Path) -> Path:
+    data_dir = Path(data_dir)
+    if not data_dir.is_dir():
+        raise AssetError(f"data directory {data_dir} does not exist; set ANIMSTUDY_DATA_DIR to the folder holding "
+                         f"mocap/ and character/ (see README.md, Data)")
+    return data_dir
+
+
+def resolve(data_dir: Path, name: str) -> Path:
+    """The file for ``name`` in ``data_dir``: as named, or its uncompressed/compressed twin."""
+    base = check_data_dir(data_dir)
+    candidates = [base / name, base / name.removesuffix(".gz") if name.endswith(".gz") else base / f"{name}.gz"]
+    for path in candidates:
+        if path.is_file():
+            return path
+    raise AssetError(f"missing file {base / name} (see README.md, Data, for where to get it)")
+
+
+def read_bytes(path: Path) -> bytes:
+    """Content of ``path``, decompressed if it ends in ``.gz``; corrupt archives raise :class:`AssetError`."""
+    try:
+        data = path.read_bytes()
+        return gzip.decompress(data) if path.suffix == ".gz" else data
+    except (OSError, EOFError) as exc:
+        raise AssetError(f"cannot read {path}: {exc} (corrupt file?)") from None
+
+
+def verify(data_dir: Path, name: str) -> Path:
+    """Resolve ``name`` and check its content against :data:`CHECKSUMS` (names not listed are not checked)."""
+    path = resolve(data_dir, name)
+    expected = CHECKSUMS.get(name) or CHECKSUMS.get(f"{name}.gz")
+    if expected is not None:
+        actual = hashlib.sha256(read_bytes(path)).hexdigest()
+        if actual != expected:
+            raise AssetError(f"{path} is corrupt or a different version: sha256 of its content is {actual}, "
+                             f"expected {expected}")
+    return path

@@ -1,0 +1,224 @@
+"""Posing crowds fast: any clip as a uniform table of keys, evaluated for many characters by one compiled kernel.
+
+The reference implementation is ``clip.sample(t, method="nlerp")`` followed by ``Skeleton.forward_kinematics``
+(numpy, float64).  For a crowd, every clip (dense keyframe or hybrid) becomes a :class:`PoseTable`: keys on a
+uniform time grid, sign-continuous, float32.  A keyframe clip's own keys are used as they are (the table gives
+exactly the reference's nlerp); a hybrid clip is *baked* once at build time, its SQUAD or spring curve sampled
+at ``rate`` keys per second, so that posing a hybrid character costs exactly what posing a keyframe character
+costs: gather two keys, nlerp, forward kinematics.  :func:`pose_crowd` runs that per character and joint in a
+numba kernel (single- or multi-threaded); without numba it falls back to numpy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .clip import PLAYBACK_MODES, KeyframeClip, playback_time
+from .quat import make_continuous, quat_angle
+from .skeleton import Skeleton
+
+Array = NDArray[np.float64]
+BAKE_RATE = 30.0  # keys per second a baked hybrid table starts from (the keyframe rate), doubled as needed
+# Largest angle between a joint's global rotation from a baked table and from the exact curve, at any time.  The
+# spring crouch's path has corners at its keys, which a table of any rate cuts by up to a quarter of its step
+# times the jump in angular velocity, so the tolerance cannot be much tighter than 0.2 degree at sane table sizes.
+BAKE_TOLERANCE_DEG = 0.25
+MAX_BAKE_RATE = 7680.0
+
+try:  # the compiled kernel is optional; the numpy path is the reference and the fallback
+    import numba
+except ImportError:  # pragma: no cover - numba is a dependency, but keep working without it
+    numba = None
+
+
+@dataclass(frozen=True, eq=False)
+class PoseTable:
+    """A clip as keys on a uniform grid: ``rotations (K, J, 4)`` float32 (w, x, y, z), sign-continuous along K;
+    ``root (K, 3)`` float32; key ``k`` at ``k * dt`` seconds, the last at the clip's ``duration``."""
+
+    skeleton: Skeleton
+    rotations: NDArray[np.float32]
+    root: NDArray[np.float32]
+    dt: float
+    mode: str
+    velocity: NDArray[np.float32]  # horizontal travel per second added in loop mode (zero for in-place clips)
+
+    @property
+    def duration(self) -> float:
+        return self.dt * (self.rotations.shape[0] - 1)
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.rotations.nbytes + self.root.nbytes)
+
+
+def table_from_keyframes(clip: KeyframeClip) -> PoseTable:
+    """The keyframe clip's own keys (they must be uniformly spaced, as the clip set's are)."""
+    dt = np.diff(clip.times)
+    if not np.allclose(dt, dt[0], rtol=1e-9, atol=1e-12):
+        raise ValueError("keyframe clip keys are not uniformly spaced; resample() it first")
+    return _table(clip.skeleton, clip.rotations, clip.root_translation, clip.times, float(dt[0]), clip.mode,
+                  clip.velocity, travels=clip.mode == "loop" and not clip.in_place, in_place=clip.in_place)
+
+
+def _table(skeleton: Skeleton, rotations: Array, root: Array, times: Array, dt: float, mode: str,
+           velocity: Array, travels: bool, in_place: bool) -> PoseTable:
+    # The table holds the root's offsets from its travel; the kernel adds the travel back for a travelling loop.
+    if travels or in_place:
+        root = root - velocity * times[:, None]
+    return PoseTable(skeleton, np.asarray(rotations, np.float32), np.asarray(root, np.float32), dt, mode,
+                     np.asarray(velocity if travels else np.zeros(3), np.float32))
+
+
+def bake(clip: Any, rate: float = BAKE_RATE, tolerance_deg: float = BAKE_TOLERANCE_DEG) -> PoseTable:
+    """Sample any clip (hybrid or keyframe) over one period into a table.
+
+    Starts at ``rate`` keys per second and doubles it until every joint's global rotation between two table keys
+    is within ``tolerance_deg`` of the exact curve (checked halfway between all keys, where the error peaks).
+    """
+    mode = getattr(clip, "mode", "loop")
+    if mode not in PLAYBACK_MODES:
+        raise ValueError(f"cannot bake playback mode {mode!r}")
+    while True:
+        table = _bake_at(clip, rate, mode)
+        # Compare what a viewer sees, the global (model-space) rotations, where errors add up along each chain.
+        mid = (np.arange(table.rotations.shape[0] - 1) + 0.5) * table.dt
+        exact, _ = clip.skeleton.forward_kinematics(clip.sample(mid).rotations)
+        approx = table.rotations[:-1].astype(np.float64) + table.rotations[1:]
+        approx, _ = clip.skeleton.forward_kinematics(approx / np.linalg.norm(approx, axis=-1, keepdims=True))
+        error = np.degrees(quat_angle(approx, exact).max())
+        if error <= tolerance_deg or rate >= MAX_BAKE_RATE:
+            return table
+        rate *= 2
+
+
+def _bake_at(clip: Any, rate: float, mode: str) -> PoseTable:
+    duration = float(clip.duration)
+    n = max(2, int(np.ceil(duration * rate)))
+    times = np.linspace(0.0, duration, n + 1)
+    # Inside one period: a loop's end is its start again, which sample() would map to the next cycle's time 0.
+    pose = clip.sample(np.minimum(times, np.nextafter(duration, 0.0)) if mode == "loop" else times)
+    velocity = np.asarray(getattr(clip, "velocity", np.zeros(3)), np.float64)
+    # The samples are already in place when the clip is; a travelling loop's travel comes off the table.
+    table = _table(clip.skeleton, make_continuous(pose.rotations, axis=0), pose.root_translation, times,
+                   duration / n, mode, velocity, travels=mode == "loop" and not getattr(clip, "in_place", False),
+                   in_place=False)
+    if mode == "loop":  # close exactly: the last key is the first one, on the side that keeps the keys continuous
+        sign = np.where(np.sum(table.rotations[-2] * table.rotations[0], axis=-1, keepdims=True) < 0, -1, 1)
+        table.rotations[-1] = table.rotations[0] * sign
+        table.root[-1] = table.root[0]
+    return table
+
+
+def _mode_code(mode: str) -> int:
+    return PLAYBACK_MODES.index(mode)
+
+
+def pose_crowd_numpy(table: PoseTable, t: NDArray[np.floating]) -> tuple[Array, Array]:
+    """Reference-style evaluation of a table: nlerp between its keys, then forward kinematics (float64)."""
+    t = np.asarray(t, dtype=np.float64)
+    clip_t, cycles = playback_time(t, table.duration, table.mode)  # type: ignore[arg-type]
+    f = clip_t / table.dt
+    i = np.clip(np.floor(f).astype(np.intp), 0, table.rotations.shape[0] - 2)
+    frac = (f - i)[:, None, None]
+    keys = table.rotations.astype(np.float64)
+    q = keys[i] * (1.0 - frac) + keys[i + 1] * frac
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    root = table.root[i] * (1.0 - frac[:, 0]) + table.root[i + 1] * frac[:, 0]
+    root = root + table.velocity * (clip_t + cycles * table.duration)[:, None]
+    return table.skeleton.forward_kinematics(q, root)
+
+
+if numba is not None:
+
+    @numba.njit(cache=True, fastmath=False)
+    def _pose_one(c, keys, roots, dt, duration, mode, velocity, times, parents, offsets, out_rot, out_pos):
+        t = times[c]
+        cycles = 0.0
+        if mode == 0:  # loop
+            cycles = np.floor(t / duration)
+            ct = t - cycles * duration
+        elif mode == 1:  # ping-pong
+            ct = t % (2.0 * duration)
+            if ct > duration:
+                ct = 2.0 * duration - ct
+        else:  # clamp
+            ct = min(max(t, 0.0), duration)
+        f = ct / dt
+        i = int(np.floor(f))
+        i = min(max(i, 0), keys.shape[0] - 2)
+        a = np.float32(f - i)
+        b = np.float32(1.0) - a
+        travel = ct + cycles * duration
+        for j in range(keys.shape[1]):
+            w = b * keys[i, j, 0] + a * keys[i + 1, j, 0]
+            x = b * keys[i, j, 1] + a * keys[i + 1, j, 1]
+            y = b * keys[i, j, 2] + a * keys[i + 1, j, 2]
+            z = b * keys[i, j, 3] + a * keys[i + 1, j, 3]
+            inv = np.float32(1.0) / np.sqrt(w * w + x * x + y * y + z * z)
+            w, x, y, z = w * inv, x * inv, y * inv, z * inv
+            p = parents[j]
+            ox, oy, oz = offsets[j, 0], offsets[j, 1], offsets[j, 2]
+            if p < 0:
+                out_rot[c, j, 0], out_rot[c, j, 1], out_rot[c, j, 2], out_rot[c, j, 3] = w, x, y, z
+                out_pos[c, j, 0] = ox + b * roots[i, 0] + a * roots[i + 1, 0] + velocity[0] * travel
+                out_pos[c, j, 1] = oy + b * roots[i, 1] + a * roots[i + 1, 1] + velocity[1] * travel
+                out_pos[c, j, 2] = oz + b * roots[i, 2] + a * roots[i + 1, 2] + velocity[2] * travel
+                continue
+            pw, px, py, pz = out_rot[c, p, 0], out_rot[c, p, 1], out_rot[c, p, 2], out_rot[c, p, 3]
+            out_rot[c, j, 0] = pw * w - px * x - py * y - pz * z
+            out_rot[c, j, 1] = pw * x + px * w + py * z - pz * y
+            out_rot[c, j, 2] = pw * y - px * z + py * w + pz * x
+            out_rot[c, j, 3] = pw * z + px * y - py * x + pz * w
+            # offset rotated by the parent: v + 2w (u x v) + 2 u x (u x v)
+            tx = np.float32(2.0) * (py * oz - pz * oy)
+            ty = np.float32(2.0) * (pz * ox - px * oz)
+            tz = np.float32(2.0) * (px * oy - py * ox)
+            out_pos[c, j, 0] = out_pos[c, p, 0] + ox + pw * tx + (py * tz - pz * ty)
+            out_pos[c, j, 1] = out_pos[c, p, 1] + oy + pw * ty + (pz * tx - px * tz)
+            out_pos[c, j, 2] = out_pos[c, p, 2] + oz + pw * tz + (px * ty - py * tx)
+
+    @numba.njit(cache=True)
+    def _pose_serial(keys, roots, dt, duration, mode, velocity, times, parents, offsets, out_rot, out_pos):
+        for c in range(times.shape[0]):
+            _pose_one(c, keys, roots, dt, duration, mode, velocity, times, parents, offsets, out_rot, out_pos)
+
+    @numba.njit(cache=True, parallel=True)
+    def _pose_parallel(keys, roots, dt, duration, mode, velocity, times, parents, offsets, out_rot, out_pos):
+        for c in numba.prange(times.shape[0]):
+            _pose_one(c, keys, roots, dt, duration, mode, velocity, times, parents, offsets, out_rot, out_pos)
+
+
+@dataclass
+class CrowdBuffers:
+    """Output arrays reused from frame to frame: global rotations ``(N, J, 4)`` and positions ``(N, J, 3)``."""
+
+    rotations: NDArray[np.float32]
+    positions: NDArray[np.float32]
+
+    @classmethod
+    def for_crowd(cls, n: int, joints: int) -> CrowdBuffers:
+        return cls(np.empty((n, joints, 4), np.float32), np.empty((n, joints, 3), np.float32))
+
+
+def pose_crowd(table: PoseTable, t: NDArray[np.floating], out: CrowdBuffers | None = None,
+               parallel: bool = False) -> CrowdBuffers:
+    """Global joint rotations and positions of ``N`` characters at their own times ``t (N,)`` seconds (float32).
+
+    Uses the compiled kernel (``parallel``: one thread per core) when numba is present, numpy otherwise.
+    """
+    t = np.ascontiguousarray(t, dtype=np.float64)
+    sk = table.skeleton
+    out = out or CrowdBuffers.for_crowd(t.shape[0], sk.n_joints)
+    if numba is None:
+        rot, pos = pose_crowd_numpy(table, t)
+        out.rotations[:], out.positions[:] = rot, pos
+        return out
+    kernel = _pose_parallel if parallel else _pose_serial
+    kernel(table.rotations, table.root, table.dt, table.duration, _mode_code(table.mode), table.velocity, t,
+           sk.parents, sk.offsets.astype(np.float32), out.rotations, out.positions)
+    return out

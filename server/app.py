@@ -1,0 +1,65 @@
+"""The FastAPI application."""
+
+from __future__ import annotations
+
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
+from fastapi.staticfiles import StaticFiles
+from sqlalchemy import Engine
+from sqlalchemy.exc import InterfaceError, OperationalError
+
+from .config import Settings
+from .db import make_engine, migrate, session_factory
+from .errors import ServiceError
+from .media.router import router as media_router
+from .pages import STATIC_DIR
+from .pages import router as pages_router
+from .participants.router import router as participants_router
+from .researchers.router import router as researchers_router
+from .security import RETRY_AFTER_S, LoginLimiter, Protect
+from .studies.router import router as studies_router
+
+
+def create_app(settings: Settings | None = None, engine: Engine | None = None, run_migrations: bool = True
+               ) -> FastAPI:
+    """The app for ``settings`` (default: from the environment); migrates the database unless told not to."""
+    settings = settings or Settings()
+    engine = engine or make_engine(settings.sqlalchemy_url)
+    if run_migrations:
+        migrate(engine)
+    app = FastAPI(title="animstudy", version="0.1.0",
+                  description="Side-by-side user studies of hybrid against keyframe character animation.")
+    app.state.settings = settings
+    app.state.engine = engine
+    app.state.session_factory = session_factory(engine)
+
+    app.state.login_limiter = LoginLimiter()
+    app.add_middleware(Protect)
+
+    @app.exception_handler(ServiceError)
+    def service_error(_request: Request, exc: ServiceError) -> JSONResponse:
+        headers = {"WWW-Authenticate": "Bearer"} if exc.status_code == 401 else {}
+        if exc.retry_after is not None:
+            headers["Retry-After"] = str(exc.retry_after)
+        return JSONResponse({"detail": exc.detail}, status_code=exc.status_code, headers=headers)
+
+    @app.exception_handler(OperationalError)
+    @app.exception_handler(InterfaceError)
+    def database_unavailable(_request: Request, _exc: Exception) -> JSONResponse:
+        # The database is down, restarting or locked: nothing was stored; the client should simply retry.
+        return JSONResponse({"detail": "the database is unavailable for a moment; please retry"}, status_code=503,
+                            headers={"Retry-After": str(RETRY_AFTER_S)})
+
+    @app.get("/healthz", include_in_schema=False)
+    def health() -> dict[str, str]:
+        return {"status": "ok"}
+
+    for router in (studies_router, participants_router, researchers_router, media_router, pages_router):
+        app.include_router(router)
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    return app
+
+
+def app_from_env() -> FastAPI:
+    """Factory for ``uvicorn --factory`` (several workers each build their own app)."""
+    return create_app(run_migrations=False)

@@ -1,0 +1,322 @@
+"""``animstudy`` command line."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from .config import Settings
+
+CMU_METRES_PER_UNIT = 0.056444
+
+
+def _fail(message: str) -> int:
+    print(f"error: {message}", file=sys.stderr)
+    return 2
+
+
+def inspect(data_dir: Path) -> int:
+    """Print what the motion-capture files in the data directory hold."""
+    import numpy as np
+
+    from anim_core.bvh import BvhError, read_bvh
+    from anim_core.clip import clip_from_bvh
+
+    paths = sorted(data_dir.glob("mocap/**/*.bvh*"))
+    if not paths:
+        return _fail(f"no BVH files under {data_dir / 'mocap'}; set ANIMSTUDY_DATA_DIR (see README.md)")
+    print(f"motion capture in {data_dir}:")
+    print(f"{'file':34} {'frames':>6} {'fps':>5} {'seconds':>7} {'joints':>6} {'travel m':>8} {'speed m/s':>9}")
+    status = 0
+    for path in paths:
+        try:
+            bvh = read_bvh(path)
+        except (BvhError, OSError) as exc:
+            print(f"{path.name:34} unreadable: {exc}", file=sys.stderr)
+            status = 1
+            continue
+        clip = clip_from_bvh(bvh)
+        travel = np.linalg.norm(clip.velocity) * clip.duration * CMU_METRES_PER_UNIT
+        print(f"{path.name:34} {bvh.n_frames:6d} {bvh.fps:5.0f} {clip.duration:7.2f} "
+              f"{clip.skeleton.n_joints:6d} {travel:8.2f} {travel / clip.duration:9.2f}")
+    return status
+
+
+def _fmt(value: float | None, digits: int) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
+    """Build the clip set, write it to ``out`` and print its metric table."""
+    from anim_core.assets import AssetError
+    from anim_core.clipset import ConfigError, build_clip_set, load_config, write_clip_set
+
+    started = time.perf_counter()
+    try:
+        cfg = load_config(config) if config else load_config()
+        clips = build_clip_set(data_dir, cfg, progress=lambda msg: print(msg, flush=True))
+        manifest = write_clip_set(clips, out)
+    except (AssetError, ConfigError) as exc:
+        return _fail(str(exc))
+    except OSError as exc:
+        return _fail(f"cannot write the clip set to {out}: {exc}")
+    print(f"\n{len(clips)} clips in {time.perf_counter() - started:.1f} s -> {manifest}\n")
+    print(f"{'clip':16} {'keys':>4} {'s':>5} {'skate':>6} {'slide mm':>8} {'pen mm':>6} {'float mm':>8} "
+          f"{'MPJPE mm':>8} {'key jump rad/s':>14} {'jerk m/s3':>9} {'bytes':>6}")
+    for c in clips:
+        m = c.metrics
+        print(f"{c.id:16} {c.key_times.size:4d} {c.duration_s:5.2f} {m['foot_skate_ratio']:6.3f} "
+              f"{m['foot_slide_mm']:8.2f} {m['penetration_mm']:6.1f} {m['floating_mm']:8.1f} "
+              f"{_fmt(m['mpjpe_mm'], 1):>8} {m['key_velocity_jump_rad_s']:14.3f} {m['jerk_mean']:9.1f} "
+              f"{m['bytes']:6d}")
+    return 0
+
+
+def render(settings: Settings, out: Path, clips_dir: Path, workers: int, increments: list[int],
+           width: int, height: int, shadows: bool) -> int:
+    """Render the clip set's videos into ``out`` (building the clip set first if it is missing)."""
+    from anim_core.assets import AssetError
+    from server.media.build import MediaError, render_media
+    from server.media.scene import RenderSettings
+
+    try:
+        if not (clips_dir / "manifest.json").is_file():
+            from anim_core.clipset import ConfigError, build_clip_set, write_clip_set
+
+            print(f"no clip set in {clips_dir}: building it", flush=True)
+            try:
+                write_clip_set(build_clip_set(settings.data, progress=lambda m: print(m, flush=True)), clips_dir)
+            except ConfigError as exc:
+                return _fail(str(exc))
+        render_media(settings.data, clips_dir, out, settings.secret,
+                     RenderSettings(width=width, height=height, shadows=shadows), increments=increments,
+                     workers=workers, progress=lambda m: print(m, flush=True))
+    except (AssetError, MediaError) as exc:
+        return _fail(str(exc))
+    except OSError as exc:
+        return _fail(f"cannot write videos to {out}: {exc}")
+    return 0
+
+
+def prepare_study(settings: Settings, session_factory: object) -> None:
+    """When the database holds no study: build the clip set and the videos the thesis design needs (what is
+    missing), then create and open the default study."""
+    from sqlalchemy import select
+
+    from anim_core.clipset import build_clip_set, write_clip_set
+    from server.media.build import render_media
+    from server.studies.design import Design
+    from server.studies.models import Study, StudyState
+    from server.studies.service import create_study, required_pairs, set_state
+
+    with session_factory() as session:  # type: ignore[operator]
+        if session.scalar(select(Study.id).limit(1)) is not None:
+            return
+        design = Design()
+        if not (settings.clips_dir / "manifest.json").is_file():
+            print(f"building the clip set in {settings.clips_dir}", flush=True)
+            write_clip_set(build_clip_set(settings.data, progress=lambda m: print(m, flush=True)), settings.clips_dir)
+        manifest = render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret,
+                                pairs=required_pairs(design), progress=lambda m: print(m, flush=True))
+        media = json.loads(manifest.read_text(encoding="utf-8"))
+        study = create_study(session, media, design)
+        set_state(session, study, StudyState.open)
+        print(f"created and opened study {study.slug!r} ({len(study.comparisons)} comparisons)", flush=True)
+
+
+def ensure_researcher(settings: Settings, session_factory: object) -> None:
+    """The first researcher account: from ANIMSTUDY_ADMIN_EMAIL/PASSWORD, or made up and printed once."""
+    import secrets
+
+    from sqlalchemy import select
+
+    from server.researchers.models import Researcher
+    from server.researchers.service import create_researcher
+
+    with session_factory() as session:  # type: ignore[operator]
+        if session.scalar(select(Researcher.id).limit(1)) is not None:
+            return
+        email = settings.admin_email or "admin@localhost"
+        password = settings.admin_password or secrets.token_urlsafe(12)
+        create_researcher(session, email, password)
+        shown = password if not settings.admin_password else "(from ANIMSTUDY_ADMIN_PASSWORD)"
+        print(f"researcher account created: e-mail {email}, password {shown}", flush=True)
+
+
+def serve(settings: Settings, host: str, port: int, workers: int) -> int:
+    """Migrate, prepare the default study if there is none, and serve."""
+    import uvicorn
+
+    from anim_core.assets import AssetError
+    from anim_core.clipset import ConfigError
+    from server.db import make_engine, migrate, session_factory
+    from server.errors import ServiceError
+    from server.media.build import MediaError
+
+    engine = make_engine(settings.sqlalchemy_url)
+    try:
+        migrate(engine)
+        factory = session_factory(engine)
+        prepare_study(settings, factory)
+        ensure_researcher(settings, factory)
+    except (AssetError, ConfigError, MediaError, ServiceError) as exc:
+        return _fail(str(exc))
+    finally:
+        engine.dispose()
+    print(f"serving on http://{host}:{port} (database {engine.url.render_as_string(hide_password=True)})",
+          flush=True)
+    uvicorn.run("server.app:app_from_env", factory=True, host=host, port=port, workers=workers,
+                log_level="info")
+    return 0
+
+
+def researcher_create(settings: Settings, email: str, password: str) -> int:
+    from server.db import make_engine, migrate, session_factory
+    from server.errors import ServiceError
+    from server.researchers.service import create_researcher
+
+    engine = make_engine(settings.sqlalchemy_url)
+    migrate(engine)
+    try:
+        with session_factory(engine)() as session:
+            researcher = create_researcher(session, email, password)
+    except ServiceError as exc:
+        return _fail(exc.detail)
+    print(f"researcher {researcher.email} created")
+    return 0
+
+
+def bench(settings: Settings, json_path: Path, characters: list[int], stages: list[str], frames: int) -> int:
+    """Run the performance benchmark; write JSON (for the dashboard too) and the plots beside it."""
+    # One thread for numpy/BLAS in the main figures (the compiled kernel's threads are a separate figure).
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"
+    from anim_core import benchmark
+    from anim_core.assets import AssetError
+    from anim_core.clipset import ConfigError, build_clip_set
+
+    started = time.perf_counter()
+    try:
+        print("building the clip set", flush=True)
+        clips = build_clip_set(settings.data)
+    except (AssetError, ConfigError) as exc:
+        return _fail(str(exc))
+    doc = benchmark.run(clips, characters, stages, frames=frames, progress=lambda m: print(m, flush=True))
+    doc["series"] = benchmark.series(doc["results"])
+    doc["x_label"], doc["y_label"] = "characters", "ms per frame (pose, one thread)"
+    try:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+        plots = benchmark.write_plots(doc, json_path.parent)
+    except OSError as exc:
+        return _fail(f"cannot write the results: {exc}")
+    print(f"\n{'animation':8} {'method':9} {'inc':>3} {'chars':>6} {'median ms':>10} {'p95 ms':>8} {'FPS':>8} "
+          f"{'hybrid/keyframe':>15}")
+    rows = [r for r in doc["results"] if r["stage"] == "pose" and r["variant"] == "default" and r["threads"] == 1]
+    keyframe = {(r["animation"], r["characters"]): r["median_ms"] for r in rows if r["method"] == "keyframe"}
+    for r in rows:
+        base = keyframe[(r["animation"], r["characters"])]
+        ratio = "" if r["method"] == "keyframe" else f"{r['median_ms'] / base:.3f}"
+        inc = "" if r["increment"] is None else r["increment"]
+        print(f"{r['animation']:8} {r['method']:9} {inc:>3} {r['characters']:>6} {r['median_ms']:10.3f} "
+              f"{r['p95_ms']:8.3f} {r['fps']:8.0f} {ratio:>15}")
+    summary = doc["summary"]
+    print(f"\nworst hybrid/keyframe ratio at >= 10 characters: {summary['max_ratio_at_10_or_more']}")
+    print(f"{summary['largest_crowd']} characters: worst median {summary['largest_crowd_worst_ms']:.2f} ms per frame")
+    print(f"results: {json_path}; plots: {', '.join(p.name for p in plots)}; "
+          f"{time.perf_counter() - started:.0f} s in all")
+    return 0
+
+
+def _int_list(minimum: int, example: str) -> Callable[[str], list[int]]:
+    """An argparse type: comma-separated integers, each at least ``minimum``."""
+    def parse(text: str) -> list[int]:
+        try:
+            values = [int(v) for v in text.split(",") if v.strip()]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected comma-separated numbers like {example}, got {text!r}") from None
+        if not values or any(v < minimum for v in values):
+            raise argparse.ArgumentTypeError(f"expected comma-separated numbers ≥ {minimum} like {example}, "
+                                             f"got {text!r}")
+        return values
+    return parse
+
+
+def _stages(text: str) -> list[str]:
+    stages = [s.strip() for s in text.split(",") if s.strip()]
+    if not stages or any(s not in ("pose", "skin") for s in stages):
+        raise argparse.ArgumentTypeError(f"stages are pose and skin, got {text!r}")
+    return stages
+
+
+def _even(text: str) -> int:
+    value = int(text)
+    if value < 16 or value % 2:
+        raise argparse.ArgumentTypeError(f"video sizes must be even and at least 16, got {value}")
+    return value
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["loadtest"]:  # its own options (see server/loadtest.py)
+        from server import loadtest
+
+        return loadtest.main(argv[1:])
+    parser = argparse.ArgumentParser(prog="animstudy", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser("inspect", help="summarize the motion-capture files of the data directory")
+    sub.add_parser("loadtest", help="load, crash and outage test of the participant API (see --help)")
+    clips = sub.add_parser("clips", help="the clip set (keyframe and hybrid clips with motion metrics)")
+    clips_sub = clips.add_subparsers(dest="clips_command", required=True)
+    build = clips_sub.add_parser("build", help="build the clip set from the data directory")
+    build.add_argument("--out", type=Path, default=None, help="output folder (default: <var dir>/clips)")
+    build.add_argument("--config", type=Path, default=None, help="clip set TOML (default: the built-in one)")
+    rend = sub.add_parser("render", help="pre-render every clip and compared pair into blind videos")
+    rend.add_argument("--out", type=Path, default=None, help="video folder (default: <var dir>/media)")
+    rend.add_argument("--clips", type=Path, default=None, help="clip set folder (default: <var dir>/clips)")
+    rend.add_argument("--workers", type=int, default=2, help="worker processes (default: 2)")
+    rend.add_argument("--increments", type=_int_list(0, "0,1"), default=[0, 1],
+                      help="hybrid increments compared with the keyframe clip (default: 0,1)")
+    rend.add_argument("--width", type=_even, default=640)
+    rend.add_argument("--height", type=_even, default=480)
+    rend.add_argument("--no-shadows", action="store_true")
+    srv = sub.add_parser("serve", help="migrate the database, prepare the default study if needed, and serve")
+    srv.add_argument("--host", default="127.0.0.1")
+    srv.add_argument("--port", type=int, default=8000)
+    srv.add_argument("--workers", type=int, default=1, help="uvicorn worker processes (default: 1)")
+    researcher = sub.add_parser("researcher", help="researcher accounts")
+    researcher_sub = researcher.add_subparsers(dest="researcher_command", required=True)
+    rc = researcher_sub.add_parser("create", help="create a researcher account")
+    rc.add_argument("--email", required=True)
+    rc.add_argument("--password", required=True)
+    bn = sub.add_parser("bench", help="time pose evaluation of crowds, keyframe against hybrid")
+    bn.add_argument("--json", type=Path, default=None, help="results file (default: <var dir>/benchmark/results.json)")
+    bn.add_argument("--characters", type=_int_list(1, "10,200"), default=None, help="crowd sizes, e.g. 10,200,10000")
+    bn.add_argument("--stages", type=_stages, default=["pose", "skin"], help="pose, skin or both (default)")
+    bn.add_argument("--frames", type=int, default=200, help="timed frames per measurement (default: 200)")
+    args = parser.parse_args(argv)
+    settings = Settings.from_env()
+    if args.command == "bench":
+        from anim_core.benchmark import DEFAULT_CHARACTERS
+
+        return bench(settings, args.json or settings.benchmark_path, args.characters or list(DEFAULT_CHARACTERS),
+                     args.stages, max(1, args.frames))
+    if args.command == "serve":
+        return serve(settings, args.host, args.port, max(1, args.workers))
+    if args.command == "researcher":
+        return researcher_create(settings, args.email, args.password)
+    if args.command == "inspect":
+        return inspect(settings.data)
+    if args.command == "render":
+        return render(settings, args.out or settings.var / "media", args.clips or settings.var / "clips",
+                      max(1, args.workers), args.increments, args.width, args.height, not args.no_shadows)
+    return clips_build(settings.data, args.out or settings.var / "clips", args.config)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,85 @@
+"""The service's settings, read once from the environment (prefix ``ANIMSTUDY_``, plus ``DATABASE_URL``)."""
+
+from __future__ import annotations
+
+import os
+from functools import cached_property
+from pathlib import Path
+
+from pydantic import AliasChoices, Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+class Settings(BaseSettings):
+    """``ANIMSTUDY_DATA_DIR``: read-only source assets (motion capture, character); default ``../shared/data``
+    beside the checkout.  ``ANIMSTUDY_VAR_DIR``: everything the service writes (database file, clips, videos,
+    secret key); default ``./var``.  ``DATABASE_URL``: default an SQLite file in the var directory; a
+    ``postgresql://`` URL is the real deployment.  ``ANIMSTUDY_SECRET_KEY``: signs researcher tokens and names the
+    videos; default a random key kept in ``<var>/secret.key``."""
+
+    model_config = SettingsConfigDict(env_prefix="ANIMSTUDY_", extra="ignore")
+
+    data_dir: Path = REPO_ROOT.parent / "shared" / "data"
+    var_dir: Path = Path("var")
+    database_url: str | None = Field(default=None, validation_alias=AliasChoices("DATABASE_URL",
+                                                                                 "ANIMSTUDY_DATABASE_URL"))
+    secret_key: str | None = None
+    admin_email: str | None = None
+    admin_password: str | None = None
+    token_hours: float = 12.0
+
+    @classmethod
+    def from_env(cls) -> Settings:
+        return cls()
+
+    @cached_property
+    def data(self) -> Path:
+        return self.data_dir.resolve()
+
+    @cached_property
+    def var(self) -> Path:
+        return self.var_dir.resolve()
+
+    @property
+    def clips_dir(self) -> Path:
+        return self.var / "clips"
+
+    @property
+    def media_dir(self) -> Path:
+        return self.var / "media"
+
+    @property
+    def benchmark_path(self) -> Path:
+        """Results of ``animstudy benchmark`` (shown on the dashboard when present)."""
+        return self.var / "benchmark" / "results.json"
+
+    @property
+    def sqlalchemy_url(self) -> str:
+        return normalize_database_url(self.database_url or f"sqlite:///{self.var / 'animstudy.db'}")
+
+    @cached_property
+    def secret(self) -> bytes:
+        """The secret key (created once, 0600, in the var directory when not set)."""
+        if self.secret_key:
+            return self.secret_key.encode()
+        path = self.var / "secret.key"
+        if not path.exists():
+            path.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            except FileExistsError:  # another process made it first
+                pass
+            else:
+                with os.fdopen(fd, "w") as f:
+                    f.write(os.urandom(32).hex())
+        return path.read_text().strip().encode()
+
+
+def normalize_database_url(url: str) -> str:
+    """``postgresql://`` and ``postgres://`` URLs use the psycopg 3 driver."""
+    for prefix in ("postgres://", "postgresql://"):
+        if url.startswith(prefix):
+            return "postgresql+psycopg://" + url[len(prefix):]
+    return url

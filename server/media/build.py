@@ -1,0 +1,430 @@
+"""Pre-rendering of a clip set into blind videos: one per clip, and one side-by-side video per compared pair.
+
+Every output's name is ``HMAC(secret, key)`` where ``key`` hashes everything that decides its pixels (clip content,
+character, render settings, camera, layout); so names are opaque, stable across runs, and an output whose file
+exists is up to date.  Only ``manifest.json`` (read by the server, never served) says what a name shows.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import hmac
+import json
+import multiprocessing
+import os
+import re
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from anim_core import assets
+from anim_core.assets import CHARACTER_FILES
+
+from .scene import Framing, RenderSettings, frame_motion
+
+if TYPE_CHECKING:
+    from anim_core.character import Character
+
+MANIFEST = "manifest.json"
+MEDIA_NAME = re.compile(r"^[0-9a-f]{24}\.(mp4|jpg)$")
+DIVIDER_PX = 4
+DIVIDER_RGB = (58, 60, 64)
+BODY_PADDING_M = 0.12  # how far the skin reaches beyond the joints, for framing and shadow bounds
+
+
+class MediaError(ValueError):
+    """The clip set to render is missing or inconsistent."""
+
+
+@dataclass(frozen=True)
+class ClipFile:
+    """A clip of the clip set, as the manifest of ``animstudy clips build`` describes it."""
+
+    id: str
+    animation: str
+    method: str
+    increment: int | None
+    path: Path
+    fps: int
+    frames: int
+    playback: str
+    in_place: bool
+    root_speed_mps: float
+    digest: str  # sha256 of the clip's arrays
+
+
+@dataclass(frozen=True)
+class Output:
+    """One video (and its poster): a single clip, or a side-by-side pair (left, right)."""
+
+    name: str
+    clips: tuple[str, ...]
+    key: str
+
+    @property
+    def video(self) -> str:
+        return f"{self.name}.mp4"
+
+    @property
+    def poster(self) -> str:
+        return f"{self.name}.jpg"
+
+
+@dataclass(frozen=True)
+class AnimationJob:
+    """Everything one worker needs to render the missing outputs of one animation."""
+
+    animation: str
+    data_dir: Path
+    clips: dict[str, ClipFile]
+    outputs: list[Output]
+    settings: RenderSettings
+    framing: Framing
+    grid_spacing_m: float
+    out_dir: Path
+    n_frames: int = field(default=0)
+
+
+def _digest_arrays(path: Path) -> str:
+    h = hashlib.sha256()
+    with np.load(path) as arrays:
+        for name in sorted(arrays.files):
+            a = arrays[name]
+            h.update(name.encode())
+            h.update(str(a.dtype).encode() + str(a.shape).encode())
+            h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def read_clip_set(clips_dir: Path) -> list[ClipFile]:
+    """The clips listed in ``clips_dir/manifest.json``."""
+    manifest_path = Path(clips_dir) / MANIFEST
+    try:
+        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+        clips = []
+        for e in manifest["clips"]:
+            path = Path(clips_dir) / e["file"]
+            clips.append(ClipFile(e["id"], e["animation"], e["method"], e["increment"], path, int(e["fps"]),
+                                  round(e["duration_s"] * e["fps"]), e["playback"], bool(e["in_place"]),
+                                  float(e["root_speed_mps"]), _digest_arrays(path)))
+    except FileNotFoundError as exc:
+        raise MediaError(f"no clip set at {clips_dir}: {exc.filename} is missing (run `animstudy clips build`)"
+                         ) from None
+    except (KeyError, TypeError, ValueError, OSError) as exc:
+        raise MediaError(f"the clip set in {clips_dir} is unreadable ({exc!r}); rebuild it") from None
+    return clips
+
+
+def default_pairs(clips: Sequence[ClipFile], increments: Sequence[int]) -> list[tuple[str, str]]:
+    """Keyframe against each compared hybrid increment, in both side orders (the thesis design)."""
+    pairs = []
+    for c in clips:
+        if c.method == "hybrid" and c.increment in increments:
+            keyframe = f"{c.animation}-keyframe"
+            pairs += [(keyframe, c.id), (c.id, keyframe)]
+    return pairs
+
+
+def _name(secret: bytes, key: str) -> str:
+    return hmac.new(secret, key.encode(), hashlib.sha256).hexdigest()[:24]
+
+
+def _key(scene: dict[str, Any], layout: str, clips: Sequence[ClipFile]) -> str:
+    text = json.dumps({"scene": scene, "layout": layout, "clips": [c.digest for c in clips]}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def grid_spacing(clip: ClipFile, settings: RenderSettings) -> float:
+    """Grid spacing that a looping in-place walk scrolls by a whole number of cells per cycle (a seamless loop)."""
+    if not clip.in_place or clip.root_speed_mps <= 0:
+        return settings.grid_spacing_m
+    stride = clip.root_speed_mps * clip.frames / clip.fps
+    return stride / max(1, round(stride / settings.grid_spacing_m))
+
+
+def _rendered_frames(clip: ClipFile) -> int:
+    """Frames actually rendered: the backward half of a ping-pong period repeats the forward half."""
+    return clip.frames // 2 + 1 if clip.playback == "pingpong" else clip.frames
+
+
+@dataclass
+class Plan:
+    jobs: list[AnimationJob]
+    clip_outputs: dict[str, Output]
+    pair_outputs: dict[tuple[str, str], Output]
+    clips: dict[str, ClipFile]
+
+    @property
+    def outputs(self) -> list[Output]:
+        return [*self.clip_outputs.values(), *self.pair_outputs.values()]
+
+
+def plan(data_dir: Path, clips_dir: Path, out_dir: Path, settings: RenderSettings, secret: bytes,
+         pairs: Sequence[tuple[str, str]] | None = None, increments: Sequence[int] = (0, 1),
+         animations: Sequence[str] | None = None) -> Plan:
+    """Work out every output's name and which ones are missing, grouped into one job per animation.
+
+    ``animations`` limits the plan to those animations' clips (default: all).
+    """
+    clips = {c.id: c for c in read_clip_set(clips_dir) if animations is None or c.animation in animations}
+    pairs = list(pairs) if pairs is not None else default_pairs(list(clips.values()), increments)
+    for left, right in pairs:
+        if left not in clips or right not in clips:
+            raise MediaError(f"pair ({left}, {right}) names a clip that is not in the clip set")
+        if clips[left].animation != clips[right].animation or clips[left].frames != clips[right].frames:
+            raise MediaError(f"pair ({left}, {right}) joins clips of different animations or lengths")
+    character = [hashlib.sha256(assets.read_bytes(assets.verify(data_dir, f))).hexdigest() for f in CHARACTER_FILES]
+    jobs, clip_outputs, pair_outputs = [], {}, {}
+    for animation in dict.fromkeys(c.animation for c in clips.values()):
+        group = {i: c for i, c in clips.items() if c.animation == animation}
+        positions = np.concatenate([np.load(c.path)["world_positions"] for c in group.values()])
+        framing = frame_motion(positions, settings, padding=BODY_PADDING_M)
+        spacing = grid_spacing(next(iter(group.values())), settings)
+        scene = {"settings": settings.as_dict(), "character": character, "framing": asdict(framing),
+                 "grid_spacing_m": spacing, "divider": [DIVIDER_PX, *DIVIDER_RGB]}
+        outputs = []
+        for c in group.values():
+            key = _key(scene, "clip", [c])
+            clip_outputs[c.id] = Output(_name(secret, key), (c.id,), key)
+            outputs.append(clip_outputs[c.id])
+        for left, right in pairs:
+            if clips[left].animation == animation:
+                key = _key(scene, "pair", [clips[left], clips[right]])
+                pair_outputs[(left, right)] = Output(_name(secret, key), (left, right), key)
+                outputs.append(pair_outputs[(left, right)])
+        missing = [o for o in outputs if not (out_dir / o.video).is_file() or not (out_dir / o.poster).is_file()]
+        if missing:
+            n_frames = sum(_rendered_frames(clips[i]) for i in {i for o in missing for i in o.clips})
+            jobs.append(AnimationJob(animation, data_dir, group, missing, settings, framing, spacing, out_dir,
+                                     n_frames))
+    return Plan(sorted(jobs, key=lambda j: -j.n_frames), clip_outputs, pair_outputs, clips)
+
+
+# --- worker side -----------------------------------------------------------------------------------------------
+
+def _init_worker() -> None:
+    # llvmpipe reads this when the first context is made: one thread per worker process, two processes.
+    os.environ["LP_NUM_THREADS"] = "1"
+
+
+def _release_memory() -> None:
+    """Hand freed heap back to the system between clips (encoders and frame buffers are large)."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc
+        pass
+
+
+@functools.cache
+def _character(data_dir: Path) -> Character:
+    from anim_core.character import load_character
+
+    return load_character(data_dir)  # once per worker process, not per job
+
+
+def run_job(job: AnimationJob) -> list[tuple[str, float]]:
+    """Render the job's outputs; returns (output name, seconds) per finished video."""
+    from anim_core.character import bind_mesh
+
+    from .renderer import ClipRenderer
+    from .video import Planes, VideoWriter, hstack_planes, write_poster, yuv420
+
+    started = time.perf_counter()
+    arrays = {i: dict(np.load(c.path)) for i, c in job.clips.items()}
+    first = next(iter(arrays.values()))
+    character = _character(job.data_dir)
+    mesh = bind_mesh(character, [str(n) for n in first["joint_names"]], first["bind_rotations"],
+                     first["bind_positions"])
+    everything = np.concatenate([a["world_positions"].reshape(-1, 3) for a in arrays.values()])
+    bounds = np.array([everything.min(axis=0) - 0.3, everything.max(axis=0) + 0.3])
+    renderer = ClipRenderer(mesh, character.faces, job.framing, job.settings, bounds, job.grid_spacing_m)
+    s = job.settings
+    pairs = [o for o in job.outputs if len(o.clips) == 2]
+    # Pairs need both sides at once: keep the frames of the clip shared by most pairs (the keyframe clip) and of
+    # the first side of any pair without it; everything else streams.
+    counts: dict[str, int] = {}
+    for o in pairs:
+        for i in set(o.clips):
+            counts[i] = counts.get(i, 0) + 1
+    anchor = max(counts, key=lambda i: counts[i]) if counts else None
+    held = {anchor} | {o.clips[0] for o in pairs if anchor not in o.clips and o.clips[0] != o.clips[1]}
+    held.discard(None)
+    needed = {i for o in job.outputs for i in o.clips}
+    order = sorted(needed, key=lambda i: (i not in held, i))
+    first_rgb: dict[str, NDArray[np.uint8]] = {}  # posters of pairs are RGB
+    # Frames are kept and tiled as the encoder's YUV 4:2:0 planes: half the memory, and one conversion per frame.
+    divider = yuv420(np.broadcast_to(np.array(DIVIDER_RGB, np.uint8), (s.height, DIVIDER_PX, 3)))
+
+    def frames_of(clip: ClipFile) -> Iterator[tuple[int, Planes, NDArray[np.uint8] | None]]:
+        """(frame, planes, RGB or None) in playback order.  The second half of a ping-pong period is the first
+        half backwards (frame f shows the pose of frame T - f), so only the first half is rendered."""
+        a = arrays[clip.id]
+        n = _rendered_frames(clip)
+        shift = (np.arange(n) / clip.fps * clip.root_speed_mps) % job.grid_spacing_m
+        rendered = []
+        for f, rgb in enumerate(renderer.render(a["world_rotations"][:n], a["world_positions"][:n], shift)):
+            planes = yuv420(rgb)
+            rendered.append(planes)
+            yield f, planes, rgb
+        for f in range(n, clip.frames):
+            yield f, rendered[clip.frames - f], None
+
+    kept: dict[str, list[Planes]] = {}
+    first_rgb: dict[str, NDArray[np.uint8]] = {}  # for the posters of pairs
+    done: list[tuple[str, float]] = []
+    for k, clip_id in enumerate(order, 1):
+        clip = job.clips[clip_id]
+        print(f"  {job.animation}: rendering clip {k}/{len(order)} ({clip.frames} frames)", flush=True)
+        single = next((o for o in job.outputs if o.clips == (clip_id,)), None)
+        # Pairs that can be written while this clip renders: the other side is held, or it is this clip.
+        ready = [o for o in pairs if clip_id in o.clips and all(i == clip_id or i in kept for i in o.clips)]
+        writers = {}
+        if single is not None:
+            writers[single.name] = VideoWriter(job.out_dir / single.video, s.width, s.height, clip.fps)
+        for o in ready:
+            writers[o.name] = VideoWriter(job.out_dir / o.video, 2 * s.width + DIVIDER_PX, s.height, clip.fps)
+        frames: list[Planes] = []
+        t0 = time.perf_counter()
+        try:
+            for f, planes, rgb in frames_of(clip):
+                if f == 0:
+                    first_rgb[clip_id] = rgb
+                if single is not None:
+                    writers[single.name].write(planes)
+                    if f == 0:
+                        write_poster(job.out_dir / single.poster, rgb)
+                for o in ready:
+                    left = planes if o.clips[0] == clip_id else kept[o.clips[0]][f]
+                    right = planes if o.clips[1] == clip_id else kept[o.clips[1]][f]
+                    writers[o.name].write(hstack_planes(left, divider, right))
+                    if f == 0:
+                        bar = np.broadcast_to(np.array(DIVIDER_RGB, np.uint8), (s.height, DIVIDER_PX, 3))
+                        poster = np.concatenate([first_rgb[o.clips[0]], bar, first_rgb[o.clips[1]]], axis=1)
+                        write_poster(job.out_dir / o.poster, poster)
+                if clip_id in held:
+                    frames.append(planes)
+        except BaseException:
+            for w in writers.values():
+                w.abort()
+            raise
+        for w in writers.values():
+            w.close()
+        done += [(name, time.perf_counter() - t0) for name in writers]
+        if clip_id in held:
+            kept[clip_id] = frames
+        _release_memory()
+    renderer.close()
+    print(f"  {job.animation}: {len(done)} videos in {time.perf_counter() - started:.1f} s", flush=True)
+    return done
+
+
+# --- main side -------------------------------------------------------------------------------------------------
+
+class PeakMemory:
+    """Samples the resident memory of this process and all its descendants (Linux ``/proc``) in a thread."""
+
+    def __init__(self, interval: float = 0.1) -> None:
+        self.peak_bytes = 0
+        self._interval = interval
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    @staticmethod
+    def _tree_rss() -> int:
+        parents: dict[int, int] = {}
+        rss: dict[int, int] = {}
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                fields = stat.read_text().rsplit(")", 1)[1].split()
+            except OSError:  # the process ended while we looked
+                continue
+            pid = int(stat.parent.name)
+            parents[pid] = int(fields[1])
+            rss[pid] = int(fields[21]) * os.sysconf("SC_PAGE_SIZE")
+        tree, frontier = {os.getpid()}, [os.getpid()]
+        while frontier:
+            parent = frontier.pop()
+            children = [pid for pid, pp in parents.items() if pp == parent and pid not in tree]
+            tree.update(children)
+            frontier += children
+        return sum(rss.get(pid, 0) for pid in tree)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.peak_bytes = max(self.peak_bytes, self._tree_rss())
+            self._stop.wait(self._interval)
+
+    def __enter__(self) -> PeakMemory:
+        if Path("/proc/self/stat").exists():
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()
+
+
+def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
+                 settings: RenderSettings | None = None, pairs: Sequence[tuple[str, str]] | None = None,
+                 increments: Sequence[int] = (0, 1), workers: int = 2, animations: Sequence[str] | None = None,
+                 progress: Callable[[str], None] = lambda _m: None) -> Path:
+    """Render what is missing, write the manifest, remove stale media; returns the manifest path."""
+    settings = settings or RenderSettings()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    p = plan(data_dir, clips_dir, out_dir, settings, secret, pairs, increments, animations)
+    todo = sum(len(j.outputs) for j in p.jobs)
+    progress(f"{len(p.outputs)} videos, {len(p.outputs) - todo} up to date, {todo} to render "
+             f"({sum(j.n_frames for j in p.jobs)} frames, {min(workers, max(1, len(p.jobs)))} workers)")
+    if p.jobs:
+        with PeakMemory() as memory:
+            if workers <= 1:
+                _init_worker()
+                results = [run_job(j) for j in p.jobs]
+            else:
+                ctx = multiprocessing.get_context("spawn")  # fresh processes: OpenGL state never crosses a fork
+                with ProcessPoolExecutor(max_workers=min(workers, len(p.jobs)), mp_context=ctx,
+                                         initializer=_init_worker) as pool:
+                    futures = [pool.submit(run_job, j) for j in p.jobs]
+                    results = [f.result() for f in as_completed(futures)]
+        progress(f"rendered {sum(len(r) for r in results)} videos in {time.perf_counter() - started:.1f} s, "
+                 f"peak memory {memory.peak_bytes / 2**20:.0f} MiB (all processes)")
+    manifest = _manifest(p, settings)
+    path = out_dir / MANIFEST
+    tmp = path.with_name(f".{MANIFEST}.tmp")
+    tmp.write_text(json.dumps(manifest, indent=2) + "\n", encoding="utf-8")
+    tmp.replace(path)
+    keep = {o.video for o in p.outputs} | {o.poster for o in p.outputs}
+    stale = [f for f in out_dir.iterdir() if (MEDIA_NAME.match(f.name) and f.name not in keep)
+             or f.name.endswith(".tmp")]
+    for f in stale:
+        f.unlink()
+    progress(f"done in {time.perf_counter() - started:.1f} s ({len(stale)} stale files removed) -> {path}")
+    return path
+
+
+def _manifest(p: Plan, settings: RenderSettings) -> dict[str, Any]:
+    def entry(o: Output, width: int) -> dict[str, Any]:
+        c = p.clips[o.clips[0]]
+        return {"video": o.video, "poster": o.poster, "frames": c.frames, "fps": c.fps, "width": width,
+                "height": settings.height}
+
+    pair_width = 2 * settings.width + DIVIDER_PX
+    return {
+        "version": 1,
+        "settings": settings.as_dict(),
+        "clips": {i: {"clip": i, **entry(o, settings.width)} for i, o in p.clip_outputs.items()},
+        "pairs": [{"left": left, "right": right, **entry(o, pair_width)}
+                  for (left, right), o in p.pair_outputs.items()],
+    }

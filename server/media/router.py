@@ -1,0 +1,25 @@
+"""Serving the pre-rendered videos and posters: opaque names only, byte ranges, long-lived caching."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+from fastapi.responses import FileResponse
+
+from server.deps import SettingsDep
+from server.errors import NotFound
+
+from .build import MEDIA_NAME
+
+router = APIRouter(tags=["media"])
+# A name is the hash of the content, so a URL never changes meaning: cache it for a year.
+CACHE_CONTROL = "public, max-age=31536000, immutable"
+
+
+@router.get("/media/{name}", response_class=FileResponse)
+def media(name: str, settings: SettingsDep) -> FileResponse:
+    """A video or poster by its opaque name (HTTP Range requests are answered with 206)."""
+    path = settings.media_dir / name
+    if not MEDIA_NAME.match(name) or not path.is_file():  # also keeps the manifest and anything else private
+        raise NotFound("no such media file")
+    media_type = "video/mp4" if name.endswith(".mp4") else "image/jpeg"
+    return FileResponse(path, media_type=media_type, headers={"Cache-Control": CACHE_CONTROL})

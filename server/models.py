@@ -1,0 +1,9 @@
+"""Every table, for Alembic and for code that needs the whole schema."""
+
+from server.db import Base
+from server.participants.models import ParticipantSession, PlaybackEvent, Trial, Vote
+from server.researchers.models import Researcher
+from server.studies.models import Comparison, Stimulus, Study
+
+__all__ = ["Base", "Comparison", "ParticipantSession", "PlaybackEvent", "Researcher", "Stimulus", "Study", "Trial",
+           "Vote"]

@@ -1,0 +1,36 @@
+"""The browser side: the participant page and the static files it loads (no CDN; everything works offline)."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+from fastapi.responses import FileResponse, RedirectResponse
+from sqlalchemy import select
+
+from .config import REPO_ROOT
+from .deps import SessionDep
+from .errors import NotFound
+from .studies.models import Study, StudyState
+
+STATIC_DIR = REPO_ROOT / "static"
+router = APIRouter(include_in_schema=False)
+
+
+@router.get("/")
+def index(session: SessionDep) -> RedirectResponse:
+    """The open study (the default one first), so a bare address leads participants somewhere useful."""
+    slugs = session.scalars(select(Study.slug).where(Study.state == StudyState.open).order_by(Study.id)).all()
+    if not slugs:
+        raise NotFound("no study is open")
+    return RedirectResponse(f"/study/{'thesis' if 'thesis' in slugs else slugs[0]}")
+
+
+@router.get("/study/{slug}")
+def participant_page(slug: str) -> FileResponse:
+    # The page itself is the same for every study; it reads its texts from the API.
+    return FileResponse(STATIC_DIR / "participant.html", headers={"Cache-Control": "no-cache"})
+
+
+@router.get("/dashboard")
+def dashboard_page() -> FileResponse:
+    """The researcher dashboard (it asks for a login; the data comes from the authenticated API)."""
+    return FileResponse(STATIC_DIR / "dashboard.html", headers={"Cache-Control": "no-cache"})

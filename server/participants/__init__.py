@@ -1,0 +1,1 @@
+"""Participants: anonymous sessions, their trials and votes."""

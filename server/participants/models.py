@@ -1,0 +1,90 @@
+from __future__ import annotations
+
+from datetime import datetime
+from enum import StrEnum
+from typing import Any
+
+from sqlalchemy import JSON, BigInteger, ForeignKey, String, UniqueConstraint
+from sqlalchemy.orm import Mapped, mapped_column, relationship
+
+from server.db import Base, UTCDateTime, utcnow
+from server.studies.models import Comparison, Study
+
+
+class SessionState(StrEnum):
+    active = "active"
+    completed = "completed"
+    withdrawn = "withdrawn"
+
+
+class ParticipantSession(Base):
+    """An anonymous participant.  After withdrawal only the row (state, times) stays, for the withdrawal count."""
+
+    __tablename__ = "sessions"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    study_id: Mapped[int] = mapped_column(ForeignKey("studies.id", ondelete="CASCADE"), index=True)
+    token_hash: Mapped[str | None] = mapped_column(String(64), unique=True)
+    seed: Mapped[int] = mapped_column(BigInteger)
+    state: Mapped[str] = mapped_column(String(16), default=SessionState.active)
+    consent_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    consent_version: Mapped[str | None] = mapped_column(String(40))
+    gamer: Mapped[str | None] = mapped_column(String(16))
+    tech_savvy: Mapped[str | None] = mapped_column(String(16))
+    external: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    completed_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    withdrawn_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+
+    study: Mapped[Study] = relationship()
+    trials: Mapped[list[Trial]] = relationship(back_populates="session", cascade="all, delete-orphan",
+                                               order_by="Trial.index")
+
+
+class Trial(Base):
+    __tablename__ = "trials"
+    __table_args__ = (UniqueConstraint("session_id", "index"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    session_id: Mapped[str] = mapped_column(ForeignKey("sessions.id", ondelete="CASCADE"), index=True)
+    index: Mapped[int]
+    comparison_id: Mapped[int] = mapped_column(ForeignKey("comparisons.id"))
+    hybrid_side: Mapped[str] = mapped_column(String(8))
+    practice: Mapped[bool] = mapped_column(default=False)
+
+    session: Mapped[ParticipantSession] = relationship(back_populates="trials")
+    comparison: Mapped[Comparison] = relationship()
+    vote: Mapped[Vote | None] = relationship(back_populates="trial", cascade="all, delete-orphan")
+
+
+class Vote(Base):
+    """One answer to one trial, stored exactly once (unique trial; unique idempotency key per session)."""
+
+    __tablename__ = "votes"
+    __table_args__ = (UniqueConstraint("session_id", "idempotency_key"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    trial_id: Mapped[int] = mapped_column(ForeignKey("trials.id", ondelete="CASCADE"), unique=True)
+    session_id: Mapped[str] = mapped_column(ForeignKey("sessions.id", ondelete="CASCADE"), index=True)
+    choice: Mapped[str] = mapped_column(String(16))
+    score: Mapped[int]
+    rt_ms: Mapped[int]
+    idempotency_key: Mapped[str] = mapped_column(String(200))
+    request_hash: Mapped[str] = mapped_column(String(64))
+    extra: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    answered_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+    trial: Mapped[Trial] = relationship(back_populates="vote")
+
+
+class PlaybackEvent(Base):
+    """Something the participant's browser reported: a video that would not load, playback trouble."""
+
+    __tablename__ = "playback_events"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    session_id: Mapped[str] = mapped_column(ForeignKey("sessions.id", ondelete="CASCADE"), index=True)
+    trial_id: Mapped[int | None] = mapped_column(ForeignKey("trials.id", ondelete="CASCADE"))
+    kind: Mapped[str] = mapped_column(String(32))
+    detail: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)

@@ -1,0 +1,114 @@
+from __future__ import annotations
+
+import json
+from datetime import datetime
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+Answer = Literal["yes", "no", "dont_know"]
+Choice = Literal["left_much", "left_slightly", "equal", "right_slightly", "right_much"]
+MAX_EXTRA_BYTES = 16_384
+
+
+class SessionCreate(BaseModel):
+    consent: bool
+    external: dict[str, str] | None = Field(default=None, description="ids from a recruiting platform, e.g. "
+                                            "PROLIFIC_PID, STUDY_ID, SESSION_ID")
+
+    @field_validator("consent")
+    @classmethod
+    def consent_given(cls, value: bool) -> bool:
+        if value is not True:
+            raise ValueError("consent is required to take part; nothing is stored without it")
+        return value
+
+    @field_validator("external")
+    @classmethod
+    def small_ids(cls, value: dict[str, str] | None) -> dict[str, str] | None:
+        if value is not None and (len(value) > 10 or any(len(k) > 64 or len(v) > 200 for k, v in value.items())):
+            raise ValueError("at most 10 external ids, names up to 64 and values up to 200 characters")
+        return value
+
+
+class SessionCreated(BaseModel):
+    session_id: str
+    token: str
+    trials_total: int
+
+
+class DemographicsUpdate(BaseModel):
+    gamer: Answer
+    tech_savvy: Answer
+
+
+class DemographicsRead(DemographicsUpdate):
+    pass
+
+
+class SessionRead(BaseModel):
+    state: str
+    answered: int
+    trials_total: int
+    demographics_given: bool
+    completion_code: str | None = None
+    completion_url: str | None = None
+
+
+class TrialRead(BaseModel):
+    trial_id: int
+    index: int
+    total: int
+    practice: bool
+    video_url: str
+    preload_url: str | None
+
+
+class VoteCreate(BaseModel):
+    """The answer; extra fields (e.g. measured playback quality) are kept with the vote."""
+
+    model_config = ConfigDict(extra="allow")
+
+    choice: Choice
+    rt_ms: int = Field(ge=0, le=24 * 3600 * 1000)
+    idempotency_key: str = Field(min_length=1, max_length=200)
+
+    @model_validator(mode="after")
+    def small_extra(self) -> VoteCreate:
+        if len(json.dumps(self.model_extra or {}, default=str)) > MAX_EXTRA_BYTES:
+            raise ValueError(f"extra fields may hold at most {MAX_EXTRA_BYTES} bytes of JSON")
+        return self
+
+    def extra(self) -> dict[str, Any]:
+        return dict(self.model_extra or {})
+
+
+class VoteRead(BaseModel):
+    trial_id: int
+    choice: str
+    rt_ms: int
+    answered_at: datetime
+    answered: int
+    trials_total: int
+
+
+class WithdrawRead(BaseModel):
+    state: str
+
+
+class EventCreate(BaseModel):
+    kind: Literal["load_failure", "playback_stall", "error"]
+    trial_id: int | None = None
+    detail: dict[str, Any] | None = None
+
+    @field_validator("detail")
+    @classmethod
+    def small_detail(cls, value: dict[str, Any] | None) -> dict[str, Any] | None:
+        if value is not None and len(json.dumps(value, default=str)) > MAX_EXTRA_BYTES:
+            raise ValueError(f"detail may hold at most {MAX_EXTRA_BYTES} bytes of JSON")
+        return value
+
+
+class EventRead(BaseModel):
+    id: int
+    kind: str

@@ -1,0 +1,1 @@
+"""Researcher accounts and their bearer tokens."""

@@ -1,0 +1,1 @@
+"""Studies: what is compared (stimuli, comparisons), the design, state, results and exports."""

@@ -1,0 +1,66 @@
+"""The results document of a study: progress, statistics, and the objective metrics of its clips."""
+
+from __future__ import annotations
+
+import copy
+import json
+import statistics as pystats
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from server.participants.models import ParticipantSession, SessionState, Vote
+
+from .models import Study
+from .service import export_rows
+from .statistics import analyse
+
+
+def participant_counts(session: Session, study: Study) -> dict[str, int]:
+    """``started``: every session created (withdrawn included); ``completed``: finished and not withdrawn."""
+    rows = session.execute(select(ParticipantSession.state, func.count()).where(
+        ParticipantSession.study_id == study.id).group_by(ParticipantSession.state)).all()
+    by_state = {state: n for state, n in rows}
+    return {"started": sum(by_state.values()), "completed": by_state.get(SessionState.completed, 0),
+            "withdrawn": by_state.get(SessionState.withdrawn, 0), "active": by_state.get(SessionState.active, 0)}
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+
+
+@lru_cache(maxsize=16)
+def _analyse_cached(votes: tuple[tuple[tuple[str, Any], ...], ...], counts: tuple[tuple[str, int], ...]
+                    ) -> dict[str, Any]:
+    return analyse([dict(v) for v in votes], dict(counts))
+
+
+def study_results(session: Session, study: Study, clips_dir: Path, benchmark_path: Path) -> dict[str, Any]:
+    """Everything the dashboard shows.  The statistics are cached on their input: scipy's exact Wilcoxon for
+    up to 13 participants with ties enumerates sign patterns and takes seconds, and a dashboard polls."""
+    votes = tuple(tuple(sorted(v.items())) for v in export_rows(session, study))
+    counts = tuple(sorted(participant_counts(session, study).items()))
+    results = copy.deepcopy(_analyse_cached(votes, counts))
+    durations = [(ps.completed_at - ps.created_at).total_seconds() for ps in session.scalars(
+        select(ParticipantSession).where(ParticipantSession.study_id == study.id,
+                                         ParticipantSession.state == SessionState.completed))]
+    results["overview"] = {
+        "slug": study.slug, "title": study.title, "state": study.state,
+        "votes": session.scalar(select(func.count(Vote.id)).join(ParticipantSession).where(
+            ParticipantSession.study_id == study.id)) or 0,
+        "median_completion_s": pystats.median(durations) if durations else None,
+    }
+    manifest = _read_json(clips_dir / "manifest.json")
+    results["clips"] = [
+        {"id": c["id"], "animation": c["animation"], "method": c["method"], "increment": c["increment"],
+         "key_count": c["key_count"], "metrics": c["metrics"], "shown": c["id"] in {s.clip_id for s in study.stimuli}}
+        for c in (manifest or {}).get("clips", [])
+    ]
+    results["benchmark"] = _read_json(benchmark_path)
+    return results

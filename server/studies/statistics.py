@@ -1,0 +1,234 @@
+"""Statistics of a study's votes, with participants as the unit of analysis.
+
+Input is one record per vote (the export rows).  For every analysed comparison each participant contributes one
+number, the mean of their two side-swapped showings (practice and catch trials excluded); tests run on those
+participant means, never on raw votes (which are not independent).  Scores are from the hybrid's point of view:
++2 hybrid significantly better ... -2 keyframe significantly better.  An undefined statistic is ``None``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+from scipy import stats
+from statsmodels.stats.multitest import multipletests
+from statsmodels.stats.power import TTestPower
+
+from .service import CHOICE_SCORES
+
+SCORES = (-2, -1, 0, 1, 2)
+WILCOXON_ARE = 3 / math.pi  # asymptotic relative efficiency of Wilcoxon against t for a normal parent
+
+
+def _finite(value: float | None) -> float | None:
+    return None if value is None or not math.isfinite(value) else float(value)
+
+
+def wilcoxon_p(x: Sequence[float]) -> float | None:
+    """Two-sided Wilcoxon signed-rank p against 0 (Pratt's zero handling, scipy's default method)."""
+    x = np.asarray(x, dtype=float)
+    if x.size == 0 or not np.any(x != 0):
+        return None
+    try:
+        return _finite(stats.wilcoxon(x, zero_method="pratt").pvalue)
+    except ValueError:
+        return None
+
+
+def sign_test_p(x: Sequence[float]) -> float | None:
+    """Exact two-sided binomial test on the signs, zeros dropped."""
+    x = np.asarray(x, dtype=float)
+    n = int(np.count_nonzero(x))
+    return None if n == 0 else float(stats.binomtest(int(np.sum(x > 0)), n, 0.5).pvalue)
+
+
+def rank_biserial(x: Sequence[float]) -> float | None:
+    """Matched-pairs rank-biserial (T+ - T-)/(T+ + T-) on the ranks of the non-zero |x| (Kerby 2014)."""
+    x = np.asarray(x, dtype=float)
+    nz = x[x != 0]
+    if nz.size == 0:
+        return None
+    ranks = stats.rankdata(np.abs(nz))
+    return float((ranks[nz > 0].sum() - ranks[nz < 0].sum()) / ranks.sum())
+
+
+def t_interval(x: Sequence[float], level: float = 0.95) -> list[float] | None:
+    """Student-t confidence interval of the mean."""
+    x = np.asarray(x, dtype=float)
+    if x.size < 2:
+        return None
+    mean, sem = float(x.mean()), float(stats.sem(x))
+    if sem == 0:
+        return [mean, mean]
+    half = float(stats.t.ppf(0.5 + level / 2, x.size - 1)) * sem
+    return [mean - half, mean + half]
+
+
+def holm(pvalues: Sequence[float | None]) -> list[float | None]:
+    """Holm-adjusted p-values; ``None`` entries stay ``None`` and do not count towards the family."""
+    present = [i for i, p in enumerate(pvalues) if p is not None]
+    out: list[float | None] = [None] * len(pvalues)
+    if present:
+        adjusted = multipletests([pvalues[i] for i in present], method="holm")[1]
+        for i, p in zip(present, adjusted, strict=True):
+            out[i] = float(p)
+    return out
+
+
+def weighted_kappa(a: Sequence[int], b: Sequence[int], labels: Sequence[int] = SCORES,
+                   weights: str = "quadratic") -> float | None:
+    """Cohen's weighted kappa of two paired ratings over a fixed, ordered label set (unused labels count)."""
+    index = {label: i for i, label in enumerate(labels)}
+    k = len(labels)
+    observed = np.zeros((k, k))
+    for x, y in zip(a, b, strict=True):
+        observed[index[x], index[y]] += 1
+    n = observed.sum()
+    if n == 0:
+        return None
+    observed /= n
+    expected = np.outer(observed.sum(axis=1), observed.sum(axis=0))
+    i, j = np.indices((k, k))
+    w = (np.abs(i - j) if weights == "linear" else (i - j) ** 2) / (k - 1) ** (1 if weights == "linear" else 2)
+    denominator = float((w * expected).sum())
+    return None if denominator == 0 else float(1 - (w * observed).sum() / denominator)
+
+
+def krippendorff_alpha_ordinal(units: Iterable[Sequence[float]], values: Sequence[float] = SCORES) -> float | None:
+    """Krippendorff's alpha with the ordinal metric.
+
+    ``units``: for each unit, the values the coders gave it (missing ones left out); units with fewer than two
+    values are not pairable and drop out.  ``values``: the ordered value domain.
+    """
+    index = {v: i for i, v in enumerate(values)}
+    k = len(values)
+    coincidence = np.zeros((k, k))
+    for unit in units:
+        ratings = [index[v] for v in unit]
+        m = len(ratings)
+        if m < 2:
+            continue
+        counts = np.bincount(ratings, minlength=k).astype(float)
+        # Ordered pairs of different coders: c-k pairs number counts_c * counts_k (minus self-pairs on the diagonal).
+        coincidence += (np.outer(counts, counts) - np.diag(counts)) / (m - 1)
+    n_c = coincidence.sum(axis=1)
+    n = n_c.sum()
+    if n <= 1:
+        return None
+    cumulative = np.concatenate([[0.0], np.cumsum(n_c)])
+    c, kk = np.indices((k, k))
+    lo, hi = np.minimum(c, kk), np.maximum(c, kk)
+    delta2 = (cumulative[hi + 1] - cumulative[lo] - (n_c[c] + n_c[kk]) / 2) ** 2
+    observed = float((coincidence * delta2).sum() / n)
+    expected = float((np.outer(n_c, n_c) * delta2).sum() / (n * (n - 1)))
+    return None if expected == 0 else 1 - observed / expected
+
+
+def participants_needed(x: Sequence[float], power: float = 0.8, alpha: float = 0.05) -> int | None:
+    """Participants for ``power`` at the observed effect d_z = mean/sd (Wilcoxon via the t-test and its ARE)."""
+    x = np.asarray(x, dtype=float)
+    if x.size < 2 or float(x.std(ddof=1)) == 0 or float(x.mean()) == 0:
+        return None
+    d = abs(float(x.mean()) / float(x.std(ddof=1)))
+    n_t = TTestPower().solve_power(effect_size=d, power=power, alpha=alpha, alternative="two-sided")
+    return math.ceil(float(n_t) / WILCOXON_ARE)
+
+
+def _summary(x: Sequence[float]) -> dict[str, Any]:
+    x = list(x)
+    return {"n_participants": len(x), "mean_score": float(np.mean(x)) if x else None, "ci95": t_interval(x),
+            "wilcoxon_p": wilcoxon_p(x), "sign_test_p": sign_test_p(x), "rank_biserial": rank_biserial(x)}
+
+
+def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int]) -> dict[str, Any]:
+    """The results document of a study from its votes (export rows) and participant counts."""
+    analysed = [v for v in votes if not v["practice"] and not v["catch"]]
+    by_comparison: dict[tuple[str, int], dict[str, list[tuple[int, int, str]]]] = defaultdict(lambda: defaultdict(list))
+    for v in analysed:
+        by_comparison[(v["animation"], v["increment"])][v["session_id"]].append(
+            (v["trial_index"], v["score"], v["hybrid_side"]))
+
+    comparisons = []
+    for (animation, increment), per_person in sorted(by_comparison.items(),
+                                                     key=lambda kv: (kv[0][0], kv[0][1])):
+        scores = [s for showings in per_person.values() for _, s, _ in showings]
+        means = [float(np.mean([s for _, s, _ in showings])) for showings in per_person.values()
+                 if len(showings) == 2]
+        counts = {str(s): scores.count(s) for s in SCORES}
+        entry = {"animation": animation, "increment": increment, **_summary(means), "counts": counts,
+                 "votes": len(scores), "positive": sum(s > -2 for s in scores), "negative": scores.count(-2),
+                 "hybrid_better": sum(s > 0 for s in scores), "equal": scores.count(0),
+                 "keyframe_better": sum(s < 0 for s in scores),
+                 "participants_for_80_power": participants_needed(means)}
+        comparisons.append(entry)
+    for entry, p in zip(comparisons, holm([c["wilcoxon_p"] for c in comparisons]), strict=True):
+        entry["p_holm"] = p
+
+    # Side bias: each participant's mean raw answer, left = +2 ... right = -2, whatever is shown where.
+    raw: dict[str, list[int]] = defaultdict(list)
+    for v in analysed:
+        raw[v["session_id"]].append(CHOICE_SCORES[v["choice"]])
+    side_means = [float(np.mean(r)) for r in raw.values()]
+
+    # Swap consistency: first against second showing of each comparison, per participant.
+    first, second = [], []
+    for per_person in by_comparison.values():
+        for showings in per_person.values():
+            if len(showings) == 2:
+                a, b = sorted(showings)
+                first.append(a[1])
+                second.append(b[1])
+    pairs = list(zip(first, second, strict=True))
+
+    # Krippendorff: units = trial kinds (comparison x hybrid side), coders = participants.
+    units: dict[tuple[str, int, str], list[int]] = defaultdict(list)
+    for v in analysed:
+        units[(v["animation"], v["increment"], v["hybrid_side"])].append(v["score"])
+
+    return {
+        "participants": dict(participants),
+        "comparisons": comparisons,
+        "overall": _summary([float(np.mean([v["score"] for v in analysed if v["session_id"] == sid]))
+                             for sid in {v["session_id"] for v in analysed}]),
+        "side_bias": {"mean": float(np.mean(side_means)) if side_means else None, "p": wilcoxon_p(side_means),
+                      "n_participants": len(side_means)},
+        "swap_consistency": {
+            "weighted_kappa": weighted_kappa(first, second) if pairs else None,
+            "exact_agreement": float(np.mean([a == b for a, b in pairs])) if pairs else None,
+            "within_one": float(np.mean([abs(a - b) <= 1 for a, b in pairs])) if pairs else None,
+            "pairs": len(pairs),
+        },
+        "krippendorff_alpha_ordinal": krippendorff_alpha_ordinal(units.values()),
+        "demographics": _demographics(analysed),
+        "methods": {
+            "unit": "participant: mean of the two side-swapped showings of a comparison",
+            "wilcoxon": "scipy.stats.wilcoxon(participant_means, zero_method='pratt'), two-sided, default method",
+            "sign_test": "exact two-sided binomial test on the signs of participant means, zeros dropped",
+            "ci95": "Student t interval of the mean of participant means",
+            "multiplicity": "Holm over the comparisons' Wilcoxon p-values",
+            "power": "t-test power (statsmodels) at the observed d_z, divided by the Wilcoxon ARE 3/pi",
+            "thesis_grouping": "negative = keyframe significantly better (-2); positive = everything else",
+        },
+    }
+
+
+def _demographics(analysed: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Mean score and vote count per comparison for each answer to each demographic question."""
+    out: dict[str, Any] = {}
+    for question in ("gamer", "tech_savvy"):
+        groups: dict[str, dict[str, list[int]]] = defaultdict(lambda: defaultdict(list))
+        for v in analysed:
+            groups[v[question] or "unanswered"][f"{v['animation']}-{v['increment']}"].append(v["score"])
+        out[question] = {
+            answer: {
+                "participants": len({v["session_id"] for v in analysed if (v[question] or "unanswered") == answer}),
+                "comparisons": {key: {"mean_score": float(np.mean(s)), "votes": len(s)}
+                                for key, s in sorted(c.items())},
+            }
+            for answer, c in sorted(groups.items())
+        }
+    return out

@@ -1,0 +1,200 @@
+// The researcher dashboard: log in, watch progress, read the statistics, export.  Polls the results every 15 s.
+"use strict";
+
+(() => {
+  const $ = (id) => document.getElementById(id);
+  const params = new URLSearchParams(location.search);
+  const slug = params.get("study") || "thesis";
+  const TOKEN = "animstudy:researcher-token";
+  const SCORE = [
+    { key: "-2", label: "keyframe significantly better", color: "#b2182b" },
+    { key: "-1", label: "keyframe slightly better", color: "#ef8a62" },
+    { key: "0", label: "equal", color: "#cfcfcf" },
+    { key: "1", label: "hybrid slightly better", color: "#67a9cf" },
+    { key: "2", label: "hybrid significantly better", color: "#2166ac" },
+  ];
+  const ANSWERS = [
+    { key: "yes", label: "yes", color: "#2166ac" },
+    { key: "no", label: "no", color: "#ef8a62" },
+    { key: "dont_know", label: "don't know", color: "#9e9e9e" },
+    { key: "unanswered", label: "not answered", color: "#d9d9d9" },
+  ];
+  const METHODS = [
+    { key: "keyframe", label: "keyframe", color: "#555555" },
+    { key: "hybrid0", label: "hybrid increment 0", color: "#2166ac" },
+    { key: "hybrid1", label: "hybrid increment 1", color: "#67a9cf" },
+    { key: "hybrid2", label: "hybrid increment 2", color: "#b5d4e9" },
+  ];
+  let token = sessionStorage.getItem(TOKEN);
+  let results = null;
+  let timer = null;
+
+  const label = (c) => `${c.animation}, increment ${c.increment}`;
+  const fmt = (v, digits = 3) => (v === null || v === undefined ? "–" : Number(v).toFixed(digits));
+  const p = (v) => (v === null || v === undefined ? "–" : v < 0.001 ? "< 0.001" : v.toFixed(3));
+
+  async function api(path, options = {}) {
+    const headers = { ...(options.headers || {}), Authorization: `Bearer ${token}` };
+    const r = await fetch(`/api/v1${path}`, { ...options, headers, cache: "no-store" });
+    if (r.status === 401) { logout("Your login has expired; please log in again."); throw new Error("unauthorized"); }
+    return r;
+  }
+
+  function logout(message) {
+    token = null;
+    sessionStorage.removeItem(TOKEN);
+    clearInterval(timer);
+    $("dashboard").hidden = true;
+    $("actions").hidden = true;
+    $("login").hidden = false;
+    $("login-error").textContent = message || "";
+  }
+
+  $("login-form").addEventListener("submit", async (e) => {
+    e.preventDefault();
+    const body = new URLSearchParams(new FormData(e.target));
+    const r = await fetch("/api/v1/auth/token", { method: "POST", body });
+    if (!r.ok) { $("login-error").textContent = "Wrong e-mail or password."; return; }
+    token = (await r.json()).access_token;
+    sessionStorage.setItem(TOKEN, token);
+    await open();
+  });
+  $("logout").addEventListener("click", () => logout());
+
+  async function open() {
+    $("login").hidden = true;
+    await refresh();
+    clearInterval(timer);
+    timer = setInterval(() => refresh().catch(() => {}), 15000);
+  }
+
+  async function refresh() {
+    const r = await api(`/studies/${encodeURIComponent(slug)}/results`);
+    if (!r.ok) { $("status").textContent = `Cannot load the results (HTTP ${r.status}).`; return; }
+    results = await r.json();
+    render(results);
+    $("status").textContent = `Updated ${new Date().toLocaleTimeString()}`;
+  }
+
+  function card(value, text) {
+    const div = document.createElement("div");
+    div.className = "card";
+    div.innerHTML = `<div class="value"></div><div class="label"></div>`;
+    div.querySelector(".value").textContent = value;
+    div.querySelector(".label").textContent = text;
+    return div;
+  }
+
+  function table(container, header, rows) {
+    const t = document.createElement("table");
+    const head = t.createTHead().insertRow();
+    for (const h of header) { const th = document.createElement("th"); th.textContent = h; head.appendChild(th); }
+    const body = t.createTBody();
+    for (const row of rows) {
+      const tr = body.insertRow();
+      for (const cell of row) tr.insertCell().textContent = cell;
+    }
+    container.replaceChildren(t);
+  }
+
+  function render(res) {
+    $("dashboard").hidden = false;
+    $("actions").hidden = false;
+    const o = res.overview;
+    $("title").textContent = `${o.title} — ${o.slug}`;
+    $("state-badge").textContent = o.state;
+    $("state-badge").className = `badge ${o.state}`;
+    $("toggle-state").textContent = o.state === "open" ? "Close study" : "Open study";
+    const n = res.participants;
+    const minutes = o.median_completion_s === null ? "–" : `${(o.median_completion_s / 60).toFixed(1)} min`;
+    $("overview").replaceChildren(card(n.started, "started"), card(n.completed, "completed"),
+                                  card(n.withdrawn, "withdrawn"), card(n.active, "in progress"),
+                                  card(o.votes, "votes"), card(minutes, "median completion time"));
+    const comps = res.comparisons;
+    $("chart-distribution").replaceChildren(Charts.diverging(
+      comps.map((c) => ({ label: label(c), counts: c.counts })), SCORE, "Answers per comparison"));
+    $("chart-thesis").replaceChildren(Charts.stacked(
+      comps.map((c) => ({ label: label(c), positive: c.positive, negative: c.negative })),
+      [{ key: "positive", label: "positive", color: "#4d9221" }, { key: "negative", label: "negative", color: "#c51b7d" }],
+      "Thesis grouping"));
+    $("chart-split").replaceChildren(Charts.stacked(
+      comps.map((c) => ({ label: label(c), hybrid: c.hybrid_better, equal: c.equal, keyframe: c.keyframe_better })),
+      [{ key: "hybrid", label: "hybrid better", color: "#2166ac" }, { key: "equal", label: "equal", color: "#cfcfcf" },
+       { key: "keyframe", label: "keyframe better", color: "#b2182b" }], "Neutral split"));
+    $("chart-means").replaceChildren(Charts.forest(
+      [...comps.map((c) => ({ label: label(c), value: c.mean_score, ci: c.ci95 })),
+       { label: "all comparisons", value: res.overall.mean_score, ci: res.overall.ci95 }], -2, 2, "Mean preference"));
+    table($("table-stats"), ["comparison", "n", "mean", "95 % CI", "Wilcoxon p", "Holm p", "sign test p",
+                             "rank-biserial", "n for 80 % power"],
+          comps.map((c) => [label(c), c.n_participants, fmt(c.mean_score, 2),
+                            c.ci95 ? `${fmt(c.ci95[0], 2)} … ${fmt(c.ci95[1], 2)}` : "–", p(c.wilcoxon_p), p(c.p_holm),
+                            p(c.sign_test_p), fmt(c.rank_biserial, 2), c.participants_for_80_power ?? "–"]));
+    const sc = res.swap_consistency;
+    $("stats-notes").textContent =
+      `Side bias (mean raw answer, left = +2): ${fmt(res.side_bias.mean, 2)} (Wilcoxon p ${p(res.side_bias.p)}). ` +
+      `Consistency of the two side-swapped showings: weighted κ ${fmt(sc.weighted_kappa, 2)}, exact agreement ` +
+      `${fmt(sc.exact_agreement, 2)}, within one step ${fmt(sc.within_one, 2)} (${sc.pairs} pairs). ` +
+      `Krippendorff's α (ordinal): ${fmt(res.krippendorff_alpha_ordinal, 2)}. ${res.methods.wilcoxon}.`;
+    for (const [question, id] of [["gamer", "chart-gamer"], ["tech_savvy", "chart-tech"]]) {
+      const groups = res.demographics[question] || {};
+      const rows = comps.map((c) => {
+        const key = `${c.animation}-${c.increment}`;
+        const values = {};
+        for (const [answer, g] of Object.entries(groups)) values[answer] = g.comparisons[key]?.mean_score;
+        return { label: label(c), values };
+      });
+      const present = ANSWERS.filter((a) => groups[a.key]).map((a) => ({ ...a, label: `${a.label} (${groups[a.key].participants})` }));
+      $(id).replaceChildren(Charts.groupedSigned(rows, present, -2, 2, `Mean score by ${question}`));
+    }
+    renderMetrics(res.clips);
+    renderBenchmark(res.benchmark);
+  }
+
+  function renderMetrics(clips) {
+    if (!clips.length) { $("chart-metrics").textContent = "No clip set found."; $("table-metrics").replaceChildren(); return; }
+    const animations = [...new Set(clips.map((c) => c.animation))];
+    const methodKey = (c) => (c.method === "keyframe" ? "keyframe" : `hybrid${c.increment}`);
+    const groups = animations.map((a) => ({
+      label: `${a}: foot skate`,
+      values: Object.fromEntries(clips.filter((c) => c.animation === a).map((c) => [methodKey(c), c.metrics.foot_skate_ratio])),
+    }));
+    $("chart-metrics").replaceChildren(Charts.columns(groups, METHODS, "Foot skate ratio per clip", (v) => `${Math.round(v * 100)} %`));
+    table($("table-metrics"), ["clip", "keys", "foot skate", "slide mm", "penetration mm", "floating mm", "MPJPE mm",
+                               "key velocity jump rad/s", "jerk m/s³", "bytes"],
+          clips.map((c) => [c.id.replace(/-/, " "), c.key_count, fmt(c.metrics.foot_skate_ratio, 3),
+                            fmt(c.metrics.foot_slide_mm, 1), fmt(c.metrics.penetration_mm, 1), fmt(c.metrics.floating_mm, 1),
+                            fmt(c.metrics.mpjpe_mm, 1), fmt(c.metrics.key_velocity_jump_rad_s, 3), fmt(c.metrics.jerk_mean, 1),
+                            c.metrics.bytes]));
+  }
+
+  function renderBenchmark(bench) {
+    const box = $("chart-benchmark");
+    if (!bench || !bench.series) { box.textContent = "No benchmark results yet (run `animstudy benchmark`)."; return; }
+    const colors = ["#555555", "#2166ac", "#67a9cf", "#b2182b", "#4d9221"];
+    box.replaceChildren(Charts.lines(bench.series.map((s, i) => ({ label: s.name, color: colors[i % colors.length], points: s.points })),
+                                     "Pose evaluation time", bench.x_label || "characters", bench.y_label || "ms per frame"));
+  }
+
+  $("toggle-state").addEventListener("click", async () => {
+    const action = results?.overview.state === "open" ? "close" : "open";
+    const r = await api(`/studies/${encodeURIComponent(slug)}/${action}`, { method: "POST" });
+    if (r.ok) await refresh();
+  });
+
+  async function download(kind) {
+    const r = await api(`/studies/${encodeURIComponent(slug)}/export.${kind}`);
+    if (!r.ok) { $("status").textContent = `Export failed (HTTP ${r.status}).`; return; }
+    const url = URL.createObjectURL(await r.blob());
+    const a = document.createElement("a");
+    a.href = url;
+    a.download = `${slug}-votes.${kind}`;
+    document.body.appendChild(a);
+    a.click();
+    a.remove();
+    setTimeout(() => URL.revokeObjectURL(url), 1000);
+  }
+  $("export-csv").addEventListener("click", () => download("csv"));
+  $("export-json").addEventListener("click", () => download("json"));
+
+  if (token) open().catch(() => {}); else $("login").hidden = false;
+})();

@@ -1,0 +1,347 @@
+// The participant page: information, consent, demographics, instructions, trials, thanks.
+// Server state decides where a participant is; this page keeps only the session id and token (localStorage),
+// so a reload resumes at the current trial.  Nothing here knows which side shows which animation.
+"use strict";
+
+(() => {
+  const slug = decodeURIComponent(location.pathname.split("/").filter(Boolean).pop() || "");
+  const storeKey = `animstudy:${slug}`;
+  const $ = (id) => document.getElementById(id);
+  const sleep = (ms) => new Promise((resolve) => setTimeout(resolve, ms));
+  const PAGES = ["info", "consent", "demographics", "instructions", "trial", "thanks", "withdrawn", "message"];
+  const EXTERNAL_IDS = ["PROLIFIC_PID", "STUDY_ID", "SESSION_ID"];
+  const LOAD_ATTEMPTS = 4;
+
+  let study = null;
+  let creds = readCreds();
+  let current = null; // the trial on screen
+  let viewed = false; // watched one full loop
+  let playback = null; // measurements of the current trial's playback
+  const videos = new Map(); // url -> Promise of an object URL of the fully downloaded file
+
+  function readCreds() {
+    try { return JSON.parse(localStorage.getItem(storeKey)); } catch { return null; }
+  }
+  function saveCreds() { localStorage.setItem(storeKey, JSON.stringify(creds)); }
+  function clearCreds() { localStorage.removeItem(storeKey); creds = null; }
+
+  function uuid() {
+    if (crypto.randomUUID) return crypto.randomUUID();
+    const b = crypto.getRandomValues(new Uint8Array(16));
+    return Array.from(b, (x) => x.toString(16).padStart(2, "0")).join("");
+  }
+
+  function status(text) { $("status").textContent = text || ""; }
+
+  function show(page) {
+    for (const p of PAGES) $(`page-${p}`).hidden = p !== page;
+    $("withdraw").hidden = !creds || ["withdrawn", "thanks"].includes(page);
+    if (page !== "trial") stopVideo();
+    const heading = $(`page-${page}`).querySelector("h2");
+    if (heading) { heading.tabIndex = -1; heading.focus({ preventScroll: true }); }
+  }
+
+  function message(title, text, retry) {
+    $("message-title").textContent = title;
+    $("message-text").textContent = text;
+    $("message-retry").hidden = !retry;
+    $("message-retry").onclick = retry || null;
+    show("message");
+  }
+
+  function paragraphs(element, text) {
+    element.replaceChildren(...String(text || "").split(/\n\s*\n/).map((part) => {
+      const p = document.createElement("p");
+      p.textContent = part.trim();
+      return p;
+    }));
+  }
+
+  async function api(method, path, body) {
+    const headers = { Accept: "application/json" };
+    if (body !== undefined) headers["Content-Type"] = "application/json";
+    if (creds) headers.Authorization = `Bearer ${creds.token}`;
+    return fetch(`/api/v1${path}`, { method, headers, body: body === undefined ? undefined : JSON.stringify(body),
+                                     cache: "no-store" });
+  }
+
+  // Network calls that must get through: retried with backoff on network errors and 5xx answers.
+  async function persist(call, what) {
+    for (let attempt = 0; ; attempt++) {
+      try {
+        const r = await call();
+        if (r.status < 500) { status(""); return r; }
+      } catch { /* offline or connection dropped: try again */ }
+      status(`Connection problem while ${what}; retrying…`);
+      await sleep(Math.min(10000, 500 * 2 ** attempt));
+    }
+  }
+
+  // --- start and resume ---------------------------------------------------------------------------------
+  async function start() {
+    const r = await persist(() => fetch(`/api/v1/studies/${encodeURIComponent(slug)}`), "loading the study");
+    if (!r.ok) { message("Study not found", "This study does not exist. Please check the link."); return; }
+    study = await r.json();
+    $("study-title").textContent = study.title;
+    document.title = study.title;
+    paragraphs($("info-text"), study.texts.information);
+    $("contact-text").textContent = study.texts.contact || "";
+    paragraphs($("consent-text"), study.texts.consent);
+    paragraphs($("instructions-text"), study.texts.instructions);
+    paragraphs($("thanks-text"), study.texts.thanks);
+    if (creds) { await resume(); return; }
+    if (study.state !== "open") { message("Study closed", "This study is not taking participants at the moment."); return; }
+    show("info");
+  }
+
+  async function resume() {
+    const r = await persist(() => api("GET", `/sessions/${creds.session_id}`), "resuming");
+    if ([401, 403, 404].includes(r.status)) { clearCreds(); await start(); return; }
+    const state = await r.json();
+    if (state.state === "completed") { thanks(state); return; }
+    if (!state.demographics_given) { show("demographics"); return; }
+    if (!creds.instructed) { show("instructions"); return; }
+    await nextTrial();
+  }
+
+  $("info-next").addEventListener("click", () => show("consent"));
+  $("consent-box").addEventListener("change", (e) => { $("consent-next").disabled = !e.target.checked; });
+  $("consent-next").addEventListener("click", async () => {
+    if (!$("consent-box").checked) return;
+    $("consent-next").disabled = true;
+    const params = new URLSearchParams(location.search);
+    const external = {};
+    for (const name of EXTERNAL_IDS) if (params.get(name)) external[name] = params.get(name).slice(0, 200);
+    const body = { consent: true, external: Object.keys(external).length ? external : null };
+    const r = await persist(() => api("POST", `/studies/${encodeURIComponent(slug)}/sessions`, body), "starting");
+    if (r.status !== 201) { message("Cannot start", "The study is not open at the moment."); return; }
+    const created = await r.json();
+    creds = { session_id: created.session_id, token: created.token, instructed: false };
+    saveCreds();
+    show("demographics");
+  });
+
+  $("demographics-form").addEventListener("submit", async (e) => {
+    e.preventDefault();
+    const form = new FormData(e.target);
+    const body = { gamer: form.get("gamer"), tech_savvy: form.get("tech_savvy") };
+    if (!body.gamer || !body.tech_savvy) return;
+    const r = await persist(() => api("PUT", `/sessions/${creds.session_id}/demographics`, body), "saving");
+    if (r.ok) show("instructions");
+    else if (r.status === 401) { clearCreds(); await start(); }
+  });
+
+  $("instructions-next").addEventListener("click", async () => {
+    creds.instructed = true;
+    saveCreds();
+    await nextTrial();
+  });
+
+  // --- videos ---------------------------------------------------------------------------------------------
+  // A trial's video is downloaded completely before it is shown (and the next one in the background), so
+  // playback never waits for the network; failures are retried, and a final failure is reported.
+  function fetchVideo(url, onProgress) {
+    if (!videos.has(url)) {
+      const promise = (async () => {
+        let lastError = null;
+        for (let attempt = 0; attempt < LOAD_ATTEMPTS; attempt++) {
+          try {
+            const r = await fetch(url);
+            if (!r.ok) throw new Error(`HTTP ${r.status}`);
+            const total = Number(r.headers.get("Content-Length")) || 0;
+            const reader = r.body.getReader();
+            const chunks = [];
+            let received = 0;
+            for (;;) {
+              const { done, value } = await reader.read();
+              if (done) break;
+              chunks.push(value);
+              received += value.length;
+              if (onProgress && total) onProgress(received / total);
+            }
+            return URL.createObjectURL(new Blob(chunks, { type: "video/mp4" }));
+          } catch (error) {
+            lastError = error;
+            await sleep(400 * 2 ** attempt);
+          }
+        }
+        throw lastError;
+      })();
+      videos.set(url, promise);
+      promise.catch(() => videos.delete(url));
+    } else if (onProgress) {
+      onProgress(0.5);
+    }
+    return videos.get(url);
+  }
+
+  function stopVideo() {
+    const video = $("video");
+    video.pause();
+    video.removeAttribute("src");
+    video.load();
+  }
+
+  function measure(video, onFirstLoop) {
+    // Frame-accurate: requestVideoFrameCallback reports every presented frame; a jump in media time larger than
+    // 1.5 frames is a hitch, a jump backwards is the loop restarting.  The minimum viewing time is counted on the
+    // media clock (the first loop really shown), not by a wall-clock timer that a slow machine can outrun.
+    const m = { presented: 0, hitches: 0, max_gap_ms: 0, stalls: 0, loops: 0, started_ms: performance.now() };
+    let last = null;
+    const frameMs = 1000 / 30;
+    const looped = () => {
+      m.loops++;
+      if (m.loops === 1) onFirstLoop();
+    };
+    const onFrame = (_now, meta) => {
+      if (playback !== m) return;
+      m.presented++;
+      if (last !== null) {
+        const dt = (meta.mediaTime - last) * 1000;
+        if (dt < 0) looped();
+        else if (dt > 1.5 * frameMs) { m.hitches++; m.max_gap_ms = Math.max(m.max_gap_ms, Math.round(dt)); }
+      }
+      last = meta.mediaTime;
+      video.requestVideoFrameCallback(onFrame);
+    };
+    if (video.requestVideoFrameCallback) {
+      video.requestVideoFrameCallback(onFrame);
+      video.ontimeupdate = null;
+    } else {
+      // Coarser fallback for browsers without requestVideoFrameCallback: the media clock going backwards.
+      video.ontimeupdate = () => {
+        if (playback !== m) return;
+        if (last !== null && video.currentTime < last) looped();
+        last = video.currentTime;
+      };
+    }
+    // Waiting for data is a stall; the seek back to the start of each loop is not.
+    video.onwaiting = () => { if (playback === m && !video.seeking) m.stalls++; };
+    return m;
+  }
+
+  function playbackReport() {
+    const video = $("video");
+    const q = video.getVideoPlaybackQuality ? video.getVideoPlaybackQuality() : null;
+    const m = playback || {};
+    return {
+      frames_presented: m.presented || 0, hitches: m.hitches || 0, max_gap_ms: m.max_gap_ms || 0,
+      stalls: m.stalls || 0, loops: m.loops || 0,
+      dropped_frames: q ? q.droppedVideoFrames : null, total_frames: q ? q.totalVideoFrames : null,
+      watched_ms: m.started_ms ? Math.round(performance.now() - m.started_ms) : 0,
+    };
+  }
+
+  // --- trials ---------------------------------------------------------------------------------------------
+  async function nextTrial() {
+    show("trial");
+    $("vote-form").reset();
+    $("vote-submit").disabled = true;
+    viewed = false;
+    const r = await persist(() => api("GET", `/sessions/${creds.session_id}/next`), "loading the next trial");
+    if (r.status === 204) { await finish(); return; }
+    if ([401, 403, 404].includes(r.status)) { clearCreds(); await start(); return; }
+    const trial = await r.json();
+    current = trial;
+    $("trial-progress").textContent = `Trial ${trial.index + 1} of ${trial.total}${trial.practice ? " (practice, not counted)" : ""}`;
+    const loading = $("loading");
+    loading.hidden = false;
+    $("loading-bar").value = 0;
+    $("loading-text").textContent = "Loading…";
+    let url;
+    try {
+      url = await fetchVideo(trial.video_url, (f) => {
+        $("loading-bar").value = Math.round(f * 100);
+        $("loading-text").textContent = `Loading… ${Math.round(f * 100)} %`;
+      });
+    } catch (error) {
+      await persist(() => api("POST", `/sessions/${creds.session_id}/events`,
+                              { kind: "load_failure", trial_id: trial.trial_id, detail: { error: String(error) } }),
+                    "reporting a problem");
+      message("The video could not be loaded", "Please check your connection and try again.", nextTrial);
+      return;
+    }
+    if (current !== trial) return;
+    if (trial.preload_url) fetchVideo(trial.preload_url).catch(() => {});
+    const video = $("video");
+    video.src = url;
+    await new Promise((resolve) => {
+      if (video.readyState >= 3) resolve();
+      else video.addEventListener("canplay", resolve, { once: true });
+    });
+    loading.hidden = true;
+    playback = measure(video, () => {
+      if (current !== trial) return;
+      viewed = true;
+      updateSubmit();
+    });
+    try { await video.play(); } catch { /* autoplay of a muted video is allowed; ignore a rare refusal */ }
+    $("vote-form").querySelector("input").focus({ preventScroll: true });
+  }
+
+  function updateSubmit() {
+    const chosen = new FormData($("vote-form")).get("choice");
+    $("vote-submit").disabled = !(viewed && chosen);
+    if (chosen && !viewed) status("Please watch the clip play through once.");
+    else status("");
+  }
+  $("vote-form").addEventListener("change", updateSubmit);
+
+  $("vote-form").addEventListener("submit", async (e) => {
+    e.preventDefault();
+    const choice = new FormData(e.target).get("choice");
+    if (!choice || !viewed || !current || $("vote-submit").disabled) return;
+    const trial = current;
+    current = null;
+    $("vote-submit").disabled = true;
+    status("Saving your vote…");
+    const body = { choice, rt_ms: Math.round(playbackReport().watched_ms), idempotency_key: uuid(),
+                   playback: playbackReport() };
+    // The page moves on only once the server has the vote: retried until acknowledged (same idempotency key,
+    // so a retry never creates a second vote).
+    const r = await persist(() => api("POST", `/sessions/${creds.session_id}/trials/${trial.trial_id}/vote`, body),
+                            "saving your vote");
+    status("");
+    if ([401, 403].includes(r.status)) { clearCreds(); await start(); return; }
+    await nextTrial(); // 201/200 stored; 409 means the server already moved on: follow it
+  });
+
+  document.addEventListener("keydown", (e) => {
+    if ($("page-trial").hidden || e.altKey || e.ctrlKey || e.metaKey) return;
+    if (e.key >= "1" && e.key <= "5") {
+      const input = $("vote-form").querySelectorAll("input[name=choice]")[Number(e.key) - 1];
+      input.checked = true;
+      input.focus({ preventScroll: true });
+      updateSubmit();
+      e.preventDefault();
+    } else if (e.key === "Enter" && !$("vote-submit").disabled) {
+      $("vote-form").requestSubmit();
+      e.preventDefault();
+    }
+  });
+
+  // --- the end ----------------------------------------------------------------------------------------------
+  async function finish() {
+    const r = await persist(() => api("GET", `/sessions/${creds.session_id}`), "finishing");
+    thanks(r.ok ? await r.json() : {});
+  }
+
+  function thanks(state) {
+    show("thanks");
+    $("completion").hidden = !state.completion_code;
+    $("completion-code").textContent = state.completion_code || "";
+    $("completion-link-line").hidden = !state.completion_url;
+    if (state.completion_url) {
+      $("completion-link").href = state.completion_url;
+      setTimeout(() => { location.href = state.completion_url; }, 5000);
+    }
+  }
+
+  $("withdraw").addEventListener("click", async () => {
+    if (!creds || !confirm("Withdraw from the study and delete all your answers?")) return;
+    const r = await persist(() => api("POST", `/sessions/${creds.session_id}/withdraw`), "withdrawing");
+    if (r.ok || r.status === 401) { clearCreds(); show("withdrawn"); }
+  });
+
+  start();
+})();

@@ -1,0 +1,126 @@
+"""Helpers for API tests: an app on the rolled-back test session, a study over fake media, a researcher."""
+
+from __future__ import annotations
+
+import hashlib
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+import uvicorn
+from fastapi import FastAPI
+from fastapi.testclient import TestClient
+from sqlalchemy.orm import Session
+
+from server.app import create_app
+from server.config import Settings
+from server.deps import get_session
+from server.researchers.service import create_researcher
+from server.studies.design import Design
+from server.studies.models import Study, StudyState
+from server.studies.service import create_study, set_state
+
+ANIMATIONS = ("walk", "run", "crouch", "idle")
+RESEARCHER = ("lead@example.org", "correct horse battery")
+
+
+def fake_name(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()[:24]
+
+
+def fake_media(design: Design) -> dict:
+    """A render manifest with opaque names for every clip and every pair a design can need."""
+    clips = {}
+    for a in ANIMATIONS:
+        for m in ("keyframe", "hybrid0", "hybrid1", "hybrid2"):
+            cid = f"{a}-{m}"
+            clips[cid] = {"clip": cid, "video": f"{fake_name(cid)}.mp4", "poster": f"{fake_name(cid)}.jpg",
+                          "frames": 40, "fps": 30, "width": 640, "height": 480}
+    pairs = []
+    ids = list(clips)
+    for left in ids:
+        for right in ids:
+            if left.split("-")[0] == right.split("-")[0]:
+                name = fake_name(f"{left}|{right}")
+                pairs.append({"left": left, "right": right, "video": f"{name}.mp4", "poster": f"{name}.jpg",
+                              "frames": 40, "fps": 30, "width": 1284, "height": 480})
+    return {"clips": clips, "pairs": pairs}
+
+
+def make_study(db: Session, design: Design | None = None, slug: str = "thesis", state: StudyState = StudyState.open,
+               **kwargs: object) -> Study:
+    design = design or Design()
+    study = create_study(db, fake_media(design), design, slug=slug, **kwargs)
+    return set_state(db, study, state)
+
+
+def make_client(db: Session, engine: object, tmp_path: Path) -> Iterator[TestClient]:
+    settings = Settings(var_dir=tmp_path / "var", secret_key="test-secret-0123456789abcdef0123456789")
+    app = create_app(settings, engine, run_migrations=False)
+    app.dependency_overrides[get_session] = lambda: db
+    with TestClient(app) as client:
+        yield client
+
+
+@pytest.fixture
+def client(db, engine, tmp_path):
+    yield from make_client(db, engine, tmp_path)
+
+
+@pytest.fixture
+def study(db):
+    return make_study(db)
+
+
+@pytest.fixture
+def researcher_headers(db, client):
+    create_researcher(db, *RESEARCHER)
+    r = client.post("/api/v1/auth/token", data={"username": RESEARCHER[0], "password": RESEARCHER[1]})
+    assert r.status_code == 200, r.text
+    return {"Authorization": f"Bearer {r.json()['access_token']}"}
+
+
+def start(client: TestClient, slug: str = "thesis", **external: str) -> tuple[str, dict]:
+    r = client.post(f"/api/v1/studies/{slug}/sessions", json={"consent": True, "external": external or None})
+    assert r.status_code == 201, r.text
+    body = r.json()
+    return body["session_id"], {"Authorization": f"Bearer {body['token']}"}
+
+
+def vote(client: TestClient, sid: str, headers: dict, trial_id: int, choice: str = "equal", key: str | None = None,
+         rt_ms: int = 1500, **extra: object):
+    body = {"choice": choice, "rt_ms": rt_ms, "idempotency_key": key or f"k{trial_id}", **extra}
+    return client.post(f"/api/v1/sessions/{sid}/trials/{trial_id}/vote", json=body, headers=headers)
+
+
+def answer_all(client: TestClient, sid: str, headers: dict, choice: str = "equal") -> list[dict]:
+    trials = []
+    while (r := client.get(f"/api/v1/sessions/{sid}/next", headers=headers)).status_code == 200:
+        trials.append(r.json())
+        assert vote(client, sid, headers, r.json()["trial_id"], choice).status_code == 201
+    assert r.status_code == 204
+    return trials
+
+
+@contextmanager
+def live_server(app: FastAPI) -> Iterator[str]:
+    """Serve ``app`` on a free loopback port in a thread; yields the base URL."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 10
+    while not server.started and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert server.started, "server did not start"
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(timeout=10)

@@ -1,0 +1,89 @@
+"""The crowd fast path against the reference implementation, and a short benchmark run."""
+
+import json
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+
+from anim_core import benchmark
+from anim_core import quat as Q
+from anim_core.clip import KeyframeClip
+from anim_core.clipset import build_clip_set
+from anim_core.crowd import BAKE_TOLERANCE_DEG, bake, numba, pose_crowd, pose_crowd_numpy, table_from_keyframes
+from tests.synthetic import biped, random_rotations
+
+
+@pytest.fixture(scope="module")
+def clips(data):
+    return build_clip_set(data)
+
+
+def reference(clip, t):
+    pose = clip.sample(t, method="nlerp") if isinstance(clip, KeyframeClip) else clip.sample(t)
+    return clip.skeleton.forward_kinematics(*pose)
+
+
+def test_numba_is_present():
+    assert numba is not None  # otherwise the fallback would be what the benchmark measures
+
+
+def test_fast_path_matches_the_reference_for_every_clip(clips, rng):
+    t = rng.uniform(-5.0, 15.0, 400)  # negative, several periods, both ping-pong directions
+    for c in clips:
+        table = table_from_keyframes(c.clip) if c.method == "keyframe" else bake(c.clip)
+        ref_rot, ref_pos = reference(c.clip, t)
+        fast = pose_crowd(table, t)
+        angle = np.degrees(Q.quat_angle(fast.rotations.astype(np.float64), ref_rot)).max()
+        distance = np.linalg.norm(fast.positions - ref_pos, axis=-1).max()
+        # Keyframe tables are the clip's own keys: only float32 rounding.  Baked hybrids: the stated tolerance.
+        limit = 1e-3 if c.method == "keyframe" else BAKE_TOLERANCE_DEG
+        assert angle <= limit, f"{c.id}: {angle:.4f} degrees"
+        assert distance <= (1e-4 if c.method == "keyframe" else 0.01), f"{c.id}: {distance * 1000:.2f} mm"
+        # The compiled kernel and the numpy evaluation of the same table agree; threads change nothing.
+        rot_np, pos_np = pose_crowd_numpy(table, t)
+        assert np.degrees(Q.quat_angle(fast.rotations.astype(np.float64), rot_np)).max() < 1e-3
+        assert np.abs(fast.positions - pos_np).max() < 1e-4
+        parallel = pose_crowd(table, t, parallel=True)
+        assert np.array_equal(parallel.rotations, fast.rotations)
+        assert np.array_equal(parallel.positions, fast.positions)
+
+
+def test_travelling_loops_keep_walking(rng):
+    skeleton = biped()
+    times = np.arange(31) / 30.0
+    rot = Q.make_continuous(random_rotations(rng, (31, skeleton.n_joints)), axis=0)
+    root = np.cumsum(rng.normal(scale=0.01, size=(31, 3)), axis=0)
+    root[:, 2] += np.linspace(0.0, 1.2, 31)
+    for in_place in (False, True):
+        clip = KeyframeClip(skeleton, times, rot, root, mode="loop", in_place=in_place)
+        t = rng.uniform(0.0, 5.0, 200)
+        ref_rot, ref_pos = reference(clip, t)
+        fast = pose_crowd(table_from_keyframes(clip), t)
+        assert np.abs(fast.positions - ref_pos).max() < 1e-5
+        assert np.degrees(Q.quat_angle(fast.rotations.astype(np.float64), ref_rot)).max() < 1e-3
+
+
+def test_short_benchmark_run_writes_results_and_plots(clips, tmp_path):
+    few = [c for c in clips if c.animation in ("walk", "crouch")]
+    doc = benchmark.run(few, characters=(1, 10), stages=("pose", "skin"), frames=3, warmup=1)  # skin: only 1
+    keys = {"animation", "method", "increment", "variant", "stage", "characters", "threads", "median_ms", "p95_ms",
+            "fps"}
+    assert all(keys <= set(r) for r in doc["results"])
+    variants = {(r["variant"], r["method"]) for r in doc["results"]}
+    assert {("default", "keyframe"), ("default", "hybrid"), ("reference", "keyframe"), ("naive", "hybrid")} <= variants
+    assert not any(r["variant"] == "naive" and r["animation"] == "crouch" for r in doc["results"])  # no tangents
+    assert {r["stage"] for r in doc["results"]} == {"pose", "skin"}
+    assert all(r["median_ms"] > 0 and r["fps"] == pytest.approx(1000 / r["median_ms"]) for r in doc["results"])
+    assert {"cpu", "numpy", "cores"} <= set(doc["machine"])
+    assert len(doc["memory"]) == 8 and all(m["runtime_table_bytes"] > 0 for m in doc["memory"])
+    hybrid_keys = [m for m in doc["memory"] if m["method"] == "hybrid"]
+    keyframe_keys = [m for m in doc["memory"] if m["method"] == "keyframe"]
+    assert max(m["stored_bytes"] for m in hybrid_keys) < min(m["stored_bytes"] for m in keyframe_keys)
+    assert doc["summary"]["largest_crowd"] == 10 and doc["summary"]["max_ratio_at_10_or_more"] > 0
+    json.dumps(doc)  # serialisable as it is
+    written = benchmark.write_plots(doc, tmp_path)
+    assert {p.name for p in written} == {"fps_average.svg", "fps_increment.svg", "fps_animation.svg"}
+    for p in written:
+        root = ET.fromstring(p.read_text())
+        assert len(root.findall("{http://www.w3.org/2000/svg}path")) >= 2

@@ -1,0 +1,204 @@
+"""Pre-rendered videos: decodable, framed, synchronized, seamless, blind, deterministic, cached, leak-free.
+
+The whole clip set is rendered once at 160x120 (the pipeline is the same as at 640x480, only cheaper); stills of
+a few frames are saved under var/test-artifacts/ for a person to look at.
+"""
+
+import json
+import os
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from anim_core.character import bind_mesh, load_character
+from anim_core.clipset import build_clip_set, write_clip_set
+from server.media.build import BODY_PADDING_M, MANIFEST, MEDIA_NAME, grid_spacing, read_clip_set, render_media
+from server.media.renderer import ClipRenderer
+from server.media.scene import RenderSettings, frame_motion
+from server.media.video import decode, probe
+
+SMALL = RenderSettings(width=160, height=120)
+SECRET = b"test secret"
+WORDS = re.compile(r"walk|run|crouch|idle|hybrid|keyframe|increment|mocap|squad", re.IGNORECASE)
+ARTIFACTS = Path(__file__).resolve().parents[1] / "var" / "test-artifacts" / "media"
+
+
+@pytest.fixture(scope="module")
+def clips_dir(data, tmp_path_factory):
+    out = tmp_path_factory.mktemp("clips")
+    write_clip_set(build_clip_set(data), out)
+    return out
+
+
+@pytest.fixture(scope="module")
+def media(data, clips_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("media")
+    messages = []
+    render_media(data, clips_dir, out, SECRET, SMALL, workers=2, progress=messages.append)
+    manifest = json.loads((out / MANIFEST).read_text())
+    return out, manifest, messages
+
+
+def test_every_video_decodes_with_the_expected_frames(media, clips_dir):
+    out, manifest, _ = media
+    clips = {c.id: c for c in read_clip_set(clips_dir)}
+    assert len(manifest["clips"]) == 16 and len(manifest["pairs"]) == 16
+    for entry in [*manifest["clips"].values(), *manifest["pairs"]]:
+        info = probe(out / entry["video"])
+        clip = clips[entry.get("clip") or entry["left"]]
+        width = SMALL.width if "clip" in entry else 2 * SMALL.width + 4
+        assert (info["frames"], info["fps"], info["width"], info["height"]) == (clip.frames, 30.0, width, 120)
+        assert (info["codec"], info["pix_fmt"]) == ("h264", "yuv420p")
+        with Image.open(out / entry["poster"]) as poster:
+            assert poster.size == (width, 120)
+
+
+def body_mask(frames, background):
+    """Pixels that differ from the empty scene (the character and its shadow)."""
+    return np.abs(frames.astype(int) - background.astype(int)).max(axis=-1) > 24
+
+
+@pytest.fixture(scope="module")
+def renderers(data, clips_dir):
+    """A ClipRenderer per animation, set up like the pipeline's (same framing and bounds)."""
+    character = load_character(data)
+    clips = read_clip_set(clips_dir)
+    made = {}
+    for animation in ("walk", "run", "crouch", "idle"):
+        files = [c for c in clips if c.animation == animation]
+        group = [np.load(c.path) for c in files]
+        pos = np.concatenate([g["world_positions"] for g in group])
+        mesh = bind_mesh(character, [str(n) for n in group[0]["joint_names"]], group[0]["bind_rotations"],
+                         group[0]["bind_positions"])
+        bounds = np.array([pos.reshape(-1, 3).min(axis=0) - 0.3, pos.reshape(-1, 3).max(axis=0) + 0.3])
+        made[animation] = ClipRenderer(mesh, character.faces, frame_motion(pos, SMALL, BODY_PADDING_M), SMALL,
+                                       bounds, grid_spacing(files[0], SMALL))
+    yield made
+    for r in made.values():
+        r.close()
+
+
+def test_the_character_is_in_frame_and_not_clipped(media, renderers, clips_dir):
+    out, manifest, _ = media
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    for animation, renderer in renderers.items():
+        renderer.body.mesh.is_visible = False
+        first = np.load(next(c.path for c in read_clip_set(clips_dir) if c.id == f"{animation}-keyframe"))
+        (background,) = renderer.render(first["world_rotations"][:1], first["world_positions"][:1])
+        renderer.body.mesh.is_visible = True
+        for method in ("keyframe", "hybrid0", "hybrid1", "hybrid2"):
+            frames = decode(out / manifest["clips"][f"{animation}-{method}"]["video"])
+            picks = [0, len(frames) // 2, len(frames) - 1]
+            stills = []
+            for f in picks:
+                mask = body_mask(frames[f], background)
+                assert mask.sum() > 300, f"{animation}-{method} frame {f}: no character"
+                # Not cut off: nothing of the character touches the left, right or top border.
+                assert not mask[:2].any() and not mask[:, :2].any() and not mask[:, -2:].any(), (
+                    f"{animation}-{method} frame {f} touches the border")
+                stills.append(frames[f])
+            Image.fromarray(np.concatenate(stills, axis=1)).save(ARTIFACTS / f"{animation}-{method}.png")
+
+
+def test_side_by_side_halves_match_the_single_videos(media):
+    out, manifest, _ = media
+    for pair in manifest["pairs"]:
+        both = decode(out / pair["video"]).astype(int)
+        left = decode(out / manifest["clips"][pair["left"]]["video"]).astype(int)
+        right = decode(out / manifest["clips"][pair["right"]]["video"]).astype(int)
+        assert both.shape[0] == left.shape[0] == right.shape[0]
+        # Same frame index, same pose: only codec noise between the pair's halves and the single videos.
+        assert np.abs(both[:, :, :160] - left).mean() < 2.5
+        assert np.abs(both[:, :, -160:] - right).mean() < 2.5
+        # And the halves are not simply the same picture (the hybrid differs from the mocap somewhere).
+        assert np.abs(both[:, :, :160] - both[:, :, -160:]).mean() > 0.05
+
+
+def test_loops_are_seamless(media):
+    out, manifest, _ = media
+    for clip_id, entry in manifest["clips"].items():
+        frames = decode(out / entry["video"]).astype(np.int16)
+        steps = np.abs(np.diff(frames, axis=0)).mean(axis=(1, 2, 3))
+        seam = np.abs(frames[0] - frames[-1]).mean()
+        assert seam <= 1.5 * steps.max() + 0.5, f"{clip_id}: loop seam {seam:.2f} vs steps up to {steps.max():.2f}"
+
+
+def test_nothing_names_the_content(media):
+    out, manifest, _ = media
+    for f in out.iterdir():
+        if f.name == MANIFEST:
+            continue
+        assert MEDIA_NAME.match(f.name), f.name
+        assert not WORDS.search(f.name)
+        if f.suffix == ".mp4":
+            info = probe(f)
+            assert not any(WORDS.search(f"{k} {v}") for k, v in info["metadata"].items()), info["metadata"]
+        # No readable text in the file names the method or animation (container tags, encoder comments).
+        text_runs = re.findall(rb"[\x20-\x7e]{5,}", f.read_bytes())
+        assert not [r for r in text_runs if WORDS.search(r.decode())]
+    # One opaque name per video, different for each side order.
+    names = [p["video"] for p in manifest["pairs"]] + [c["video"] for c in manifest["clips"].values()]
+    assert len(set(names)) == len(names)
+
+
+def test_second_run_renders_nothing_and_settings_change_names(media, data, clips_dir):
+    out, manifest, messages = media
+    assert any("0 up to date, 32 to render" in m for m in messages)
+    before = {f.name: f.stat().st_mtime_ns for f in out.iterdir()}
+    again: list[str] = []
+    render_media(data, clips_dir, out, SECRET, SMALL, workers=2, progress=again.append)
+    assert any("32 up to date, 0 to render" in m for m in again)
+    assert {f.name: f.stat().st_mtime_ns for f in out.iterdir() if f.name != MANIFEST} == {
+        k: v for k, v in before.items() if k != MANIFEST}
+    assert json.loads((out / MANIFEST).read_text()) == manifest
+    # Another secret gives other names for the same content.
+    other = out.parent / "other-secret"
+    shutil.copytree(out, other)
+    from server.media.build import plan
+    p = plan(data, clips_dir, other, SMALL, b"another secret")
+    assert {o.name for o in p.outputs}.isdisjoint({Path(c["video"]).stem for c in manifest["clips"].values()})
+
+
+def test_rendering_is_deterministic(renderers, clips_dir, data, tmp_path):
+    clip = np.load(next(c.path for c in read_clip_set(clips_dir) if c.id == "run-hybrid0"))
+    a = list(renderers["run"].render(clip["world_rotations"][:5], clip["world_positions"][:5]))
+    b = list(renderers["run"].render(clip["world_rotations"][:5], clip["world_positions"][:5]))
+    assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+    # Whole files too: the same inputs give byte-identical videos.
+    first, second = tmp_path / "a", tmp_path / "b"
+    for out in (first, second):
+        render_media(data, clips_dir, out, SECRET, SMALL, workers=1, animations=["run"])
+    files = sorted(f.name for f in first.iterdir())
+    assert files == sorted(f.name for f in second.iterdir())
+    assert all((first / f).read_bytes() == (second / f).read_bytes() for f in files)
+
+
+def test_pingpong_clips_are_their_own_reverse(clips_dir):
+    """Rendering only the first half of a ping-pong period relies on this."""
+    for c in read_clip_set(clips_dir):
+        if c.playback == "pingpong":
+            rot = np.load(c.path)["world_rotations"]
+            t = len(rot)
+            np.testing.assert_allclose(rot[1:t // 2], rot[t - 1:t // 2:-1], atol=1e-12)
+
+
+def rss_mib():
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def test_memory_stays_flat_over_300_frames(renderers, clips_dir):
+    renderer = renderers["walk"]
+    clip = np.load(next(c.path for c in read_clip_set(clips_dir) if c.id == "walk-keyframe"))
+    rot = np.resize(clip["world_rotations"], (300, *clip["world_rotations"].shape[1:]))
+    pos = np.resize(clip["world_positions"], (300, *clip["world_positions"].shape[1:]))
+    usage = []
+    for f, _ in enumerate(renderer.render(rot, pos)):
+        if f in (50, 299):
+            usage.append(rss_mib())
+    print(f"RSS after 50 frames {usage[0]:.0f} MiB, after 300 {usage[1]:.0f} MiB")
+    assert usage[1] - usage[0] < 20  # the unpatched pyrender/PyOpenGL leak is ~4 MB per frame

@@ -1,0 +1,104 @@
+"""The results endpoint agrees with a plain computation from the exported CSV (simulated participants)."""
+
+import csv
+import io
+import math
+import random
+from collections import defaultdict
+
+import pytest
+from scipy import stats
+
+from server.participants import service
+
+CHOICES = ["right_much", "right_slightly", "equal", "left_slightly", "left_much"]  # raw -2 .. +2 (left view)
+
+
+def simulate(db, study, n=17, seed=7):
+    """Participants who prefer the hybrid by an amount depending on the animation, plus noise and a side bias.
+
+    Driven through the service layer (what the API calls) to keep the test quick; the API is tested elsewhere.
+    """
+    rng = random.Random(seed)
+    taste = {"walk": 0.6, "run": -0.4, "crouch": 0.0, "idle": 1.0}
+    for p in range(n):
+        ps = service.start_session(db, study, None).session
+        if p % 3:
+            service.set_demographics(db, ps, ["yes", "no", "dont_know"][p // 3 % 3], ["no", "yes"][p % 2])
+        lean = rng.uniform(-0.3, 0.8)  # this participant's liking for the left side
+        for trial in ps.trials[: 10 if p == n - 1 else 16]:  # the last one leaves early
+            pref = taste[trial.comparison.animation] + 0.3 * (trial.comparison.increment or 0)
+            latent = (pref if trial.hybrid_side == "left" else -pref) + lean + rng.gauss(0, 0.9)
+            raw = max(-2, min(2, round(latent)))
+            service.cast_vote(db, ps, trial.id, CHOICES[raw + 2], 1000, f"k{trial.id}", {})
+    service.withdraw(db, service.start_session(db, study, None).session)
+
+
+def test_results_match_an_independent_computation_from_the_csv(client, study, db, researcher_headers):
+    simulate(db, study)
+    assert client.get("/api/v1/studies/thesis/results").status_code == 401
+    results = client.get("/api/v1/studies/thesis/results", headers=researcher_headers).json()
+    rows = list(csv.DictReader(io.StringIO(
+        client.get("/api/v1/studies/thesis/export.csv", headers=researcher_headers).text)))
+
+    # 17 participants, the last of them unfinished, and one who withdrew.  (More than 13 complete pairs per
+    # comparison, where scipy's default Wilcoxon switches from enumerating sign patterns to the normal
+    # approximation: the same call, but quick enough for the test to repeat it.)
+    assert results["participants"]["started"] == 18 and results["participants"]["completed"] == 16
+    assert results["participants"]["withdrawn"] == 1
+    assert results["overview"]["votes"] == len(rows) == 16 * 16 + 10
+
+    # Plain computation: participant means of the two showings, per comparison.
+    by = defaultdict(lambda: defaultdict(list))
+    for r in rows:
+        by[(r["animation"], int(r["increment"]))][r["session_id"]].append((int(r["trial_index"]), int(r["score"])))
+    assert len(results["comparisons"]) == 8
+    for c in results["comparisons"]:
+        per_person = by[(c["animation"], c["increment"])]
+        scores = [s for showings in per_person.values() for _, s in showings]
+        means = [sum(s for _, s in sh) / 2 for sh in per_person.values() if len(sh) == 2]
+        assert c["counts"] == {str(k): scores.count(k) for k in (-2, -1, 0, 1, 2)}
+        assert (c["positive"], c["negative"]) == (sum(s != -2 for s in scores), scores.count(-2))
+        assert c["n_participants"] == len(means)
+        mean = sum(means) / len(means)
+        assert c["mean_score"] == pytest.approx(mean, abs=1e-12)
+        sd = math.sqrt(sum((m - mean) ** 2 for m in means) / (len(means) - 1))
+        half = stats.t.ppf(0.975, len(means) - 1) * sd / math.sqrt(len(means))
+        assert c["ci95"] == pytest.approx([mean - half, mean + half], abs=1e-9)
+        nonzero = [m for m in means if m != 0]
+        if any(nonzero):
+            assert c["wilcoxon_p"] == pytest.approx(stats.wilcoxon(means, zero_method="pratt").pvalue, rel=1e-9)
+            k, n = sum(m > 0 for m in nonzero), len(nonzero)
+            tail = sum(math.comb(n, i) for i in range(min(k, n - k) + 1)) / 2**n
+            assert c["sign_test_p"] == pytest.approx(min(1.0, 2 * tail), rel=1e-9)
+            ranks = stats.rankdata([abs(m) for m in nonzero])
+            plus = sum(r for r, m in zip(ranks, nonzero, strict=True) if m > 0)
+            assert c["rank_biserial"] == pytest.approx((2 * plus - ranks.sum()) / ranks.sum(), abs=1e-12)
+    # Holm by hand over the eight Wilcoxon p-values.
+    ps = sorted((c["wilcoxon_p"], i) for i, c in enumerate(results["comparisons"]) if c["wilcoxon_p"] is not None)
+    running = 0.0
+    for rank, (p, i) in enumerate(ps):
+        running = max(running, min(1.0, (len(ps) - rank) * p))
+        assert results["comparisons"][i]["p_holm"] == pytest.approx(running, rel=1e-9)
+
+    # Side bias: mean raw answer (left = +2) per participant.
+    raw = {"left_much": 2, "left_slightly": 1, "equal": 0, "right_slightly": -1, "right_much": -2}
+    per = defaultdict(list)
+    for r in rows:
+        per[r["session_id"]].append(raw[r["choice"]])
+    side_means = [sum(v) / len(v) for v in per.values()]
+    assert results["side_bias"]["mean"] == pytest.approx(sum(side_means) / len(side_means), abs=1e-12)
+    assert results["side_bias"]["mean"] > 0  # the simulated participants lean left
+
+    # Swap consistency: first against second showing.
+    pairs = [tuple(s for _, s in sorted(sh)) for comp in by.values() for sh in comp.values() if len(sh) == 2]
+    sc = results["swap_consistency"]
+    assert sc["pairs"] == len(pairs)
+    assert sc["exact_agreement"] == pytest.approx(sum(a == b for a, b in pairs) / len(pairs))
+    assert sc["within_one"] == pytest.approx(sum(abs(a - b) <= 1 for a, b in pairs) / len(pairs))
+    assert -1 <= sc["weighted_kappa"] <= 1
+    assert -1 <= results["krippendorff_alpha_ordinal"] <= 1
+    # The idle hybrid was simulated as clearly preferred: the statistics must find it.
+    idle = [c for c in results["comparisons"] if c["animation"] == "idle"]
+    assert all(c["mean_score"] > 0.5 for c in idle)
+    assert set(results["demographics"]["gamer"]) == {"yes", "no", "dont_know", "unanswered"}
