@@ -8,7 +8,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
-RENDERER_VERSION = 1  # bump when the picture changes for the same inputs: it is part of every cache key
+RENDERER_VERSION = 2  # bump when the picture or its encoding changes for the same inputs: part of every cache key
 
 
 @dataclass(frozen=True)
