@@ -20,12 +20,13 @@ import subprocess
 import sys
 import tempfile
 import time
+import urllib.error
+import urllib.request
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import httpx
 import numpy as np
 from sqlalchemy import make_url, select, text
 
@@ -102,9 +103,10 @@ class Server:
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline:
             try:
-                if httpx.get(f"{self.base}/healthz", timeout=1).status_code == 200:
-                    return
-            except httpx.HTTPError:
+                with urllib.request.urlopen(f"{self.base}/healthz", timeout=1) as r:
+                    if r.status == 200:
+                        return
+            except (urllib.error.URLError, OSError):
                 time.sleep(0.1)
         raise RuntimeError("the server did not start within 30 s")
 
@@ -140,21 +142,74 @@ class Stats:
     last_vote: float | None = None
 
 
-async def _call(client: httpx.AsyncClient, stats: Stats, name: str, method: str, url: str, deadline: float,
-                **kwargs: Any) -> httpx.Response:
+@dataclass
+class Answer:
+    status: int
+    headers: dict[str, str]
+    body: bytes
+
+    def json(self) -> Any:
+        return json.loads(self.body)
+
+
+class Client:
+    """One keep-alive HTTP/1.1 connection, as a browser tab holds one.  Deliberately minimal (fixed-length bodies
+    only, which is all this API sends): a general-purpose client costs a few milliseconds of CPU per request,
+    and the load generator shares the machine with the server it measures."""
+
+    def __init__(self, host: str, port: int, timeout: float = 10.0) -> None:
+        self.host, self.port, self.timeout = host, port, timeout
+        self._streams: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
+
+    async def request(self, method: str, path: str, token: str | None = None, body: Any = None) -> Answer:
+        try:
+            return await asyncio.wait_for(self._exchange(method, path, token, body), self.timeout)
+        except BaseException:
+            self.close()  # a half-read answer would poison the next one
+            raise
+
+    async def _exchange(self, method: str, path: str, token: str | None, body: Any) -> Answer:
+        if self._streams is None:
+            self._streams = await asyncio.open_connection(self.host, self.port)
+        reader, writer = self._streams
+        payload = b"" if body is None else json.dumps(body).encode()
+        head = [f"{method} {path} HTTP/1.1", f"Host: {self.host}:{self.port}", f"Content-Length: {len(payload)}"]
+        if body is not None:
+            head.append("Content-Type: application/json")
+        if token:
+            head.append(f"Authorization: Bearer {token}")
+        writer.write(("\r\n".join(head) + "\r\n\r\n").encode() + payload)
+        lines = (await reader.readuntil(b"\r\n\r\n")).decode("latin-1").split("\r\n")
+        status = int(lines[0].split(" ", 2)[1])
+        headers = {k.strip().lower(): v.strip() for k, _, v in (line.partition(":") for line in lines[1:] if line)}
+        if "content-length" not in headers and status not in (204, 304):
+            raise ConnectionError(f"answer without Content-Length ({status})")
+        data = await reader.readexactly(int(headers.get("content-length", 0)))
+        if headers.get("connection", "").lower() == "close":
+            self.close()
+        return Answer(status, headers, data)
+
+    def close(self) -> None:
+        if self._streams is not None:
+            self._streams[1].close()
+            self._streams = None
+
+
+async def _call(client: Client, stats: Stats, name: str, method: str, path: str, deadline: float,
+                token: str | None = None, body: Any = None) -> Answer:
     """One logical request, retried with backoff on connection errors and 5xx until an answer below 500."""
     delay = 0.05
     while True:
         start = time.perf_counter()
         try:
-            r = await client.request(method, url, **kwargs)
-        except httpx.HTTPError:
+            r: Answer | None = await client.request(method, path, token, body)
+        except (OSError, asyncio.IncompleteReadError, asyncio.LimitOverrunError, TimeoutError, ValueError):
             stats.connection_errors += 1
             r = None
         else:
             stats.latencies[name].append((time.perf_counter() - start) * 1000)
-            stats.statuses[f"{name} {r.status_code}"] += 1
-            if r.status_code < 500:
+            stats.statuses[f"{name} {r.status}"] += 1
+            if r.status < 500:
                 return r
         if time.monotonic() > deadline:
             raise TimeoutError(f"{name}: no answer before the time limit")
@@ -164,20 +219,18 @@ async def _call(client: httpx.AsyncClient, stats: Stats, name: str, method: str,
         delay = min(delay * 2, 1.0)
 
 
-async def participant(client: httpx.AsyncClient, stats: Stats, rng: random.Random, deadline: float,
-                      pause_ms: float) -> None:
+async def participant(client: Client, stats: Stats, rng: random.Random, deadline: float, pause_ms: float) -> None:
     r = await _call(client, stats, "create", "POST", "/api/v1/studies/thesis/sessions", deadline,
-                    json={"consent": True, "external": {"PROLIFIC_PID": f"load-{rng.random():.12f}"}})
-    if r.status_code != 201:
-        raise RuntimeError(f"could not start a session: {r.status_code} {r.text}")
+                    body={"consent": True, "external": {"PROLIFIC_PID": f"load-{rng.random():.12f}"}})
+    if r.status != 201:
+        raise RuntimeError(f"could not start a session: {r.status} {r.body!r}")
     sid, token = r.json()["session_id"], r.json()["token"]
     stats.sessions.append(sid)
-    headers = {"Authorization": f"Bearer {token}"}
     await _call(client, stats, "demographics", "PUT", f"/api/v1/sessions/{sid}/demographics", deadline,
-                headers=headers, json={"gamer": rng.choice(["yes", "no"]), "tech_savvy": "dont_know"})
+                token=token, body={"gamer": rng.choice(["yes", "no"]), "tech_savvy": "dont_know"})
     while True:
-        r = await _call(client, stats, "next", "GET", f"/api/v1/sessions/{sid}/next", deadline, headers=headers)
-        if r.status_code == 204:
+        r = await _call(client, stats, "next", "GET", f"/api/v1/sessions/{sid}/next", deadline, token=token)
+        if r.status == 204:
             return
         trial = r.json()["trial_id"]
         if pause_ms:
@@ -185,26 +238,30 @@ async def participant(client: httpx.AsyncClient, stats: Stats, rng: random.Rando
         body = {"choice": rng.choice(CHOICES), "rt_ms": rng.randint(800, 9000),
                 "idempotency_key": f"{sid}-{trial}-{rng.random():.9f}"}
         r = await _call(client, stats, "vote", "POST", f"/api/v1/sessions/{sid}/trials/{trial}/vote", deadline,
-                        headers=headers, json=body)
-        if r.status_code in (200, 201):
+                        token=token, body=body)
+        if r.status in (200, 201):
             stats.acknowledged[trial] = (sid, body["choice"])
             now = time.monotonic()
             stats.first_vote = stats.first_vote or now
             stats.last_vote = now
-        elif r.status_code != 409:  # 409: the server moved on already; follow it
-            raise RuntimeError(f"vote refused: {r.status_code} {r.text}")
+        elif r.status != 409:  # 409: the server moved on already; follow it
+            raise RuntimeError(f"vote refused: {r.status} {r.body!r}")
 
 
-async def _run_clients(base: str, n: int, concurrency: int, seed: int, deadline: float, pause_ms: float,
+async def _run_clients(port: int, n: int, concurrency: int, seed: int, deadline: float, pause_ms: float,
                        stats: Stats) -> None:
     rng = random.Random(seed)
-    limits = httpx.Limits(max_connections=concurrency, max_keepalive_connections=concurrency)
     gate = asyncio.Semaphore(concurrency)
-    async with httpx.AsyncClient(base_url=base, timeout=10, limits=limits) as client:
-        async def one(i: int) -> None:
-            async with gate:
+
+    async def one(i: int) -> None:
+        async with gate:
+            client = Client("127.0.0.1", port)
+            try:
                 await participant(client, stats, random.Random(rng.random() + i), deadline, pause_ms)
-        await asyncio.gather(*(one(i) for i in range(n)))
+            finally:
+                client.close()
+
+    await asyncio.gather(*(one(i) for i in range(n)))
 
 
 def check_database(database_url: str, stats: Stats) -> dict[str, int]:
@@ -267,7 +324,7 @@ def run(database: str = "sqlite", participants: int = 200, workers: int = 2, con
                     events.append(f"PostgreSQL started again after {outage_s:.0f} s")
 
         async def main() -> None:
-            await asyncio.gather(_run_clients(server.base, participants, concurrency, seed, deadline, pause_ms,
+            await asyncio.gather(_run_clients(server.port, participants, concurrency, seed, deadline, pause_ms,
                                               stats), faults())
 
         started = time.monotonic()

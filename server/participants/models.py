@@ -26,6 +26,7 @@ class ParticipantSession(Base):
     study_id: Mapped[int] = mapped_column(ForeignKey("studies.id", ondelete="CASCADE"), index=True)
     token_hash: Mapped[str | None] = mapped_column(String(64), unique=True)
     seed: Mapped[int] = mapped_column(BigInteger)
+    trials_total: Mapped[int]  # fixed when the trials are drawn
     state: Mapped[str] = mapped_column(String(16), default=SessionState.active)
     consent_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     consent_version: Mapped[str | None] = mapped_column(String(40))

@@ -7,13 +7,14 @@ import json
 import secrets
 import uuid
 from dataclasses import dataclass
+from datetime import datetime
 from typing import Any
 
-from sqlalchemy import delete, func, select
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy import delete, func, literal, null, select
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session, joinedload
 
-from server.db import utcnow
+from server.db import UTCDateTime, utcnow
 from server.errors import Conflict, Forbidden, NotFound, Unauthorized
 from server.studies.design import Design, trial_order
 from server.studies.models import Study, StudyState
@@ -45,6 +46,7 @@ def start_session(session: Session, study: Study, external: dict[str, str] | Non
     for index, planned in enumerate(trial_order(comparison_ids(study), design.repeats, seed)):
         ps.trials.append(Trial(index=index, comparison_id=planned.comparison_id, hybrid_side=planned.hybrid_side,
                                practice=planned.practice))
+    ps.trials_total = len(ps.trials)
     session.add(ps)
     session.commit()
     return NewSession(ps, token)
@@ -85,73 +87,69 @@ def upcoming(session: Session, ps: ParticipantSession, limit: int = 2) -> list[T
         .options(joinedload(Trial.comparison))))
 
 
-def current_trial(session: Session, ps: ParticipantSession) -> Trial | None:
-    trials = upcoming(session, ps, limit=1)
-    return trials[0] if trials else None
-
-
-def trials_count(session: Session, ps: ParticipantSession) -> int:
-    return session.scalar(select(func.count(Trial.id)).where(Trial.session_id == ps.id)) or 0
-
-
 def request_hash(body: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 @dataclass(frozen=True)
 class VoteResult:
-    vote: Vote
+    trial_id: int
+    choice: str
+    rt_ms: int
+    answered_at: datetime
+    answered: int  # votes of the session after this one
     created: bool
+
+
+def _insert_ignoring_conflicts(session: Session) -> Any:
+    """``INSERT ... ON CONFLICT DO NOTHING`` of the session's database (both spell it the same)."""
+    return (postgresql.insert if session.get_bind().dialect.name == "postgresql" else sqlite.insert)(Vote)
 
 
 def cast_vote(session: Session, ps: ParticipantSession, trial_id: int, choice: str, rt_ms: int,
               idempotency_key: str, extra: dict[str, Any]) -> VoteResult:
     """Store the vote once.  Repeating the same request returns the stored vote; anything else that would change
-    or duplicate an answer is a conflict."""
+    or duplicate an answer is a conflict.
+
+    One statement decides: the INSERT happens only if every earlier trial is answered (trials are answered in
+    order) and does nothing if this trial or this idempotency key has a vote already (the unique constraints).
+    Simultaneous requests are therefore settled by the database, never by a read-then-write race.
+    """
     if ps.state == SessionState.withdrawn:
         raise Unauthorized("this session was withdrawn")
     trial = session.get(Trial, trial_id)
     if trial is None or trial.session_id != ps.id:
         raise NotFound("no such trial in this session")
     body_hash = request_hash({"choice": choice, "rt_ms": rt_ms, "idempotency_key": idempotency_key, **extra})
-
-    def replay(existing: Vote) -> VoteResult:
-        if existing.trial_id == trial.id and existing.request_hash == body_hash:
-            return VoteResult(existing, created=False)
-        if existing.trial_id == trial.id:
-            raise Conflict("this trial is answered already, with a different vote")
-        raise Conflict("this idempotency key was used for another vote")
-
-    def stored() -> Vote | None:
-        return session.scalar(select(Vote).where(
-            (Vote.trial_id == trial.id) | ((Vote.session_id == ps.id) & (Vote.idempotency_key == idempotency_key))))
-
-    existing = stored()
-    if existing is not None:
-        return replay(existing)
-    current = current_trial(session, ps)
-    if current is None or current.id != trial.id:
-        existing = stored()  # a simultaneous request may have answered this trial in between
-        if existing is not None:
-            return replay(existing)
-        raise Conflict("this is not the current trial")
-    # Counted before add(): a query after it would autoflush the INSERT outside the IntegrityError guard below.
-    last = trial.index == trials_count(session, ps) - 1  # trials are answered in order
-    vote = Vote(trial_id=trial.id, session_id=ps.id, choice=choice, score=score(choice, trial.hybrid_side),
-                rt_ms=rt_ms, idempotency_key=idempotency_key, request_hash=body_hash, extra=extra or None)
-    session.add(vote)
-    if last:
-        ps.state = SessionState.completed
-        ps.completed_at = utcnow()
-    try:
+    now = utcnow()
+    earlier_open = (select(Trial.id).outerjoin(Vote, Vote.trial_id == Trial.id)
+                    .where(Trial.session_id == ps.id, Trial.index < trial.index, Vote.id.is_(None)).exists())
+    row = select(literal(trial.id), literal(ps.id), literal(choice), literal(score(choice, trial.hybrid_side)),
+                 literal(rt_ms), literal(idempotency_key), literal(body_hash),
+                 literal(extra, Vote.extra.type) if extra else null(), literal(now, UTCDateTime())
+                 ).where(~earlier_open)
+    columns = ["trial_id", "session_id", "choice", "score", "rt_ms", "idempotency_key", "request_hash", "extra",
+               "answered_at"]
+    inserted = session.scalar(_insert_ignoring_conflicts(session).from_select(columns, row)
+                              .on_conflict_do_nothing().returning(Vote.id))
+    if inserted is not None:
+        if trial.index == ps.trials_total - 1:
+            ps.state = SessionState.completed
+            ps.completed_at = now
         session.commit()
-    except IntegrityError:  # a simultaneous request stored this vote (or used this key) first: nothing was written
-        session.rollback()
-        existing = stored()
-        if existing is None:
-            raise
-        return replay(existing)
-    return VoteResult(vote, created=True)
+        return VoteResult(trial.id, choice, rt_ms, now, trial.index + 1, created=True)
+    # Nothing was written.  The statements below see what the other request committed (a new snapshot per
+    # statement on PostgreSQL; on SQLite this transaction took the write lock after it).
+    existing = session.scalar(select(Vote).where(
+        (Vote.trial_id == trial.id) | ((Vote.session_id == ps.id) & (Vote.idempotency_key == idempotency_key))))
+    if existing is None:
+        raise Conflict("this is not the current trial")
+    if existing.trial_id != trial.id:
+        raise Conflict("this idempotency key was used for another vote")
+    if existing.request_hash != body_hash:
+        raise Conflict("this trial is answered already, with a different vote")
+    return VoteResult(existing.trial_id, existing.choice, existing.rt_ms, existing.answered_at,
+                      answered(session, ps), created=False)
 
 
 def withdraw(session: Session, ps: ParticipantSession) -> ParticipantSession:
