@@ -9,7 +9,7 @@ from sqlalchemy import Engine
 from sqlalchemy.exc import InterfaceError, OperationalError
 
 from .config import Settings
-from .db import SQLITE_BEGIN, make_engine, migrate, session_factory
+from .db import make_engine, migrate, read_only, session_factory
 from .errors import ServiceError
 from .media.router import router as media_router
 from .pages import STATIC_DIR
@@ -31,7 +31,7 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None, r
                   description="Side-by-side user studies of hybrid against keyframe character animation.")
     app.state.settings = settings
     app.state.engine = engine
-    app.state.read_engine = engine.execution_options(**{SQLITE_BEGIN: "DEFERRED"})  # see server.db.make_engine
+    app.state.read_engine = read_only(engine)
     app.state.session_factory = session_factory(engine)
 
     app.state.login_limiter = LoginLimiter()

@@ -182,6 +182,14 @@ def make_engine(url: str) -> Engine:
     return create_engine(url, connect_args={"connect_timeout": 5})
 
 
+def read_only(engine: Engine) -> Engine:
+    """The engine for requests that only read: on SQLite a deferred transaction (runs beside the writers, WAL),
+    on PostgreSQL autocommit (no BEGIN and ROLLBACK round trips around the one or two SELECTs of a request)."""
+    if engine.dialect.name == "sqlite":
+        return engine.execution_options(**{SQLITE_BEGIN: "DEFERRED"})
+    return engine.execution_options(isolation_level="AUTOCOMMIT")
+
+
 def session_factory(engine: Engine) -> sessionmaker[Session]:
     return sessionmaker(bind=engine, expire_on_commit=False)
 

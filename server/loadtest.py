@@ -228,11 +228,14 @@ async def participant(client: Client, stats: Stats, rng: random.Random, deadline
     stats.sessions.append(sid)
     await _call(client, stats, "demographics", "PUT", f"/api/v1/sessions/{sid}/demographics", deadline,
                 token=token, body={"gamer": rng.choice(["yes", "no"]), "tech_savvy": "dont_know"})
+    upcoming: dict[str, Any] | None = None  # like the page: the vote's answer names the next trial
     while True:
-        r = await _call(client, stats, "next", "GET", f"/api/v1/sessions/{sid}/next", deadline, token=token)
-        if r.status == 204:
-            return
-        trial = r.json()["trial_id"]
+        if upcoming is None:
+            r = await _call(client, stats, "next", "GET", f"/api/v1/sessions/{sid}/next", deadline, token=token)
+            if r.status == 204:
+                return
+            upcoming = r.json()
+        trial = upcoming["trial_id"]
         if pause_ms:
             await asyncio.sleep(rng.uniform(0.5, 1.5) * pause_ms / 1000)
         body = {"choice": rng.choice(CHOICES), "rt_ms": rng.randint(800, 9000),
@@ -244,7 +247,12 @@ async def participant(client: Client, stats: Stats, rng: random.Random, deadline
             now = time.monotonic()
             stats.first_vote = stats.first_vote or now
             stats.last_vote = now
-        elif r.status != 409:  # 409: the server moved on already; follow it
+            upcoming = r.json()["next"]
+            if upcoming is None:
+                return
+        elif r.status == 409:  # the server moved on already; ask it where to
+            upcoming = None
+        else:
             raise RuntimeError(f"vote refused: {r.status} {r.body!r}")
 
 

@@ -233,15 +233,20 @@
   }
 
   // --- trials ---------------------------------------------------------------------------------------------
-  async function nextTrial() {
+  // `known`: the next trial as the vote's answer gave it (null: none left); otherwise asked from the server.
+  async function nextTrial(known) {
     show("trial");
     $("vote-form").reset();
     $("vote-submit").disabled = true;
     viewed = false;
-    const r = await persist(() => api("GET", `/sessions/${creds.session_id}/next`), "loading the next trial");
-    if (r.status === 204) { await finish(); return; }
-    if ([401, 403, 404].includes(r.status)) { clearCreds(); await start(); return; }
-    const trial = await r.json();
+    if (known === null) { await finish(); return; }
+    let trial = known;
+    if (trial === undefined) {
+      const r = await persist(() => api("GET", `/sessions/${creds.session_id}/next`), "loading the next trial");
+      if (r.status === 204) { await finish(); return; }
+      if ([401, 403, 404].includes(r.status)) { clearCreds(); await start(); return; }
+      trial = await r.json();
+    }
     current = trial;
     $("trial-progress").textContent = `Trial ${trial.index + 1} of ${trial.total}${trial.practice ? " (practice, not counted)" : ""}`;
     const loading = $("loading");
@@ -258,7 +263,7 @@
       await persist(() => api("POST", `/sessions/${creds.session_id}/events`,
                               { kind: "load_failure", trial_id: trial.trial_id, detail: { error: String(error) } }),
                     "reporting a problem");
-      message("The video could not be loaded", "Please check your connection and try again.", nextTrial);
+      message("The video could not be loaded", "Please check your connection and try again.", () => nextTrial());
       return;
     }
     if (current !== trial) return;
@@ -303,7 +308,8 @@
                             "saving your vote");
     status("");
     if ([401, 403].includes(r.status)) { clearCreds(); await start(); return; }
-    await nextTrial(); // 201/200 stored; 409 means the server already moved on: follow it
+    // 201/200: stored, and the answer names the next trial; 409: the server already moved on, ask it where to.
+    await nextTrial(r.ok ? (await r.json()).next : undefined);
   });
 
   document.addEventListener("keydown", (e) => {

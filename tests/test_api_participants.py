@@ -92,6 +92,25 @@ def test_next_trial_is_stable_until_answered_and_ends_with_204(client, study):
     assert state == {"state": "completed", "answered": 16, "trials_total": 16, "demographics_given": False}
 
 
+def test_a_vote_answers_with_the_next_trial(client, study):
+    """The page moves on with the vote's answer; it must be exactly what GET .../next says, to the end."""
+    sid, headers = start(client)
+    trial = client.get(f"/api/v1/sessions/{sid}/next", headers=headers).json()
+    for number in range(1, 17):
+        body = {"choice": "equal", "rt_ms": 900, "idempotency_key": f"k{number}"}
+        r = client.post(f"/api/v1/sessions/{sid}/trials/{trial['trial_id']}/vote", headers=headers, json=body)
+        assert r.status_code == 201 and r.json()["answered"] == number
+        asked = client.get(f"/api/v1/sessions/{sid}/next", headers=headers)
+        if number < 16:
+            assert r.json()["next"] == asked.json() and r.json()["next"]["index"] == number
+        else:
+            assert r.json()["next"] is None and asked.status_code == 204
+        # A retry of the same vote (its answer was lost) is answered alike.
+        again = client.post(f"/api/v1/sessions/{sid}/trials/{trial['trial_id']}/vote", headers=headers, json=body)
+        assert again.status_code == 200 and again.json()["next"] == r.json()["next"]
+        trial = r.json()["next"]
+
+
 def test_each_comparison_once_per_side_in_a_session(client, study, db):
     sid, headers = start(client)
     ps = db.get(ParticipantSession, sid)

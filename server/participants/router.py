@@ -17,7 +17,7 @@ from server.deps import ParticipantTokenDep, SessionDep
 from server.participants import service
 from server.studies.service import get_study
 
-from .models import SessionState
+from .models import ParticipantSession, SessionState, Trial
 from .schemas import (
     DemographicsRead,
     DemographicsUpdate,
@@ -64,29 +64,37 @@ async def get_session_state(session_id: str, token: ParticipantTokenDep, session
                        completion_url=ps.study.completion_url if completed else None)
 
 
-@router.get("/sessions/{session_id}/next", response_model=TrialRead,
-            responses={204: {"description": "every trial is answered"}})
-async def next_trial(session_id: str, token: ParticipantTokenDep, session: SessionDep) -> TrialRead | Response:
-    ps = service.authorize(session, session_id, token)
-    upcoming = service.upcoming(session, ps)
+def trial_read(ps: ParticipantSession, upcoming: list[Trial]) -> TrialRead | None:
+    """The first of ``upcoming`` as the page shows it, with the video of the one after it to preload."""
     if not upcoming:
-        return Response(status_code=status.HTTP_204_NO_CONTENT)
+        return None
     trial, following = upcoming[0], (upcoming[1] if len(upcoming) > 1 else None)
     return TrialRead(trial_id=trial.id, index=trial.index, total=ps.trials_total,
                      practice=trial.practice, video_url=media_url(trial.comparison.video(trial.hybrid_side)),
                      preload_url=media_url(following.comparison.video(following.hybrid_side)) if following else None)
 
 
+@router.get("/sessions/{session_id}/next", response_model=TrialRead,
+            responses={204: {"description": "every trial is answered"}})
+async def next_trial(session_id: str, token: ParticipantTokenDep, session: SessionDep) -> TrialRead | Response:
+    ps = service.authorize(session, session_id, token)
+    trial = trial_read(ps, service.upcoming(session, ps))
+    return trial if trial is not None else Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
 @router.post("/sessions/{session_id}/trials/{trial_id}/vote", response_model=VoteRead,
              status_code=status.HTTP_201_CREATED, responses={200: {"description": "the same vote, already stored"}})
 async def vote(session_id: str, trial_id: int, body: VoteCreate, token: ParticipantTokenDep, session: SessionDep,
                response: Response) -> VoteRead:
+    """Store the vote (exactly once, see ``cast_vote``) and answer with the next trial, which saves the page a
+    request per trial."""
     ps = service.authorize(session, session_id, token)
     result = service.cast_vote(session, ps, trial_id, body.choice, body.rt_ms, body.idempotency_key, body.extra())
     if not result.created:
         response.status_code = status.HTTP_200_OK
     return VoteRead(trial_id=result.trial_id, choice=result.choice, rt_ms=result.rt_ms,
-                    answered_at=result.answered_at, answered=result.answered, trials_total=ps.trials_total)
+                    answered_at=result.answered_at, answered=result.answered, trials_total=ps.trials_total,
+                    next=trial_read(ps, result.upcoming))
 
 
 @router.post("/sessions/{session_id}/withdraw", response_model=WithdrawRead)

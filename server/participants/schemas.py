@@ -90,6 +90,8 @@ class VoteRead(BaseModel):
     answered_at: datetime
     answered: int
     trials_total: int
+    next: TrialRead | None = Field(None, description="the trial to show now (what GET .../next would answer); "
+                                                     "null when every trial is answered")
 
 
 class WithdrawRead(BaseModel):

@@ -99,6 +99,7 @@ class VoteResult:
     answered_at: datetime
     answered: int  # votes of the session after this one
     created: bool
+    upcoming: list[Trial]  # what comes next (see upcoming()), read in the same transaction
 
 
 def _insert_ignoring_conflicts(session: Session) -> Any:
@@ -136,8 +137,9 @@ def cast_vote(session: Session, ps: ParticipantSession, trial_id: int, choice: s
         if trial.index == ps.trials_total - 1:
             ps.state = SessionState.completed
             ps.completed_at = now
+        following = upcoming(session, ps)  # before the commit: one transaction (and one SQLite write turn)
         session.commit()
-        return VoteResult(trial.id, choice, rt_ms, now, trial.index + 1, created=True)
+        return VoteResult(trial.id, choice, rt_ms, now, trial.index + 1, created=True, upcoming=following)
     # Nothing was written.  The statements below see what the other request committed (a new snapshot per
     # statement on PostgreSQL; on SQLite this transaction took the write lock after it).
     existing = session.scalar(select(Vote).where(
@@ -149,7 +151,7 @@ def cast_vote(session: Session, ps: ParticipantSession, trial_id: int, choice: s
     if existing.request_hash != body_hash:
         raise Conflict("this trial is answered already, with a different vote")
     return VoteResult(existing.trial_id, existing.choice, existing.rt_ms, existing.answered_at,
-                      answered(session, ps), created=False)
+                      answered(session, ps), created=False, upcoming=upcoming(session, ps))
 
 
 def withdraw(session: Session, ps: ParticipantSession) -> ParticipantSession:
