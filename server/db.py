@@ -14,6 +14,7 @@ from pathlib import Path
 from alembic import command
 from alembic.config import Config
 from sqlalchemy import Connection, DateTime, Dialect, Engine, MetaData, create_engine, event
+from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
 from sqlalchemy.types import TypeDecorator
 
@@ -136,15 +137,16 @@ class _QueuedConnection(sqlite3.Connection):
             self.leave_writers()
 
 
-def make_engine(url: str) -> Engine:
-    """An engine for ``url``; SQLite gets foreign keys, WAL and a busy timeout (several uvicorn workers share it)."""
+def make_engine(url: str, sqlite_timeout_s: float = SQLITE_TIMEOUT_S) -> Engine:
+    """An engine for ``url``; SQLite gets foreign keys, WAL, queued writers and a timeout (several uvicorn workers
+    share the file)."""
     if url.startswith("sqlite"):
         path = url.split("///", 1)[-1]
         writers = None
         if path and path != ":memory:":
             Path(path).parent.mkdir(parents=True, exist_ok=True)
-            writers = WriterQueue(Path(f"{path}.writers"), SQLITE_TIMEOUT_S)
-        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": SQLITE_TIMEOUT_S,
+            writers = WriterQueue(Path(f"{path}.writers"), sqlite_timeout_s)
+        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": sqlite_timeout_s,
                                                   "factory": _QueuedConnection})
 
         @event.listens_for(engine, "connect")
@@ -168,7 +170,10 @@ def make_engine(url: str) -> Engine:
             mode = connection.get_execution_options().get(SQLITE_BEGIN, "IMMEDIATE")
             dbapi_connection = connection.connection.dbapi_connection
             if mode == "IMMEDIATE":
-                dbapi_connection.enter_writers()  # type: ignore[union-attr]
+                try:
+                    dbapi_connection.enter_writers()  # type: ignore[union-attr]
+                except sqlite3.OperationalError as e:  # as SQLAlchemy reports SQLite's own "database is locked"
+                    raise OperationalError(f"BEGIN {mode}", None, e) from e
             try:
                 connection.exec_driver_sql(f"BEGIN {mode}")
             except BaseException:
