@@ -1,5 +1,6 @@
 """Exactly-once votes under real concurrency: a live server on loopback, many simultaneous requests."""
 
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import httpx
@@ -9,7 +10,8 @@ from sqlalchemy import func, select
 from server.app import create_app
 from server.config import Settings
 from server.db import migrate, session_factory
-from server.participants.models import Vote
+from server.participants import service
+from server.participants.models import ParticipantSession, Vote
 from tests.conftest import DATABASES, _fresh_engine
 from tests.server_fixtures import live_server, make_study
 
@@ -53,3 +55,40 @@ def test_simultaneous_identical_and_conflicting_votes(live):
         assert codes.count(201) == 1 and set(codes) <= {201, 409}, codes
     with factory() as db:
         assert db.scalar(select(func.count(Vote.id)).where(Vote.session_id == s["session_id"])) == 2
+
+
+@pytest.mark.parametrize("kind", DATABASES)
+def test_a_withdrawal_waits_for_a_vote_in_flight_and_deletes_it_too(kind, tmp_path_factory):
+    """A vote request has begun (session authorized) when the same participant withdraws from another tab: the
+    withdrawal must wait for the vote and then delete it — never leave an answer of a withdrawn participant."""
+    engine = _fresh_engine(kind, tmp_path_factory, database="test_animstudy_race")
+    migrate(engine)
+    factory = session_factory(engine)
+    with factory() as db:
+        new = service.start_session(db, make_study(db), None)
+        sid, token = new.session.id, new.token
+        first = service.upcoming(db, new.session)[0].id
+    voter = factory()
+    ps = service.authorize(voter, sid, token, lock="share")
+    done, errors = threading.Event(), []
+
+    def withdraw() -> None:
+        try:
+            with factory() as db:
+                service.withdraw(db, service.authorize(db, sid, token, lock="update"))
+        except Exception as e:  # handed to the test
+            errors.append(e)
+        done.set()
+
+    thread = threading.Thread(target=withdraw)
+    thread.start()
+    assert not done.wait(0.5), "the withdrawal did not wait for the vote in flight"
+    assert service.cast_vote(voter, ps, first, "equal", 900, "k", {}).created
+    voter.close()
+    assert done.wait(10)
+    thread.join()
+    assert errors == []
+    with factory() as db:
+        assert db.scalar(select(func.count(Vote.id)).where(Vote.session_id == sid)) == 0
+        assert db.get(ParticipantSession, sid).state == "withdrawn"
+    engine.dispose()

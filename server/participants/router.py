@@ -49,7 +49,7 @@ async def create_session(slug: str, body: SessionCreate, session: SessionDep) ->
 @router.put("/sessions/{session_id}/demographics", response_model=DemographicsRead)
 async def put_demographics(session_id: str, body: DemographicsUpdate, token: ParticipantTokenDep,
                            session: SessionDep) -> DemographicsRead:
-    ps = service.authorize(session, session_id, token)
+    ps = service.authorize(session, session_id, token, lock="update")
     service.set_demographics(session, ps, body.gamer, body.tech_savvy)
     return DemographicsRead(gamer=body.gamer, tech_savvy=body.tech_savvy)
 
@@ -88,7 +88,7 @@ async def vote(session_id: str, trial_id: int, body: VoteCreate, token: Particip
                response: Response) -> VoteRead:
     """Store the vote (exactly once, see ``cast_vote``) and answer with the next trial, which saves the page a
     request per trial."""
-    ps = service.authorize(session, session_id, token)
+    ps = service.authorize(session, session_id, token, lock="share")
     result = service.cast_vote(session, ps, trial_id, body.choice, body.rt_ms, body.idempotency_key, body.extra())
     if not result.created:
         response.status_code = status.HTTP_200_OK
@@ -99,13 +99,13 @@ async def vote(session_id: str, trial_id: int, body: VoteCreate, token: Particip
 
 @router.post("/sessions/{session_id}/withdraw", response_model=WithdrawRead)
 async def withdraw(session_id: str, token: ParticipantTokenDep, session: SessionDep) -> WithdrawRead:
-    ps = service.authorize(session, session_id, token)
+    ps = service.authorize(session, session_id, token, lock="update")
     return WithdrawRead(state=service.withdraw(session, ps).state)
 
 
 @router.post("/sessions/{session_id}/events", response_model=EventRead, status_code=status.HTTP_201_CREATED)
 async def report_event(session_id: str, body: EventCreate, token: ParticipantTokenDep,
                        session: SessionDep) -> EventRead:
-    ps = service.authorize(session, session_id, token)
+    ps = service.authorize(session, session_id, token, lock="share")
     event = service.record_event(session, ps, body.kind, body.trial_id, body.detail)
     return EventRead(id=event.id, kind=event.kind)

@@ -8,7 +8,7 @@ import secrets
 import uuid
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Any
+from typing import Any, Literal
 
 from sqlalchemy import delete, func, literal, null, select
 from sqlalchemy.dialects import postgresql, sqlite
@@ -52,10 +52,17 @@ def start_session(session: Session, study: Study, external: dict[str, str] | Non
     return NewSession(ps, token)
 
 
-def authorize(session: Session, session_id: str, token: str | None) -> ParticipantSession:
+def authorize(session: Session, session_id: str, token: str | None,
+              lock: Literal["share", "update"] | None = None) -> ParticipantSession:
     """The session ``session_id`` if ``token`` is its token: 401 without a valid token, 403 with another
-    session's, 404 for an unknown session."""
-    ps = session.get(ParticipantSession, session_id)
+    session's, 404 for an unknown session.
+
+    ``lock``: requests that write lock the session row until they commit ("share" for answers, "update" for
+    withdrawal and demographics), so a withdrawal never runs beside a vote of the same session: without it a vote
+    could be stored just after the withdrawal deleted the answers.  (SQLite has one writer at a time anyway.)
+    """
+    with_for_update = {"share": {"read": True}, "update": True, None: None}[lock]
+    ps = session.get(ParticipantSession, session_id, with_for_update=with_for_update)
     if ps is None:
         raise NotFound("no such session")
     if not token:
