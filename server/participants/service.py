@@ -52,6 +52,10 @@ def start_session(session: Session, study: Study, external: dict[str, str] | Non
     return NewSession(ps, token)
 
 
+_by_id = select(ParticipantSession).where(ParticipantSession.id == bindparam("id"))
+_SESSION = {None: _by_id, "share": _by_id.with_for_update(read=True), "update": _by_id.with_for_update()}
+
+
 def authorize(session: Session, session_id: str, token: str | None,
               lock: Literal["share", "update"] | None = None) -> ParticipantSession:
     """The session ``session_id`` if ``token`` is its token: 401 without a valid token, 403 with another
@@ -61,8 +65,7 @@ def authorize(session: Session, session_id: str, token: str | None,
     withdrawal and demographics), so a withdrawal never runs beside a vote of the same session: without it a vote
     could be stored just after the withdrawal deleted the answers.  (SQLite has one writer at a time anyway.)
     """
-    with_for_update = {"share": {"read": True}, "update": True, None: None}[lock]
-    ps = session.get(ParticipantSession, session_id, with_for_update=with_for_update)
+    ps = session.scalars(_SESSION[lock], {"id": session_id}).first()
     if ps is None:
         raise NotFound("no such session")
     if not token:
@@ -128,6 +131,7 @@ def _vote_insert(insert: Any) -> Any:
     return insert(table).from_select(columns, row).on_conflict_do_nothing().returning(table.c.id)
 
 
+_TRIAL = select(Trial).where(Trial.id == bindparam("id"), Trial.session_id == bindparam("session_id"))
 _VOTE_INSERT = {"postgresql": _vote_insert(postgresql.insert), "sqlite": _vote_insert(sqlite.insert)}
 
 
@@ -142,8 +146,8 @@ def cast_vote(session: Session, ps: ParticipantSession, trial_id: int, choice: s
     """
     if ps.state == SessionState.withdrawn:
         raise Unauthorized("this session was withdrawn")
-    trial = session.get(Trial, trial_id)
-    if trial is None or trial.session_id != ps.id:
+    trial = session.scalars(_TRIAL, {"id": trial_id, "session_id": ps.id}).first()
+    if trial is None:
         raise NotFound("no such trial in this session")
     body_hash = request_hash({"choice": choice, "rt_ms": rt_ms, "idempotency_key": idempotency_key, **extra})
     now = utcnow()
