@@ -69,7 +69,7 @@ def test_a_withdrawal_waits_for_a_vote_in_flight_and_deletes_it_too(kind, tmp_pa
         sid, token = new.session.id, new.token
         first = service.upcoming(db, new.session)[0].id
     voter = factory()
-    ps = service.authorize(voter, sid, token, lock="share")
+    ps, trial = service.authorize_answer(voter, sid, token, first)  # as the vote request does
     done, errors = threading.Event(), []
 
     def withdraw() -> None:
@@ -83,7 +83,7 @@ def test_a_withdrawal_waits_for_a_vote_in_flight_and_deletes_it_too(kind, tmp_pa
     thread = threading.Thread(target=withdraw)
     thread.start()
     assert not done.wait(0.5), "the withdrawal did not wait for the vote in flight"
-    assert service.cast_vote(voter, ps, first, "equal", 900, "k", {}).created
+    assert service.cast_vote(voter, ps, trial, "equal", 900, "k", {}).created
     voter.close()
     assert done.wait(10)
     thread.join()

@@ -153,6 +153,9 @@ def test_vote_rules(client, study, db):
     other_trial = db.get(ParticipantSession, other_sid).trials[0].id
     assert vote(client, sid, headers, other_trial).status_code == 404  # not in this session
     assert vote(client, sid, headers, 10**9).status_code == 404
+    for absurd in (0, 2**31, 2**63):  # ids no row can have: invalid input, never sent to the database
+        r = vote(client, sid, headers, absurd)
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["path", "trial_id"], r.text
     r = vote(client, sid, headers, current, choice="left_very_much")
     assert r.status_code == 422 and any(e["loc"][-1] == "choice" for e in r.json()["detail"])
     r = vote(client, sid, headers, current, rt_ms=-5)

@@ -30,7 +30,7 @@ def simulate(db, study, n=17, seed=7):
             pref = taste[trial.comparison.animation] + 0.3 * (trial.comparison.increment or 0)
             latent = (pref if trial.hybrid_side == "left" else -pref) + lean + rng.gauss(0, 0.9)
             raw = max(-2, min(2, round(latent)))
-            service.cast_vote(db, ps, trial.id, CHOICES[raw + 2], 1000, f"k{trial.id}", {})
+            service.cast_vote(db, ps, trial, CHOICES[raw + 2], 1000, f"k{trial.id}", {})
     service.withdraw(db, service.start_session(db, study, None).session)
 
 

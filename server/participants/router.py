@@ -11,7 +11,9 @@ The researcher endpoints, which can compute for seconds, stay in the thread pool
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Response, status
+from typing import Annotated
+
+from fastapi import APIRouter, Path, Response, status
 
 from server.deps import ParticipantTokenDep, SessionDep
 from server.participants import service
@@ -23,6 +25,7 @@ from .schemas import (
     DemographicsUpdate,
     EventCreate,
     EventRead,
+    RowId,
     SessionCreate,
     SessionCreated,
     SessionRead,
@@ -84,12 +87,12 @@ async def next_trial(session_id: str, token: ParticipantTokenDep, session: Sessi
 
 @router.post("/sessions/{session_id}/trials/{trial_id}/vote", response_model=VoteRead,
              status_code=status.HTTP_201_CREATED, responses={200: {"description": "the same vote, already stored"}})
-async def vote(session_id: str, trial_id: int, body: VoteCreate, token: ParticipantTokenDep, session: SessionDep,
-               response: Response) -> VoteRead:
+async def vote(session_id: str, trial_id: Annotated[RowId, Path()], body: VoteCreate, token: ParticipantTokenDep,
+               session: SessionDep, response: Response) -> VoteRead:
     """Store the vote (exactly once, see ``cast_vote``) and answer with the next trial, which saves the page a
     request per trial."""
-    ps = service.authorize(session, session_id, token, lock="share")
-    result = service.cast_vote(session, ps, trial_id, body.choice, body.rt_ms, body.idempotency_key, body.extra())
+    ps, trial = service.authorize_answer(session, session_id, token, trial_id)
+    result = service.cast_vote(session, ps, trial, body.choice, body.rt_ms, body.idempotency_key, body.extra())
     if not result.created:
         response.status_code = status.HTTP_200_OK
     return VoteRead(trial_id=result.trial_id, choice=result.choice, rt_ms=result.rt_ms,

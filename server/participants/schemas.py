@@ -2,9 +2,13 @@ from __future__ import annotations
 
 import json
 from datetime import datetime
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+# Row ids are 32-bit integers in the schema; a larger id is refused as invalid input (422), not sent to the
+# database (SQLite cannot even bind integers over 64 bits).
+RowId = Annotated[int, Field(ge=1, le=2**31 - 1)]
 
 Answer = Literal["yes", "no", "dont_know"]
 Choice = Literal["left_much", "left_slightly", "equal", "right_slightly", "right_much"]
@@ -100,7 +104,7 @@ class WithdrawRead(BaseModel):
 
 class EventCreate(BaseModel):
     kind: Literal["load_failure", "playback_stall", "error"]
-    trial_id: int | None = None
+    trial_id: RowId | None = None
     detail: dict[str, Any] | None = None
 
     @field_validator("detail")

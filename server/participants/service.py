@@ -54,6 +54,10 @@ def start_session(session: Session, study: Study, external: dict[str, str] | Non
 
 _by_id = select(ParticipantSession).where(ParticipantSession.id == bindparam("id"))
 _SESSION = {None: _by_id, "share": _by_id.with_for_update(read=True), "update": _by_id.with_for_update()}
+# A vote's session (locked as by authorize(lock="share")) and its trial, in one round trip.
+_ANSWER = (select(ParticipantSession, Trial)
+           .outerjoin(Trial, (Trial.id == bindparam("trial_id")) & (Trial.session_id == ParticipantSession.id))
+           .where(ParticipantSession.id == bindparam("id")).with_for_update(read=True, of=ParticipantSession))
 
 
 def authorize(session: Session, session_id: str, token: str | None,
@@ -65,7 +69,21 @@ def authorize(session: Session, session_id: str, token: str | None,
     withdrawal and demographics), so a withdrawal never runs beside a vote of the same session: without it a vote
     could be stored just after the withdrawal deleted the answers.  (SQLite has one writer at a time anyway.)
     """
-    ps = session.scalars(_SESSION[lock], {"id": session_id}).first()
+    return _checked(session, session.scalars(_SESSION[lock], {"id": session_id}).first(), token)
+
+
+def authorize_answer(session: Session, session_id: str, token: str | None, trial_id: int
+                     ) -> tuple[ParticipantSession, Trial]:
+    """:func:`authorize` with ``lock="share"``, and the session's trial ``trial_id`` (404 if it has none)."""
+    row = session.execute(_ANSWER, {"id": session_id, "trial_id": trial_id}).first()
+    ps = _checked(session, row[0] if row is not None else None, token)
+    trial = row[1]  # type: ignore[index]  # _checked raised if there was no row
+    if trial is None:
+        raise NotFound("no such trial in this session")
+    return ps, trial
+
+
+def _checked(session: Session, ps: ParticipantSession | None, token: str | None) -> ParticipantSession:
     if ps is None:
         raise NotFound("no such session")
     if not token:
@@ -131,11 +149,10 @@ def _vote_insert(insert: Any) -> Any:
     return insert(table).from_select(columns, row).on_conflict_do_nothing().returning(table.c.id)
 
 
-_TRIAL = select(Trial).where(Trial.id == bindparam("id"), Trial.session_id == bindparam("session_id"))
 _VOTE_INSERT = {"postgresql": _vote_insert(postgresql.insert), "sqlite": _vote_insert(sqlite.insert)}
 
 
-def cast_vote(session: Session, ps: ParticipantSession, trial_id: int, choice: str, rt_ms: int,
+def cast_vote(session: Session, ps: ParticipantSession, trial: Trial, choice: str, rt_ms: int,
               idempotency_key: str, extra: dict[str, Any]) -> VoteResult:
     """Store the vote once.  Repeating the same request returns the stored vote; anything else that would change
     or duplicate an answer is a conflict.
@@ -146,9 +163,6 @@ def cast_vote(session: Session, ps: ParticipantSession, trial_id: int, choice: s
     """
     if ps.state == SessionState.withdrawn:
         raise Unauthorized("this session was withdrawn")
-    trial = session.scalars(_TRIAL, {"id": trial_id, "session_id": ps.id}).first()
-    if trial is None:
-        raise NotFound("no such trial in this session")
     body_hash = request_hash({"choice": choice, "rt_ms": rt_ms, "idempotency_key": idempotency_key, **extra})
     now = utcnow()
     inserted = session.scalar(_VOTE_INSERT[session.get_bind().dialect.name], {
