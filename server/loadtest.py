@@ -257,11 +257,12 @@ async def participant(client: Client, stats: Stats, rng: random.Random, deadline
 
 
 async def _run_clients(port: int, n: int, concurrency: int, seed: int, deadline: float, pause_ms: float,
-                       stats: Stats) -> None:
+                       stats: Stats, ramp_s: float = 0.0) -> None:
     rng = random.Random(seed)
     gate = asyncio.Semaphore(concurrency)
 
     async def one(i: int) -> None:
+        await asyncio.sleep(ramp_s * i / n)  # arrivals spread over the ramp (0: everybody at once)
         async with gate:
             client = Client("127.0.0.1", port)
             try:
@@ -295,7 +296,8 @@ def _pg_cluster(action: str) -> None:
 
 
 def run(database: str = "sqlite", participants: int = 200, workers: int = 2, concurrency: int = 100,
-        seed: int = 1, time_limit: float = 300.0, pause_ms: float = 0.0, crash_at: float | None = None,
+        seed: int = 1, time_limit: float = 300.0, pause_ms: float = 0.0, ramp_s: float = 0.0,
+        crash_at: float | None = None,
         outage_at: float | None = None, outage_s: float = 5.0, pg_url: str = DEFAULT_PG,
         progress: Any = print) -> dict[str, Any]:
     """The whole scenario; returns the report (see :func:`format_report`)."""
@@ -333,7 +335,7 @@ def run(database: str = "sqlite", participants: int = 200, workers: int = 2, con
 
         async def main() -> None:
             await asyncio.gather(_run_clients(server.port, participants, concurrency, seed, deadline, pause_ms,
-                                              stats), faults())
+                                              stats, ramp_s), faults())
 
         started = time.monotonic()
         try:
@@ -345,6 +347,7 @@ def run(database: str = "sqlite", participants: int = 200, workers: int = 2, con
     voting = (stats.last_vote - stats.first_vote) if stats.first_vote and stats.last_vote else elapsed
     return {
         "database": database, "participants": participants, "workers": workers, "concurrency": concurrency,
+        "pause_ms": pause_ms, "ramp_s": ramp_s,
         "seconds": elapsed, "votes_per_s": check["acknowledged"] / max(voting, 1e-9),
         "latency_ms": {name: {"p50": float(np.percentile(v, 50)), "p95": float(np.percentile(v, 95)),
                               "p99": float(np.percentile(v, 99)), "n": len(v)}
@@ -356,7 +359,8 @@ def run(database: str = "sqlite", participants: int = 200, workers: int = 2, con
 
 def format_report(report: dict[str, Any]) -> str:
     lines = [f"{report['participants']} participants, {report['database']}, {report['workers']} workers, "
-             f"{report['concurrency']} at a time: {report['seconds']:.1f} s, "
+             f"{report['concurrency']} at a time, think time {report['pause_ms']:.0f} ms, "
+             f"arrivals over {report['ramp_s']:.0f} s: {report['seconds']:.1f} s, "
              f"{report['votes_per_s']:.0f} votes/s"]
     for name, q in report["latency_ms"].items():
         lines.append(f"  {name:13} p50 {q['p50']:7.1f} ms  p95 {q['p95']:7.1f} ms  p99 {q['p99']:7.1f} ms  "
@@ -380,6 +384,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--concurrency", type=int, default=100)
     p.add_argument("--pause-ms", type=float, default=0.0, help="mean think time before each vote")
+    p.add_argument("--ramp-s", type=float, default=0.0,
+                   help="spread the participants' arrivals over this many seconds (default: all at once)")
     p.add_argument("--crash-at", type=float, default=None, help="SIGKILL the server at this share of the votes")
     p.add_argument("--outage-at", type=float, default=None, help="stop PostgreSQL at this share of the votes")
     p.add_argument("--outage-s", type=float, default=5.0)
@@ -388,7 +394,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", type=Path, default=None)
     a = p.parse_args(argv)
     report = run(a.database, a.participants, a.workers, a.concurrency, time_limit=a.time_limit,
-                 pause_ms=a.pause_ms, crash_at=a.crash_at, outage_at=a.outage_at, outage_s=a.outage_s,
+                 pause_ms=a.pause_ms, ramp_s=a.ramp_s, crash_at=a.crash_at, outage_at=a.outage_at, outage_s=a.outage_s,
                  pg_url=a.pg_url)
     print(format_report(report))
     if a.json:
