@@ -7,7 +7,6 @@ import os
 import sqlite3
 import threading
 import time
-from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -74,10 +73,16 @@ class WriterQueue:
         self._threads = threading.Lock()
         self._fd: int | None = None
         self._pid: int | None = None
+        self._owner: int | None = None  # the thread in its turn
 
     def enter(self) -> None:
+        if self._owner == threading.get_ident():
+            # Another transaction of this thread (an event loop serving two requests) holds the turn: waiting
+            # would wait for ourselves.  Refuse at once (the request answers 503 and is retried).
+            raise sqlite3.OperationalError("database is locked")
         if not self._threads.acquire(timeout=self.timeout_s):
             raise sqlite3.OperationalError("database is locked")
+        self._owner = threading.get_ident()
         try:
             if self._pid != os.getpid():  # a forked child must not share the parent's lock
                 self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
@@ -94,11 +99,13 @@ class WriterQueue:
                     time.sleep(pause)  # one thread per process waits here; the other process commits in ~1 ms
                     pause = min(pause * 2, 0.002)
         except BaseException:
+            self._owner = None
             self._threads.release()
             raise
 
     def leave(self) -> None:
         fcntl.flock(self._fd, fcntl.LOCK_UN)  # type: ignore[arg-type]
+        self._owner = None
         self._threads.release()
 
 
@@ -220,9 +227,3 @@ def downgrade(engine: Engine, revision: str = "base") -> None:
         cfg = alembic_config()
         cfg.attributes["connection"] = connection
         command.downgrade(cfg, revision)
-
-
-def session_scope(factory: sessionmaker[Session]) -> Iterator[Session]:
-    """One session per request: committed by the service functions that change data, closed afterwards."""
-    with factory() as session:
-        yield session

@@ -32,7 +32,10 @@ async def get_session(request: Request) -> AsyncIterator[Session]:
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
-SessionDep = Annotated[Session, Depends(get_session)]
+# "function": closed as the endpoint returns or raises, before the response is sent.  The participant endpoints
+# run on the event loop, and a transaction left open across the await of sending would hold SQLite's writer turn
+# while other requests of the same loop wait for it.
+SessionDep = Annotated[Session, Depends(get_session, scope="function")]
 
 _participant_bearer = HTTPBearer(auto_error=False, description="the token returned when the session was created")
 _researcher_bearer = OAuth2PasswordBearer(tokenUrl="/api/v1/auth/token", auto_error=False)

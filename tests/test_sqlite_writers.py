@@ -110,3 +110,20 @@ def test_a_killed_writer_does_not_block_the_others(url):
     finally:
         holder.kill()
         holder.join()
+
+
+def test_a_second_transaction_of_the_same_thread_is_refused_at_once(url):
+    """An event loop serving two requests is one thread: if the first still held its turn, waiting for it would
+    wait for ourselves until the timeout."""
+    engine = make_engine(url)
+    with engine.connect() as first:
+        first.begin()
+        first.execute(text("INSERT INTO t VALUES (1)"))
+        started = time.monotonic()
+        with pytest.raises(OperationalError, match="database is locked"), engine.begin() as second:
+            second.execute(text("INSERT INTO t VALUES (2)"))
+        assert time.monotonic() - started < 1
+        first.commit()
+    with engine.connect() as c:
+        assert c.scalar(ROWS) == 1
+    engine.dispose()
