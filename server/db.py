@@ -63,8 +63,9 @@ class WriterQueue:
 
     SQLite admits one writer; the others retry in its busy handler, which sleeps 1, 2, 5, 10 ... 100 ms between
     tries.  Under load that gave votes seconds of latency while the file was free most of the time.  Here a
-    writer waits on a thread lock (woken at once when it is released) and, across worker processes, on an
-    advisory file lock (``flock``: the kernel drops it when a process dies, even by SIGKILL), then begins.
+    writer waits on a thread lock (woken at once when it is released) and then, across worker processes, for an
+    advisory file lock (``flock``, tried every 0.2 to 2 ms by the one waiting thread of each process; the kernel
+    drops it when a process dies, even by SIGKILL), then begins.
     """
 
     def __init__(self, path: Path, timeout_s: float) -> None:
