@@ -19,8 +19,8 @@ async def get_settings(request: Request) -> Settings:
 
 
 async def get_session(request: Request) -> AsyncIterator[Session]:
-    """A session for the request.  Made in the event loop (creating one does no I/O) and used in the endpoint's
-    worker thread: one thread hop per request instead of one per dependency."""
+    """A session for the request, made in the event loop (creating one does no I/O, so it costs no thread hop);
+    the participant endpoints use it on the loop, the researcher endpoints in their worker thread."""
     state = request.app.state
     # Reads never write: on SQLite they run beside the writers instead of queueing for the write lock.
     bind = state.read_engine if request.method in ("GET", "HEAD") else state.engine
@@ -43,7 +43,7 @@ _researcher_bearer = OAuth2PasswordBearer(tokenUrl="/api/v1/auth/token", auto_er
 
 async def participant_token(
         credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_participant_bearer)]) -> str | None:
-    """The bearer token; the endpoint checks it (``authorize``) in its own thread, with its other queries."""
+    """The bearer token; the endpoint checks it (``authorize``) together with its other queries."""
     return credentials.credentials if credentials else None
 
 

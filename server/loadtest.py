@@ -82,7 +82,6 @@ def prepare_database(kind: str, workdir: Path, pg_url: str = DEFAULT_PG) -> str:
 class Server:
     """uvicorn in its own process group (so SIGKILL takes the workers too)."""
 
-    url: str
     database_url: str
     workdir: Path
     workers: int
@@ -306,7 +305,7 @@ def run(database: str = "sqlite", participants: int = 200, workers: int = 2, con
     with tempfile.TemporaryDirectory(prefix="animstudy-load-") as tmp:
         workdir = Path(tmp)
         url = prepare_database(database, workdir, pg_url)
-        server = Server("", url, workdir, workers)
+        server = Server(url, workdir, workers)
         server.start()
         progress(f"{participants} participants against {server.base} ({database}, {workers} workers)")
         stats = Stats()
