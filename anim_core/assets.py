@@ -1,8 +1,9 @@
 """The source data files: where they are in the data directory and what their content must be.
 
-The project never ships these files; it reads them from a data directory (``ANIMSTUDY_DATA_DIR``).  Each file may
-be stored gzip-compressed (``name.gz``, as in the project's mirror) or plain; the checksum is that of the
-uncompressed content, which is what the public origins named in each folder's SOURCE.md publish.
+The repository ships them in ``data/`` (see its README for origins and licenses); the server reads them from the
+data directory of its settings (``ANIMSTUDY_DATA_DIR``, default that folder).  Each file may be stored
+gzip-compressed (``name.gz``, as shipped) or plain; the checksum is that of the uncompressed content, which is what
+the public origins publish.
 """
 
 from __future__ import annotations
@@ -38,7 +39,8 @@ def check_data_dir(data_dir: Path) -> Path:
     data_dir = Path(data_dir)
     if not data_dir.is_dir():
         raise AssetError(f"data directory {data_dir} does not exist; set ANIMSTUDY_DATA_DIR to the folder holding "
-                         f"mocap/ and character/ (see README.md, Data)")
+                         f"mocap/ and character/, or unset it to use the sample data in the repository's data/ "
+                         f"(see README.md, Data)")
     return data_dir
 
 
@@ -49,7 +51,7 @@ def resolve(data_dir: Path, name: str) -> Path:
     for path in candidates:
         if path.is_file():
             return path
-    raise AssetError(f"missing file {base / name} (see README.md, Data, for where to get it)")
+    raise AssetError(f"missing file {base / name} (see README.md, Data: the repository's data/ folder ships it)")
 
 
 def read_bytes(path: Path) -> bytes:

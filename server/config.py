@@ -13,15 +13,15 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
 class Settings(BaseSettings):
-    """``ANIMSTUDY_DATA_DIR``: read-only source assets (motion capture, character); default ``../shared/data``
-    beside the checkout.  ``ANIMSTUDY_VAR_DIR``: everything the service writes (database file, clips, videos,
+    """``ANIMSTUDY_DATA_DIR``: read-only source assets (motion capture, character); default the sample data shipped
+    in the repository (``data/``).  ``ANIMSTUDY_VAR_DIR``: everything the service writes (database file, clips, videos,
     secret key); default ``./var``.  ``DATABASE_URL``: default an SQLite file in the var directory; a
     ``postgresql://`` URL is the real deployment.  ``ANIMSTUDY_SECRET_KEY``: signs researcher tokens and names the
     videos; default a random key kept in ``<var>/secret.key``."""
 
     model_config = SettingsConfigDict(env_prefix="ANIMSTUDY_", extra="ignore")
 
-    data_dir: Path = REPO_ROOT.parent / "shared" / "data"
+    data_dir: Path = REPO_ROOT / "data"
     var_dir: Path = Path("var")
     database_url: str | None = Field(default=None, validation_alias=AliasChoices("DATABASE_URL",
                                                                                  "ANIMSTUDY_DATABASE_URL"))

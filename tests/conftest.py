@@ -13,8 +13,8 @@ pytest_plugins = ["tests.server_fixtures"]
 
 
 def data_dir() -> Path:
-    """``ANIMSTUDY_DATA_DIR`` or, in this workplace, ``../shared/data`` beside the checkout."""
-    path = Path(os.environ.get("ANIMSTUDY_DATA_DIR", REPO.parent / "shared" / "data"))
+    """``ANIMSTUDY_DATA_DIR`` or the sample data shipped in the repository (``data/``)."""
+    path = Path(os.environ.get("ANIMSTUDY_DATA_DIR", REPO / "data"))
     if not (path / "mocap").is_dir():
         pytest.fail(f"motion-capture data not found in {path}: set ANIMSTUDY_DATA_DIR (see README.md)")
     return path
