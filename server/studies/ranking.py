@@ -228,12 +228,12 @@ def rank_conditions(comparisons: Iterable[GradedComparison | tuple[str, str, str
             raise ValueError(f"score must be an integer in -2..+2, not {v.score!r}")
     used = [v for v in votes if v.reference != v.test]
     if anchor is None:
-        references = {v.reference for v in used}
+        references = {v.reference for v in votes}
         if len(references) > 1:
             raise ValueError(f"the votes have several reference conditions {sorted(references)}: give anchor=")
         anchor = next(iter(references), conditions[0] if conditions else None)
     names = list(dict.fromkeys([*([anchor] if anchor is not None else []), *conditions,
-                                *(c for v in used for c in (v.reference, v.test))]))
+                                *(c for v in votes for c in (v.reference, v.test))]))
     counts = Counter(c for v in used for c in (v.reference, v.test))
 
     def ranking(fit: RankingFit, scales: Sequence[ConditionScale] = ()) -> Ranking:
@@ -251,10 +251,10 @@ def rank_conditions(comparisons: Iterable[GradedComparison | tuple[str, str, str
         return RankingFit(status=status, message=message, link=link, anchor=anchor, n_votes=len(votes),
                           **{**base, **fields})
 
+    if anchor is not None and len(names) == 1:
+        return ranking(info("single_condition", "only one condition: it is the anchor, at 0"))
     if anchor is None or not used:
         return ranking(info("no_votes", "no votes comparing two different conditions"))
-    if len(names) == 1:
-        return ranking(info("single_condition", "only one condition: it is the anchor, at 0"))
     fitted, bounds = _finite_component(used, names, anchor)
     separated = [ConditionScale(n, None, None, None, None, counts[n], bound) for n, bound in bounds.items()]
     status = "separated" if bounds else "all_ties"
