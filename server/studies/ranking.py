@@ -13,10 +13,11 @@ condition is called the reference mirrors the answers, so "no difference" (delta
 answer distribution and the scale has one origin, the anchor.  The unit is the latent logistic (logit) or
 standard normal (probit, Case V's unit: the standard deviation of a discriminal difference) scale.
 
-Answer levels nobody used (neither ``s`` nor ``-s``) are merged with their neighbour: their cut points' maximum
-likelihood lies on the boundary (two cuts coinciding), and merging gives the same supremum and the same scale
-values.  In particular, votes that only ever say +2 or -2 give exactly the binary Bradley-Terry (or
-Thurstone-Mosteller) model, which is how the published Bradley-Terry example in the tests applies.
+Answer levels nobody used (neither ``s`` nor ``-s``) are merged with their neighbour: the maximum likelihood
+puts their cut points on the boundary (at infinity for an unused extreme answer, two cuts coinciding for an
+unused middle one), and merging gives the same supremum and the same scale values.  In particular, votes that
+only ever say +2 or -2 give exactly the binary Bradley-Terry (or Thurstone-Mosteller) model, which is how the
+published Bradley-Terry example in the tests applies.
 
 Repeated answers: a participant answers many comparisons (each twice, sides swapped), and their answers are not
 independent (taste, a personal use of the scale, a remembered first answer).  The estimates are the maximum
@@ -34,10 +35,11 @@ Degenerate input never raises and never yields NaN; what comes out is stated in 
 - ``"no_votes"``: no comparison of two different conditions; every value but the anchor's is ``None``.
 - ``"single_condition"``: only the anchor; it is at 0.
 - ``"all_ties"``: every vote that could be used said "no difference": the model has no unit; values ``None``.
-- ``"separated"``: some conditions were always judged at the extreme against everything they were compared with
-  (the maximum likelihood scale value is infinite): their value is ``None`` and ``bound`` says ``"above"`` or
-  ``"below"`` the anchor; conditions never linked to the anchor by any vote have ``bound=None``.  The others are
-  fitted on the votes among themselves (the limit of the likelihood maximisation).
+- ``"separated"``: some condition, or group of conditions, only ever got the extreme answer in one direction
+  against all the others it was compared with (the maximum likelihood scale value is infinite): their value is
+  ``None`` and ``bound`` says ``"above"`` or ``"below"`` the anchor; conditions never linked to the anchor by any
+  vote have ``bound=None``.  The others are fitted on the votes among themselves (the limit of the likelihood
+  maximisation).
 - ``"not_converged"``: the optimiser stopped early; values are reported, standard errors only if finite.
 
 The anchor itself always has value 0, standard error 0 and interval (0, 0): it is the origin by definition.
@@ -107,7 +109,8 @@ class RankingFit:
 
 @dataclass(frozen=True)
 class Ranking:
-    """Conditions ordered from best to worst (those without a value last, ``"above"`` ones first)."""
+    """Conditions from best to worst: ``"above"`` ones, then by value, then those without value or bound, then
+    ``"below"`` ones (ties by name)."""
 
     conditions: tuple[ConditionScale, ...]
     fit: RankingFit
@@ -211,12 +214,13 @@ def rank_conditions(comparisons: Iterable[GradedComparison | tuple[str, str, str
 
     ``comparisons``: the votes (participant, reference condition, test condition, score -2..+2 from the test
     condition's point of view).  ``anchor``: the condition fixed at 0; default the reference condition of the
-    votes when they all share one (otherwise it must be given).  ``conditions``: conditions to report even if
-    they have no votes.  ``link``: ``"logit"`` (ordinal Bradley-Terry) or ``"probit"`` (Thurstone Case V).
-    ``level``: interval coverage (the field is called ``ci95`` whatever the level).
+    votes when they all share one (otherwise it must be given), or the first of ``conditions`` without votes.
+    ``conditions``: conditions to report even if they have no votes.  ``link``: ``"logit"`` (ordinal
+    Bradley-Terry) or ``"probit"`` (Thurstone Case V).  ``level``: interval coverage (the field is called ``ci95``
+    whatever the level).
 
-    Raises ``ValueError`` only for malformed input: a score outside -2..+2 or not an integer, an unknown link,
-    or an anchor that cannot be inferred.
+    Raises ``ValueError`` only for malformed input: a score outside -2..+2 or not an integer, an unknown link or
+    level, or an anchor that cannot be inferred.
     """
     if link not in ("logit", "probit"):
         raise ValueError(f"link must be 'logit' or 'probit', not {link!r}")
