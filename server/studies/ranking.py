@@ -88,7 +88,12 @@ class ConditionScale:
 
 @dataclass(frozen=True)
 class RankingFit:
-    """How the scale was fitted.  ``deviance``/``df`` compare with the saturated model (one multinomial per pair)."""
+    """How the scale was fitted.
+
+    ``deviance``/``df`` compare with the saturated model (one answer distribution per pair of conditions); a
+    descriptive measure of how well one scale explains all pairs: no chi-square p-value is given, because a
+    participant's votes are not independent.
+    """
 
     status: Literal["ok", "no_votes", "single_condition", "all_ties", "separated", "not_converged"]
     message: str
