@@ -31,10 +31,10 @@ from . import assets, contacts, metrics
 from .assets import AssetError
 from .bvh import BvhError, read_bvh
 from .character import Character, RetargetedCharacter, load_character, retarget
-from .clip import PLAYBACK_MODES, KeyframeClip, PlaybackMode, Pose
+from .clip import PLAYBACK_MODES, KeyframeClip, PlaybackMode, Pose, horizontal
 from .footplant import plant_feet
 from .hybrid import HybridClip, build_crouch, build_gait, build_idle
-from .quat import quat_from_axis_angle, quat_mul, rotate
+from .quat import quat_from_axis_angle, quat_mul, rotate, slerp
 from .skeleton import Skeleton
 
 Array = NDArray[np.float64]
@@ -48,6 +48,7 @@ FLOOR_PERCENTILE = 10  # the floor goes under the feet in the lowest 10 % of fra
 MANIFEST = "manifest.json"
 LEGS = (("LeftUpLeg", "LeftLeg", "LeftFoot"), ("RightUpLeg", "RightLeg", "RightFoot"))  # IK chains, as FEET
 METRES_PER_CMU_UNIT = 0.056444  # the source measured on its own skeleton
+LOOP_BLEND_S = 0.2  # a gait loop fades in from the mocap's next cycle over this long (seam C1)
 TURN_EASE_S = 0.2  # a ping-pong keyframe clip slows to rest over this long at each turn (no bounce)
 CROUCH_START = 0.02  # the crouch starts where the hips have gone 2 % of its depth down
 MAX_LAG_FRAMES = {"gait": 2, "crouch": 1, "idle": 1}  # a hybrid further out of phase gets a warning
@@ -209,8 +210,10 @@ def pick_gait(source: Source) -> tuple[int, int, int]:
     """(cycle start = left foot forward at full extension, left foot passing, cycle end) as source frames.
 
     The left foot is at full forward extension where it leads the right foot by the most (a local maximum, at
-    least half the largest lead); the cycle runs to the next such maximum; passing is the first frame after it at
-    which the right foot has swung level with the planted left foot.
+    least half the largest lead); a cycle runs to the next such maximum; passing is the first frame after it at
+    which the right foot has swung level with the planted left foot.  Of several whole cycles the one whose
+    source feet skate least (:func:`_source_skate`) is taken, the first on a tie: the reference should be the
+    cleanest stretch of the mocap.
     """
     sk = source.character.skeleton
     pos = source.positions(source.clip.times)
@@ -223,7 +226,11 @@ def pick_gait(source: Source) -> tuple[int, int, int]:
     if len(steps) < 2:
         raise ConfigError(f"[animations.{name}]: no whole gait cycle found in frames {source.config.frames}; "
                           f"give 'cycle' and 'keys' in the clip set file")
-    start, end = steps[0], steps[1]
+    def skate(k: int) -> float:
+        return _source_skate(source, steps[k] * source.frame_time, steps[k + 1] * source.frame_time, 30)
+
+    k = min(range(len(steps) - 1), key=lambda k: (skate(k), k)) if len(steps) > 2 else 0
+    start, end = steps[k], steps[k + 1]
     crossing = np.flatnonzero(lead[start:end] <= 0.0)
     if crossing.size == 0:
         raise ConfigError(f"[animations.{name}]: the feet never pass each other in the cycle; give 'keys'")
@@ -345,6 +352,41 @@ def _grid_clip(source: Source, start: float, stop: float, fps: int, even: bool, 
     return clip, src_t
 
 
+def _crossfaded_loop(source: Source, clip: KeyframeClip, src_t: Array, blend: float) -> KeyframeClip:
+    """A gait cycle's keys with a seam continuous in pose *and* velocity: over the first ``blend`` seconds the
+    keys fade (smoothstep, slerp) in from the mocap one cycle later — the poses that really follow the cycle's
+    end — so the loop's first key is the pose after its last, and the fade starts and ends with zero slope.
+    Where the file has no cycle after this one, the last ``blend`` seconds fade towards the cycle before; with
+    neither, the pose mismatch is spread over the cycle (:meth:`KeyframeClip.closed_loop`)."""
+    period = float(src_t[-1] - src_t[0])
+    grid = clip.times
+    if src_t[0] + period + blend <= source.clip.duration + 1e-9:
+        fade, shift = grid < blend, period  # the next cycle's poses come first
+        w = 1.0 - _smoothstep(grid[fade] / blend)
+    elif src_t[0] - period >= -1e-9:
+        fade, shift = grid > clip.duration - blend, -period  # the last keys turn into the previous cycle's
+        w = _smoothstep((grid[fade] - (clip.duration - blend)) / blend)
+    else:
+        return clip.closed_loop()
+    other = source.clip.sample(src_t[fade] + shift, method="slerp")
+    travel = horizontal(source.clip.sample(np.array([src_t[0] + shift])).root_translation[0]
+                        - source.clip.sample(np.array([src_t[0]])).root_translation[0], UP)
+    rot = np.array(clip.rotations)
+    rot[fade] = slerp(rot[fade], other.rotations, w[:, None])
+    root = np.array(clip.root_translation)
+    root[fade] += w[:, None] * (other.root_translation - travel - root[fade])
+    if shift > 0:
+        rot[-1], root[-1] = rot[0], root[0] + travel  # key n is the pose key 0 faded in from, one cycle on
+    else:
+        rot[-1], root[-1] = rot[0], root[0] - travel
+    return KeyframeClip(clip.skeleton, grid, rot, root, clip.mode, clip.in_place, clip.up_axis, clip.name)
+
+
+def _smoothstep(x: Array) -> Array:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
 def _planted(source: Source, clip: KeyframeClip, src_t: Array) -> KeyframeClip:
     """``clip`` with its feet held where they are while the source's feet are down (:mod:`anim_core.footplant`).
 
@@ -357,7 +399,8 @@ def _planted(source: Source, clip: KeyframeClip, src_t: Array) -> KeyframeClip:
     down = contacts.foot_down(source.mocap_feet(src_t[keys]), UP)
     velocity = clip.velocity if loop else np.zeros(3)
     root = clip.root_translation[keys] - velocity * clip.times[keys, None]
-    rot = plant_feet(sk, clip.rotations[keys], root, legs, down, 1.0 / (clip.times[1] - clip.times[0]),
+    feet = [tuple(int(j) for j in sk.indices(foot)) for foot in FEET]
+    rot = plant_feet(sk, clip.rotations[keys], root, legs, down, 1.0 / (clip.times[1] - clip.times[0]), feet,
                      periodic=loop, ground_velocity=velocity, up_axis=UP)
     if loop:
         rot = np.concatenate([rot, rot[:1]])
@@ -395,7 +438,7 @@ def build_animation(source: Source, fps: int, increments: tuple[int, ...],
                               f"{list(cycle)} and keys {list(keys)} differ")
         start, stop = t(cycle[0]), t(cycle[1])
         keyframe, src_t = _grid_clip(source, start, stop, fps, even=True, mode="loop")
-        keyframe = _planted(source, keyframe.closed_loop(), src_t)
+        keyframe = _planted(source, _crossfaded_loop(source, keyframe, src_t, LOOP_BLEND_S), src_t)
         key_grid = [_on_grid(t(k), start, stop, keyframe) for k in keys]
         hybrids = [build_gait(keyframe, key_grid, keyframe.duration, increment=i, in_place=cfg.in_place,
                               name=cfg.name) for i in increments]

@@ -3,11 +3,11 @@
 Offline (a clip builder's step, not a runtime job).  Conventions as in :mod:`anim_core.contacts` and
 :mod:`anim_core.ik`: frames along axis 0 at ``fps``, positions in metres, ``up_axis`` vertical.  For each
 foot and each contact phase (an interval of frames in which the foot is down, typically detected on the source
-motion before retargeting), the ankle is held at one place on the ground — horizontally; its height stays the
-animated one, so heel and toe still roll — and two-bone IK on hip-knee-ankle moves the leg there, the foot keeping
-its animated world orientation.  The pin is where the ankle is in the phase's frame of least horizontal speed.
-Over ``blend_frames`` frames on each side of a phase the IK weight eases in and out (smoothstep), so the leg never
-jumps.
+motion before retargeting), the foot follows its animated path on the ground from the phase's slowest frame on,
+shifted horizontally by whatever its slowest joint (heel or toe) moves beyond ``max_speed``: it can roll, not
+slide.  Heights stay the animated ones, the foot keeps its animated world orientation, and two-bone IK on
+hip-knee-ankle moves the leg.  Over ``blend_frames`` frames on each side of a phase the IK weight eases in and
+out (smoothstep), so the leg never jumps.
 """
 
 from __future__ import annotations
@@ -29,19 +29,21 @@ def _smoothstep(x: Array) -> Array:
     return x * x * (3.0 - 2.0 * x)
 
 
-def _creep(ground: Array, k: int, max_step: float, horizontal: list[int]) -> Array:
-    """The path ``(N, 3)`` that starts at ``ground[k]`` and follows ``ground (N, 3)`` forwards and backwards from
-    there with horizontal steps no longer than ``max_step``: a foot that may roll but never slides fast."""
-    out = ground.copy()
+def _held_offsets(points: Array, k: int, max_step: float, horizontal: list[int]) -> Array:
+    """``(N, 3)`` horizontal offsets for a foot tracked by ``points (N, P, 3)`` on the ground over one contact
+    phase: 0 at frame ``k``, and from there (forwards and backwards) the offset grows by exactly what the foot's
+    slowest point moves beyond ``max_step`` per frame, so that point never moves faster — the foot may roll over
+    its heel or toe, but it does not slide."""
+    out = np.zeros((len(points), 3))
 
     def step(i: int, j: int) -> None:
-        d = ground[j, horizontal] - ground[i, horizontal]
-        length = float(np.linalg.norm(d))
-        if length > max_step:
-            d = d * (max_step / length)
-        out[j, horizontal] = out[i, horizontal] + d
+        d = points[j][:, horizontal] - points[i][:, horizontal]  # (P, 2)
+        slowest = d[int(np.argmin(np.linalg.norm(d, axis=1)))]
+        length = float(np.linalg.norm(slowest))
+        excess = slowest * (1.0 - max_step / length) if length > max_step else 0.0 * slowest
+        out[j, horizontal] = out[i, horizontal] - excess
 
-    for i in range(k, len(ground) - 1):  # frames of one contact phase
+    for i in range(k, len(points) - 1):  # frames of one contact phase
         step(i, i + 1)
     for i in range(k, 0, -1):
         step(i, i - 1)
@@ -49,16 +51,21 @@ def _creep(ground: Array, k: int, max_step: float, horizontal: list[int]) -> Arr
 
 
 def plant_feet(skeleton: Skeleton, local_rotations: ArrayLike, root_translation: ArrayLike,
-               legs: Sequence[tuple[int, int, int]], down: ArrayLike, fps: float, periodic: bool = False,
-               ground_velocity: ArrayLike | None = None, up_axis: int = 1, blend_frames: int = 2,
-               max_speed: float = 0.4) -> Array:
+               legs: Sequence[tuple[int, int, int]], down: ArrayLike, fps: float,
+               feet: Sequence[Sequence[int]] | None = None, periodic: bool = False,
+               ground_velocity: ArrayLike | None = None, up_axis: int = 1, blend_frames: int = 5,
+               max_speed: float = 0.4, rest_speed: float = 0.5) -> Array:
     """Local rotations ``(T, J, 4)`` with each leg's ankle held in place while its foot is down.
 
     ``legs``: per foot the chain ``(hip, knee, ankle)`` (joint indices); ``down``: ``(T, F)`` contact per frame
-    and foot; ``periodic``: the ``T`` frames are one loop (phases may wrap); ``ground_velocity (3,)`` m/s: for
+    and foot; ``feet``: per foot the joints that touch the ground (default: the ankle), e.g. ankle and toe;
+    ``periodic``: the ``T`` frames are one loop (phases may wrap); ``ground_velocity (3,)`` m/s: for
     clips played in place, the ground moves at minus this under the character, so a pinned ankle follows it.
-    ``max_speed`` m/s: inside a phase the ankle still follows its animated ground path (a foot rolls), but never
-    faster than this (by default 0.4 m/s, below the skate threshold of :mod:`anim_core.contacts`).
+    ``max_speed`` m/s: inside a phase the foot follows its animated ground path, shifted so that its slowest
+    joint never moves faster than this (by default 0.4 m/s, below the skate threshold of
+    :mod:`anim_core.contacts`); the foot keeps its world orientation, so heel and toe still roll.
+    ``rest_speed`` m/s: a phase in which the foot's slowest joint never gets slower than this is a swing that
+    skims the floor, not a step, and is left alone (holding it would drag the swinging foot back).
     """
     rot = np.array(local_rotations, dtype=np.float64)
     root = np.asarray(root_translation, dtype=np.float64)
@@ -71,29 +78,32 @@ def plant_feet(skeleton: Skeleton, local_rotations: ArrayLike, root_translation:
     horizontal = [a for a in range(3) if a != up_axis]
     frames = np.arange(n)
     for f, chain in enumerate(legs):  # one solve per leg over all frames
+        points = [chain[2]] if feet is None else [int(j) for j in feet[f]]
         _, pos = skeleton.forward_kinematics(rot, root)
         ankle = pos[:, chain[2]]
-        speed = np.linalg.norm(np.gradient(ankle, axis=0)[:, horizontal] * fps + g[horizontal], axis=1)
+        foot = pos[:, points]
+        speed = np.linalg.norm(np.gradient(foot, axis=0)[..., horizontal] * fps + g[horizontal], axis=-1).min(axis=1)
         target = ankle.copy()
         weight = np.zeros(n)
         for start, stop in contact_intervals(contact[:, f], periodic):  # one per contact phase
             inside = np.arange(start, stop)
-            ground = ankle[inside % n] + g * (inside / fps)[:, None]  # the ankle on the ground
-            pinned = _creep(ground, int(np.argmin(speed[inside % n])), max_speed / fps, horizontal)
-            pinned = np.concatenate([np.repeat(pinned[:1], blend_frames, 0), pinned,
-                                     np.repeat(pinned[-1:], blend_frames, 0)])
+            if speed[inside % n].min() > rest_speed:
+                continue  # a swing passing low over the ground, not a step: left as animated
+            ground = foot[inside % n] + g * (inside / fps)[:, None, None]  # the foot on the ground
+            offset = _held_offsets(ground, int(np.argmin(speed[inside % n])), max_speed / fps, horizontal)
+            # Beside the phase the edge's offset fades out, so a foot arriving or leaving fast is not dragged.
+            offset = np.concatenate([np.repeat(offset[:1], blend_frames, 0), offset,
+                                     np.repeat(offset[-1:], blend_frames, 0)])
             span = np.arange(start - blend_frames, stop + blend_frames)
             w = np.where(span < start, _smoothstep((span - start + blend_frames + 1) / (blend_frames + 1)),
                          np.where(span >= stop, _smoothstep((stop + blend_frames - span) / (blend_frames + 1)), 1.0))
             if not periodic:
                 keep = (span >= 0) & (span < n)
-                span, w, pinned = span[keep], w[keep], pinned[keep]
+                span, w, offset = span[keep], w[keep], offset[keep]
             idx = span % n
             better = w > weight[idx]
-            idx, span, w = idx[better], span[better], w[better]
-            moving = pinned[better] - g * (span / fps)[:, None]  # the ground place in the clip's frame
-            target[idx[:, None], horizontal] = moving[:, horizontal]
-            weight[idx] = w
+            target[idx[better]] = ankle[idx[better]] + offset[better]
+            weight[idx[better]] = w[better]
         active = frames[weight > 0]
         if active.size:
             rot[active] = two_bone_ik(skeleton, rot[active], root[active], chain, target[active],
