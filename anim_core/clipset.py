@@ -7,7 +7,9 @@ For each animation of ``clipset.toml`` (walk, run, crouch, idle) the builder
    the idle keys from the sway;
 3. makes the **keyframe** clip: the chosen stretch of mocap resampled to ``fps`` keys per second on a grid whose
    length is a whole number of frames (the stretch is time-scaled by under half a frame to fit; a gait cycle also
-   gets an even number of frames so its mirrored half-cycle lands on the grid, and its loop is closed);
+   gets an even number of frames so its mirrored half-cycle lands on the grid, and it fades in from the mocap's
+   next cycle so the loop is C1; a ping-pong clip eases to rest at its turns); the feet are kept planted where the
+   source's feet are down (two-bone IK after retargeting);
 4. builds the **hybrid** clips (increments 0, 1, 2) from keys of that keyframe clip, with exactly its period;
 5. samples every clip on the same grid (one loop, or one forward-and-back period), puts the floor under the
    keyframe clip's planted feet and measures the motion metrics, hybrids against their keyframe clip.

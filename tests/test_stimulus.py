@@ -115,3 +115,58 @@ def test_build_warns_about_pairs_out_of_phase_and_seams_that_jump(clips):
     assert len(warnings) == 2
     assert "out of phase" in warnings[1] and "+3 frames" in warnings[1] and c.id in warnings[1]
     assert "seam jumps 99.0 mm" in warnings[0]
+
+
+def bone_angles_deg(skeleton, a, b):
+    """(T, J-1) angle between the bones of two pose batches (local rotations, root)."""
+    _, p = skeleton.forward_kinematics(*a)
+    _, q = skeleton.forward_kinematics(*b)
+    j = np.arange(1, skeleton.n_joints)
+    u = p[:, j] - p[:, skeleton.parents[j]]
+    v = q[:, j] - q[:, skeleton.parents[j]]
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(u, v), axis=-1), np.sum(u * v, axis=-1)))
+
+
+@pytest.mark.parametrize("animation", ANIMATIONS)
+def test_planting_turns_only_the_legs_and_them_a_little(data, animation):
+    """Bone directions stay the mocap's except where IK pins a foot; there the largest deviation is printed."""
+    from anim_core import clipset as cs
+    from anim_core.character import load_character
+
+    config = load_config()
+    cfg = config.animations[animation]
+    source = cs.load_source(data, load_character(data), cfg, config.relocate)
+    t = source.time_of
+    if cfg.kind == "gait":
+        first, _, last = cs.pick_gait(source)
+        clip, src_t = cs._grid_clip(source, t(first), t(last), 30, True, "loop")
+        clip = cs._crossfaded_loop(source, clip, src_t, cs.LOOP_BLEND_S)
+    else:
+        first, last = cs.pick_crouch(source) if cfg.kind == "crouch" else cs.pick_idle(source)
+        clip, src_t = cs._grid_clip(source, t(first), t(last), 30, False, "pingpong", cs.TURN_EASE_S)
+    planted = cs._planted(source, clip, src_t)
+    sk = clip.skeleton
+    angle = bone_angles_deg(sk, (clip.rotations, clip.root_translation),
+                            (planted.rotations, planted.root_translation))
+    legs = [k for k, name in enumerate(sk.names[1:]) if name in {"LeftLeg", "LeftFoot", "RightLeg", "RightFoot"}]
+    others = [k for k in range(sk.n_joints - 1) if k not in legs]
+    assert angle[:, others].max() < 1e-6
+    print(animation, f"largest leg-bone deviation where IK pins a foot: {angle[:, legs].max():.2f} deg")
+    assert angle[:, legs].max() < 10.0
+    # The unplanted keys are the mocap's own rotations: on the mocap's skeleton the bones point the same way.
+    middle = len(clip.times) // 2  # outside any fade
+    mocap = source.clip.sample(src_t[middle:middle + 1], method="slerp")
+    assert Q.quat_angle(clip.rotations[middle], mocap.rotations[0]).max() < 1e-9
+
+
+def test_gait_loops_are_c1_at_the_seam(by_id):
+    """The keyframe loop's velocity jumps no more across the wrap than across any other key (dense keys are
+    piecewise linear, so each key has some jump); the hybrid loops are cyclic SQUAD (C1 everywhere)."""
+    for animation in ("walk", "run"):
+        c = by_id[f"{animation}-keyframe"]
+        p = c.world_positions  # one period, in place
+        v = np.roll(p, -1, axis=0) - p  # velocity after each frame (per frame)
+        jump = np.linalg.norm(v - np.roll(v, 1, axis=0), axis=-1).max(axis=1)  # at each frame
+        print(animation, f"seam {jump[0] * 1000:.1f} mm/frame, median {np.median(jump) * 1000:.1f}, "
+                         f"max elsewhere {jump[1:].max() * 1000:.1f}")
+        assert jump[0] <= jump[1:].max()
