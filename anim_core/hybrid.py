@@ -175,7 +175,15 @@ class SpringClip:
 
     With ``land_on_last_key`` (default) ``u`` is divided by its value at ``duration``, so the ping-pong turns
     exactly on the crouch key instead of wherever the spring has got to (with the thesis constants and a 1.3 s
-    half the factor is 1.002; the overshoot is unchanged).
+    half the factor is 1.002; the overshoot is unchanged).  In full, with ``c`` the clip time of
+    :func:`~anim_core.clip.playback_time`::
+
+        u(t) = (1 - spring(time_scale * c)) / (1 - spring(time_scale * duration) if land_on_last_key else 1)
+
+    and the pose is the unclamped slerp (and linear root) between keys ``k`` and ``k + 1`` at
+    ``(u - key_params[k]) / (key_params[k + 1] - key_params[k])``, ``k`` the last key with ``key_params[k] <= u``
+    (at most ``K - 2``).  The crouch timed by the mocap (:func:`build_crouch` with ``time_scale=None``) has
+    ``land_on_last_key=False``, a fitted ``time_scale`` and ``key_params`` that are not evenly spaced.
     """
 
     skeleton: Skeleton

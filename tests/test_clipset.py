@@ -182,6 +182,7 @@ def test_cli_builds_and_reports(data, tmp_path, monkeypatch, capsys):
     assert main(["clips", "build", "--out", str(tmp_path / "clips")]) == 0
     out = capsys.readouterr().out
     assert "[4/4] idle" in out and "walk-hybrid2" in out and "16 clips" in out
+    assert "hips r" in out and "warning:" not in out  # the comparison table; every pair in phase, no seam jumps
     assert (tmp_path / "clips" / MANIFEST).is_file()
     monkeypatch.setenv("ANIMSTUDY_DATA_DIR", str(tmp_path / "nowhere"))
     assert main(["clips", "build", "--out", str(tmp_path / "other")]) == 2
