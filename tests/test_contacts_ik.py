@@ -200,3 +200,18 @@ def test_plant_feet_holds_a_sliding_foot_while_it_is_down():
     assert speed[10:21].max() <= 0.1 + 1e-6  # held (creeping at most 0.1 m/s) while down
     np.testing.assert_allclose(out[:7], rot[:7])  # untouched well before the phase
     np.testing.assert_allclose(p[:, 3, 1], sk.forward_kinematics(rot, root)[1][:, 3, 1], atol=0.02)
+
+
+def test_quat_between_turns_one_direction_into_the_other(rng):
+    a = rng.normal(size=(200, 3))
+    b = rng.normal(size=(200, 3)) * rng.uniform(0.1, 5, (200, 1))
+    q = Q.quat_between(a, b)
+    turned = Q.rotate(q, a)
+    np.testing.assert_allclose(turned / np.linalg.norm(turned, axis=1, keepdims=True),
+                               b / np.linalg.norm(b, axis=1, keepdims=True), atol=1e-12)
+    # The smallest rotation: its angle is the angle between the directions.
+    between = np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.sum(a * b, axis=1))
+    np.testing.assert_allclose(Q.quat_angle(q), between, atol=1e-12)
+    opposite = Q.quat_between([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]], [[0.0, -2.0, 0.0], [-1.0, 0.0, 0.0]])
+    np.testing.assert_allclose(Q.rotate(opposite, [[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]),
+                               [[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0]], atol=1e-12)
