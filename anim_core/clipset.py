@@ -7,7 +7,9 @@ For each animation of ``clipset.toml`` (walk, run, crouch, idle) the builder
    the idle keys from the sway;
 3. makes the **keyframe** clip: the chosen stretch of mocap resampled to ``fps`` keys per second on a grid whose
    length is a whole number of frames (the stretch is time-scaled by under half a frame to fit; a gait cycle also
-   gets an even number of frames so its mirrored half-cycle lands on the grid, and its loop is closed);
+   gets an even number of frames so its mirrored half-cycle lands on the grid, and it fades in from the mocap's
+   next cycle so the loop is C1; a ping-pong clip eases to rest at its turns); the feet are kept planted where the
+   source's feet are down (two-bone IK after retargeting);
 4. builds the **hybrid** clips (increments 0, 1, 2) from keys of that keyframe clip, with exactly its period;
 5. samples every clip on the same grid (one loop, or one forward-and-back period), puts the floor under the
    keyframe clip's planted feet and measures the motion metrics, hybrids against their keyframe clip.
@@ -27,13 +29,15 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from . import assets, metrics
+from . import assets, contacts, metrics
 from .assets import AssetError
 from .bvh import BvhError, read_bvh
 from .character import Character, RetargetedCharacter, load_character, retarget
-from .clip import PLAYBACK_MODES, KeyframeClip, PlaybackMode, Pose
+from .clip import PLAYBACK_MODES, KeyframeClip, PlaybackMode, Pose, horizontal
+from .footplant import plant_feet
 from .hybrid import HybridClip, build_crouch, build_gait, build_idle
-from .quat import quat_from_axis_angle, quat_mul, rotate
+from .quat import quat_from_axis_angle, quat_mul, rotate, slerp
+from .skeleton import Skeleton
 
 Array = NDArray[np.float64]
 Kind = Literal["gait", "crouch", "idle"]
@@ -44,6 +48,12 @@ FEET = (("LeftFoot", "LeftToeBase"), ("RightFoot", "RightToeBase"))  # each foot
 UP = 1
 FLOOR_PERCENTILE = 10  # the floor goes under the feet in the lowest 10 % of frames: planted, not mid-stride
 MANIFEST = "manifest.json"
+LEGS = (("LeftUpLeg", "LeftLeg", "LeftFoot"), ("RightUpLeg", "RightLeg", "RightFoot"))  # IK chains, as FEET
+METRES_PER_CMU_UNIT = 0.056444  # the source measured on its own skeleton
+LOOP_BLEND_S = 0.2  # a gait loop fades in from the mocap's next cycle over this long (seam C1)
+TURN_EASE_S = 0.2  # a ping-pong keyframe clip slows to rest over this long at each turn (no bounce)
+CROUCH_START = 0.02  # the crouch starts where the hips have gone 2 % of its depth down
+MAX_LAG_FRAMES = {"gait": 2, "crouch": 1, "idle": 1}  # a hybrid further out of phase gets a warning
 
 
 class ConfigError(ValueError):
@@ -138,6 +148,7 @@ class Source:
     character: RetargetedCharacter
     clip: KeyframeClip  # times from 0 at config.frames[0]; mode "clamp" (it is only sampled inside)
     frame_time: float
+    mocap: Skeleton  # the file's own skeleton (CMU units), on which the clip's rotations play unchanged
 
     def time_of(self, frame: int) -> float:
         return (frame - self.config.frames[0]) * self.frame_time
@@ -145,6 +156,12 @@ class Source:
     def positions(self, times: Array) -> Array:
         _, pos = self.character.skeleton.forward_kinematics(*self.clip.sample(times, method="slerp"))
         return pos
+
+    def mocap_feet(self, times: Array) -> Array:
+        """``(T, 2, 2, 3)`` ankle and toe positions in metres of the mocap on its own skeleton (not retargeted)."""
+        rot, root = self.clip.sample(times, method="slerp")
+        _, pos = self.mocap.forward_kinematics(rot, root / self.character.root_scale)
+        return pos[:, np.array([self.mocap.indices(f) for f in FEET])] * METRES_PER_CMU_UNIT
 
 
 def _turn(pose: Pose, yaw: float) -> Pose:
@@ -179,7 +196,7 @@ def load_source(data_dir: Path, character: Character, config: AnimationConfig, r
         forward = np.cross(left, [0.0, 1.0, 0.0]).mean(axis=0)
     pose = _turn(pose, -float(np.arctan2(forward[0], forward[2])))
     clip = KeyframeClip(rc.skeleton, times, pose.rotations, pose.root_translation, mode="clamp", name=config.name)
-    return Source(config, rc, clip, bvh.frame_time)
+    return Source(config, rc, clip, bvh.frame_time, bvh.posed_skeleton())
 
 
 # --- key picking -----------------------------------------------------------------------------------------------
@@ -195,8 +212,10 @@ def pick_gait(source: Source) -> tuple[int, int, int]:
     """(cycle start = left foot forward at full extension, left foot passing, cycle end) as source frames.
 
     The left foot is at full forward extension where it leads the right foot by the most (a local maximum, at
-    least half the largest lead); the cycle runs to the next such maximum; passing is the first frame after it at
-    which the right foot has swung level with the planted left foot.
+    least half the largest lead); a cycle runs to the next such maximum; passing is the first frame after it at
+    which the right foot has swung level with the planted left foot.  Of several whole cycles the one whose
+    source feet skate least (:func:`_source_skate`) is taken, the first on a tie: the reference should be the
+    cleanest stretch of the mocap.
     """
     sk = source.character.skeleton
     pos = source.positions(source.clip.times)
@@ -209,7 +228,11 @@ def pick_gait(source: Source) -> tuple[int, int, int]:
     if len(steps) < 2:
         raise ConfigError(f"[animations.{name}]: no whole gait cycle found in frames {source.config.frames}; "
                           f"give 'cycle' and 'keys' in the clip set file")
-    start, end = steps[0], steps[1]
+    def skate(k: int) -> float:
+        return _source_skate(source, steps[k] * source.frame_time, steps[k + 1] * source.frame_time, 30)
+
+    k = min(range(len(steps) - 1), key=lambda k: (skate(k), k)) if len(steps) > 2 else 0
+    start, end = steps[k], steps[k + 1]
     crossing = np.flatnonzero(lead[start:end] <= 0.0)
     if crossing.size == 0:
         raise ConfigError(f"[animations.{name}]: the feet never pass each other in the cycle; give 'keys'")
@@ -218,10 +241,18 @@ def pick_gait(source: Source) -> tuple[int, int, int]:
 
 
 def pick_crouch(source: Source) -> tuple[int, int]:
-    """(standing = first frame, deepest crouch = lowest hips) as source frames."""
-    pos = source.positions(source.clip.times)
+    """(standing, deepest crouch) as source frames: the deepest is the lowest hips; standing is the last frame
+    before it at which the hips are still within :data:`CROUCH_START` of the crouch's depth of their starting
+    height — where the descent begins (mocap often stands still first, and the spring moves from its first
+    frame)."""
+    hips = source.positions(source.clip.times)[:, 0, UP]
+    deepest = int(np.argmin(hips))
+    depth = hips[0] - hips[deepest]
+    if deepest == 0 or depth <= 0:
+        raise ConfigError(f"[animations.{source.config.name}]: the hips never go down; give 'keys'")
+    still = np.flatnonzero(hips[:deepest] >= hips[0] - CROUCH_START * depth)
     first = source.config.frames[0]
-    return first, int(np.argmin(pos[:, 0, UP])) + first
+    return int(still[-1]) + first, deepest + first
 
 
 def pick_idle(source: Source) -> tuple[int, int]:
@@ -291,16 +322,103 @@ class BuiltClip:
         }
 
 
-def _grid_clip(source: Source, start: float, stop: float, fps: int, even: bool, mode: PlaybackMode
-               ) -> KeyframeClip:
-    """The source between ``start`` and ``stop`` seconds resampled to ``fps`` keys per second, time-scaled to a
-    whole (or even) number of frames."""
+def _grid_times(start: float, stop: float, fps: int, even: bool, ease: float) -> Array:
+    """Source times of the keys of :func:`_grid_clip`: a whole (or even) number of frames spanning ``start..stop``
+    plus ``ease`` seconds, over which the clip's speed eases from 0 to 1 at the start and back at the end
+    (smoothstep speed, so each ramp covers ``ease / 2`` of source time)."""
+    span = stop - start
     step = 2 if even else 1
-    n = max(2, round((stop - start) * fps / step)) * step
-    src_t = start + (stop - start) * np.arange(n + 1) / n
+    n = max(2, round((span + ease) * fps / step)) * step
+    tau = (span + ease) * np.arange(n + 1) / n
+    if ease <= 0:
+        return start + tau
+
+    def ramp(x: Array) -> Array:  # integral of smoothstep over [0, x], x in [0, 1]
+        return x**3 - 0.5 * x**4
+
+    warped = np.where(tau < ease, ease * ramp(np.clip(tau / ease, 0, 1)),
+                      np.where(tau > span, span - ease * ramp(np.clip((span + ease - tau) / ease, 0, 1)),
+                               tau - 0.5 * ease))
+    return start + warped
+
+
+def _grid_clip(source: Source, start: float, stop: float, fps: int, even: bool, mode: PlaybackMode,
+               ease: float = 0.0) -> tuple[KeyframeClip, Array]:
+    """The source between ``start`` and ``stop`` seconds resampled to ``fps`` keys per second, time-scaled to a
+    whole (or even) number of frames, optionally easing in and out (:func:`_grid_times`); and the source times
+    of its keys."""
+    src_t = _grid_times(start, stop, fps, even, ease)
     pose = source.clip.sample(src_t, method="slerp")
-    return KeyframeClip(source.character.skeleton, np.arange(n + 1) / fps, pose.rotations, pose.root_translation,
-                        mode=mode, name=source.config.name)
+    clip = KeyframeClip(source.character.skeleton, np.arange(src_t.size) / fps, pose.rotations,
+                        pose.root_translation, mode=mode, name=source.config.name)
+    return clip, src_t
+
+
+def _crossfaded_loop(source: Source, clip: KeyframeClip, src_t: Array, blend: float) -> KeyframeClip:
+    """A gait cycle's keys with a seam continuous in pose *and* velocity: over the first ``blend`` seconds the
+    keys fade (smoothstep, slerp) in from the mocap one cycle later — the poses that really follow the cycle's
+    end — so the loop's first key is the pose after its last, and the fade starts and ends with zero slope.
+    Where the file has no cycle after this one, the last ``blend`` seconds fade towards the cycle before; with
+    neither, the pose mismatch is spread over the cycle (:meth:`KeyframeClip.closed_loop`)."""
+    period = float(src_t[-1] - src_t[0])
+    grid = clip.times
+    if src_t[0] + period + blend <= source.clip.duration + 1e-9:
+        fade, shift = grid < blend, period  # the next cycle's poses come first
+        w = 1.0 - _smoothstep(grid[fade] / blend)
+    elif src_t[0] - period >= -1e-9:
+        fade, shift = grid > clip.duration - blend, -period  # the last keys turn into the previous cycle's
+        w = _smoothstep((grid[fade] - (clip.duration - blend)) / blend)
+    else:
+        return clip.closed_loop()
+    other = source.clip.sample(src_t[fade] + shift, method="slerp")
+    travel = horizontal(source.clip.sample(np.array([src_t[0] + shift])).root_translation[0]
+                        - source.clip.sample(np.array([src_t[0]])).root_translation[0], UP)
+    rot = np.array(clip.rotations)
+    rot[fade] = slerp(rot[fade], other.rotations, w[:, None])
+    root = np.array(clip.root_translation)
+    root[fade] += w[:, None] * (other.root_translation - travel - root[fade])
+    if shift > 0:
+        rot[-1], root[-1] = rot[0], root[0] + travel  # key n is the pose key 0 faded in from, one cycle on
+    else:
+        rot[-1], root[-1] = rot[0], root[0] - travel
+    return KeyframeClip(clip.skeleton, grid, rot, root, clip.mode, clip.in_place, clip.up_axis, clip.name)
+
+
+def _smoothstep(x: Array) -> Array:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def _planted(source: Source, clip: KeyframeClip, src_t: Array) -> KeyframeClip:
+    """``clip`` with its feet held where they are while the source's feet are down (:mod:`anim_core.footplant`).
+
+    Contacts are detected on the mocap on its own skeleton at the keys' source times; a loop is planted as one
+    period in place (the ground moving under it), so a phase may run across the seam."""
+    sk = clip.skeleton
+    legs = [tuple(int(j) for j in sk.indices(leg)) for leg in LEGS]
+    loop = clip.mode == "loop"
+    keys = slice(0, -1) if loop else slice(None)
+    down = contacts.foot_down(source.mocap_feet(src_t[keys]), UP)
+    velocity = clip.velocity if loop else np.zeros(3)
+    root = clip.root_translation[keys] - velocity * clip.times[keys, None]
+    feet = [tuple(int(j) for j in sk.indices(foot)) for foot in FEET]
+    rot = plant_feet(sk, clip.rotations[keys], root, legs, down, 1.0 / (clip.times[1] - clip.times[0]), feet,
+                     periodic=loop, ground_velocity=velocity, up_axis=UP)
+    if loop:
+        rot = np.concatenate([rot, rot[:1]])
+    return KeyframeClip(sk, clip.times, rot, clip.root_translation, clip.mode, clip.in_place, clip.up_axis,
+                        clip.name)
+
+
+def _source_skate(source: Source, start: float, stop: float, fps: int) -> float:
+    """Foot skate ratio (:mod:`anim_core.contacts`) of the mocap on its own skeleton from ``start`` to ``stop``
+    seconds (the configured frames) at ``fps``, velocities by central differences with one frame beyond each end
+    (held at the file's ends)."""
+    n = int(np.floor((stop - start) * fps + 1e-9))
+    feet = source.mocap_feet(start + np.arange(-1, n + 2) / fps)
+    down = contacts.foot_down(feet[1:-1], UP)
+    fast = contacts.foot_speed(feet, fps, UP)[1:-1] > contacts.SKATE_SPEED_MPS
+    return float(np.mean(np.any(down & fast, axis=1)))
 
 
 def _on_grid(t: float, start: float, stop: float, clip: KeyframeClip) -> float:
@@ -321,7 +439,8 @@ def build_animation(source: Source, fps: int, increments: tuple[int, ...],
             raise ConfigError(f"[animations.{cfg.name}]: the gait cycle starts at the first key, but cycle "
                               f"{list(cycle)} and keys {list(keys)} differ")
         start, stop = t(cycle[0]), t(cycle[1])
-        keyframe = _grid_clip(source, start, stop, fps, even=True, mode="loop").closed_loop()
+        keyframe, src_t = _grid_clip(source, start, stop, fps, even=True, mode="loop")
+        keyframe = _planted(source, _crossfaded_loop(source, keyframe, src_t, LOOP_BLEND_S), src_t)
         key_grid = [_on_grid(t(k), start, stop, keyframe) for k in keys]
         hybrids = [build_gait(keyframe, key_grid, keyframe.duration, increment=i, in_place=cfg.in_place,
                               name=cfg.name) for i in increments]
@@ -329,19 +448,22 @@ def build_animation(source: Source, fps: int, increments: tuple[int, ...],
                                 "loop", cfg.in_place, UP, cfg.name)
         source_info = {"file": cfg.source, "cycle_frames": list(cycle), "key_frames": list(keys)}
     elif cfg.kind == "crouch":
+        # One stand -> deepest segment played forward and back: both clips are deepest at the turn.
         keys = cfg.keys or pick_crouch(source)
-        start, stop = t(cfg.frames[0]), t(cfg.frames[1])
-        keyframe = _grid_clip(source, start, stop, fps, even=False, mode="pingpong")
-        key_grid = [_on_grid(t(k), start, stop, keyframe) for k in keys]
-        hybrids = [build_crouch(keyframe, key_grid, increment=i, duration=keyframe.duration, name=cfg.name)
-                   for i in increments]
-        source_info = {"file": cfg.source, "frames": list(cfg.frames), "key_frames": list(keys)}
+        start, stop = t(keys[0]), t(keys[1])
+        keyframe, src_t = _grid_clip(source, start, stop, fps, even=False, mode="pingpong", ease=TURN_EASE_S)
+        keyframe = _planted(source, keyframe, src_t)
+        hybrids = [build_crouch(keyframe, [0.0, keyframe.duration], increment=i, duration=keyframe.duration,
+                                time_scale=None, name=cfg.name) for i in increments]
+        source_info = {"file": cfg.source, "frames": [int(keys[0]), int(keys[1])], "key_frames": list(keys)}
     else:
         keys = cfg.keys or pick_idle(source)
         start, stop = t(keys[0]), t(keys[1])
-        keyframe = _grid_clip(source, start, stop, fps, even=False, mode="pingpong")
+        keyframe, src_t = _grid_clip(source, start, stop, fps, even=False, mode="pingpong", ease=TURN_EASE_S)
+        keyframe = _planted(source, keyframe, src_t)
         hybrids = [build_idle(keyframe, [0.0, keyframe.duration], increment=i, name=cfg.name) for i in increments]
         source_info = {"file": cfg.source, "frames": [int(keys[0]), int(keys[1])], "key_frames": list(keys)}
+    source_skate = _source_skate(source, t(cfg.frames[0]), t(cfg.frames[1]), fps)
 
     n_frames = keyframe.n_keys - 1 if cfg.playback == "loop" else 2 * (keyframe.n_keys - 1)
     speed = float(np.linalg.norm(keyframe.velocity)) if cfg.in_place else 0.0
@@ -358,7 +480,8 @@ def build_animation(source: Source, fps: int, increments: tuple[int, ...],
                                np.asarray(key_rot[: len(key_times)]), fps, n_frames, cfg.playback, cfg.in_place,
                                speed, source_info, source.character, pose.rotations, pose.root_translation,
                                *source.character.skeleton.forward_kinematics(*pose)))
-    return _measure(_place_on_floor(built), keyframe.velocity if cfg.in_place else np.zeros(3))
+    return _measure(_place_on_floor(built), keyframe.velocity if cfg.in_place else np.zeros(3), cfg.kind,
+                    source_skate)
 
 
 def _feet(clip: BuiltClip) -> tuple[NDArray[np.intp], Array]:
@@ -380,21 +503,67 @@ def _place_on_floor(clips: list[BuiltClip]) -> list[BuiltClip]:
                          "world_positions": c.world_positions + shift}) for c in clips]
 
 
-def _measure(clips: list[BuiltClip], ground_velocity: Array) -> list[BuiltClip]:
+def _knee_flexion(clip: BuiltClip) -> Array:
+    """``(T, 2)`` bend of each knee in radians (0 = straight leg), from the joint positions."""
+    legs = np.array([clip.character.skeleton.indices(leg) for leg in LEGS])
+    p = clip.world_positions
+    thigh = p[:, legs[:, 1]] - p[:, legs[:, 0]]
+    shin = p[:, legs[:, 2]] - p[:, legs[:, 1]]
+    return np.arctan2(np.linalg.norm(np.cross(thigh, shin), axis=-1), np.sum(thigh * shin, axis=-1))
+
+
+def _measure(clips: list[BuiltClip], ground_velocity: Array, kind: Kind, source_skate: float) -> list[BuiltClip]:
     """Fill in each clip's metrics; hybrids are compared with the keyframe clip (the first) frame by frame."""
     keyframe = clips[0]
     feet, contact = _feet(keyframe)
     for c in clips:
         m: dict[str, float | None] = {**metrics.foot_metrics(c.world_positions[:, feet], contact, c.fps,
                                                              periodic=True, ground_velocity=ground_velocity)}
+        # The skate of issue 14: standing heights from the clip itself, as for the source on its own skeleton.
+        m["foot_skate_ratio"] = contacts.foot_skate_ratio(c.world_positions[:, feet], c.fps, UP, periodic=True,
+                                                          ground_velocity=ground_velocity)
+        m["source_foot_skate_ratio"] = source_skate
         m["mpjpe_mm"] = (None if c.method == "keyframe"
                          else metrics.mpjpe_mm(c.world_positions, keyframe.world_positions))
         m["key_velocity_jump_rad_s"] = metrics.angular_velocity_jumps(lambda t, c=c: c.clip.sample(t).rotations,
                                                                       c.key_times)
         m["jerk_mean"] = metrics.jerk_mean(c.world_positions, c.fps, periodic=True)
         m["bytes"] = metrics.storage_bytes(c.key_times.size, c.character.skeleton.n_joints)
+        steps = metrics.frame_steps_mm(c.world_positions)
+        m["seam_jump_mm"] = float(steps[-1])
+        m["median_step_mm"] = float(np.median(steps[:-1]))
+        for name in ("phase_hips_r", "phase_hips_lag", "phase_knee_r", "phase_knee_lag"):
+            m[name] = None
+        if c.method == "hybrid":
+            # A gait's hips bob twice per cycle: a lag of half a cycle would look in phase.
+            m["phase_hips_r"], m["phase_hips_lag"] = metrics.phase_alignment(
+                keyframe.world_positions[:, 0, UP], c.world_positions[:, 0, UP],
+                max_lag=c.n_frames // 4 if kind == "gait" else None)
+            m["phase_knee_r"], m["phase_knee_lag"] = metrics.phase_alignment(_knee_flexion(keyframe),
+                                                                             _knee_flexion(c))
         c.metrics.update(m)
     return clips
+
+
+def clip_warnings(clips: list[BuiltClip], config: ClipSetConfig | None = None) -> list[str]:
+    """What makes a side-by-side comparison show more than the method: a hybrid out of phase with its keyframe
+    clip (best lag beyond :data:`MAX_LAG_FRAMES`) or a seam that jumps (more than twice the median step + 5 mm)."""
+    config = config or load_config()
+    out = []
+    for c in clips:
+        m = c.metrics
+        limit = 2.0 * m["median_step_mm"] + 5.0
+        if m["seam_jump_mm"] > limit:
+            out.append(f"{c.id}: the seam jumps {m['seam_jump_mm']:.1f} mm (limit {limit:.1f} mm: twice the "
+                       f"median step {m['median_step_mm']:.1f} mm + 5 mm)")
+        if c.method == "hybrid":
+            allowed = MAX_LAG_FRAMES[config.animations[c.animation].kind]
+            for part in ("hips", "knee"):
+                lag = m[f"phase_{part}_lag"]
+                if abs(lag) > allowed:
+                    out.append(f"{c.id}: out of phase with {c.animation}-keyframe: {part} best lag {lag:+d} frames "
+                               f"(allowed ±{allowed}), r = {m[f'phase_{part}_r']:.2f} at lag 0")
+    return out
 
 
 # --- the whole set ---------------------------------------------------------------------------------------------

@@ -3,7 +3,8 @@
 * **Gait** (walk, run): keys from the left half of one gait cycle are mirrored into the right half and played
   as a cyclic SQUAD spline (2 keys -> a 4-key cycle at increment 0).
 * **Crouch**: stand -> crouch keys driven by an underdamped spring through an *unclamped* slerp, so the pose
-  overshoots the crouch key and settles; played ping-pong.
+  overshoots the crouch key; played ping-pong.  Timed by the mocap (:func:`build_crouch`), the ping-pong turns at
+  the spring's first overshoot peak, where the source is deepest.
 * **Idle**: sway keys on a SQUAD spline, played ping-pong.
 * **Increments** add keys from the mocap midway between existing ones: gait 4 -> 8 -> 16, crouch/idle 2 -> 3 -> 5.
 
@@ -174,7 +175,15 @@ class SpringClip:
 
     With ``land_on_last_key`` (default) ``u`` is divided by its value at ``duration``, so the ping-pong turns
     exactly on the crouch key instead of wherever the spring has got to (with the thesis constants and a 1.3 s
-    half the factor is 1.002; the overshoot is unchanged).
+    half the factor is 1.002; the overshoot is unchanged).  In full, with ``c`` the clip time of
+    :func:`~anim_core.clip.playback_time`::
+
+        u(t) = (1 - spring(time_scale * c)) / (1 - spring(time_scale * duration) if land_on_last_key else 1)
+
+    and the pose is the unclamped slerp (and linear root) between keys ``k`` and ``k + 1`` at
+    ``(u - key_params[k]) / (key_params[k + 1] - key_params[k])``, ``k`` the last key with ``key_params[k] <= u``
+    (at most ``K - 2``).  The crouch timed by the mocap (:func:`build_crouch` with ``time_scale=None``) has
+    ``land_on_last_key=False``, a fitted ``time_scale`` and ``key_params`` that are not evenly spaced.
     """
 
     skeleton: Skeleton
@@ -290,14 +299,49 @@ def build_idle(source: KeyframeClip, key_times: Sequence[float], increment: int 
                      duration=float(times[-1] - times[0]), mode="pingpong", name=name)
 
 
+def spring_peak_time(zeta: float = THESIS_ZETA, omega: float = THESIS_OMEGA,
+                     time_scale: float = THESIS_TIME_SCALE) -> float:
+    """Seconds to the spring's first overshoot peak, ``pi / (alpha s)`` with ``alpha = omega sqrt(1 - zeta^2)``
+    and time scale ``s``: there ``x' = 0`` (for ``v0 = 0``), so a ping-pong turn there has no bounce."""
+    spring(0.0, zeta, omega)
+    return float(np.pi / (omega * np.sqrt(1.0 - zeta * zeta) * time_scale))
+
+
 def build_crouch(source: KeyframeClip, key_times: Sequence[float], increment: int = 0,
                  duration: float | None = None, zeta: float = THESIS_ZETA, omega: float = THESIS_OMEGA,
-                 time_scale: float = THESIS_TIME_SCALE, name: str = "") -> SpringClip:
-    """Hybrid crouch from a standing and a crouched key (plus midway keys per increment).
+                 time_scale: float | None = THESIS_TIME_SCALE, name: str = "") -> SpringClip:
+    """Hybrid crouch from a standing and a crouched key (plus keys between per increment).
 
-    ``duration``: seconds of the downward half of the ping-pong; default: the time the spring needs to settle
-    within 0.1 % (1.41 s with the thesis constants), so the turn-around happens at rest.
+    ``duration``: seconds of the downward half of the ping-pong.  Two timings:
+
+    * ``time_scale`` given (the thesis's 0.7): the keys are spaced on the path by their source times, the
+      half lasts by default until the spring has settled within 0.1 % (1.41 s with the thesis constants) and
+      the path is scaled to land exactly on the crouch key there;
+    * ``time_scale=None`` (*timed by the mocap*): ``key_times`` are the source's standing and deepest times and
+      ``duration`` their distance.  The time scale is fitted so that the spring's first overshoot peak falls on
+      ``duration`` — the turn, where the source is deepest — so both are deepest at the same moment and the turn
+      has zero velocity; the path is not rescaled, so the pose overshoots the crouch key by the spring's own
+      amount there.  The spring passes the crouch key earlier (at 0.75 of the half, the spring's first zero);
+      keys added by increments are source poses at times midway between the keys' *passing* times, and each sits
+      at the path parameter the spring has at that time, so the hybrid passes it exactly when the source does.
     """
+    if time_scale is None:
+        if duration is None:
+            raise ValueError("a crouch timed by the mocap needs the duration of its downward half")
+        t0, t1 = float(key_times[0]), float(key_times[-1])
+        if not np.isclose(t1 - t0, duration):
+            raise ValueError(f"the crouch keys {list(key_times)} s must span the half's {duration} s")
+        time_scale = spring_peak_time(zeta, omega, 1.0) / duration
+        alpha = omega * np.sqrt(1.0 - zeta * zeta)
+        reach = float((np.pi - np.arctan2(alpha, zeta * omega)) / (alpha * time_scale))  # first u = 1 (x = 0)
+        between = increment_key_times([0.0, reach], increment)[1:-1]
+        times = np.concatenate([[t0], _snap(source, t0 + between), [t1]]) if between.size else np.array([t0, t1])
+        if np.any(np.diff(times) <= 0) or (between.size and times[-2] - t0 >= reach):
+            raise ValueError("the crouch's keys fall on the same source frames; the source has too few frames")
+        keys = _keys(source, times)
+        params = np.concatenate([[0.0], 1.0 - spring(time_scale * (times[1:-1] - t0), zeta, omega), [1.0]])
+        return SpringClip(source.skeleton, params, keys.rotations, keys.root_translation, float(duration),
+                          zeta, omega, time_scale, land_on_last_key=False, name=name)
     times = _snap(source, increment_key_times(key_times, increment))
     keys = _keys(source, times)
     params = (times - times[0]) / (times[-1] - times[0])

@@ -147,3 +147,51 @@ def angular_velocity_jumps(
 def storage_bytes(n_keys: int, n_joints: int) -> int:
     """Bytes to store ``n_keys`` keys as float32: ``n_joints`` quaternions, a root translation and the key time."""
     return int(n_keys) * (int(n_joints) * 4 + 3 + 1) * 4
+
+
+def frame_steps_mm(positions: ArrayLike) -> Array:
+    """``(T,)`` largest joint displacement in mm from each frame to the next of one period ``(T, J, 3)`` m; the
+    last entry is the step across the wrap (frame ``T - 1`` to frame 0)."""
+    p = np.asarray(positions, dtype=np.float64)
+    if p.ndim != 3 or p.shape[-1] != 3 or p.shape[0] < 2:
+        raise ValueError(f"expected joint positions of shape (T >= 2, J, 3), got {p.shape}")
+    return np.linalg.norm(np.roll(p, -1, axis=0) - p, axis=-1).max(axis=1) * 1000.0
+
+
+def seam_jump_mm(positions: ArrayLike) -> float:
+    """Largest joint displacement in mm across the wrap of one period ``(T, J, 3)`` m (see :func:`frame_steps_mm`)."""
+    return float(frame_steps_mm(positions)[-1])
+
+
+def seam_limit_mm(positions: ArrayLike) -> float:
+    """The largest seam jump that is no pop: twice the median per-frame step (wrap excluded) plus 5 mm."""
+    return float(2.0 * np.median(frame_steps_mm(positions)[:-1]) + 5.0)
+
+
+def phase_alignment(reference: ArrayLike, other: ArrayLike, max_lag: int | None = None) -> tuple[float, int]:
+    """How well two periodic signals over one period, ``(T,)`` or ``(T, C)`` channels, move in step.
+
+    Returns ``(r0, lag)``: the Pearson correlation at lag 0 (channels z-scored and pooled), and the circular
+    lag in frames, in ``[-T/2, T/2)``, at which ``other`` correlates best with ``reference``: positive when
+    ``other`` runs late (``other[t + lag]`` matches ``reference[t]``).  A constant channel counts as uncorrelated.
+    ``max_lag``: search only lags with ``|lag| <= max_lag`` (a gait's hips bob twice per cycle: a quarter cycle).
+    """
+    a = np.asarray(reference, dtype=np.float64)
+    b = np.asarray(other, dtype=np.float64)
+    if a.shape != b.shape or a.ndim not in (1, 2) or a.shape[0] < 3:
+        raise ValueError(f"expected two signals of the same shape (T >= 3,) or (T, C), got {a.shape}, {b.shape}")
+    a = a.reshape(a.shape[0], -1)
+    b = b.reshape(b.shape[0], -1)
+
+    def z(x: Array) -> Array:
+        sd = x.std(axis=0)
+        return np.where(sd > 1e-12, (x - x.mean(axis=0)) / np.maximum(sd, 1e-300), 0.0)
+
+    za, zb = z(a), z(b)
+    n = a.shape[0]
+    # Circular cross-correlation of every lag at once: corr[L] = mean_t za[t] zb[t + L].
+    corr = np.real(np.fft.ifft(np.conj(np.fft.fft(za, axis=0)) * np.fft.fft(zb, axis=0), axis=0)).mean(axis=1) / n
+    lags = (np.arange(n) + n // 2) % n - n // 2
+    allowed = np.abs(lags) <= (n if max_lag is None else max_lag)
+    best = int(lags[allowed][int(np.argmax(corr[allowed]))])
+    return float(corr[0]), best

@@ -123,6 +123,27 @@ def rotate(q: ArrayLike, v: ArrayLike) -> Array:
     return v + w * t + np.cross(u, t)
 
 
+def quat_between(a: ArrayLike, b: ArrayLike) -> Array:
+    """The smallest rotation turning directions ``a (..., 3)`` into ``b (..., 3)`` (any lengths > 0).
+
+    ``q = normalize(|a||b| + a.b, a x b)``; for opposite directions (no unique smallest rotation) a half turn
+    about an axis perpendicular to ``a``.
+    """
+    a, b = _f(a), _f(b)
+    a, b = np.broadcast_arrays(a, b)
+    w = np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1) + np.sum(a * b, axis=-1)
+    q = np.concatenate([w[..., None], np.cross(a, b)], axis=-1)
+    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    opposite = n[..., 0] <= 1e-12 * np.maximum(np.sum(a * a, axis=-1), 1e-300)
+    if np.any(opposite):
+        helper = np.where(np.abs(a[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+        perp = np.cross(a, helper)
+        half_turn = np.concatenate([np.zeros((*a.shape[:-1], 1)), perp], axis=-1)
+        q = np.where(opposite[..., None], half_turn, q)
+        n = np.linalg.norm(q, axis=-1, keepdims=True)
+    return q / n
+
+
 def quat_angle(a: ArrayLike, b: ArrayLike | None = None) -> Array:
     """Rotation angle in radians (0..pi) of ``a``, or of the rotation taking ``b`` to ``a`` when given."""
     a = _f(a)

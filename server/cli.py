@@ -54,7 +54,7 @@ def _fmt(value: float | None, digits: int) -> str:
 def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
     """Build the clip set, write it to ``out`` and print its metric table."""
     from anim_core.assets import AssetError
-    from anim_core.clipset import ConfigError, build_clip_set, load_config, write_clip_set
+    from anim_core.clipset import ConfigError, build_clip_set, clip_warnings, load_config, write_clip_set
 
     started = time.perf_counter()
     try:
@@ -74,7 +74,21 @@ def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
               f"{m['foot_slide_mm']:8.2f} {m['penetration_mm']:6.1f} {m['floating_mm']:8.1f} "
               f"{_fmt(m['mpjpe_mm'], 1):>8} {m['key_velocity_jump_rad_s']:14.3f} {m['jerk_mean']:9.1f} "
               f"{m['bytes']:6d}")
+    _print_comparison(clips, clip_warnings(clips, cfg))
     return 0
+
+
+def _print_comparison(clips: list, warnings: list[str]) -> None:
+    """What else than the method the two sides of a pair differ in: feet, phase, seams (issue 14)."""
+    print(f"\n{'clip':16} {'skate':>6} {'source':>6} {'seam mm':>7} {'step mm':>7} {'hips r':>6} {'lag':>4} "
+          f"{'knee r':>6} {'lag':>4}")
+    for c in clips:
+        m = c.metrics
+        print(f"{c.id:16} {m['foot_skate_ratio']:6.3f} {m['source_foot_skate_ratio']:6.3f} {m['seam_jump_mm']:7.1f} "
+              f"{m['median_step_mm']:7.1f} {_fmt(m['phase_hips_r'], 2):>6} {_fmt(m['phase_hips_lag'], 0):>4} "
+              f"{_fmt(m['phase_knee_r'], 2):>6} {_fmt(m['phase_knee_lag'], 0):>4}")
+    for w in warnings:
+        print(f"warning: {w}", flush=True)
 
 
 def render(settings: Settings, out: Path, clips_dir: Path, workers: int, increments: list[int],

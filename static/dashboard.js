@@ -159,13 +159,19 @@
       values: Object.fromEntries(clips.filter((c) => c.animation === a).map((c) => [methodKey(c), c.metrics.foot_skate_ratio])),
     }));
     $("chart-metrics").replaceChildren(Charts.columns(groups, METHODS, "Foot skate ratio per clip", (v) => `${Math.round(v * 100)} %`));
-    table($("table-metrics"), ["clip", "keys", "foot skate", "slide mm", "penetration mm", "floating mm", "MPJPE mm",
-                               "key velocity jump rad/s", "jerk m/s³", "bytes"],
+    table($("table-metrics"), ["clip", "keys", "foot skate", "source skate", "slide mm", "penetration mm", "floating mm", "MPJPE mm",
+                               "key velocity jump rad/s", "jerk m/s³", "bytes", "seam jump mm", "hips phase r (lag)",
+                               "knee phase r (lag)"],
           clips.map((c) => [c.id.replace(/-/, " "), c.key_count, fmt(c.metrics.foot_skate_ratio, 3),
+                            fmt(c.metrics.source_foot_skate_ratio, 3),
                             fmt(c.metrics.foot_slide_mm, 1), fmt(c.metrics.penetration_mm, 1), fmt(c.metrics.floating_mm, 1),
                             fmt(c.metrics.mpjpe_mm, 1), fmt(c.metrics.key_velocity_jump_rad_s, 3), fmt(c.metrics.jerk_mean, 1),
-                            c.metrics.bytes]));
+                            c.metrics.bytes, fmt(c.metrics.seam_jump_mm, 1), phase(c.metrics.phase_hips_r, c.metrics.phase_hips_lag),
+                            phase(c.metrics.phase_knee_r, c.metrics.phase_knee_lag)]));
   }
+
+  // Hybrid against its keyframe clip: correlation at lag 0 and the best lag in frames; "–" for keyframe clips.
+  function phase(r, lag) { return r == null ? "–" : `${fmt(r, 2)} (${lag > 0 ? "+" : ""}${lag})`; }
 
   function renderBenchmark(bench) {
     const box = $("chart-benchmark");

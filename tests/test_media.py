@@ -128,6 +128,16 @@ def test_loops_are_seamless(media):
         assert seam <= 1.5 * steps.max() + 0.5, f"{clip_id}: loop seam {seam:.2f} vs steps up to {steps.max():.2f}"
 
 
+def test_video_wraps_are_no_larger_than_three_median_steps(media):
+    """Issue 14: mean |last - first| frame difference at most 3 x the median neighbour-frame difference."""
+    out, manifest, _ = media
+    for clip_id, entry in manifest["clips"].items():
+        frames = decode(out / entry["video"]).astype(np.int16)
+        steps = np.abs(np.diff(frames, axis=0)).mean(axis=(1, 2, 3))
+        seam = np.abs(frames[0] - frames[-1]).mean()
+        assert seam <= 3 * np.median(steps), f"{clip_id}: wrap {seam:.2f} vs median step {np.median(steps):.2f}"
+
+
 def test_nothing_names_the_content(media):
     out, manifest, _ = media
     for f in out.iterdir():

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from anim_core import metrics
 from anim_core import quat as Q
 from anim_core.metrics import (
     CONTACT_CLEARANCE_M,
@@ -304,3 +305,35 @@ def test_storage_bytes():
     assert storage_bytes(1, 1) == (4 + 3 + 1) * 4
     assert storage_bytes(0, 31) == 0
     assert isinstance(storage_bytes(3, 2), int)
+
+
+def test_phase_alignment_finds_the_lag_of_a_shifted_signal():
+    t = np.arange(80)
+    a = np.sin(2 * np.pi * t / 80) + 0.3 * np.sin(6 * np.pi * t / 80)
+    assert metrics.phase_alignment(a, a) == (pytest.approx(1.0), 0)
+    r0, lag = metrics.phase_alignment(a, np.roll(a, 3))  # other[t] = a[t - 3]: three frames late
+    assert lag == 3 and r0 < 0.99
+    assert metrics.phase_alignment(a, np.roll(a, -5))[1] == -5
+    # Twice per period (a gait's hips): half a period looks like lag 0 unless the search is limited.
+    bob = np.cos(4 * np.pi * t / 80)
+    assert metrics.phase_alignment(bob, np.roll(bob, 2), max_lag=20)[1] == 2
+    # Channels are pooled; a constant channel contributes nothing but does not break the correlation.
+    two = np.stack([a, np.full(80, 2.0)], axis=1)
+    r, lag = metrics.phase_alignment(two, np.stack([np.roll(a, 1), np.full(80, 5.0)], axis=1))
+    assert lag == 1 and 0.4 < r < 0.5  # half of a one-frame-late correlation near 0.99
+    with pytest.raises(ValueError, match="same shape"):
+        metrics.phase_alignment(a, a[:-1])
+
+
+def test_seam_jump_is_the_step_across_the_wrap():
+    t = np.arange(40) / 40
+    p = np.zeros((40, 2, 3))
+    p[:, 1, 0] = np.sin(2 * np.pi * t)  # 1 m circle-ish motion: steps of ~157 mm at most
+    steps = metrics.frame_steps_mm(p)
+    assert steps.shape == (40,)
+    assert metrics.seam_jump_mm(p) == pytest.approx(1000 * abs(p[0, 1, 0] - p[-1, 1, 0]))
+    assert metrics.seam_jump_mm(p) <= metrics.seam_limit_mm(p)
+    popped = p.copy()
+    popped[:, 1, 1] = 0.05 * t  # drifts 5 cm over the period and jumps back at the wrap
+    assert metrics.seam_jump_mm(popped) > 49
+    assert metrics.seam_limit_mm(popped) == pytest.approx(2 * np.median(metrics.frame_steps_mm(popped)[:-1]) + 5)
