@@ -52,9 +52,8 @@ class DemographicsUpdate(BaseModel):
     tech_savvy: Answer
 
 
-class DemographicsRead(BaseModel):
-    gamer: Answer
-    tech_savvy: Answer
+class DemographicsRead(DemographicsUpdate):
+    pass
 
 
 class SessionRead(BaseModel):
