@@ -2,21 +2,26 @@
 
 from __future__ import annotations
 
+import json
+
 from fastapi import FastAPI, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from fastapi.staticfiles import StaticFiles
 from sqlalchemy import Engine
 from sqlalchemy.exc import InterfaceError, OperationalError
+from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from .config import Settings
 from .db import make_engine, migrate, read_only, session_factory
 from .errors import ServiceError
+from .files import ContentStaticFiles
 from .media.router import router as media_router
 from .pages import STATIC_DIR
 from .pages import router as pages_router
 from .participants.router import router as participants_router
 from .researchers.router import router as researchers_router
-from .security import RETRY_AFTER_S, LoginLimiter, Protect
+from .security import RETRY_AFTER_S, LoginLimiter, Protect, RateLimiter
 from .studies.router import router as studies_router
 
 
@@ -27,7 +32,8 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None, r
     engine = engine or make_engine(settings.sqlalchemy_url)
     if run_migrations:
         migrate(engine)
-    app = FastAPI(title="animstudy", version="0.1.0",
+    # No trailing-slash redirects: Starlette builds their Location from the request's Host header.
+    app = FastAPI(title="animstudy", version="0.1.0", redirect_slashes=False,
                   description="Side-by-side user studies of hybrid against keyframe character animation.")
     app.state.settings = settings
     app.state.engine = engine
@@ -35,7 +41,20 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None, r
     app.state.session_factory = session_factory(engine)
 
     app.state.login_limiter = LoginLimiter()
-    app.add_middleware(Protect)
+    app.state.session_limiter = RateLimiter(settings.sessions_per_minute, window_s=60.0)
+    if "*" not in settings.allowed_hosts:
+        app.add_middleware(TrustedHostMiddleware, allowed_hosts=settings.allowed_hosts, www_redirect=False)
+    app.add_middleware(Protect)  # added last: outermost, so even the host check's 400 has the security headers
+
+    @app.exception_handler(RequestValidationError)
+    def invalid_request(_request: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = jsonable_encoder(exc.errors())
+        for error in errors:  # an input that cannot be put in JSON is left out rather than failing the answer
+            try:
+                json.dumps(error.get("input"), ensure_ascii=False, allow_nan=False).encode()
+            except (ValueError, TypeError):
+                error.pop("input", None)
+        return JSONResponse({"detail": errors}, status_code=422)
 
     @app.exception_handler(ServiceError)
     def service_error(_request: Request, exc: ServiceError) -> JSONResponse:
@@ -57,7 +76,7 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None, r
 
     for router in (studies_router, participants_router, researchers_router, media_router, pages_router):
         app.include_router(router)
-    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    app.mount("/static", ContentStaticFiles(directory=STATIC_DIR), name="static")
     return app
 
 

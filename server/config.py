@@ -5,9 +5,10 @@ from __future__ import annotations
 import os
 from functools import cached_property
 from pathlib import Path
+from typing import Annotated
 
-from pydantic import AliasChoices, Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic import AliasChoices, Field, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -17,7 +18,10 @@ class Settings(BaseSettings):
     in the repository (``data/``).  ``ANIMSTUDY_VAR_DIR``: everything the service writes (database file, clips, videos,
     secret key); default ``./var``.  ``DATABASE_URL``: default an SQLite file in the var directory; a
     ``postgresql://`` URL is the real deployment.  ``ANIMSTUDY_SECRET_KEY``: signs researcher tokens and names the
-    videos; default a random key kept in ``<var>/secret.key``."""
+    videos; default a random key kept in ``<var>/secret.key``.  ``ANIMSTUDY_ALLOWED_HOSTS``: the host names the
+    service answers to, comma-separated (``*.example.org`` matches subdomains); default ``*``, any; other
+    ``Host`` headers get 400.  ``ANIMSTUDY_SESSIONS_PER_MINUTE``: new participant sessions allowed per client
+    address and minute (per worker process); default 60, 0 for no limit."""
 
     model_config = SettingsConfigDict(env_prefix="ANIMSTUDY_", extra="ignore")
 
@@ -29,6 +33,15 @@ class Settings(BaseSettings):
     admin_email: str | None = None
     admin_password: str | None = None
     token_hours: float = 12.0
+    allowed_hosts: Annotated[list[str], NoDecode] = ["*"]
+    sessions_per_minute: int = Field(default=60, ge=0)
+
+    @field_validator("allowed_hosts", mode="before")
+    @classmethod
+    def comma_separated(cls, value: object) -> object:
+        if isinstance(value, str):
+            return [h.strip() for h in value.split(",") if h.strip()]
+        return value
 
     @classmethod
     def from_env(cls) -> Settings:

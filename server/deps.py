@@ -10,6 +10,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer, OAuth2Pas
 from sqlalchemy.orm import Session
 
 from .config import Settings
+from .errors import TooManyRequests
 from .researchers.models import Researcher
 from .researchers.service import researcher_from_token
 
@@ -50,6 +51,18 @@ async def participant_token(
 def current_researcher(session: SessionDep, settings: SettingsDep,
                        token: Annotated[str | None, Depends(_researcher_bearer)]) -> Researcher:
     return researcher_from_token(session, token, settings.secret)
+
+
+def client_address(request: Request) -> str:
+    """The client's address (behind a reverse proxy, uvicorn's ``--forwarded-allow-ips`` makes it the real one)."""
+    return request.client.host if request.client else "?"
+
+
+async def limit_new_sessions(request: Request) -> None:
+    """``ANIMSTUDY_SESSIONS_PER_MINUTE`` per address: 429 with ``Retry-After`` beyond it."""
+    wait = request.app.state.session_limiter.hit(client_address(request))
+    if wait is not None:
+        raise TooManyRequests("too many new sessions from this address; wait and try again", retry_after=wait)
 
 
 ParticipantTokenDep = Annotated[str | None, Depends(participant_token)]

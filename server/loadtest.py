@@ -94,7 +94,9 @@ class Server:
                 s.bind(("127.0.0.1", 0))
                 self.port = s.getsockname()[1]
         env = {**os.environ, "DATABASE_URL": self.database_url, "ANIMSTUDY_VAR_DIR": str(self.workdir / "var"),
-               "ANIMSTUDY_SECRET_KEY": "load-test-secret-key-0123456789abcdef"}
+               "ANIMSTUDY_SECRET_KEY": "load-test-secret-key-0123456789abcdef",
+               # every simulated participant comes from 127.0.0.1: no limit on new sessions per address
+               "ANIMSTUDY_SESSIONS_PER_MINUTE": "0"}
         self.process = subprocess.Popen(
             [sys.executable, "-m", "uvicorn", "server.app:app_from_env", "--factory", "--host", "127.0.0.1",
              "--port", str(self.port), "--workers", str(self.workers), "--log-level", "warning",

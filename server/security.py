@@ -1,11 +1,17 @@
-"""Protections around every request: body size limit, security headers, database outages, login rate limit."""
+"""Protections around every request: body size limit, hostile JSON, security headers on every response (errors
+included), and the rate limits of logins and of new participant sessions."""
 
 from __future__ import annotations
 
 import json
+import logging
+import math
+import re
 import threading
 import time
 from collections import defaultdict, deque
+from collections.abc import Callable, Hashable
+from typing import Any
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -22,9 +28,12 @@ SECURITY_HEADERS = [
     (b"referrer-policy", b"no-referrer"),
     (b"cross-origin-opener-policy", b"same-origin"),
 ]
+_SURROGATE = re.compile("[\ud800-\udfff]")
+_FORM_TYPES = (b"application/x-www-form-urlencoded", b"multipart/form-data")
+log = logging.getLogger(__name__)
 
 
-async def _json(send: Send, status: int, detail: str, headers: list[tuple[bytes, bytes]] | None = None) -> None:
+async def _json(send: Send, status: int, detail: Any, headers: list[tuple[bytes, bytes]] | None = None) -> None:
     body = json.dumps({"detail": detail}).encode()
     await send({"type": "http.response.start", "status": status,
                 "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
@@ -32,9 +41,47 @@ async def _json(send: Send, status: int, detail: str, headers: list[tuple[bytes,
     await send({"type": "http.response.body", "body": body})
 
 
+def hostile_json(body: bytes) -> dict[str, Any] | None:
+    """The first value of a JSON body that no JSON-based code path can handle, as a validation error like
+    FastAPI's (``loc``, ``msg``, ``type``), or None.
+
+    Python's ``json`` accepts ``NaN``, ``Infinity`` and ``-Infinity`` (not JSON) and ``"\\ud800"`` (a lone
+    surrogate, which is not a character and cannot be encoded as UTF-8): further down they made building the 422
+    body, or storing the value, fail with a 500.  A body that is not JSON at all is left to the endpoint.
+    """
+    try:
+        text = body.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        return {"type": "unicode", "loc": ["body"], "msg": f"the body is not valid UTF-8 (byte {exc.start})"}
+    try:
+        value = json.loads(text)
+    except (ValueError, RecursionError):
+        return None
+    queue: deque[tuple[tuple[str | int, ...], Any]] = deque([((), value)])
+    while queue:
+        path, v = queue.popleft()
+        if isinstance(v, float) and not math.isfinite(v):
+            return {"type": "finite_number", "loc": ["body", *path],
+                    "msg": "Input should be a finite number (NaN and Infinity are not JSON)"}
+        if isinstance(v, str) and _SURROGATE.search(v):
+            return {"type": "unicode", "loc": ["body", *path],
+                    "msg": "Input should be valid Unicode text (it holds a lone surrogate)"}
+        if isinstance(v, dict):
+            for key, item in v.items():
+                if _SURROGATE.search(key):
+                    return {"type": "unicode", "loc": ["body", *path, _SURROGATE.sub("\ufffd", key)],
+                            "msg": "Field names should be valid Unicode text (this one holds a lone surrogate)"}
+                queue.append(((*path, key), item))
+        elif isinstance(v, list):
+            queue.extend(((*path, i), item) for i, item in enumerate(v))
+    return None
+
+
 class Protect:
-    """ASGI middleware: refuses bodies over :data:`MAX_BODY_BYTES` with 413 (declared or streamed) and adds the
-    security headers to every response."""
+    """ASGI middleware, outermost: refuses bodies over :data:`MAX_BODY_BYTES` with 413 (declared or streamed, e.g.
+    chunked), refuses JSON bodies with non-finite numbers or lone surrogates with 422 (:func:`hostile_json`),
+    answers an unhandled exception with a JSON 500 (the connection stays usable), and adds the security headers to
+    every response, errors included."""
 
     def __init__(self, app: ASGIApp, max_body: int = MAX_BODY_BYTES) -> None:
         self.app = app
@@ -44,21 +91,42 @@ class Protect:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        declared = dict(scope["headers"]).get(b"content-length")
+        headers = dict(scope["headers"])
+        declared = headers.get(b"content-length")
+        too_large = f"request body larger than {self.max_body} bytes"
         if declared is not None and (not declared.isdigit() or int(declared) > self.max_body):
-            await _json(send, 413, f"request body larger than {self.max_body} bytes")
+            await _json(send, 413, too_large)
             return
-        received = 0
-        started = False
-
-        async def limited_receive() -> Message:
-            nonlocal received
+        # The whole body is read here (it is small), so a streamed one over the limit is a 413 before any endpoint
+        # runs, and a JSON one can be checked once for everyone.
+        chunks: list[bytes] = []
+        size, more = 0, True
+        while more:
             message = await receive()
-            if message["type"] == "http.request":
-                received += len(message.get("body", b""))
-                if received > self.max_body:
-                    raise _TooLarge
-            return message
+            if message["type"] != "http.request":
+                return  # the client went away
+            chunks.append(message.get("body", b""))
+            size += len(chunks[-1])
+            if size > self.max_body:
+                await _json(send, 413, too_large)
+                return
+            more = message.get("more_body", False)
+        body = b"".join(chunks)
+        content_type = headers.get(b"content-type", b"").split(b";")[0].strip().lower()
+        if body and not content_type.startswith(_FORM_TYPES) and (problem := hostile_json(body)) is not None:
+            await _json(send, 422, [problem])
+            return
+
+        replayed = False
+
+        async def replay() -> Message:
+            nonlocal replayed
+            if not replayed:
+                replayed = True
+                return {"type": "http.request", "body": body, "more_body": False}
+            return await receive()
+
+        started = False
 
         async def with_headers(message: Message) -> None:
             nonlocal started
@@ -70,49 +138,126 @@ class Protect:
             await send(message)
 
         try:
-            await self.app(scope, limited_receive, with_headers)
-        except _TooLarge:
-            if not started:
-                await _json(send, 413, f"request body larger than {self.max_body} bytes")
+            await self.app(scope, replay, with_headers)
+        except Exception:
+            if started:
+                raise
+            log.exception("unhandled error in %s %s", scope["method"], scope["path"])
+            await _json(send, 500, "internal error; nothing was stored")
 
 
-class _TooLarge(Exception):
-    pass
+Clock = Callable[[], float]
+
+
+class _Window:
+    """Event times per key over the last ``window_s`` seconds (keys with no recent events are forgotten)."""
+
+    def __init__(self, window_s: float) -> None:
+        self.window = window_s
+        self._events: dict[Hashable, deque[float]] = defaultdict(deque)
+
+    def recent(self, key: Hashable, now: float) -> deque[float]:
+        q = self._events.get(key)
+        if q is None:
+            return deque()
+        while q and now - q[0] >= self.window:
+            q.popleft()
+        if not q:
+            del self._events[key]
+        return q
+
+    def add(self, key: Hashable, now: float) -> None:
+        self.recent(key, now)
+        self._events[key].append(now)
+
+    def clear(self, key: Hashable) -> None:
+        self._events.pop(key, None)
+
+
+def _seconds(wait: float) -> int:
+    return max(1, math.ceil(wait))
+
+
+class RateLimiter:
+    """At most ``limit`` events per key in any ``window_s`` seconds (sliding window); ``limit`` 0 is no limit.
+
+    In memory, per process: with several workers the limit applies once per worker.
+    """
+
+    def __init__(self, limit: int, window_s: float = 60.0, clock: Clock = time.monotonic) -> None:
+        self.limit = limit
+        self.clock = clock
+        self._window = _Window(window_s)
+        self._lock = threading.Lock()
+
+    def hit(self, key: Hashable) -> int | None:
+        """Count an event for ``key``; if the limit is reached already, count nothing and return the seconds
+        until the next one is allowed."""
+        if self.limit <= 0:
+            return None
+        now = self.clock()
+        with self._lock:
+            q = self._window.recent(key, now)
+            if len(q) >= self.limit:
+                return _seconds(q[-self.limit] + self._window.window - now)
+            self._window.add(key, now)
+        return None
 
 
 class LoginLimiter:
-    """Failed logins per client address and per e-mail in a sliding window; over the limit answers 429.
+    """Throttles password guessing without letting anyone lock a researcher out.
 
-    In memory, per process: with several workers an attacker gets the limit once per worker, which still turns
-    guessing into a crawl.
+    - per (address, account): ``per_pair`` failures in ``window_s`` -> 429 for that address and that account;
+    - per address: ``per_address`` failures in ``window_s`` (any accounts) -> 429 for that address;
+    - per account, against addresses that are *unknown* (never logged in to it) and have failed before: after
+      ``account_free`` failures in ``window_s`` (from anywhere) each further attempt waits 1, 2, 4, ... up to
+      ``max_delay_s`` seconds after the account's last failure.  The account is slowed, never blocked: the right
+      password from an address without failures, or from one that has logged in to the account before, gets in.
+
+    In memory, per process (several workers each keep their own counts).
     """
 
-    def __init__(self, attempts: int = 10, window_s: float = 300.0) -> None:
-        self.attempts = attempts
-        self.window = window_s
-        self._failures: dict[str, deque[float]] = defaultdict(deque)
+    def __init__(self, per_pair: int = 10, per_address: int = 50, account_free: int = 10,
+                 max_delay_s: float = 60.0, window_s: float = 900.0, clock: Clock = time.monotonic) -> None:
+        self.per_pair, self.per_address, self.account_free = per_pair, per_address, account_free
+        self.max_delay = max_delay_s
+        self.clock = clock
+        self._pair = _Window(window_s)
+        self._address = _Window(window_s)
+        self._account = _Window(window_s)
+        self._known: dict[str, set[str]] = defaultdict(set)
         self._lock = threading.Lock()
 
-    def _recent(self, key: str, now: float) -> deque[float]:
-        q = self._failures[key]
-        while q and now - q[0] > self.window:
-            q.popleft()
-        return q
-
-    def retry_after(self, *keys: str) -> int | None:
-        """Seconds to wait if any key is over the limit, else None."""
-        now = time.monotonic()
+    def retry_after(self, address: str, account: str) -> int | None:
+        """Seconds to wait before ``address`` may try a password for ``account``, or None."""
+        now = self.clock()
+        window = self._pair.window
+        waits = []
         with self._lock:
-            waits = [self.window - (now - q[0]) for k in keys if len(q := self._recent(k, now)) >= self.attempts]
-        return max(1, int(max(waits)) + 1) if waits else None
+            pair = self._pair.recent((address, account), now)
+            if len(pair) >= self.per_pair:
+                waits.append(pair[-self.per_pair] + window - now)
+            by_address = self._address.recent(address, now)
+            if len(by_address) >= self.per_address:
+                waits.append(by_address[-self.per_address] + window - now)
+            if by_address and address not in self._known.get(account, ()):
+                by_account = self._account.recent(account, now)
+                excess = len(by_account) - self.account_free
+                if excess >= 0:
+                    waits.append(by_account[-1] + min(self.max_delay, 2.0 ** excess) - now)
+        waits = [w for w in waits if w > 0]
+        return _seconds(max(waits)) if waits else None
 
-    def failed(self, *keys: str) -> None:
-        now = time.monotonic()
+    def failed(self, address: str, account: str) -> None:
+        now = self.clock()
         with self._lock:
-            for k in keys:
-                self._recent(k, now).append(now)
+            self._pair.add((address, account), now)
+            self._address.add(address, now)
+            self._account.add(account, now)
 
-    def succeeded(self, *keys: str) -> None:
+    def succeeded(self, address: str, account: str) -> None:
+        """The address knows the password: its own failures for the account are forgotten and it is no longer
+        slowed by failures elsewhere.  The account's failures stay (an attack may still be going on)."""
         with self._lock:
-            for k in keys:
-                self._failures.pop(k, None)
+            self._pair.clear((address, account))
+            self._known[account].add(address)

@@ -19,7 +19,7 @@ from anim_core.clipset import build_clip_set, write_clip_set
 from server.media.build import BODY_PADDING_M, MANIFEST, MEDIA_NAME, grid_spacing, read_clip_set, render_media
 from server.media.renderer import ClipRenderer
 from server.media.scene import RenderSettings, frame_motion
-from server.media.video import decode, probe
+from server.media.video import FILE_TIME, decode, probe
 
 SMALL = RenderSettings(width=160, height=120)
 SECRET = b"test secret"
@@ -155,6 +155,9 @@ def test_nothing_names_the_content(media):
         assert not [r for r in text_runs if WHOLE_WORDS.search(r)]
         if f.suffix == ".mp4":  # the check reads the encoder's own comment, so it would see words put there
             assert any("x264" in r and "options:" in r for r in text_runs)
+    # Nor when, or in which order, the files were written (the hybrid-left video of a pair was written just
+    # before the hybrid-right one, increment 0 before increment 1): every file has the same modification time.
+    assert {f.stat().st_mtime for f in out.iterdir() if f.name != MANIFEST} == {FILE_TIME}
     # One opaque name per video, different for each side order.
     names = [p["video"] for p in manifest["pairs"]] + [c["video"] for c in manifest["clips"].values()]
     assert len(set(names)) == len(names)

@@ -410,6 +410,11 @@ def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
              or f.name.endswith(".tmp")]
     for f in stale:
         f.unlink()
+    from .video import FILE_TIME
+
+    for name in keep:  # files from before FILE_TIME existed, or touched since, get it too
+        if (out_dir / name).is_file():
+            os.utime(out_dir / name, (FILE_TIME, FILE_TIME))
     progress(f"done in {time.perf_counter() - started:.1f} s ({len(stale)} stale files removed) -> {path}")
     return path
 

@@ -1,12 +1,13 @@
-"""Serving the pre-rendered videos and posters: opaque names only, byte ranges, long-lived caching."""
+"""Serving the pre-rendered videos and posters: opaque names only, byte ranges, long-lived caching, and headers
+that depend on nothing but the name and the size (see ``server.files``)."""
 
 from __future__ import annotations
 
 from fastapi import APIRouter
-from fastapi.responses import FileResponse
 
 from server.deps import SettingsDep
 from server.errors import NotFound
+from server.files import ContentFileResponse
 
 from .build import MEDIA_NAME
 
@@ -15,11 +16,13 @@ router = APIRouter(tags=["media"])
 CACHE_CONTROL = "public, max-age=31536000, immutable"
 
 
-@router.get("/media/{name}", response_class=FileResponse)
-def media(name: str, settings: SettingsDep) -> FileResponse:
-    """A video or poster by its opaque name (HTTP Range requests are answered with 206)."""
+@router.get("/media/{name}", response_class=ContentFileResponse)
+@router.head("/media/{name}", response_class=ContentFileResponse, include_in_schema=False)
+def media(name: str, settings: SettingsDep) -> ContentFileResponse:
+    """A video or poster by its opaque name (HTTP Range requests are answered with 206; ``If-None-Match`` with
+    its name as the ``ETag`` with 304)."""
     path = settings.media_dir / name
     if not MEDIA_NAME.match(name) or not path.is_file():  # also keeps the manifest and anything else private
         raise NotFound("no such media file")
     media_type = "video/mp4" if name.endswith(".mp4") else "image/jpeg"
-    return FileResponse(path, media_type=media_type, headers={"Cache-Control": CACHE_CONTROL})
+    return ContentFileResponse(path, etag=name, media_type=media_type, headers={"Cache-Control": CACHE_CONTROL})

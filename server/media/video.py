@@ -14,6 +14,16 @@ from PIL import Image
 
 CRF = 20
 PRESET = "veryfast"
+# Every media file gets this access and modification time (2000-01-01T00:00:00Z): the order and the moment in
+# which files were written (the hybrid-left video of a pair just before the hybrid-right one, increment 0 before
+# increment 1) must not be readable from them, over HTTP or off the disk.
+FILE_TIME = 946_684_800
+
+
+def publish(tmp: Path, path: Path) -> None:
+    """Move the finished ``tmp`` to ``path`` with the constant :data:`FILE_TIME`."""
+    os.utime(tmp, (FILE_TIME, FILE_TIME))
+    tmp.replace(path)
 
 
 Planes = tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.uint8]]
@@ -76,7 +86,7 @@ class VideoWriter:
     def close(self) -> None:
         self._container.mux(self._stream.encode(None))
         self._container.close()
-        self._tmp.replace(self.path)
+        publish(self._tmp, self.path)
 
     def abort(self) -> None:
         self._container.close()
@@ -97,7 +107,7 @@ def write_poster(path: Path, rgb: NDArray[np.uint8]) -> None:
     """A JPEG still (no EXIF or comments)."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     Image.fromarray(rgb).save(tmp, format="JPEG", quality=88)
-    tmp.replace(path)
+    publish(tmp, path)
 
 
 def probe(path: Path) -> dict:

@@ -13,9 +13,9 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Path, Response, status
+from fastapi import APIRouter, Depends, Path, Response, status
 
-from server.deps import ParticipantTokenDep, SessionDep
+from server.deps import ParticipantTokenDep, SessionDep, limit_new_sessions
 from server.participants import service
 from server.studies.service import get_study
 
@@ -42,7 +42,8 @@ def media_url(name: str) -> str:
     return f"/media/{name}"
 
 
-@router.post("/studies/{slug}/sessions", status_code=status.HTTP_201_CREATED, response_model=SessionCreated)
+@router.post("/studies/{slug}/sessions", status_code=status.HTTP_201_CREATED, response_model=SessionCreated,
+             dependencies=[Depends(limit_new_sessions)])
 async def create_session(slug: str, body: SessionCreate, session: SessionDep) -> SessionCreated:
     study = get_study(session, slug)
     new = service.start_session(session, study, body.external)

@@ -13,9 +13,13 @@ RowId = Annotated[int, Field(ge=1, le=2**31 - 1)]
 Answer = Literal["yes", "no", "dont_know"]
 Choice = Literal["left_much", "left_slightly", "equal", "right_slightly", "right_much"]
 MAX_EXTRA_BYTES = 16_384
+# Request bodies are strict: JSON true is consent, "true" or 1 is not; a number is a number, not a string of one.
+STRICT = ConfigDict(strict=True)
 
 
 class SessionCreate(BaseModel):
+    model_config = STRICT
+
     consent: bool
     external: dict[str, str] | None = Field(default=None, description="ids from a recruiting platform, e.g. "
                                             "PROLIFIC_PID, STUDY_ID, SESSION_ID")
@@ -42,6 +46,8 @@ class SessionCreated(BaseModel):
 
 
 class DemographicsUpdate(BaseModel):
+    model_config = STRICT
+
     gamer: Answer
     tech_savvy: Answer
 
@@ -71,7 +77,7 @@ class TrialRead(BaseModel):
 class VoteCreate(BaseModel):
     """The answer; extra fields (e.g. measured playback quality) are kept with the vote."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = ConfigDict(extra="allow", strict=True)
 
     choice: Choice
     rt_ms: int = Field(ge=0, le=24 * 3600 * 1000)
@@ -103,6 +109,8 @@ class WithdrawRead(BaseModel):
 
 
 class EventCreate(BaseModel):
+    model_config = STRICT
+
     kind: Literal["load_failure", "playback_stall", "error"]
     trial_id: RowId | None = None
     detail: dict[str, Any] | None = None

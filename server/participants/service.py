@@ -97,6 +97,9 @@ def _checked(session: Session, ps: ParticipantSession | None, token: str | None)
 
 
 def set_demographics(session: Session, ps: ParticipantSession, gamer: str, tech_savvy: str) -> ParticipantSession:
+    """Set (or correct) the two answers while the session is active; a finished session's data is final."""
+    if ps.state != SessionState.active:
+        raise Conflict(f"this session is {ps.state}; its answers can no longer be changed")
     ps.gamer, ps.tech_savvy = gamer, tech_savvy
     session.commit()
     return ps

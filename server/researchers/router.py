@@ -6,7 +6,7 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.security import OAuth2PasswordRequestForm
 from pydantic import BaseModel
 
-from server.deps import SessionDep, SettingsDep
+from server.deps import SessionDep, SettingsDep, client_address
 from server.errors import TooManyRequests, Unauthorized
 
 from .service import authenticate, issue_token, normalize_email
@@ -22,9 +22,10 @@ class TokenRead(BaseModel):
 @router.post("/token", response_model=TokenRead)
 def login(form: Annotated[OAuth2PasswordRequestForm, Depends()], session: SessionDep, settings: SettingsDep,
           request: Request) -> TokenRead:
-    """OAuth2 password flow: ``username`` is the researcher's e-mail.  Repeated failures are rate limited."""
+    """OAuth2 password flow: ``username`` is the researcher's e-mail.  Repeated failures are throttled
+    (``server.security.LoginLimiter``)."""
     limiter = request.app.state.login_limiter
-    keys = (f"ip:{request.client.host if request.client else '?'}", f"email:{normalize_email(form.username)}")
+    keys = (client_address(request), normalize_email(form.username))
     wait = limiter.retry_after(*keys)
     if wait is not None:
         raise TooManyRequests("too many failed logins; wait and try again", retry_after=wait)

@@ -37,16 +37,34 @@ def close_study(slug: str, session: SessionDep, _: ResearcherDep) -> StudyStateR
     return StudyStateRead(slug=study.slug, state=study.state)
 
 
+# A text cell beginning with one of these is a formula (or becomes one) in Excel, LibreOffice and Google Sheets.
+FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
+
+
+def csv_cell(value: object) -> object:
+    """A value as a CSV cell: booleans ``true``/``false``, None empty, and text that a spreadsheet would evaluate
+    (participant-supplied ids could be ``=HYPERLINK(...)``) prefixed with ``'``, which spreadsheets show as text.
+    Numbers stay numbers: a score of -2 is not text."""
+    if isinstance(value, bool):
+        return str(value).lower()
+    if value is None:
+        return ""
+    if isinstance(value, str) and value.startswith(FORMULA_STARTS):
+        return "'" + value
+    return value
+
+
 @router.get("/studies/{slug}/export.csv", response_class=Response,
             responses={200: {"content": {"text/csv": {}}}})
 def export_csv(slug: str, session: SessionDep, _: ResearcherDep) -> Response:
     study = service.get_study(session, slug)
     buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=service.EXPORT_COLUMNS, lineterminator="\n")
+    # RFC 4180 line ends: with "\n" alone the csv module would not quote a value holding a bare "\r", and every
+    # reader would split the row there.
+    writer = csv.DictWriter(buffer, fieldnames=service.EXPORT_COLUMNS, lineterminator="\r\n")
     writer.writeheader()
     for row in service.export_rows(session, study):
-        writer.writerow({k: str(v).lower() if isinstance(v, bool) else ("" if v is None else v)
-                         for k, v in row.items()})
+        writer.writerow({k: csv_cell(v) for k, v in row.items()})
     return Response(buffer.getvalue(), media_type="text/csv; charset=utf-8",
                     headers={"Content-Disposition": f'attachment; filename="{study.slug}-votes.csv"'})
 

@@ -150,7 +150,10 @@ def score(choice: str, hybrid_side: str) -> int:
 
 EXPORT_COLUMNS = ("session_id", "trial_index", "practice", "catch", "animation", "increment", "hybrid_side",
                   "choice", "score", "rt_ms", "gamer", "tech_savvy", "answered_at", "consent_version",
-                  "session_state")
+                  "session_state", "prolific_pid", "prolific_study_id", "prolific_session_id")
+# Export column <- key of the session's external ids (as the participant page passes them on from the URL).
+EXTERNAL_ID_COLUMNS = {"prolific_pid": "PROLIFIC_PID", "prolific_study_id": "STUDY_ID",
+                       "prolific_session_id": "SESSION_ID"}
 
 
 def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
@@ -167,10 +170,12 @@ def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
         .options(selectinload(Trial.comparison))
     )
     for vote, trial, ps, comp in rows:
+        external = ps.external or {}
         yield {
             "session_id": ps.id, "trial_index": trial.index, "practice": trial.practice,
             "catch": comp.kind == ComparisonKind.catch, "animation": comp.animation, "increment": comp.increment,
             "hybrid_side": trial.hybrid_side, "choice": vote.choice, "score": vote.score, "rt_ms": vote.rt_ms,
             "gamer": ps.gamer, "tech_savvy": ps.tech_savvy, "answered_at": vote.answered_at.isoformat(),
             "consent_version": ps.consent_version, "session_state": ps.state,
+            **{column: external.get(key) for column, key in EXTERNAL_ID_COLUMNS.items()},
         }
