@@ -52,6 +52,9 @@ VARIANTS = ("keys", "baked", "reference", "naive")
 REFERENCE_MAX_CHARACTERS = 200  # numpy reference and naive variants: enough to compare, and bigger crowds take minutes
 SKIN_MAX_CHARACTERS = 5  # skinning 13,380 vertices (~7 ms a character) costs the same for every method
 SKIN_FRAMES = 50  # skinning dominates that stage; fewer frames keep the whole run short
+NUMPY_FRAMES = 50  # the numpy variants take milliseconds a frame: their median is steady after fewer frames
+LOD_FRAMES = 50  # the LOD and profile variants, timed at the large crowds only
+SHORT_WARMUP = 5  # for rounds whose kernels are compiled already (or are numpy)
 PARALLEL_MIN_CHARACTERS = 100
 LOD_MIN_CHARACTERS = 1000  # LOD and profile variants: where a crowd's cost matters
 BONE_LOD_LEVELS = (1, 2)
@@ -142,10 +145,10 @@ def reference_bytes(clip: Any, naive: bool = False) -> int:
     """Bytes of the arrays the numpy reference holds for a clip (float64): its keys, plus for a SQUAD clip the
     precomputed control points (not for ``naive``, which recomputes them) and the root spline's coefficients."""
     if isinstance(clip, SquadClip):
-        arrays = [clip.key_times, clip.key_rotations, clip.key_root, clip.velocity, clip._seg_times,
-                  clip._root.x, clip._root.c]
+        seg_times, q, a, b, root = clip.precomputed()
+        arrays = [clip.key_times, clip.key_rotations, clip.key_root, clip.velocity, seg_times, root.x, root.c]
         if not naive:
-            arrays += [clip._q, clip._a, clip._b]
+            arrays += [q, a, b]
     elif hasattr(clip, "resample"):  # keyframe
         arrays = [clip.times, clip.rotations, clip.root_translation, clip.velocity]
     else:  # spring
@@ -210,28 +213,29 @@ def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTE
     cores = os.cpu_count() or 2
     for stage in stages:
         sizes = [n for n in characters if stage == "pose" or n <= SKIN_MAX_CHARACTERS]
-        stage_frames = frames if stage == "pose" else min(frames, SKIN_FRAMES)
         for n in sizes:
             for animation in animations:
                 group = [c for c in clips if c.animation == animation]
                 duration = max(float(c.clip.duration) for c in group)
                 phases = rng.uniform(0.0, 2 * duration, n)
                 mesh = group[0].character.mesh
-                rounds: list[tuple[int, list[Case]]] = []
+                rounds: list[tuple[int, list[Case], int, int]] = []  # threads, cases, frames, warm-up
+                full = (frames, warmup) if stage == "pose" else (min(frames, SKIN_FRAMES), min(warmup, SHORT_WARMUP))
+                short = (min(frames, NUMPY_FRAMES), min(warmup, SHORT_WARMUP))
                 keyed = runtimes["keys"]
                 for v in ("keys", "baked"):
                     if v in variants and (stage == "pose" or v == "keys"):
-                        rounds.append((1, [_case(c, v, _runtime_step(runtimes[v][c.id], n)) for c in group]))
+                        rounds.append((1, [_case(c, v, _runtime_step(runtimes[v][c.id], n)) for c in group], *full))
                 if stage == "pose" and "keys" in variants:
                     if n >= PARALLEL_MIN_CHARACTERS:
                         rounds.append((cores, [_case(c, "keys", _runtime_step(keyed[c.id], n, parallel=True))
-                                               for c in group]))
+                                               for c in group], *full))
                     if n >= LOD_MIN_CHARACTERS:
                         lod_cases = [_case(c, "keys-fk-only", _runtime_step(keyed[c.id], n, fk_only=True))
                                      for c in group]
                         lod_cases += [_case(c, name, _runtime_step(keyed[c.id], n, **lod))
                                       for name, lod in lod_variants() for c in group]
-                        rounds.append((1, lod_cases))
+                        rounds.append((1, lod_cases, min(frames, LOD_FRAMES), min(warmup, SHORT_WARMUP)))
                 if stage == "pose" and n <= REFERENCE_MAX_CHARACTERS:
                     numpy_cases = ([_case(c, "reference", _reference_step(c.clip)) for c in group]
                                    if "reference" in variants else [])
@@ -239,12 +243,12 @@ def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTE
                         numpy_cases += [_case(c, "naive", _naive_step(c.clip)) for c in group
                                         if isinstance(c.clip, SquadClip)]
                     if numpy_cases:
-                        rounds.append((1, numpy_cases))
-                for threads, round_cases in rounds:
+                        rounds.append((1, numpy_cases, *short))
+                for threads, round_cases, n_frames, n_warmup in rounds:
                     if stage == "skin":
                         round_cases = [Case(k.animation, k.method, k.increment, k.variant, _skinned(k.step, mesh))
                                        for k in round_cases]
-                    timed = _time(round_cases, phases, stage_frames, warmup)
+                    timed = _time(round_cases, phases, n_frames, n_warmup)
                     for i, case in enumerate(round_cases):
                         ms = np.asarray(timed[i])
                         median = float(np.median(ms))
@@ -255,6 +259,8 @@ def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTE
                                         "frames": len(ms)})
             progress(f"  {stage}: {n} characters done ({time.perf_counter() - started:.0f} s)")
     return {"machine": machine(), "settings": {"frames": frames, "skin_frames": min(frames, SKIN_FRAMES),
+                                               "numpy_frames": min(frames, NUMPY_FRAMES),
+                                               "lod_frames": min(frames, LOD_FRAMES),
                                                "warmup": warmup, "seed": seed, "characters": list(characters),
                                                "stages": list(stages), "variants": list(variants),
                                                "clock_per_frame_s": 1 / FPS,
@@ -389,7 +395,7 @@ def svg_bars(groups: Sequence[str], bars: Sequence[dict[str, Any]], title: str, 
     with one value (or None) per group."""
     w, h, left, right, top, bottom = 1000, 460, 70, 150, 40, 110
     ys = [v for b in bars for v in b["values"] if v]
-    y0, y1 = np.floor(np.log10(min(ys))), np.ceil(np.log10(max(ys)))
+    y0, y1 = np.floor(np.log10(min(ys) / 3)), np.ceil(np.log10(max(ys)))  # the smallest bar stays visible
     y1 = y1 if y1 > y0 else y0 + 1
     group_w = (w - left - right) / max(1, len(groups))
     bar_w = max(2.0, (group_w - 6) / max(1, len(bars)))

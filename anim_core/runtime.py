@@ -22,8 +22,8 @@ Three runtimes, built once per clip at load time (:func:`runtime_for`), evaluate
   angle precomputed.
 
 Memory: every array a runtime holds for its clip is animation data and counts in :attr:`runtime_bytes` (the keys,
-control points, angles, segment times, the few scalars as a float64 array); the skeleton (parents, offsets,
-rest pose) is shared by all clips of a character and the output buffers are per character, so neither counts.
+control points, angles, segment times, the few scalars as a float64 array); the skeleton (parents, offsets) is
+shared by all clips of a character and the output buffers are per character, so neither counts.
 
 LOD: ``active`` (a per-joint mask, :func:`bone_lod_mask`) holds unselected joints at the clip's first key
 without sampling them (bone LOD: a far character's fingers and toes stop moving, its skeleton stays whole);
@@ -288,8 +288,7 @@ def _gait_mirror(clip: SquadClip) -> tuple[NDArray[np.int32], Array] | None:
 
 def spline_runtime(clip: SquadClip, tolerance_deg: float = FIT_TOLERANCE_DEG) -> SplineRuntime:
     """Fit the runtime of a SQUAD clip (its SQUAD control points are precomputed on the clip)."""
-    seg_times = np.asarray(clip._seg_times, np.float64)
-    q, a, b = clip._q, clip._a, clip._b
+    seg_times, q, a, b, spline = clip.precomputed()
     n_seg = seg_times.size - 1
     mirrored = _gait_mirror(clip)
     stored = n_seg // 2 if mirrored is not None else n_seg
@@ -300,7 +299,6 @@ def spline_runtime(clip: SquadClip, tolerance_deg: float = FIT_TOLERANCE_DEG) ->
     src, sign = mirrored if mirrored is not None else (np.zeros(0, np.int32), np.zeros((0, 4)))
     if sign.size and np.all(sign == sign[:1]):
         sign = sign[:1]  # the same flips for every joint: one row
-    spline = clip._root
     runtime = SplineRuntime(
         clip.skeleton, _frozen(seg_times[: stored + 1], np.float64), _frozen(controls, np.float32),
         _frozen(spline.x, np.float64), _frozen(np.moveaxis(spline.c, 0, 1), np.float32),
