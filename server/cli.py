@@ -233,14 +233,14 @@ def _print_bench(doc: dict[str, Any]) -> None:
         ns = sorted({r["characters"] for r in rows})
         keyframe = {(r["animation"], r["characters"]): r["median_ms"] for r in rows if r["method"] == "keyframe"}
         print(f"\nhybrid / keyframe median ms per frame, variant {variant}, pose, one thread")
-        print(f"{'clip':16}" + "".join(f"{n:>8}" for n in ns))
+        print(f"{'clip':16}" + "".join(f"{n:>10}" for n in ns))
         for clip in dict.fromkeys((r["animation"], r["method"], r["increment"]) for r in rows):
             by_n = {r["characters"]: r["median_ms"] for r in rows if (r["animation"], r["method"], r["increment"])
                     == clip}
             name = f"{clip[0]}-{clip[1]}{'' if clip[2] is None else clip[2]}"
             cells = [(f"{by_n[n]:.3g}ms" if clip[1] == "keyframe" else f"{by_n[n] / keyframe[(clip[0], n)]:.3f}")
                      if n in by_n else "" for n in ns]
-            print(f"{name:16}" + "".join(f"{c:>8}" for c in cells))
+            print(f"{name:16}" + "".join(f"{c:>10}" for c in cells))
     variants = list(dict.fromkeys(m["variant"] for m in doc["memory"]))
     mem = {(m["clip"], m["variant"]): m["runtime_bytes"] for m in doc["memory"]}
     err = {(a["clip"], a["variant"]): a["max_error_deg"] for a in doc["accuracy"]}
