@@ -205,8 +205,9 @@
           }));
     $("summary-benchmark").textContent =
       `keys runtime: worst hybrid / keyframe ${fmt(s.max_ratio_at_10_or_more, 2)} (median ${fmt(s.median_ratio_at_10_or_more, 2)}); ` +
-      `${s.largest_crowd} characters ${fmt(s.largest_crowd_worst_ms, 2)} ms per frame, ${s.parallel_threads} threads ` +
-      `${fmt(s.parallel_speedup_median, 2)}× faster; increment-0 hybrid memory ≤ ${fmt(s.max_memory_ratio_increment_0, 2)} of the keyframe clip's; ` +
+      `${s.largest_crowd} characters ${fmt(s.largest_crowd_worst_ms, 2)} ms per frame` +
+      (s.parallel_speedup_median == null ? "" : `, ${s.parallel_threads} threads ${fmt(s.parallel_speedup_median, 2)}× as fast`) +
+      `; increment-0 hybrid memory ≤ ${fmt(s.max_memory_ratio_increment_0, 2)} of the keyframe clip's; ` +
       `largest hybrid error ${fmt(s.max_hybrid_error_deg, 3)}°.`;
   }
 

@@ -13,7 +13,7 @@ from server.db import migrate, session_factory
 from server.researchers.service import create_researcher
 from tests.conftest import _fresh_engine
 from tests.server_fixtures import live_server, make_study
-from tests.test_participant_page import ARGS, CHROMIUM
+from tests.test_participant_page import ARGS, ARTIFACTS, CHROMIUM
 
 
 @pytest.fixture(scope="module")
@@ -59,5 +59,7 @@ def test_performance_panel_shows_the_keys_figures_and_the_memory_chart(site):
         keys_bytes = {m["clip"]: m["runtime_bytes"] for m in doc["memory"] if m["variant"] == "keys"}
         assert all(int(r[2]) == keys_bytes[r[0]] for r in rows)
         assert "keys runtime: worst hybrid / keyframe" in page.inner_text("#summary-benchmark")
+        ARTIFACTS.mkdir(parents=True, exist_ok=True)
+        page.locator("#chart-benchmark").locator("xpath=..").screenshot(path=str(ARTIFACTS / "performance.png"))
         browser.close()
         assert not errors, errors
