@@ -3,13 +3,22 @@
 Stages: ``pose`` = every joint of every character sampled at the character's own random phase, plus forward
 kinematics to model space; ``skin`` = the same plus linear blend skinning of the MakeHuman body.  Variants:
 
-* ``default``: the runtime path (:mod:`anim_core.crowd`): keyframe keys as they are, hybrids baked into tables.
+* ``keys``: the runtime that evaluates every clip from the keys it stores (:mod:`anim_core.runtime`): dense keys
+  for a keyframe clip, fitted SQUAD segments for a gait or idle hybrid (half of them for a mirrored gait), the
+  closed-form spring and unclamped slerp for the crouch.  The headline figures.
+* ``baked``: every hybrid baked into a uniform table of keys (:func:`anim_core.crowd.bake`), posed like a
+  keyframe clip: the speed of dense keys bought with their memory.
 * ``reference``: the numpy reference implementation (``clip.sample`` + ``Skeleton.forward_kinematics``), with
   SQUAD tangents precomputed when the clip is built.
 * ``naive``: like ``reference``, but a SQUAD hybrid recomputes its tangents every frame, as an engine script
   that evaluates the spline from its keys would (the crouch's spring has no tangents and has no naive variant).
 
-Keyframe and hybrid are timed interleaved (A B A B ...) so that drift of a shared machine hits both alike.
+With ``keys``, four LOD variants of it (bone LOD 1 and 2: :data:`anim_core.runtime.BONE_LODS`; update-rate LOD:
+each character re-posed every 2nd or 4th frame, staggered) and ``keys-fk-only`` (no joint sampled, every joint at
+rest: what per-character set-up plus forward kinematics cost, for the per-stage profile) are timed at the large
+crowds, and ``keys`` once more on all cores.
+
+Cases of one animation are timed interleaved (A B A B ...) so that drift of a shared machine hits them alike.
 """
 
 from __future__ import annotations
@@ -25,14 +34,33 @@ import numpy as np
 
 from . import metrics
 from .clipset import BuiltClip
-from .crowd import CrowdBuffers, PoseTable, bake, numba, pose_crowd, table_from_keyframes
+from .crowd import CrowdBuffers, bake, numba
 from .hybrid import SquadClip
+from .runtime import (
+    AnyRuntime,
+    TableRuntime,
+    angle_error_deg,
+    bone_lod_mask,
+    exact_global,
+    lod_pose,
+    runtime_for,
+    sample_times,
+)
 
 DEFAULT_CHARACTERS = (1, 2, 5, 10, 20, 50, 100, 200, 1000, 10000)
+VARIANTS = ("keys", "baked", "reference", "naive")
 REFERENCE_MAX_CHARACTERS = 200  # numpy reference and naive variants: enough to compare, and bigger crowds take minutes
 SKIN_MAX_CHARACTERS = 5  # skinning 13,380 vertices (~7 ms a character) costs the same for every method
+SKIN_FRAMES = 50  # skinning dominates that stage; fewer frames keep the whole run short
+NUMPY_FRAMES = 50  # the numpy variants take milliseconds a frame: their median is steady after fewer frames
+LOD_FRAMES = 50  # the LOD and profile variants, timed at the large crowds only
+SHORT_WARMUP = 5  # for rounds whose kernels are compiled already (or are numpy)
 PARALLEL_MIN_CHARACTERS = 100
+LOD_MIN_CHARACTERS = 1000  # LOD and profile variants: where a crowd's cost matters
+BONE_LOD_LEVELS = (1, 2)
+UPDATE_EVERY = (2, 4)
 FPS = 60.0  # the characters' clocks advance by 1/60 s per benchmark frame
+ACCURACY_OVERSAMPLING = 8  # accuracy: one period sampled at 8x the clip's frame rate (the issue asks >= 4x)
 
 
 @dataclass(frozen=True)
@@ -43,27 +71,39 @@ class Case:
     method: str
     increment: int | None
     variant: str
-    step: Callable[[np.ndarray], Any]  # poses all characters at the given times
+    step: Callable[[np.ndarray, int], Any]  # poses all characters at the given times, in the given frame
 
 
-def _reference_step(clip: Any) -> Callable[[np.ndarray], Any]:
+def lod_variants() -> list[tuple[str, dict[str, Any]]]:
+    """Names of the keys runtime's LOD variants with what they change: ``bone_lod`` level or ``update_every``."""
+    return ([(f"keys-bone-lod{lv}", {"bone_lod": lv}) for lv in BONE_LOD_LEVELS]
+            + [(f"keys-every{k}", {"update_every": k}) for k in UPDATE_EVERY])
+
+
+def _reference_step(clip: Any) -> Callable[[np.ndarray, int], Any]:
     sample = (lambda t: clip.sample(t, method="nlerp")) if hasattr(clip, "resample") else clip.sample
-    return lambda t: clip.skeleton.forward_kinematics(*sample(t))
+    return lambda t, _f: clip.skeleton.forward_kinematics(*sample(t))
 
 
-def _naive_step(clip: SquadClip) -> Callable[[np.ndarray], Any]:
+def _naive_step(clip: SquadClip) -> Callable[[np.ndarray, int], Any]:
     """SQUAD from the keys every frame: tangents recomputed, then evaluated (what the thesis's Unity script did)."""
-    return lambda t: clip.skeleton.forward_kinematics(*clip.sample(t, controls=clip.tangents()))
+    return lambda t, _f: clip.skeleton.forward_kinematics(*clip.sample(t, controls=clip.tangents()))
 
 
-def _default_step(table: PoseTable, n: int, parallel: bool) -> Callable[[np.ndarray], Any]:
-    buffers = CrowdBuffers.for_crowd(n, table.skeleton.n_joints)
-    return lambda t: pose_crowd(table, t, buffers, parallel=parallel)
+def _runtime_step(runtime: AnyRuntime, n: int, parallel: bool = False, bone_lod: int = 0, update_every: int = 1,
+                  fk_only: bool = False) -> Callable[[np.ndarray, int], Any]:
+    buffers = CrowdBuffers.for_crowd(n, runtime.skeleton.n_joints)
+    active = bone_lod_mask(runtime.skeleton, bone_lod)
+    if fk_only:
+        active = np.zeros_like(active)
+    if update_every > 1:  # character c is re-posed in the frames where (frame + c) is a multiple of k
+        return lambda t, f: runtime.pose(t, buffers, parallel, active, (-f) % update_every, update_every)
+    return lambda t, _f: runtime.pose(t, buffers, parallel, active)
 
 
-def _skinned(step: Callable[[np.ndarray], Any], mesh: Any) -> Callable[[np.ndarray], Any]:
-    def run(t: np.ndarray) -> Any:
-        out = step(t)
+def _skinned(step: Callable[[np.ndarray, int], Any], mesh: Any) -> Callable[[np.ndarray, int], Any]:
+    def run(t: np.ndarray, f: int) -> Any:
+        out = step(t, f)
         return mesh.skin(mesh.skinning_matrices(out.rotations, out.positions))
     return run
 
@@ -75,8 +115,12 @@ def machine() -> dict[str, Any]:
             cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
     except OSError:
         pass
+    try:
+        load = list(os.getloadavg())
+    except OSError:
+        load = None
     return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(), "numpy": np.__version__,
-            "numba": numba.__version__ if numba else None, "platform": platform.platform()}
+            "numba": numba.__version__ if numba else None, "platform": platform.platform(), "load_average": load}
 
 
 def _time(cases: Sequence[Case], phases: np.ndarray, frames: int, warmup: int) -> dict[int, list[float]]:
@@ -86,56 +130,126 @@ def _time(cases: Sequence[Case], phases: np.ndarray, frames: int, warmup: int) -
         t = phases + frame / FPS
         for i, case in enumerate(cases):
             start = time.perf_counter()
-            case.step(t)
+            case.step(t, frame)
             elapsed = (time.perf_counter() - start) * 1000.0
             if frame >= warmup:
                 times[i].append(elapsed)
     return times
 
 
+def _case(c: BuiltClip, variant: str, step: Callable[[np.ndarray, int], Any]) -> Case:
+    return Case(c.animation, c.method, c.increment, variant, step)
+
+
+def reference_bytes(clip: Any, naive: bool = False) -> int:
+    """Bytes of the arrays the numpy reference holds for a clip (float64): its keys, plus for a SQUAD clip the
+    precomputed control points (not for ``naive``, which recomputes them) and the root spline's coefficients."""
+    if isinstance(clip, SquadClip):
+        seg_times, q, a, b, root = clip.precomputed()
+        arrays = [clip.key_times, clip.key_rotations, clip.key_root, clip.velocity, seg_times, root.x, root.c]
+        if not naive:
+            arrays += [q, a, b]
+    elif hasattr(clip, "resample"):  # keyframe
+        arrays = [clip.times, clip.rotations, clip.root_translation, clip.velocity]
+    else:  # spring
+        arrays = [clip.key_params, clip.key_rotations, clip.key_root]
+    return int(sum(np.asarray(a).nbytes for a in arrays))
+
+
+def _accuracy(c: BuiltClip, variant: str, runtime: AnyRuntime | None, rate: float, lod: dict[str, Any]
+              ) -> dict[str, float]:
+    """Largest and mean angle (degrees) between a joint's global rotation from ``variant`` and from the exact
+    curve; for a LOD variant also against the keys runtime without LOD (what the LOD alone costs)."""
+    t = sample_times(c.clip, rate)
+    exact, _ = exact_global(c.clip, t)
+    if runtime is None:  # the numpy variants
+        got, _ = (_naive_step(c.clip) if variant == "naive" else _reference_step(c.clip))(t, 0)
+    else:
+        got = lod_pose(runtime, t, **lod, frame_s=1.0 / FPS)
+    worst, mean = angle_error_deg(got, exact)
+    out = {"max_error_deg": worst, "mean_error_deg": mean}
+    if lod:
+        out["lod_max_error_deg"], out["lod_mean_error_deg"] = angle_error_deg(got, lod_pose(runtime, t))
+    return out
+
+
 def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTERS,
         stages: Sequence[str] = ("pose", "skin"), frames: int = 200, warmup: int = 20, seed: int = 2017,
-        progress: Callable[[str], None] = lambda _m: None) -> dict[str, Any]:
+        variants: Sequence[str] = VARIANTS, progress: Callable[[str], None] = lambda _m: None) -> dict[str, Any]:
     """Time every animation x method x variant x stage x crowd size; returns the results document."""
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown or not variants:
+        raise ValueError(f"variants are {', '.join(VARIANTS)}, got {', '.join(variants) or 'none'}")
     rng = np.random.default_rng(seed)
-    results: list[dict[str, Any]] = []
-    memory: list[dict[str, Any]] = []
-    animations = list(dict.fromkeys(c.animation for c in clips))
-    tables: dict[str, PoseTable] = {}
-    for c in clips:
-        tables[c.id] = table_from_keyframes(c.clip) if c.method == "keyframe" else bake(c.clip)
-        memory.append({"clip": c.id, "animation": c.animation, "method": c.method, "increment": c.increment,
-                       "keys": int(c.key_times.size),
-                       "stored_bytes": metrics.storage_bytes(c.key_times.size, c.character.skeleton.n_joints),
-                       "runtime_table_bytes": tables[c.id].nbytes})
     started = time.perf_counter()
+    runtimes: dict[str, dict[str, AnyRuntime]] = {"keys": {}, "baked": {}}
+    for c in clips:
+        if "keys" in variants:
+            runtimes["keys"][c.id] = runtime_for(c.clip)
+        if "baked" in variants:
+            runtimes["baked"][c.id] = (runtime_for(c.clip) if c.method == "keyframe"
+                                       else TableRuntime.from_table(bake(c.clip)))
+    progress(f"runtimes built ({time.perf_counter() - started:.0f} s)")
+    timed_variants = list(variants) + ([name for name, _ in lod_variants()] if "keys" in variants else [])
+    memory: list[dict[str, Any]] = []
+    accuracy: list[dict[str, Any]] = []
+    lods = dict(lod_variants())
+    for c in clips:
+        label = {"clip": c.id, "animation": c.animation, "method": c.method, "increment": c.increment}
+        stored = metrics.storage_bytes(c.key_times.size, c.character.skeleton.n_joints)
+        rate = ACCURACY_OVERSAMPLING * c.fps
+        for v in timed_variants:
+            if v == "naive" and not isinstance(c.clip, SquadClip):
+                continue
+            base = "keys" if v in lods else v
+            runtime = runtimes[base][c.id] if base in runtimes else None
+            size = runtime.runtime_bytes if runtime is not None else reference_bytes(c.clip, naive=v == "naive")
+            memory.append({**label, "variant": v, "stored_bytes": stored, "runtime_bytes": size})
+            accuracy.append({**label, "variant": v, **_accuracy(c, v, runtime, rate, lods.get(v, {}))})
+    progress(f"memory and accuracy measured ({time.perf_counter() - started:.0f} s)")
+
+    results: list[dict[str, Any]] = []
+    animations = list(dict.fromkeys(c.animation for c in clips))
+    cores = os.cpu_count() or 2
     for stage in stages:
         sizes = [n for n in characters if stage == "pose" or n <= SKIN_MAX_CHARACTERS]
         for n in sizes:
             for animation in animations:
                 group = [c for c in clips if c.animation == animation]
-                duration = max(tables[c.id].duration for c in group)
+                duration = max(float(c.clip.duration) for c in group)
                 phases = rng.uniform(0.0, 2 * duration, n)
                 mesh = group[0].character.mesh
-                rounds: list[tuple[int, list[Case]]] = [(1, [
-                    Case(animation, c.method, c.increment, "default", _default_step(tables[c.id], n, False))
-                    for c in group])]
-                if stage == "pose" and n >= PARALLEL_MIN_CHARACTERS:
-                    rounds.append((os.cpu_count() or 2, [
-                        Case(animation, c.method, c.increment, "default", _default_step(tables[c.id], n, True))
-                        for c in group]))
+                rounds: list[tuple[int, list[Case], int, int]] = []  # threads, cases, frames, warm-up
+                full = (frames, warmup) if stage == "pose" else (min(frames, SKIN_FRAMES), min(warmup, SHORT_WARMUP))
+                short = (min(frames, NUMPY_FRAMES), min(warmup, SHORT_WARMUP))
+                keyed = runtimes["keys"]
+                for v in ("keys", "baked"):
+                    if v in variants and (stage == "pose" or v == "keys"):
+                        rounds.append((1, [_case(c, v, _runtime_step(runtimes[v][c.id], n)) for c in group], *full))
+                if stage == "pose" and "keys" in variants:
+                    if n >= PARALLEL_MIN_CHARACTERS:
+                        rounds.append((cores, [_case(c, "keys", _runtime_step(keyed[c.id], n, parallel=True))
+                                               for c in group], *full))
+                    if n >= LOD_MIN_CHARACTERS:
+                        lod_cases = [_case(c, "keys-fk-only", _runtime_step(keyed[c.id], n, fk_only=True))
+                                     for c in group]
+                        lod_cases += [_case(c, name, _runtime_step(keyed[c.id], n, **lod))
+                                      for name, lod in lod_variants() for c in group]
+                        rounds.append((1, lod_cases, min(frames, LOD_FRAMES), min(warmup, SHORT_WARMUP)))
                 if stage == "pose" and n <= REFERENCE_MAX_CHARACTERS:
-                    ref = [Case(animation, c.method, c.increment, "reference", _reference_step(c.clip))
-                           for c in group]
-                    naive = [Case(animation, c.method, c.increment, "naive", _naive_step(c.clip))
-                             for c in group if isinstance(c.clip, SquadClip)]
-                    rounds.append((1, ref + naive))
-                for threads, cases in rounds:
+                    numpy_cases = ([_case(c, "reference", _reference_step(c.clip)) for c in group]
+                                   if "reference" in variants else [])
+                    if "naive" in variants:
+                        numpy_cases += [_case(c, "naive", _naive_step(c.clip)) for c in group
+                                        if isinstance(c.clip, SquadClip)]
+                    if numpy_cases:
+                        rounds.append((1, numpy_cases, *short))
+                for threads, round_cases, n_frames, n_warmup in rounds:
                     if stage == "skin":
-                        cases = [Case(k.animation, k.method, k.increment, k.variant, _skinned(k.step, mesh))
-                                 for k in cases]
-                    timed = _time(cases, phases, frames, warmup)
-                    for i, case in enumerate(cases):
+                        round_cases = [Case(k.animation, k.method, k.increment, k.variant, _skinned(k.step, mesh))
+                                       for k in round_cases]
+                    timed = _time(round_cases, phases, n_frames, n_warmup)
+                    for i, case in enumerate(round_cases):
                         ms = np.asarray(timed[i])
                         median = float(np.median(ms))
                         results.append({"animation": case.animation, "method": case.method,
@@ -144,26 +258,61 @@ def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTE
                                         "p95_ms": float(np.percentile(ms, 95)), "fps": 1000.0 / median,
                                         "frames": len(ms)})
             progress(f"  {stage}: {n} characters done ({time.perf_counter() - started:.0f} s)")
-    return {"machine": machine(), "settings": {"frames": frames, "warmup": warmup, "seed": seed,
-                                               "characters": list(characters), "stages": list(stages),
-                                               "clock_per_frame_s": 1 / FPS},
-            "results": results, "memory": memory, "summary": summarize(results)}
+    return {"machine": machine(), "settings": {"frames": frames, "skin_frames": min(frames, SKIN_FRAMES),
+                                               "numpy_frames": min(frames, NUMPY_FRAMES),
+                                               "lod_frames": min(frames, LOD_FRAMES),
+                                               "warmup": warmup, "seed": seed, "characters": list(characters),
+                                               "stages": list(stages), "variants": list(variants),
+                                               "clock_per_frame_s": 1 / FPS,
+                                               "accuracy_samples_per_frame": ACCURACY_OVERSAMPLING},
+            "results": results, "memory": memory, "accuracy": accuracy,
+            "summary": summarize(results, memory, accuracy)}
 
 
-def summarize(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
-    """Hybrid / keyframe median ratios (stage pose, default variant, one thread) and the 10,000-character figure."""
-    base = [r for r in results if r["stage"] == "pose" and r["variant"] == "default" and r["threads"] == 1]
+def _ratios(results: Sequence[dict[str, Any]], variant: str) -> list[dict[str, Any]]:
+    base = [r for r in results if r["stage"] == "pose" and r["variant"] == variant and r["threads"] == 1]
     keyframe = {(r["animation"], r["characters"]): r["median_ms"] for r in base if r["method"] == "keyframe"}
-    ratios = [{"animation": r["animation"], "increment": r["increment"], "characters": r["characters"],
-               "ratio": r["median_ms"] / keyframe[(r["animation"], r["characters"])]}
-              for r in base if r["method"] == "hybrid" and (r["animation"], r["characters"]) in keyframe]
+    return [{"animation": r["animation"], "increment": r["increment"], "characters": r["characters"],
+             "ratio": r["median_ms"] / keyframe[(r["animation"], r["characters"])]}
+            for r in base if r["method"] == "hybrid" and (r["animation"], r["characters"]) in keyframe]
+
+
+def summarize(results: Sequence[dict[str, Any]], memory: Sequence[dict[str, Any]] = (),
+              accuracy: Sequence[dict[str, Any]] = ()) -> dict[str, Any]:
+    """The goals' figures: hybrid / keyframe median ratios (stage pose, one thread; ``keys`` variant, and every
+    other compiled variant), the largest crowd's worst time, the multi-core speed-up, memory and accuracy."""
+    ratios = _ratios(results, "keys")
     at_10 = [x["ratio"] for x in ratios if x["characters"] >= 10]
+    base = [r for r in results if r["stage"] == "pose" and r["variant"] == "keys"]
     biggest = max((r["characters"] for r in base), default=0)
+    serial = {(r["animation"], r["method"], r["increment"]): r["median_ms"]
+              for r in base if r["characters"] == biggest and r["threads"] == 1}
+    speedups = [serial[(r["animation"], r["method"], r["increment"])] / r["median_ms"]
+                for r in base if r["characters"] == biggest and r["threads"] > 1
+                and (r["animation"], r["method"], r["increment"]) in serial]
+    keyframe_bytes = {m["animation"]: m["runtime_bytes"] for m in memory
+                      if m["variant"] == "keys" and m["method"] == "keyframe"}
+    memory_ratios = [{"clip": m["clip"], "increment": m["increment"],
+                      "ratio": m["runtime_bytes"] / keyframe_bytes[m["animation"]]}
+                     for m in memory if m["variant"] == "keys" and m["method"] == "hybrid"
+                     and m["animation"] in keyframe_bytes]
+    hybrid_errors = [a["max_error_deg"] for a in accuracy if a["variant"] == "keys" and a["method"] == "hybrid"]
+    other = {v: [x["ratio"] for x in _ratios(results, v) if x["characters"] >= 10] for v in ("baked",)}
     return {
         "ratios": ratios,
         "max_ratio_at_10_or_more": max(at_10) if at_10 else None,
+        "median_ratio_at_10_or_more": float(np.median(at_10)) if at_10 else None,
+        "max_ratio_at_10_or_more_by_variant": {v: max(x) if x else None for v, x in other.items()},
         "largest_crowd": biggest,
-        "largest_crowd_worst_ms": max((r["median_ms"] for r in base if r["characters"] == biggest), default=None),
+        "largest_crowd_worst_ms": max((r["median_ms"] for r in base if r["characters"] == biggest
+                                       and r["threads"] == 1), default=None),
+        "parallel_threads": max((r["threads"] for r in base), default=1),
+        "parallel_speedup_min": min(speedups) if speedups else None,
+        "parallel_speedup_median": float(np.median(speedups)) if speedups else None,
+        "memory_ratios": memory_ratios,
+        "max_memory_ratio_increment_0": max((m["ratio"] for m in memory_ratios if m["increment"] == 0),
+                                            default=None),
+        "max_hybrid_error_deg": max(hybrid_errors) if hybrid_errors else None,
     }
 
 
@@ -171,8 +320,9 @@ def series(results: Sequence[dict[str, Any]], stage: str = "pose") -> list[dict[
     """Average over animations (and increments) of the median ms per frame, per method/variant, for plots."""
     out = []
     for name, keep in (
-        ("keyframe", lambda r: r["method"] == "keyframe" and r["variant"] == "default"),
-        ("hybrid", lambda r: r["method"] == "hybrid" and r["variant"] == "default"),
+        ("keyframe", lambda r: r["method"] == "keyframe" and r["variant"] == "keys"),
+        ("hybrid, from its keys", lambda r: r["method"] == "hybrid" and r["variant"] == "keys"),
+        ("hybrid, baked table", lambda r: r["method"] == "hybrid" and r["variant"] == "baked"),
         ("keyframe, numpy reference", lambda r: r["method"] == "keyframe" and r["variant"] == "reference"),
         ("hybrid, numpy reference", lambda r: r["method"] == "hybrid" and r["variant"] == "reference"),
         ("hybrid, naive SQUAD", lambda r: r["method"] == "hybrid" and r["variant"] == "naive"),
@@ -240,27 +390,81 @@ def _fps_lines(results: Sequence[dict[str, Any]], groups: Sequence[tuple[str, Ca
     return lines
 
 
+def svg_bars(groups: Sequence[str], bars: Sequence[dict[str, Any]], title: str, y_label: str) -> str:
+    """Grouped bars on a log y axis as SVG text: one group per label, ``bars`` = [{"name", "values": [...]}]
+    with one value (or None) per group."""
+    w, h, left, right, top, bottom = 1000, 460, 70, 150, 40, 110
+    ys = [v for b in bars for v in b["values"] if v]
+    y0, y1 = np.floor(np.log10(min(ys) / 3)), np.ceil(np.log10(max(ys)))  # the smallest bar stays visible
+    y1 = y1 if y1 > y0 else y0 + 1
+    group_w = (w - left - right) / max(1, len(groups))
+    bar_w = max(2.0, (group_w - 6) / max(1, len(bars)))
+
+    def py(v: float) -> float:
+        return h - bottom - (np.log10(v) - y0) / (y1 - y0) * (h - top - bottom)
+
+    out = [f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {w} {h}" font-family="sans-serif" '
+           f'font-size="12"><rect width="{w}" height="{h}" fill="white"/>',
+           f'<text x="{left}" y="22" font-size="15" font-weight="bold">{title}</text>',
+           f'<text x="16" y="{(top + h - bottom) / 2}" transform="rotate(-90 16 {(top + h - bottom) / 2})" '
+           f'text-anchor="middle">{y_label}</text>']
+    for e in range(int(y0), int(y1) + 1):
+        y = py(10.0**e)
+        out.append(f'<line x1="{left}" x2="{w - right}" y1="{y:.1f}" y2="{y:.1f}" stroke="#e3e7ee"/>'
+                   f'<text x="{left - 6}" y="{y + 4:.1f}" text-anchor="end">{10.0**e:g}</text>')
+    for g, label in enumerate(groups):
+        x0 = left + g * group_w + 3
+        for k, b in enumerate(bars):
+            v = b["values"][g]
+            if v:
+                out.append(f'<rect x="{x0 + k * bar_w:.1f}" y="{py(v):.1f}" width="{bar_w - 1:.1f}" '
+                           f'height="{h - bottom - py(v):.1f}" fill="{COLORS[k % len(COLORS)]}">'
+                           f'<title>{label} {b["name"]}: {v:g}</title></rect>')
+        cx = x0 + group_w / 2
+        out.append(f'<text x="{cx:.1f}" y="{h - bottom + 12}" text-anchor="end" '
+                   f'transform="rotate(-45 {cx:.1f} {h - bottom + 12})">{label}</text>')
+    for k, b in enumerate(bars):
+        ly = top + 14 + 18 * k
+        out.append(f'<rect x="{w - right + 12}" y="{ly - 10}" width="14" height="12" '
+                   f'fill="{COLORS[k % len(COLORS)]}"/><text x="{w - right + 32}" y="{ly}">{b["name"]}</text>')
+    out.append("</svg>")
+    return "\n".join(out)
+
+
+def memory_bars(memory: Sequence[dict[str, Any]]) -> tuple[list[str], list[dict[str, Any]]]:
+    """Runtime bytes per clip (groups) and variant (bars), for :func:`svg_bars` and the dashboard."""
+    clips = list(dict.fromkeys(m["clip"] for m in memory))
+    variants = [v for v in VARIANTS if any(m["variant"] == v for m in memory)]
+    by = {(m["clip"], m["variant"]): m["runtime_bytes"] for m in memory}
+    bars = [{"name": "stored keys", "values": [next(m["stored_bytes"] for m in memory if m["clip"] == c)
+                                               for c in clips]}]
+    bars += [{"name": v, "values": [by.get((c, v)) for c in clips]} for v in variants]
+    return clips, bars
+
+
 def write_plots(doc: dict[str, Any], out_dir: Any) -> list[Any]:
     """The thesis's figures 4.5 (average keyframe against average hybrid), 4.6 (per increment) and 4.7 (per
-    animation), as FPS against characters on log axes; returns the files written."""
+    animation) from the ``keys`` variant, as FPS against characters on log axes, and the runtime bytes per clip
+    and variant; returns the files written."""
     from pathlib import Path
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     r = doc["results"]
-    default = lambda m: (lambda x: x["method"] == m and x["variant"] == "default")  # noqa: E731
+    keys = lambda m: (lambda x: x["method"] == m and x["variant"] == "keys")  # noqa: E731
     figures = {
         "fps_average.svg": ("Average keyframe against average hybrid (pose, one thread)", _fps_lines(r, [
-            ("keyframe", default("keyframe"), False), ("hybrid (baked)", default("hybrid"), False),
+            ("keyframe", keys("keyframe"), False), ("hybrid (from its keys)", keys("hybrid"), False),
+            ("hybrid, baked table", lambda x: x["method"] == "hybrid" and x["variant"] == "baked", True),
             ("keyframe, numpy reference", lambda x: x["method"] == "keyframe" and x["variant"] == "reference", True),
             ("hybrid, numpy reference", lambda x: x["method"] == "hybrid" and x["variant"] == "reference", True),
             ("hybrid, naive SQUAD", lambda x: x["method"] == "hybrid" and x["variant"] == "naive", True)])),
-        "fps_increment.svg": ("Per increment (pose, one thread)", _fps_lines(r, [
-            ("keyframe", default("keyframe"), False)] + [
-            (f"hybrid increment {i}", lambda x, i=i: default("hybrid")(x) and x["increment"] == i, False)
+        "fps_increment.svg": ("Per increment (pose, one thread, from the keys)", _fps_lines(r, [
+            ("keyframe", keys("keyframe"), False)] + [
+            (f"hybrid increment {i}", lambda x, i=i: keys("hybrid")(x) and x["increment"] == i, False)
             for i in sorted({x["increment"] for x in r if x["method"] == "hybrid"})])),
-        "fps_animation.svg": ("Per animation (pose, one thread)", _fps_lines(r, [
-            (f"{a} {m}", lambda x, a=a, m=m: default(m)(x) and x["animation"] == a, m == "keyframe")
+        "fps_animation.svg": ("Per animation (pose, one thread, from the keys)", _fps_lines(r, [
+            (f"{a} {m}", lambda x, a=a, m=m: keys(m)(x) and x["animation"] == a, m == "keyframe")
             for a in dict.fromkeys(x["animation"] for x in r) for m in ("keyframe", "hybrid")])),
     }
     written = []
@@ -269,4 +473,9 @@ def write_plots(doc: dict[str, Any], out_dir: Any) -> list[Any]:
             path = out / name
             path.write_text(svg_chart(lines, title, "characters", "frames per second"), encoding="utf-8")
             written.append(path)
+    if doc.get("memory"):
+        groups, bars = memory_bars(doc["memory"])
+        path = out / "runtime_bytes.svg"
+        path.write_text(svg_bars(groups, bars, "Runtime bytes per clip and variant", "bytes"), encoding="utf-8")
+        written.append(path)
     return written

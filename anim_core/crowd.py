@@ -5,8 +5,10 @@ The reference implementation is ``clip.sample(t, method="nlerp")`` followed by `
 uniform time grid, sign-continuous, float32.  A keyframe clip's own keys are used as they are (the table gives
 exactly the reference's nlerp); a hybrid clip is *baked* once at build time, its SQUAD or spring curve sampled
 at ``rate`` keys per second, so that posing a hybrid character costs exactly what posing a keyframe character
-costs: gather two keys, nlerp, forward kinematics.  :func:`pose_crowd` runs that per character and joint in a
-numba kernel (single- or multi-threaded); without numba it falls back to numpy.
+costs: gather two keys, nlerp, forward kinematics; the memory of dense keys is the price (the benchmark's
+``baked`` variant).  :func:`pose_crowd` runs that per character and joint in the numba kernel of
+:class:`anim_core.runtime.TableRuntime` (single- or multi-threaded); without numba it falls back to numpy.
+:mod:`anim_core.runtime` evaluates hybrids from their own keys instead.
 """
 
 from __future__ import annotations
@@ -114,10 +116,6 @@ def _bake_at(clip: Any, rate: float, mode: str) -> PoseTable:
     return table
 
 
-def _mode_code(mode: str) -> int:
-    return PLAYBACK_MODES.index(mode)
-
-
 def pose_crowd_numpy(table: PoseTable, t: NDArray[np.floating]) -> tuple[Array, Array]:
     """Reference-style evaluation of a table: nlerp between its keys, then forward kinematics (float64)."""
     t = np.asarray(t, dtype=np.float64)
@@ -131,66 +129,6 @@ def pose_crowd_numpy(table: PoseTable, t: NDArray[np.floating]) -> tuple[Array, 
     root = table.root[i] * (1.0 - frac[:, 0]) + table.root[i + 1] * frac[:, 0]
     root = root + table.velocity * (clip_t + cycles * table.duration)[:, None]
     return table.skeleton.forward_kinematics(q, root)
-
-
-if numba is not None:
-
-    @numba.njit(cache=True, fastmath=False)
-    def _pose_one(c, keys, roots, dt, duration, mode, velocity, times, parents, offsets, out_rot, out_pos):
-        t = times[c]
-        cycles = 0.0
-        if mode == 0:  # loop
-            cycles = np.floor(t / duration)
-            ct = t - cycles * duration
-        elif mode == 1:  # ping-pong
-            ct = t % (2.0 * duration)
-            if ct > duration:
-                ct = 2.0 * duration - ct
-        else:  # clamp
-            ct = min(max(t, 0.0), duration)
-        f = ct / dt
-        i = int(np.floor(f))
-        i = min(max(i, 0), keys.shape[0] - 2)
-        a = np.float32(f - i)
-        b = np.float32(1.0) - a
-        travel = ct + cycles * duration
-        for j in range(keys.shape[1]):
-            w = b * keys[i, j, 0] + a * keys[i + 1, j, 0]
-            x = b * keys[i, j, 1] + a * keys[i + 1, j, 1]
-            y = b * keys[i, j, 2] + a * keys[i + 1, j, 2]
-            z = b * keys[i, j, 3] + a * keys[i + 1, j, 3]
-            inv = np.float32(1.0) / np.sqrt(w * w + x * x + y * y + z * z)
-            w, x, y, z = w * inv, x * inv, y * inv, z * inv
-            p = parents[j]
-            ox, oy, oz = offsets[j, 0], offsets[j, 1], offsets[j, 2]
-            if p < 0:
-                out_rot[c, j, 0], out_rot[c, j, 1], out_rot[c, j, 2], out_rot[c, j, 3] = w, x, y, z
-                out_pos[c, j, 0] = ox + b * roots[i, 0] + a * roots[i + 1, 0] + velocity[0] * travel
-                out_pos[c, j, 1] = oy + b * roots[i, 1] + a * roots[i + 1, 1] + velocity[1] * travel
-                out_pos[c, j, 2] = oz + b * roots[i, 2] + a * roots[i + 1, 2] + velocity[2] * travel
-                continue
-            pw, px, py, pz = out_rot[c, p, 0], out_rot[c, p, 1], out_rot[c, p, 2], out_rot[c, p, 3]
-            out_rot[c, j, 0] = pw * w - px * x - py * y - pz * z
-            out_rot[c, j, 1] = pw * x + px * w + py * z - pz * y
-            out_rot[c, j, 2] = pw * y - px * z + py * w + pz * x
-            out_rot[c, j, 3] = pw * z + px * y - py * x + pz * w
-            # offset rotated by the parent: v + 2w (u x v) + 2 u x (u x v)
-            tx = np.float32(2.0) * (py * oz - pz * oy)
-            ty = np.float32(2.0) * (pz * ox - px * oz)
-            tz = np.float32(2.0) * (px * oy - py * ox)
-            out_pos[c, j, 0] = out_pos[c, p, 0] + ox + pw * tx + (py * tz - pz * ty)
-            out_pos[c, j, 1] = out_pos[c, p, 1] + oy + pw * ty + (pz * tx - px * tz)
-            out_pos[c, j, 2] = out_pos[c, p, 2] + oz + pw * tz + (px * ty - py * tx)
-
-    @numba.njit(cache=True)
-    def _pose_serial(keys, roots, dt, duration, mode, velocity, times, parents, offsets, out_rot, out_pos):
-        for c in range(times.shape[0]):
-            _pose_one(c, keys, roots, dt, duration, mode, velocity, times, parents, offsets, out_rot, out_pos)
-
-    @numba.njit(cache=True, parallel=True)
-    def _pose_parallel(keys, roots, dt, duration, mode, velocity, times, parents, offsets, out_rot, out_pos):
-        for c in numba.prange(times.shape[0]):
-            _pose_one(c, keys, roots, dt, duration, mode, velocity, times, parents, offsets, out_rot, out_pos)
 
 
 @dataclass
@@ -209,16 +147,16 @@ def pose_crowd(table: PoseTable, t: NDArray[np.floating], out: CrowdBuffers | No
                parallel: bool = False) -> CrowdBuffers:
     """Global joint rotations and positions of ``N`` characters at their own times ``t (N,)`` seconds (float32).
 
-    Uses the compiled kernel (``parallel``: one thread per core) when numba is present, numpy otherwise.
+    The table's compiled kernel (:class:`anim_core.runtime.TableRuntime`; ``parallel``: one thread per core) when
+    numba is present, numpy otherwise.
     """
     t = np.ascontiguousarray(t, dtype=np.float64)
     sk = table.skeleton
-    out = out or CrowdBuffers.for_crowd(t.shape[0], sk.n_joints)
     if numba is None:
+        out = out or CrowdBuffers.for_crowd(t.shape[0], sk.n_joints)
         rot, pos = pose_crowd_numpy(table, t)
         out.rotations[:], out.positions[:] = rot, pos
         return out
-    kernel = _pose_parallel if parallel else _pose_serial
-    kernel(table.rotations, table.root, table.dt, table.duration, _mode_code(table.mode), table.velocity, t,
-           sk.parents, sk.offsets.astype(np.float32), out.rotations, out.positions)
-    return out
+    from .runtime import TableRuntime  # the runtime builds on this module's tables
+
+    return TableRuntime.from_table(table).pose(t, out, parallel=parallel)

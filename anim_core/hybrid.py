@@ -143,6 +143,12 @@ class SquadClip:
     def n_keys(self) -> int:
         return int(np.asarray(self.key_times).size)
 
+    def precomputed(self) -> tuple[Array, Array, Array, Array, CubicSpline]:
+        """What the clip computed from its keys when it was built, for runtimes that evaluate it elsewhere:
+        segment times ``(S + 1,)`` s, SQUAD keys ``q (S + 1, J, 4)`` (sign-continuous) and control points
+        ``a, b (S, J, 4)`` (see :func:`~anim_core.quat.squad_tangents`), and the root spline (before travel)."""
+        return self._seg_times, self._q, self._a, self._b, self._root
+
     def tangents(self) -> tuple[Array, Array, Array]:
         """The SQUAD control points from the keys (computed once at build time; see :meth:`sample`)."""
         return squad_tangents(self.key_rotations, self._seg_times, ends="cyclic" if self.mode == "loop" else "reflect")

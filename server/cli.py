@@ -9,6 +9,7 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from .config import Settings
 
@@ -205,7 +206,8 @@ def researcher_create(settings: Settings, email: str, password: str) -> int:
     return 0
 
 
-def bench(settings: Settings, json_path: Path, characters: list[int], stages: list[str], frames: int) -> int:
+def bench(settings: Settings, json_path: Path, characters: list[int], stages: list[str], frames: int,
+          variants: list[str]) -> int:
     """Run the performance benchmark; write JSON (for the dashboard too) and the plots beside it."""
     # One thread for numpy/BLAS in the main figures (the compiled kernel's threads are a separate figure).
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -220,7 +222,9 @@ def bench(settings: Settings, json_path: Path, characters: list[int], stages: li
         clips = build_clip_set(settings.data)
     except (AssetError, ConfigError) as exc:
         return _fail(str(exc))
-    doc = benchmark.run(clips, characters, stages, frames=frames, progress=lambda m: print(m, flush=True))
+    print(f"building the runtimes and measuring memory and accuracy ({', '.join(variants)})", flush=True)
+    doc = benchmark.run(clips, characters, stages, frames=frames, variants=variants,
+                        progress=lambda m: print(m, flush=True))
     doc["series"] = benchmark.series(doc["results"])
     doc["x_label"], doc["y_label"] = "characters", "ms per frame (pose, one thread)"
     try:
@@ -229,22 +233,67 @@ def bench(settings: Settings, json_path: Path, characters: list[int], stages: li
         plots = benchmark.write_plots(doc, json_path.parent)
     except OSError as exc:
         return _fail(f"cannot write the results: {exc}")
-    print(f"\n{'animation':8} {'method':9} {'inc':>3} {'chars':>6} {'median ms':>10} {'p95 ms':>8} {'FPS':>8} "
-          f"{'hybrid/keyframe':>15}")
-    rows = [r for r in doc["results"] if r["stage"] == "pose" and r["variant"] == "default" and r["threads"] == 1]
-    keyframe = {(r["animation"], r["characters"]): r["median_ms"] for r in rows if r["method"] == "keyframe"}
-    for r in rows:
-        base = keyframe[(r["animation"], r["characters"])]
-        ratio = "" if r["method"] == "keyframe" else f"{r['median_ms'] / base:.3f}"
-        inc = "" if r["increment"] is None else r["increment"]
-        print(f"{r['animation']:8} {r['method']:9} {inc:>3} {r['characters']:>6} {r['median_ms']:10.3f} "
-              f"{r['p95_ms']:8.3f} {r['fps']:8.0f} {ratio:>15}")
-    summary = doc["summary"]
-    print(f"\nworst hybrid/keyframe ratio at >= 10 characters: {summary['max_ratio_at_10_or_more']}")
-    print(f"{summary['largest_crowd']} characters: worst median {summary['largest_crowd_worst_ms']:.2f} ms per frame")
+    _print_bench(doc)
     print(f"results: {json_path}; plots: {', '.join(p.name for p in plots)}; "
           f"{time.perf_counter() - started:.0f} s in all")
     return 0
+
+
+def _print_bench(doc: dict[str, Any]) -> None:
+    """The ratios per clip and crowd size, then bytes and errors per clip, then the goals' figures."""
+    variant = "keys" if "keys" in doc["settings"]["variants"] else doc["settings"]["variants"][0]
+    rows = [r for r in doc["results"] if r["stage"] == "pose" and r["variant"] == variant and r["threads"] == 1]
+    if rows:
+        ns = sorted({r["characters"] for r in rows})
+        keyframe = {(r["animation"], r["characters"]): r["median_ms"] for r in rows if r["method"] == "keyframe"}
+        print(f"\nhybrid / keyframe median ms per frame, variant {variant}, pose, one thread")
+        print(f"{'clip':16}" + "".join(f"{n:>10}" for n in ns))
+        for clip in dict.fromkeys((r["animation"], r["method"], r["increment"]) for r in rows):
+            by_n = {r["characters"]: r["median_ms"] for r in rows if (r["animation"], r["method"], r["increment"])
+                    == clip}
+            name = f"{clip[0]}-{clip[1]}{'' if clip[2] is None else clip[2]}"
+            cells = [(f"{by_n[n]:.3g}ms" if clip[1] == "keyframe" else f"{by_n[n] / keyframe[(clip[0], n)]:.3f}")
+                     if n in by_n else "" for n in ns]
+            print(f"{name:16}" + "".join(f"{c:>10}" for c in cells))
+    variants = list(dict.fromkeys(m["variant"] for m in doc["memory"]))
+    mem = {(m["clip"], m["variant"]): m["runtime_bytes"] for m in doc["memory"]}
+    err = {(a["clip"], a["variant"]): a["max_error_deg"] for a in doc["accuracy"]}
+    stored = {m["clip"]: m["stored_bytes"] for m in doc["memory"]}
+    main = [v for v in variants if not v.startswith("keys-")]
+    print("\nruntime bytes (stored keys first) and largest global-rotation error in degrees, per clip and variant")
+    print(f"{'clip':16}{'stored':>8}" + "".join(f"{v:>10}" for v in main) + "".join(f"{'err ' + v:>14}" for v in main))
+    for clip in stored:
+        print(f"{clip:16}{stored[clip]:>8}" + "".join(f"{mem.get((clip, v), ''):>10}" for v in main)
+              + "".join(f"{err[(clip, v)]:>14.4f}" if (clip, v) in err else f"{'':>14}" for v in main))
+    lods = [v for v in variants if v.startswith("keys-")]
+    if lods:
+        print("\nLOD variants of keys: largest error in degrees per clip")
+        print(f"{'clip':16}" + "".join(f"{v:>18}" for v in lods))
+        for clip in stored:
+            print(f"{clip:16}" + "".join(f"{err.get((clip, v), float('nan')):>18.3f}" for v in lods))
+    s = doc["summary"]
+    print()
+    for label, value, unit in (
+        ("worst hybrid/keyframe ratio at >= 10 characters (keys)", s["max_ratio_at_10_or_more"], ""),
+        ("median hybrid/keyframe ratio at >= 10 characters (keys)", s["median_ratio_at_10_or_more"], ""),
+        (f"{s['largest_crowd']} characters, worst median (keys, one thread)", s["largest_crowd_worst_ms"], " ms"),
+        (f"speed-up on {s['parallel_threads']} threads at {s['largest_crowd']} characters, min / median",
+         None if s["parallel_speedup_min"] is None else f"{s['parallel_speedup_min']:.2f} / "
+         f"{s['parallel_speedup_median']:.2f}", ""),
+        ("largest increment-0 hybrid runtime bytes / keyframe's (keys)", s["max_memory_ratio_increment_0"], ""),
+        ("largest hybrid error (keys), degrees", s["max_hybrid_error_deg"], ""),
+    ):
+        shown = "n/a" if value is None else (f"{value:.3f}" if isinstance(value, float) else value)
+        print(f"{label}: {shown}{unit}")
+
+
+def _variants(text: str) -> list[str]:
+    from anim_core.benchmark import VARIANTS
+
+    chosen = [v.strip() for v in text.split(",") if v.strip()]
+    if not chosen or any(v not in VARIANTS for v in chosen):
+        raise argparse.ArgumentTypeError(f"variants are {', '.join(VARIANTS)} (comma-separated), got {text!r}")
+    return list(dict.fromkeys(chosen))
 
 
 def _int_list(minimum: int, example: str) -> Callable[[str], list[int]]:
@@ -313,13 +362,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     bn.add_argument("--characters", type=_int_list(1, "10,200"), default=None, help="crowd sizes, e.g. 10,200,10000")
     bn.add_argument("--stages", type=_stages, default=["pose", "skin"], help="pose, skin or both (default)")
     bn.add_argument("--frames", type=int, default=200, help="timed frames per measurement (default: 200)")
+    bn.add_argument("--variants", type=_variants, default=None,
+                    help="comma-separated: keys, baked, reference, naive (default: all)")
     args = parser.parse_args(argv)
     settings = Settings.from_env()
     if args.command == "bench":
-        from anim_core.benchmark import DEFAULT_CHARACTERS
+        from anim_core.benchmark import DEFAULT_CHARACTERS, VARIANTS
 
         return bench(settings, args.json or settings.benchmark_path, args.characters or list(DEFAULT_CHARACTERS),
-                     args.stages, max(1, args.frames))
+                     args.stages, max(1, args.frames), args.variants or list(VARIANTS))
     if args.command == "serve":
         return serve(settings, args.host, args.port, max(1, args.workers))
     if args.command == "researcher":

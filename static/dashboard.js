@@ -173,12 +173,48 @@
   // Hybrid against its keyframe clip: correlation at lag 0 and the best lag in frames; "–" for keyframe clips.
   function phase(r, lag) { return r == null ? "–" : `${fmt(r, 2)} (${lag > 0 ? "+" : ""}${lag})`; }
 
+  // Performance: the keys runtime's figures (the benchmark's headline variant), runtime memory per clip and
+  // variant, and per clip its hybrid / keyframe ratio, bytes and largest error.
   function renderBenchmark(bench) {
     const box = $("chart-benchmark");
-    if (!bench || !bench.series) { box.textContent = "No benchmark results yet (run `animstudy benchmark`)."; return; }
-    const colors = ["#555555", "#2166ac", "#67a9cf", "#b2182b", "#4d9221"];
+    if (!bench || !bench.series) {
+      box.textContent = "No benchmark results yet (run `animstudy bench`).";
+      $("chart-memory").replaceChildren();
+      $("table-benchmark").replaceChildren();
+      $("summary-benchmark").textContent = "";
+      return;
+    }
+    const colors = ["#555555", "#2166ac", "#67a9cf", "#b2182b", "#4d9221", "#e08214"];
     box.replaceChildren(Charts.lines(bench.series.map((s, i) => ({ label: s.name, color: colors[i % colors.length], points: s.points })),
-                                     "Pose evaluation time", bench.x_label || "characters", bench.y_label || "ms per frame"));
+                                     "Pose evaluation time (animstudy bench)", bench.x_label || "characters", bench.y_label || "ms per frame"));
+    const memory = bench.memory || [];
+    const clips = [...new Set(memory.map((m) => m.clip))];
+    const variants = ["keys", "baked", "reference"].filter((v) => memory.some((m) => m.variant === v));
+    const series = [{ key: "stored", label: "stored keys", color: colors[0] },
+                    ...variants.map((v, i) => ({ key: v, label: v, color: colors[i + 1] }))];
+    const bytes = (clip, v) => memory.find((m) => m.clip === clip && m.variant === v);
+    $("chart-memory").replaceChildren(Charts.columns(
+      clips.map((c) => ({ label: c.replace(/-(keyframe|hybrid)/, " $1").replace("keyframe", "kf").replace("hybrid", "h"),
+                          values: Object.fromEntries([["stored", memory.find((m) => m.clip === c).stored_bytes],
+                                                      ...variants.map((v) => [v, bytes(c, v)?.runtime_bytes])]) })),
+      series, "Runtime bytes per clip and variant", (v) => `${(v / 1000).toFixed(1)} kB`));
+    const s = bench.summary || {};
+    const ratios = (s.ratios || []).filter((r) => r.characters >= 10);
+    const error = (clip) => (bench.accuracy || []).find((a) => a.clip === clip && a.variant === "keys");
+    table($("table-benchmark"), ["clip", "hybrid / keyframe (keys, ≥ 10 characters, worst)", "runtime bytes (keys)",
+                                 "runtime bytes (baked)", "largest error ° (keys)"],
+          clips.map((c) => {
+            const m = memory.find((x) => x.clip === c && x.variant === "keys") || {};
+            const mine = ratios.filter((r) => `${r.animation}-hybrid${r.increment}` === c).map((r) => r.ratio);
+            return [c, mine.length ? fmt(Math.max(...mine), 2) : "–", m.runtime_bytes ?? "–",
+                    bytes(c, "baked")?.runtime_bytes ?? "–", fmt(error(c)?.max_error_deg, 3)];
+          }));
+    $("summary-benchmark").textContent =
+      `keys runtime: worst hybrid / keyframe ${fmt(s.max_ratio_at_10_or_more, 2)} (median ${fmt(s.median_ratio_at_10_or_more, 2)}); ` +
+      `${s.largest_crowd} characters ${fmt(s.largest_crowd_worst_ms, 2)} ms per frame` +
+      (s.parallel_speedup_median == null ? "" : `, ${s.parallel_threads} threads ${fmt(s.parallel_speedup_median, 2)}× as fast`) +
+      `; increment-0 hybrid memory ≤ ${fmt(s.max_memory_ratio_increment_0, 2)} of the keyframe clip's; ` +
+      `largest hybrid error ${fmt(s.max_hybrid_error_deg, 3)}°.`;
   }
 
   $("toggle-state").addEventListener("click", async () => {

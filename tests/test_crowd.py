@@ -71,19 +71,55 @@ def test_short_benchmark_run_writes_results_and_plots(clips, tmp_path):
             "fps"}
     assert all(keys <= set(r) for r in doc["results"])
     variants = {(r["variant"], r["method"]) for r in doc["results"]}
-    assert {("default", "keyframe"), ("default", "hybrid"), ("reference", "keyframe"), ("naive", "hybrid")} <= variants
+    assert {("keys", "keyframe"), ("keys", "hybrid"), ("baked", "hybrid"), ("reference", "keyframe"),
+            ("naive", "hybrid")} <= variants
     assert not any(r["variant"] == "naive" and r["animation"] == "crouch" for r in doc["results"])  # no tangents
     assert {r["stage"] for r in doc["results"]} == {"pose", "skin"}
+    assert {r["variant"] for r in doc["results"] if r["stage"] == "skin"} == {"keys"}
     assert all(r["median_ms"] > 0 and r["fps"] == pytest.approx(1000 / r["median_ms"]) for r in doc["results"])
     assert {"cpu", "numpy", "cores"} <= set(doc["machine"])
-    assert len(doc["memory"]) == 8 and all(m["runtime_table_bytes"] > 0 for m in doc["memory"])
-    hybrid_keys = [m for m in doc["memory"] if m["method"] == "hybrid"]
-    keyframe_keys = [m for m in doc["memory"] if m["method"] == "keyframe"]
-    assert max(m["stored_bytes"] for m in hybrid_keys) < min(m["stored_bytes"] for m in keyframe_keys)
-    assert doc["summary"]["largest_crowd"] == 10 and doc["summary"]["max_ratio_at_10_or_more"] > 0
+
+    lods = [name for name, _ in benchmark.lod_variants()]
+    memory = {(m["clip"], m["variant"]): m for m in doc["memory"]}
+    for c in few:
+        expected = {"keys", "baked", "reference", *lods} | ({"naive"} if c.animation == "walk" and c.method == "hybrid"
+                                                             else set())
+        assert {v for clip, v in memory if clip == c.id} == expected
+    assert all(m["runtime_bytes"] > 0 and m["stored_bytes"] > 0 for m in doc["memory"])
+    assert {"clip", "animation", "method", "increment", "variant", "stored_bytes", "runtime_bytes"} == set(
+        doc["memory"][0])
+    # Keyframe clips: keys and baked are the same table; a hybrid's keys runtime is far smaller than its table.
+    assert memory[("walk-keyframe", "keys")]["runtime_bytes"] == memory[("walk-keyframe", "baked")]["runtime_bytes"]
+    for c in few:
+        if c.method == "hybrid":
+            assert memory[(c.id, "keys")]["runtime_bytes"] < memory[(c.id, "baked")]["runtime_bytes"]
+    errors = {(a["clip"], a["variant"]): a["max_error_deg"] for a in doc["accuracy"]}
+    assert set(errors) == set(memory)
+    assert all(errors[(c.id, "keys")] <= 0.25 for c in few)
+    assert all(errors[(c.id, "reference")] < 1e-5 for c in few)  # the reference is the exact curve (rounding)
+    assert errors[("walk-hybrid0", "keys-every4")] > errors[("walk-hybrid0", "keys-every2")] > 0
+
+    s = doc["summary"]
+    assert s["largest_crowd"] == 10 and s["max_ratio_at_10_or_more"] > 0
+    assert 0 < s["max_memory_ratio_increment_0"] < 1 and s["max_hybrid_error_deg"] <= 0.25
     json.dumps(doc)  # serialisable as it is
     written = benchmark.write_plots(doc, tmp_path)
-    assert {p.name for p in written} == {"fps_average.svg", "fps_increment.svg", "fps_animation.svg"}
+    assert {p.name for p in written} == {"fps_average.svg", "fps_increment.svg", "fps_animation.svg",
+                                         "runtime_bytes.svg"}
     for p in written:
         root = ET.fromstring(p.read_text())
-        assert len(root.findall("{http://www.w3.org/2000/svg}path")) >= 2
+        assert len(root.findall("{http://www.w3.org/2000/svg}path")) + len(
+            root.findall("{http://www.w3.org/2000/svg}rect")) >= 3
+
+
+def test_benchmark_lod_and_parallel_rounds_at_large_crowds(clips, monkeypatch):
+    monkeypatch.setattr(benchmark, "LOD_MIN_CHARACTERS", 20)
+    monkeypatch.setattr(benchmark, "PARALLEL_MIN_CHARACTERS", 20)
+    idle = [c for c in clips if c.animation == "idle"]
+    doc = benchmark.run(idle, characters=(20,), stages=("pose",), frames=2, warmup=1, variants=("keys",))
+    timed = {(r["variant"], r["threads"]) for r in doc["results"]}
+    assert {("keys", 1), ("keys-fk-only", 1), ("keys-bone-lod1", 1), ("keys-every4", 1)} <= timed
+    assert any(v == "keys" and n > 1 for v, n in timed) and doc["summary"]["parallel_speedup_min"] > 0
+    assert {m["variant"] for m in doc["memory"]} == {"keys", *[n for n, _ in benchmark.lod_variants()]}
+    with pytest.raises(ValueError, match="variants are"):
+        benchmark.run(idle, characters=(1,), variants=("fast",))
