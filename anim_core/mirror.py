@@ -16,7 +16,6 @@ whose rest rotations are the identity, ``A = L``.
 
 from __future__ import annotations
 
-import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -25,25 +24,20 @@ from numpy.typing import ArrayLike, NDArray
 
 from .clip import Pose
 from .quat import identity, quat_conj, quat_mul
+from .rigmap import partner_name, split_side
 from .skeleton import Skeleton
 
 Array = NDArray[np.float64]
 
-# (pattern, replacement) pairs tried in order; each maps a left name to its right partner and back.
-_SIDE_RULES: tuple[tuple[str, str], ...] = (
-    (r"^Left(?=[A-Z_\d]|$)", "Right"), (r"^Right(?=[A-Z_\d]|$)", "Left"),
-    (r"^left(?=[A-Z_\d]|$)", "right"), (r"^right(?=[A-Z_\d]|$)", "left"),
-    (r"^L(?=[A-Z_\d])", "R"), (r"^R(?=[A-Z_\d])", "L"),
-    (r"([._])L$", r"\1R"), (r"([._])R$", r"\1L"), (r"([._])l$", r"\1r"), (r"([._])r$", r"\1l"),
-)
-
-
 def mirror_partners(names: Sequence[str], overrides: Mapping[str, str] | None = None) -> NDArray[np.intp]:
     """Index of each joint's left/right partner (its own index for central joints), shape ``(J,)``.
 
-    Partners are found from the names (``LeftArm``/``RightArm``, ``LHipJoint``/``RHipJoint``, ``hand.L``/
-    ``hand.R``, ``foot_l``/``foot_r``); ``overrides`` maps names to partners explicitly (both directions are set)
-    and wins over the rules.  A name that looks sided but has no partner raises ``ValueError``.
+    Partners are found from the names as :func:`anim_core.rigmap.split_side` reads them: the same name with the
+    other side marker (``LeftArm``/``RightArm``, ``mixamorig:LeftArm``, ``LHipJoint``/``RHipJoint``, ``lShin``/
+    ``rShin``, ``L_Hip``/``R_Hip``, ``hand.L``/``hand.R``, ``foot_l``/``foot_r``, ``ThighLeft``/``ThighRight``);
+    ``overrides`` maps names to partners explicitly (both directions are set) and wins over the names.  A name
+    with a word or separated side marker (``Left``, ``_L``, ``L_``) but no partner raises ``ValueError``; one with
+    only a glued letter (``LOD``) without a partner is central.
     """
     index = {n: i for i, n in enumerate(names)}
     perm = np.arange(len(names), dtype=np.intp)
@@ -57,14 +51,13 @@ def mirror_partners(names: Sequence[str], overrides: Mapping[str, str] | None = 
         if name in explicit:
             perm[i] = index[explicit[name]]
             continue
-        for pattern, repl in _SIDE_RULES:
-            partner, hits = re.subn(pattern, repl, name)
-            if hits:
-                if partner not in index:
-                    raise ValueError(f"joint {name!r} looks sided but has no partner {partner!r}; "
-                                     f"give the pair explicitly")
-                perm[i] = index[partner]
-                break
+        partner = partner_name(name)
+        if partner is None:
+            continue
+        if partner in index:
+            perm[i] = index[partner]
+        elif split_side(name).strong:
+            raise ValueError(f"joint {name!r} looks sided but has no partner {partner!r}; give the pair explicitly")
     if not np.array_equal(perm[perm], np.arange(len(names))):
         raise ValueError("mirror partners are not symmetric")
     return perm
