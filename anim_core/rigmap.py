@@ -141,9 +141,9 @@ _ROLE_STEMS: dict[str, tuple[str, ...]] = {
     "arm": ("arm", "upperarm", "shldr", "shoulder", "shldrbend", "humerus"),
     "elbow": ("forearm", "lowerarm", "elbow", "forearmbend"),
     "hand": ("hand", "wrist"),
-    "thumb": ("thumb", "thumb1", "thumb01"),
+    "thumb": ("thumb", "thumb1", "thumb01", "handthumb"),
     "fingerbase": ("fingerbase", "palm", "handpalm", "hand", "metacarpal"),  # looked for below the hand only
-    "index": ("handindex1", "index", "index1", "index01", "indexfinger1", "finger", "handindex"),
+    "index": ("handindex1", "index", "index1", "index01", "indexfinger1", "finger", "handindex", "findex"),
 }
 _CENTRAL_HIPS = ("hips", "hip", "pelvis")
 _CENTRAL_HEAD = ("head",)
@@ -362,9 +362,15 @@ class _Mapper:
                 if toe is not None:
                     self.set(word + "ToeBase", toe, f"{'named ' if named else ''}{self.names[toe]!r}, "
                                                     f"child of the foot")
-        if hands["L"] is None or hands["R"] is None:
+        present = [h for h in hands.values() if h is not None]
+        if not present:
             return
-        chest = _lca(self.parents, hands["L"], hands["R"])
+        if len(present) == 2:
+            chest = _lca(self.parents, *present)
+        else:  # one arm: the chest is the first branching joint above its hand
+            chest = int(self.parents[present[0]])
+            while chest > 0 and len([c for c in range(len(self.names)) if self.parents[c] == chest]) < 2:
+                chest = int(self.parents[chest])
         if chest != hips and _chain(self.parents, chest, hips):
             self.set("Spine1", chest, "where the paths to both hands meet (the chest)")
             spine = [j for j in _chain(self.parents, chest, hips)[:-1]]
@@ -386,7 +392,7 @@ class _Mapper:
                 self.set("Neck1", neck[-1], "joint below the head")
         for s, word in sides.items():
             hand = hands[s]
-            if not _chain(self.parents, hand, chest):
+            if hand is None or not _chain(self.parents, hand, chest):
                 continue
             self.set(word + "Hand", hand, f"named {self.names[hand]!r} (the highest {word.lower()} hand/wrist)")
             self.limb(s, chest, hand, word, ("arm", "elbow", "collar"))
@@ -482,7 +488,7 @@ def read_mapping_file(path: str | Path) -> dict[str, str]:
 #: Metres per unit and the plausible range of a standing humanoid's rest-pose height (joints only) in that unit.
 UNITS: dict[str, tuple[float, tuple[float, float]]] = {
     "m": (1.0, (0.9, 2.4)),
-    "inch": (0.0254, (36.0, 95.0)),
+    "inch": (0.0254, (36.0, 89.9)),
     "cm": (0.01, (90.0, 240.0)),
     "mm": (0.001, (900.0, 2400.0)),
     # CMU's BVH conversions: 1 unit = (1 / 0.45) inches.
