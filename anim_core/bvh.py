@@ -379,3 +379,21 @@ def write_bvh(bvh: Bvh, path: str | os.PathLike[str]) -> None:
     path = Path(path)
     data = format_bvh(bvh).encode("utf-8")
     path.write_bytes(gzip.compress(data, mtime=0) if path.suffix == ".gz" else data)
+
+
+def bvh_from_poses(skeleton: Skeleton, rotations: ArrayLike, root_translation: ArrayLike, frame_time: float,
+                   end_sites: dict[int, Array] | None = None, source: str = "<poses>") -> Bvh:
+    """A Bvh holding the given poses of ``skeleton`` (identity rest rotations, as every BVH skeleton has).
+
+    ``rotations``: ``(F, J, 4)`` local (w, x, y, z); ``root_translation``: ``(F, 3)``.  The root gets the channels
+    ``Xposition Yposition Zposition Zrotation Yrotation Xrotation``, every other joint ``Zrotation Yrotation
+    Xrotation`` (the CMU layout), so any rotation can be written.
+    """
+    if not np.allclose(skeleton.rest_rotations, [1.0, 0.0, 0.0, 0.0]):
+        raise ValueError("BVH skeletons have identity rest rotations; remove the rest pose first")
+    rot = np.asarray(rotations, dtype=np.float64)
+    channels = (("Xposition", "Yposition", "Zposition", "Zrotation", "Yrotation", "Xrotation"),) + \
+        (("Zrotation", "Yrotation", "Xrotation"),) * (skeleton.n_joints - 1)
+    frame = Bvh(skeleton, channels, dict(end_sites or {}), frame_time,
+                np.zeros((rot.shape[0], 3 + 3 * skeleton.n_joints)), source)
+    return frame.with_poses(rot, root_translation)

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from .bvh import Bvh, BvhError
+from .bvh import Bvh, BvhError, bvh_from_poses
 from .quat import identity, quat_conj, quat_from_axis_angle, quat_mul, rotate
 from .skeleton import Skeleton
 
@@ -526,10 +526,6 @@ class Normalized:
     notes: tuple[str, ...] = field(default=())
 
 
-_ROOT_CHANNELS = ("Xposition", "Yposition", "Zposition", "Zrotation", "Yrotation", "Xrotation")
-_JOINT_CHANNELS = ("Zrotation", "Yrotation", "Xrotation")
-
-
 def normalize_motion(skeleton: Skeleton, rotations: Array, root_translation: Array, frame_time: float,
                      end_sites: Mapping[int, Array], source: str, explicit: Mapping[str, str] | None = None,
                      units: str | None = None, up_axis: str | None = None) -> Normalized:
@@ -604,13 +600,8 @@ def normalize_motion(skeleton: Skeleton, rotations: Array, root_translation: Arr
             ends[c] = p[skeleton.children(j)[0]] - p[j]
         else:
             ends[c] = np.zeros(3)
-    channels = (_ROOT_CHANNELS,) + (_JOINT_CHANNELS,) * (n - 1)
-    frame = Bvh(Skeleton(CANONICAL_NAMES, CANONICAL_PARENTS, offsets), channels, ends, frame_time,
-                np.zeros((n_frames, 6 + 3 * (n - 1))), source)
-    try:
-        bvh = frame.with_poses(local, root)
-    except BvhError as exc:  # not reachable with full channels; kept so a failure names the file
-        raise RigMapError(str(exc)) from None
+    bvh = bvh_from_poses(Skeleton(CANONICAL_NAMES, CANONICAL_PARENTS, offsets), local, root, frame_time, ends,
+                         source)
     notes = []
     if abs(facing) > 1e-9:
         notes.append(f"turned {np.degrees(facing):.1f} degrees about up so the character's left is +X")

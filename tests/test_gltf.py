@@ -1,0 +1,178 @@
+"""glTF 2.0: the retargeted character with a CMU clip exported and read back, import as a clip source, bad files."""
+
+import base64
+import json
+
+import numpy as np
+import pytest
+
+from anim_core.bvh import bvh_from_poses, format_bvh, parse_bvh, read_bvh
+from anim_core.character import load_character, retarget
+from anim_core.gltf import GltfAnimation, GltfError, read_gltf, write_gltf
+from anim_core.quat import quat_from_axis_angle, quat_mul
+from anim_core.rigmap import normalize_motion
+from anim_core.skeleton import Skeleton
+from anim_core.skinning import SkinnedMesh
+
+
+@pytest.fixture(scope="module")
+def exported(data, tmp_path_factory):
+    character = load_character(data)
+    bvh = read_bvh(data / "mocap" / "cmu" / "02_01_walk.bvh.gz")
+    rt = retarget(character, bvh.posed_skeleton(), bvh.end_sites)
+    rot, root = bvh.pose_arrays()
+    rot, root = rot[1:61], root[1:61] * rt.root_scale
+    times = np.arange(len(rot)) * bvh.frame_time
+    folder = tmp_path_factory.mktemp("gltf")
+    paths = [folder / "walk.glb", folder / "walk.gltf"]
+    for path in paths:
+        write_gltf(path, rt.skeleton, rt.mesh.vertices, rt.mesh.normals, rt.faces, rt.mesh.joints, rt.mesh.weights,
+                   rt.mesh.inverse_bind, (GltfAnimation("walk", times, rot, root),))
+    return rt, rot, root, times, paths, bvh
+
+
+def test_round_trip_gives_the_same_skeleton_mesh_and_poses(exported):
+    rt, rot, root, times, paths, _ = exported
+    for path in paths:
+        asset = read_gltf(path)
+        s = asset.skeleton
+        assert s.names == rt.skeleton.names and s.parents.tolist() == rt.skeleton.parents.tolist()
+        np.testing.assert_allclose(s.offsets, rt.skeleton.offsets, atol=1e-6)  # float32 in the file
+        np.testing.assert_allclose(asset.vertices, rt.mesh.vertices, atol=1e-6)
+        assert np.array_equal(asset.faces, rt.faces)
+        weights = np.zeros_like(asset.weights)
+        weights[:, : rt.mesh.weights.shape[1]] = rt.mesh.weights
+        np.testing.assert_allclose(asset.weights, weights, atol=1e-6)
+        np.testing.assert_allclose(asset.inverse_bind[:, :3], rt.mesh.inverse_bind, atol=1e-5)
+        (anim,) = asset.animations
+        assert anim.name == "walk" and len(anim.times) == len(times)
+        np.testing.assert_allclose(anim.times, times, atol=1e-6)
+        # Same poses: joint positions (metres) of the read animation vs the written one.
+        p0 = rt.skeleton.forward_kinematics(rot, root)[1]
+        p1 = s.forward_kinematics(anim.rotations, anim.root_translation)[1]
+        err = np.abs(p1 - p0).max()
+        assert err < 1e-5, err
+        # And the skinned mesh of the first frame agrees.
+        g_rot, g_pos = s.forward_kinematics(anim.rotations[:1], anim.root_translation[:1])
+        mesh = SkinnedMesh(asset.vertices, asset.normals, asset.joints, asset.weights, asset.inverse_bind[:, :3])
+        v1 = mesh.skin(mesh.skinning_matrices(g_rot[0], g_pos[0]))[0]
+        g_rot0, g_pos0 = rt.skeleton.forward_kinematics(rot[:1], root[:1])
+        v0 = rt.mesh.skin(rt.mesh.skinning_matrices(g_rot0[0], g_pos0[0]))[0]
+        assert np.abs(v1 - v0).max() < 1e-4
+
+
+def test_gltf_animation_is_a_clip_source(exported):
+    _, _, _, _, paths, bvh = exported
+    asset = read_gltf(paths[0])
+    anim = asset.animations[0]
+    out = normalize_motion(asset.skeleton, anim.rotations, anim.root_translation, anim.frame_time, {},
+                           asset.source)
+    assert out.units == "m" and out.up_axis == "y" and out.mapping.convention == "CMU"
+    assert abs(out.bvh.fps - bvh.fps) < 1e-3 and out.bvh.n_frames == 60
+    # Bone directions of the clip read back equal those of the BVH it came from.
+    mocap = bvh.posed_skeleton().forward_kinematics(*bvh.pose_arrays())[1][1:61]
+    got = out.bvh.posed_skeleton().forward_kinematics(*out.bvh.pose_arrays())[1]
+    bones = [j for j in range(1, 31) if np.linalg.norm(bvh.skeleton.offsets[j]) > 1e-9]
+    par = bvh.skeleton.parents[bones]
+
+    def unit(x):
+        return x / np.linalg.norm(x, axis=-1, keepdims=True)
+    cos = np.sum(unit(mocap[:, bones] - mocap[:, par]) * unit(got[:, bones] - got[:, par]), axis=-1)
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 0.01
+
+
+def test_export_as_bvh_round_trips(exported):
+    rt, rot, root, _, _, bvh = exported
+    out = bvh_from_poses(rt.skeleton, rot, root, bvh.frame_time, {j: e * rt.root_scale for j, e in
+                                                                    bvh.end_sites.items()})
+    back = parse_bvh(format_bvh(out), "clip.bvh")
+    r1, t1 = back.pose_arrays()
+    p0 = rt.skeleton.forward_kinematics(rot, root)[1]
+    p1 = back.skeleton.forward_kinematics(r1, t1)[1]
+    assert np.abs(p1 - p0).max() < 1e-9
+
+
+def test_root_takes_the_transform_of_nodes_above_it(exported, tmp_path):
+    """A Blender-style export: the skeleton under an "Armature" node turned from Z up to Y up."""
+    _, _, _, _, paths, _ = exported
+    doc = json.loads(paths[1].read_text())
+    n = len(doc["nodes"])
+    q = quat_from_axis_angle(np.array([1.0, 0.0, 0.0]), -np.pi / 2)
+    doc["nodes"].append({"name": "Armature", "children": [0, n - 1], "rotation": [*q[1:].tolist(), float(q[0])]})
+    doc["scenes"][0]["nodes"] = [n]
+    path = tmp_path / "armature.gltf"
+    path.write_text(json.dumps(doc))
+    plain, turned = read_gltf(paths[1]), read_gltf(path)
+    np.testing.assert_allclose(turned.skeleton.rest_rotations[0], quat_mul(q, plain.skeleton.rest_rotations[0]),
+                               atol=1e-12)
+
+
+def _bad(paths, tmp_path, name, edit):
+    doc = json.loads(paths[1].read_text())
+    edit(doc)
+    path = tmp_path / name
+    path.write_text(json.dumps(doc))
+    return path
+
+
+@pytest.mark.parametrize(("name", "edit", "message"), [
+    ("noskin.gltf", lambda d: (d.pop("skins"), d["nodes"][-1].pop("skin")), "has no skin"),
+    ("lines.gltf", lambda d: d["meshes"][0]["primitives"][0].update(mode=1), "only triangles"),
+    ("external.gltf", lambda d: d["buffers"][0].update(uri="missing.bin"), "external buffer 'missing.bin' does not"),
+    ("outside.gltf", lambda d: d["buffers"][0].update(uri="../../etc/passwd"), "outside the file's folder"),
+    ("cycle.gltf", lambda d: d["nodes"][3].update(children=[0]), "cycle"),
+    ("short.gltf", lambda d: d["buffers"][0].update(uri=d["buffers"][0]["uri"][:37 + 400]), "fewer than its"),
+    ("count.gltf", lambda d: d["accessors"][0].update(count=10**7), "past the end"),
+    ("parents.gltf", lambda d: d["nodes"][5].update(children=[*d["nodes"][5].get("children", []), 1]),
+     "two parents"),
+])
+def test_bad_gltf_files_fail_clearly(exported, tmp_path, name, edit, message):
+    _, _, _, _, paths, _ = exported
+    path = _bad(paths, tmp_path, name, edit)
+    with pytest.raises(GltfError, match=message) as info:
+        read_gltf(path)
+    assert str(info.value).startswith(name)
+
+
+def test_non_finite_values_are_named(tmp_path):
+    s = Skeleton(["a", "b"], [-1, 0], np.array([[0.0, 0, 0], [0, 1, 0]]))
+    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, np.nan, 0]])
+    args = (np.ones((3, 3)), np.array([[0, 1, 2]]), np.zeros((3, 1), int), np.ones((3, 1)),
+            np.tile(np.eye(4), (2, 1, 1)))
+    with pytest.raises(GltfError, match=r"nan\.glb: vertices hold NaN"):
+        write_gltf(tmp_path / "nan.glb", s, vertices, *args)
+    assert list(tmp_path.iterdir()) == []
+    path = tmp_path / "nan.gltf"
+    write_gltf(path, s, np.nan_to_num(vertices), *args)
+    doc = json.loads(path.read_text())
+    head, data = doc["buffers"][0]["uri"].split(",", 1)
+    blob = bytearray(base64.b64decode(data))
+    blob[0:4] = np.float32(np.inf).tobytes()  # the first vertex's x (POSITION is the first buffer view)
+    doc["buffers"][0]["uri"] = head + "," + base64.b64encode(bytes(blob)).decode()
+    path.write_text(json.dumps(doc))
+    with pytest.raises(GltfError, match=r"nan\.gltf: primitive 0 positions: accessor 0 holds NaN or infinite"):
+        read_gltf(path)
+
+
+def test_truncated_and_garbage_glb(exported, tmp_path):
+    _, _, _, _, paths, _ = exported
+    data = paths[0].read_bytes()
+    for name, content in (("cut.glb", data[: len(data) // 2]), ("junk.glb", b"glTF" + b"\x00" * 40),
+                          ("text.gltf", b"{not json")):
+        path = tmp_path / name
+        path.write_bytes(content)
+        with pytest.raises(GltfError) as info:
+            read_gltf(path)
+        assert str(info.value).startswith(name)
+
+
+def test_write_leaves_nothing_on_failure(tmp_path):
+    s = Skeleton(["a", "b"], [-1, 0], np.zeros((2, 3)))
+    with pytest.raises(GltfError):
+        write_gltf(tmp_path / "x.obj", s, np.zeros((3, 3)), np.zeros((3, 3)), np.array([[0, 1, 2]]),
+                   np.zeros((3, 1), int), np.ones((3, 1)), np.tile(np.eye(4), (2, 1, 1)))
+    with pytest.raises(GltfError, match="does not fit"):
+        write_gltf(tmp_path / "x.glb", s, np.zeros((3, 3)), np.zeros((3, 3)), np.array([[0, 1, 2]]),
+                   np.zeros((3, 1), int), np.ones((3, 1)), np.tile(np.eye(4), (2, 1, 1)),
+                   (GltfAnimation("a", np.zeros(2), np.zeros((2, 3, 4)), np.zeros((2, 3))),))
+    assert list(tmp_path.iterdir()) == []
