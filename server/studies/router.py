@@ -2,61 +2,137 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 from pathlib import Path
+from typing import Any
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Body, status
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import PlainTextResponse, Response
+from pydantic import ValidationError
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
 
 from server.deps import ResearcherDep, SessionDep, SettingsDep
+from server.errors import Conflict
+from server.media.build import MANIFEST
+from server.participants.models import ParticipantSession, Vote
 
 from . import service
-from .models import StudyState
-from .results import study_results
-from .schemas import ExportJson, StudyPublic, StudyStateRead
+from .models import Study, StudyState
+from .results import participant_counts, study_results
+from .schemas import ExportJson, StudyPublic, StudyStateRead, StudySummary
+from .studyfile import StudyFile
 
 router = APIRouter(prefix="/api/v1", tags=["studies"])
 DATA_DICTIONARY = Path(__file__).with_name("DATA_DICTIONARY.md")
+
+
+def summary(session: Session, study: Study) -> StudySummary:
+    counts = participant_counts(session, study)
+    votes = session.scalar(select(func.count(Vote.id)).join(ParticipantSession).where(
+        ParticipantSession.study_id == study.id)) or 0
+    never_opened = study.opened_at is None
+    return StudySummary(slug=study.slug, title=study.title, state=study.state,
+                        owner=study.owner.email if study.owner else None, started=counts["started"],
+                        completed=counts["completed"], votes=votes, trials_total=service.trials_total(study),
+                        participant_url=f"/s/{study.slug}",
+                        editable={"texts": never_opened, "recruitment": never_opened,
+                                  "design": never_opened and study.state == StudyState.draft})
+
+
+@router.get("/studies", response_model=list[StudySummary])
+def list_studies(session: SessionDep, researcher: ResearcherDep) -> list[StudySummary]:
+    """The researcher's studies (an admin's: every study), with their participant counts."""
+    return [summary(session, s) for s in service.visible_studies(session, researcher)]
+
+
+@router.post("/studies", response_model=StudySummary, status_code=status.HTTP_201_CREATED)
+def create_study(body: StudyFile, session: SessionDep, settings: SettingsDep,
+                 researcher: ResearcherDep) -> StudySummary:
+    """A draft study from a study file's content (as JSON) over the rendered videos (``animstudy study create``
+    renders what is missing; here the videos must exist)."""
+    try:
+        media = json.loads((settings.media_dir / MANIFEST).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        raise Conflict("no rendered videos on the server; create the study with `animstudy study create`, "
+                       "which renders them") from None
+    return summary(session, service.create_study(session, media, body, owner=researcher))
+
+
+@router.get("/studies/{slug}/definition", response_model=StudyFile)
+def read_definition(slug: str, session: SessionDep, researcher: ResearcherDep) -> StudyFile:
+    return service.definition(service.managed_study(session, slug, researcher))
+
+
+@router.patch("/studies/{slug}", response_model=StudySummary)
+def patch_study(slug: str, session: SessionDep, researcher: ResearcherDep,
+                body: dict[str, Any] = Body(..., description="sections of the study file to change")  # noqa: B008
+                ) -> StudySummary:
+    """Texts, scale, questions and recruitment until the study first opens; never the design (409)."""
+    study = service.managed_study(session, slug, researcher)
+    try:
+        service.update_study(session, study, body)
+    except ValidationError as exc:
+        session.rollback()
+        raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in exc.errors()]) from None
+    return summary(session, study)
+
+
+@router.delete("/studies/{slug}", status_code=status.HTTP_204_NO_CONTENT)
+def delete_study(slug: str, session: SessionDep, researcher: ResearcherDep) -> Response:
+    service.delete_study(session, service.managed_study(session, slug, researcher))
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
 @router.get("/studies/{slug}", response_model=StudyPublic)
 def read_study(slug: str, session: SessionDep) -> StudyPublic:
     study = service.get_study(session, slug)
     return StudyPublic(slug=study.slug, title=study.title, state=study.state, texts=study.texts,
-                       consent_version=study.consent_version, trials_total=service.trials_total(study))
+                       consent_version=study.consent_version, trials_total=service.trials_total(study),
+                       scale=study.scale, questions=study.questions)
 
 
 @router.post("/studies/{slug}/open", response_model=StudyStateRead)
-def open_study(slug: str, session: SessionDep, _: ResearcherDep) -> StudyStateRead:
-    study = service.set_state(session, service.get_study(session, slug), StudyState.open)
+def open_study(slug: str, session: SessionDep, researcher: ResearcherDep) -> StudyStateRead:
+    study = service.set_state(session, service.managed_study(session, slug, researcher), StudyState.open)
     return StudyStateRead(slug=study.slug, state=study.state)
 
 
 @router.post("/studies/{slug}/close", response_model=StudyStateRead)
-def close_study(slug: str, session: SessionDep, _: ResearcherDep) -> StudyStateRead:
-    study = service.set_state(session, service.get_study(session, slug), StudyState.closed)
+def close_study(slug: str, session: SessionDep, researcher: ResearcherDep) -> StudyStateRead:
+    study = service.set_state(session, service.managed_study(session, slug, researcher), StudyState.closed)
     return StudyStateRead(slug=study.slug, state=study.state)
 
 
-@router.get("/studies/{slug}/export.csv", response_class=Response,
-            responses={200: {"content": {"text/csv": {}}}})
-def export_csv(slug: str, session: SessionDep, _: ResearcherDep) -> Response:
-    study = service.get_study(session, slug)
+def csv_text(session: Session, study: Study) -> str:
     buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=service.EXPORT_COLUMNS, lineterminator="\n")
+    writer = csv.DictWriter(buffer, fieldnames=service.export_columns(study), lineterminator="\n")
     writer.writeheader()
     for row in service.export_rows(session, study):
         writer.writerow({k: str(v).lower() if isinstance(v, bool) else ("" if v is None else v)
                          for k, v in row.items()})
-    return Response(buffer.getvalue(), media_type="text/csv; charset=utf-8",
+    return buffer.getvalue()
+
+
+def export_json_doc(session: Session, study: Study) -> ExportJson:
+    return ExportJson(study={"slug": study.slug, "title": study.title, "state": study.state,
+                             "design": study.design, "consent_version": study.consent_version,
+                             "questions": study.questions},
+                      columns=service.export_columns(study), votes=list(service.export_rows(session, study)))
+
+
+@router.get("/studies/{slug}/export.csv", response_class=Response,
+            responses={200: {"content": {"text/csv": {}}}})
+def export_csv(slug: str, session: SessionDep, researcher: ResearcherDep) -> Response:
+    study = service.managed_study(session, slug, researcher)
+    return Response(csv_text(session, study), media_type="text/csv; charset=utf-8",
                     headers={"Content-Disposition": f'attachment; filename="{study.slug}-votes.csv"'})
 
 
 @router.get("/studies/{slug}/export.json", response_model=ExportJson)
-def export_json(slug: str, session: SessionDep, _: ResearcherDep) -> ExportJson:
-    study = service.get_study(session, slug)
-    return ExportJson(study={"slug": study.slug, "title": study.title, "state": study.state,
-                             "design": study.design, "consent_version": study.consent_version},
-                      columns=list(service.EXPORT_COLUMNS), votes=list(service.export_rows(session, study)))
+def export_json(slug: str, session: SessionDep, researcher: ResearcherDep) -> ExportJson:
+    return export_json_doc(session, service.managed_study(session, slug, researcher))
 
 
 @router.get("/data-dictionary", response_class=PlainTextResponse)
@@ -66,7 +142,7 @@ def data_dictionary() -> str:
 
 
 @router.get("/studies/{slug}/results")
-def results(slug: str, session: SessionDep, settings: SettingsDep, _: ResearcherDep) -> dict:
+def results(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep) -> dict:
     """Progress and statistics (participants are the unit of analysis; see ``methods`` in the answer)."""
-    study = service.get_study(session, slug)
+    study = service.managed_study(session, slug, researcher)
     return study_results(session, study, settings.clips_dir, settings.benchmark_path)

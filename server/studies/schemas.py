@@ -14,11 +14,26 @@ class StudyPublic(BaseModel):
     texts: dict[str, str]
     consent_version: str
     trials_total: int
+    scale: dict[str, Any]
+    questions: list[dict[str, Any]]
 
 
 class StudyStateRead(BaseModel):
     slug: str
     state: str
+
+
+class StudySummary(BaseModel):
+    slug: str
+    title: str
+    state: str
+    owner: str | None
+    started: int
+    completed: int
+    votes: int
+    trials_total: int
+    participant_url: str
+    editable: dict[str, bool]
 
 
 class ExportJson(BaseModel):

@@ -1,108 +1,116 @@
-"""Creating studies from the rendered clip set, opening and closing them, exporting their votes."""
+"""Creating studies from study files over the rendered clip set, editing, opening and closing them, exporting
+their votes."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
+from pathlib import Path
 from typing import Any
 
 from sqlalchemy import select
-from sqlalchemy.orm import Session, selectinload
+from sqlalchemy.orm import Session, aliased
 
 from server.db import utcnow
-from server.errors import Conflict, NotFound
+from server.errors import Conflict, Forbidden, NotFound, Unprocessable
+from server.media.build import read_clip_set
+from server.participants.models import ParticipantSession, Trial, Vote
+from server.researchers.models import Researcher
 
 from .design import ComparisonIds, Design
 from .models import Comparison, ComparisonKind, Stimulus, Study, StudyState
+from .scale import other_side
+from .studyfile import Recruitment, StudyFile, Texts
 
-DEFAULT_SLUG = "thesis"
-DEFAULT_TITLE = "How good does this character animation look?"
-CONSENT_VERSION = "2026-11-1"
-DEFAULT_TEXTS = {
-    "information": (
-        "This study compares two ways of animating a human character. You will see two identical characters side "
-        "by side and say which animation looks better. It takes about 10 minutes. We store your answers and the "
-        "two demographic answers without your name or any other identifying information, and publish them "
-        "anonymously for research. Taking part is voluntary: you can stop at any time without giving a reason, "
-        "and withdraw to have your answers deleted."
-    ),
-    "consent": (
-        "I have read the information above. I agree to take part and to my anonymous answers being stored and "
-        "published for research."
-    ),
-    "instructions": (
-        "Each trial shows two characters moving in sync. Watch them, then choose which animation looks better: "
-        "significantly or slightly better on the left, equal, or slightly or significantly better on the right. "
-        "Pay attention to how natural the motion looks, including the feet on the floor."
-    ),
-    "thanks": "Thank you for taking part!",
-    "contact": "The researchers of this study (contact details are given by the person who invited you).",
-}
-CHOICE_SCORES = {"left_much": 2, "left_slightly": 1, "equal": 0, "right_slightly": -1, "right_much": -2}
+StimulusKey = tuple[str, str]  # (animation, condition)
 
 
-def required_pairs(design: Design) -> list[tuple[str, str]]:
-    """(left clip, right clip) of every side-by-side video the design shows."""
-    pairs = []
-    for animation in design.animations:
-        keyframe = f"{animation}-keyframe"
-        for increment in design.increments:
-            hybrid = f"{animation}-hybrid{increment}"
-            pairs += [(hybrid, keyframe), (keyframe, hybrid)]
-    for animation in design.animations[: design.catch_trials]:
-        pairs.append((f"{animation}-keyframe", f"{animation}-keyframe"))
+def clip_index(entries: Iterable[Mapping[str, Any]]) -> dict[StimulusKey, str]:
+    """(animation, condition) -> clip id, from clip entries of the clip or render manifest (``id`` or ``clip``)."""
+    return {(e["animation"], e["condition"]): e.get("id", e.get("clip")) for e in entries}
+
+
+def clip_set_index(clips_dir: Path) -> dict[StimulusKey, str]:
+    """(animation, condition) -> clip id of the clip set in ``clips_dir`` (before its videos are rendered)."""
+    return {(c.animation, c.condition): c.id for c in read_clip_set(clips_dir)}
+
+
+def needed_stimuli(design: Design) -> list[tuple[ComparisonKind, StimulusKey, StimulusKey]]:
+    """(kind, reference, test) of every comparison of the design, in the order they are created."""
+    out = [(ComparisonKind.test, (a, design.reference), (a, c)) for a in design.animations for c in design.conditions]
+    out += [(ComparisonKind.catch, (a, design.reference), (a, design.reference))
+            for a in design.animations[: design.catch_trials]]
     if design.practice:
-        hybrid = f"{design.animations[0]}-hybrid{design.practice_increment}"
-        keyframe = f"{design.animations[0]}-keyframe"
-        pairs += [(hybrid, keyframe), (keyframe, hybrid)]
+        a = design.animations[0]
+        out.append((ComparisonKind.practice, (a, design.reference), (a, design.practice)))
+    return out
+
+
+def check_known(design: Design, clips: Mapping[StimulusKey, str]) -> None:
+    """422 naming the animations or conditions of ``design`` the clip set does not have."""
+    animations = {a for a, _ in clips}
+    unknown_animations = [a for a in design.animations if a not in animations]
+    if unknown_animations:
+        raise Unprocessable(f"design.animations: unknown animation(s) {', '.join(unknown_animations)} "
+                            f"(the clip set has {', '.join(sorted(animations))})")
+    conditions = [design.reference, *design.conditions, *([design.practice] if design.practice else [])]
+    missing = sorted({f"{c} of {a}" for a in design.animations for c in conditions if (a, c) not in clips})
+    if missing:
+        known = sorted({c for _, c in clips})
+        raise Unprocessable(f"design: unknown condition(s): {', '.join(missing)} (the clip set has "
+                            f"{', '.join(known)})")
+
+
+def required_pairs(design: Design, clips: Mapping[StimulusKey, str]) -> list[tuple[str, str]]:
+    """(left clip, right clip) of every side-by-side video the design shows."""
+    check_known(design, clips)
+    pairs = []
+    for _, ref, test in needed_stimuli(design):
+        pairs += [(clips[ref], clips[test]), (clips[test], clips[ref])]
     return list(dict.fromkeys(pairs))
 
 
-def create_study(session: Session, media: Mapping[str, Any], design: Design | None = None,
-                 slug: str = DEFAULT_SLUG, title: str = DEFAULT_TITLE, texts: Mapping[str, str] | None = None,
-                 completion_code: str | None = None, completion_url: str | None = None) -> Study:
+def _columns(definition: StudyFile) -> dict[str, Any]:
+    texts = definition.texts.model_dump()
+    return {"title": definition.title, "consent_version": texts.pop("consent_version"), "texts": texts,
+            "scale": definition.scale.model_dump(), "questions": [q.model_dump() for q in definition.questions],
+            "design": definition.design.model_dump(), "recruitment": definition.recruitment.model_dump()}
+
+
+def definition(study: Study) -> StudyFile:
+    """The study file a study was made from (with its edits)."""
+    return StudyFile.model_validate({
+        "slug": study.slug, "title": study.title, "texts": {**study.texts, "consent_version": study.consent_version},
+        "scale": study.scale, "questions": study.questions, "design": study.design, "recruitment": study.recruitment})
+
+
+def create_study(session: Session, media: Mapping[str, Any], study_file: StudyFile,
+                 owner: Researcher | None = None) -> Study:
     """A draft study over the videos of a render manifest (``server.media.build``), which must hold its pairs."""
-    design = design or Design()
-    if session.scalar(select(Study.id).where(Study.slug == slug)) is not None:
-        raise Conflict(f"a study with slug {slug!r} exists already")
-    if len(design.animations) * len(design.increments) == 1 and design.catch_trials == 0:
-        raise Conflict("a design with a single comparison cannot avoid showing it twice in a row")
+    if session.scalar(select(Study.id).where(Study.slug == study_file.slug)) is not None:
+        raise Conflict(f"a study with slug {study_file.slug!r} exists already")
+    design = study_file.design
+    clips = clip_index(media["clips"].values())
     pair_videos = {(p["left"], p["right"]): p["video"] for p in media["pairs"]}
-    missing = [p for p in required_pairs(design) if p not in pair_videos]
+    missing = [p for p in required_pairs(design, clips) if p not in pair_videos]
     if missing:
         raise Conflict(f"the rendered videos lack the pairs {missing}; render them first")
-    study = Study(slug=slug, title=title, texts={**DEFAULT_TEXTS, **(texts or {})}, consent_version=CONSENT_VERSION,
-                  design=design.model_dump(), state=StudyState.draft, completion_code=completion_code,
-                  completion_url=completion_url)
-    stimuli: dict[str, Stimulus] = {}
+    study = Study(slug=study_file.slug, state=StudyState.draft, owner_id=owner.id if owner else None,
+                  **_columns(study_file))
+    stimuli: dict[StimulusKey, Stimulus] = {}
 
-    def stimulus(clip_id: str) -> Stimulus:
-        if clip_id not in stimuli:
-            entry = media["clips"][clip_id]
-            animation, method = clip_id.rsplit("-", 1)
-            increment = None if method == "keyframe" else int(method.removeprefix("hybrid"))
-            stimuli[clip_id] = Stimulus(clip_id=clip_id, animation=animation,
-                                        method="keyframe" if increment is None else "hybrid", increment=increment,
-                                        video=entry["video"], poster=entry["poster"], frames=entry["frames"],
-                                        fps=entry["fps"])
-            study.stimuli.append(stimuli[clip_id])
-        return stimuli[clip_id]
+    def stimulus(key: StimulusKey) -> Stimulus:
+        if key not in stimuli:
+            entry = media["clips"][clips[key]]
+            stimuli[key] = Stimulus(clip_id=clips[key], animation=key[0], condition=key[1], video=entry["video"],
+                                    poster=entry["poster"], frames=entry["frames"], fps=entry["fps"])
+            study.stimuli.append(stimuli[key])
+        return stimuli[key]
 
-    def comparison(kind: ComparisonKind, animation: str, left: str, right: str, increment: int | None) -> None:
-        study.comparisons.append(Comparison(
-            kind=kind, animation=animation, increment=increment, keyframe=stimulus(left), hybrid=stimulus(right),
-            video_hybrid_left=pair_videos[(right, left)], video_hybrid_right=pair_videos[(left, right)]))
-
-    for animation in design.animations:
-        for increment in design.increments:
-            comparison(ComparisonKind.test, animation, f"{animation}-keyframe", f"{animation}-hybrid{increment}",
-                       increment)
-    for animation in design.animations[: design.catch_trials]:
-        keyframe = f"{animation}-keyframe"
-        comparison(ComparisonKind.catch, animation, keyframe, keyframe, None)
-    if design.practice:
-        animation = design.animations[0]
-        comparison(ComparisonKind.practice, animation, f"{animation}-keyframe",
-                   f"{animation}-hybrid{design.practice_increment}", design.practice_increment)
+    for kind, ref, test in needed_stimuli(design):
+        r, t = clips[ref], clips[test]
+        study.comparisons.append(Comparison(kind=kind, reference=stimulus(ref), test=stimulus(test),
+                                            video_reference_left=pair_videos[(r, t)],
+                                            video_reference_right=pair_videos[(t, r)]))
     session.add(study)
     session.commit()
     return study
@@ -115,6 +123,58 @@ def get_study(session: Session, slug: str) -> Study:
     return study
 
 
+def can_manage(researcher: Researcher, study: Study) -> bool:
+    return researcher.is_admin or study.owner_id == researcher.id
+
+
+def managed_study(session: Session, slug: str, researcher: Researcher) -> Study:
+    """The study ``slug`` if ``researcher`` owns it or is an admin (403 otherwise)."""
+    study = get_study(session, slug)
+    if not can_manage(researcher, study):
+        raise Forbidden(f"study {slug!r} belongs to another researcher")
+    return study
+
+
+def visible_studies(session: Session, researcher: Researcher) -> list[Study]:
+    query = select(Study).order_by(Study.id)
+    if not researcher.is_admin:
+        query = query.where(Study.owner_id == researcher.id)
+    return list(session.scalars(query))
+
+
+def default_study(session: Session) -> Study | None:
+    """The open study created first (``animstudy serve`` creates the thesis study first)."""
+    return session.scalar(select(Study).where(Study.state == StudyState.open).order_by(Study.id).limit(1))
+
+
+def update_study(session: Session, study: Study, changes: Mapping[str, Any]) -> Study:
+    """Apply a partial study file: ``title``, ``texts``, ``scale``, ``questions`` and ``recruitment`` before the
+    study first opens, ``design`` only while it is a draft (a design change rebuilds its comparisons, which needs
+    the render manifest: not done here).  Anything else that would change what earlier participants saw: 409."""
+    if study.opened_at is not None:
+        raise Conflict(f"study {study.slug!r} has been open: participants saw it as it is; create a new study")
+    if "slug" in changes and changes["slug"] != study.slug:
+        raise Conflict("a study's slug cannot change")
+    if "design" in changes and changes["design"] != study.design:
+        raise Conflict("the design of a created study cannot change here; delete the draft and create it anew")
+    current = definition(study).model_dump()
+    for key, value in changes.items():
+        current[key] = {**current[key], **value} if isinstance(current.get(key), dict) and isinstance(value, dict) \
+            else value
+    updated = StudyFile.model_validate(current)  # the caller turns a ValidationError into a 422
+    for key, value in _columns(updated).items():
+        setattr(study, key, value)
+    session.commit()
+    return study
+
+
+def delete_study(session: Session, study: Study) -> None:
+    if study.state != StudyState.draft or study.opened_at is not None:
+        raise Conflict(f"study {study.slug!r} is {study.state}; only a draft that never opened can be deleted")
+    session.delete(study)
+    session.commit()
+
+
 def comparison_ids(study: Study) -> ComparisonIds:
     by_kind: dict[str, list[int]] = {k: [] for k in ComparisonKind}
     for c in study.comparisons:
@@ -125,9 +185,7 @@ def comparison_ids(study: Study) -> ComparisonIds:
 
 
 def trials_total(study: Study) -> int:
-    design = Design.model_validate(study.design)
-    ids = comparison_ids(study)
-    return len(ids.test) * 2 * design.repeats + len(ids.catch) + (1 if ids.practice else 0)
+    return Design.model_validate(study.design).trials_total()
 
 
 def set_state(session: Session, study: Study, state: StudyState) -> Study:
@@ -142,35 +200,50 @@ def set_state(session: Session, study: Study, state: StudyState) -> Study:
     return study
 
 
-def score(choice: str, hybrid_side: str) -> int:
-    """The answer from the hybrid's point of view: +2 hybrid much better ... -2 keyframe much better."""
-    value = CHOICE_SCORES[choice]
-    return value if hybrid_side == "left" else -value
+def recruitment(study: Study) -> Recruitment:
+    return Recruitment.model_validate(study.recruitment)
 
 
-EXPORT_COLUMNS = ("session_id", "trial_index", "practice", "catch", "animation", "increment", "hybrid_side",
-                  "choice", "score", "rt_ms", "gamer", "tech_savvy", "answered_at", "consent_version",
-                  "session_state")
+def texts(study: Study) -> Texts:
+    return Texts.model_validate({**study.texts, "consent_version": study.consent_version})
+
+
+EXPORT_COLUMNS = ("session_id", "trial_index", "practice", "catch", "animation", "reference_condition",
+                  "test_condition", "reference_side", "test_side", "choice", "score", "rt_ms", "answered_at",
+                  "consent_version", "session_state")
+
+
+def export_columns(study: Study) -> list[str]:
+    """The fixed columns, then one per question of the study (its id), before ``answered_at``."""
+    base = list(EXPORT_COLUMNS)
+    at = base.index("answered_at")
+    return base[:at] + [q["id"] for q in study.questions] + base[at:]
 
 
 def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
     """One row per vote (withdrawn participants' votes no longer exist), in session and trial order."""
-    from server.participants.models import ParticipantSession, Trial, Vote
-
+    reference, test = aliased(Stimulus), aliased(Stimulus)
+    questions = [q["id"] for q in study.questions]
     rows = session.execute(
-        select(Vote, Trial, ParticipantSession, Comparison)
+        select(Vote, Trial, ParticipantSession, Comparison.kind, reference.animation, reference.condition,
+               test.condition)
         .join(Trial, Vote.trial_id == Trial.id)
         .join(ParticipantSession, Trial.session_id == ParticipantSession.id)
         .join(Comparison, Trial.comparison_id == Comparison.id)
+        .join(reference, Comparison.reference_id == reference.id)
+        .join(test, Comparison.test_id == test.id)
         .where(ParticipantSession.study_id == study.id)
         .order_by(ParticipantSession.created_at, ParticipantSession.id, Trial.index)
-        .options(selectinload(Trial.comparison))
     )
-    for vote, trial, ps, comp in rows:
+    for vote, trial, ps, kind, animation, ref_condition, test_condition in rows:
+        answers = ps.answers or {}
         yield {
             "session_id": ps.id, "trial_index": trial.index, "practice": trial.practice,
-            "catch": comp.kind == ComparisonKind.catch, "animation": comp.animation, "increment": comp.increment,
-            "hybrid_side": trial.hybrid_side, "choice": vote.choice, "score": vote.score, "rt_ms": vote.rt_ms,
-            "gamer": ps.gamer, "tech_savvy": ps.tech_savvy, "answered_at": vote.answered_at.isoformat(),
-            "consent_version": ps.consent_version, "session_state": ps.state,
+            "catch": kind == ComparisonKind.catch, "animation": animation, "reference_condition": ref_condition,
+            "test_condition": test_condition, "reference_side": trial.reference_side,
+            "test_side": other_side(trial.reference_side), "choice": vote.choice, "score": vote.score,
+            "rt_ms": vote.rt_ms, **{q: answers.get(q) for q in questions},
+            "answered_at": vote.answered_at.isoformat(), "consent_version": ps.consent_version,
+            "session_state": ps.state,
         }
+
