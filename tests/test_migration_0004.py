@@ -85,7 +85,7 @@ def populate_0003(conn: sa.Connection, rng: random.Random) -> int:
         body = [(c, side) for c in comparisons if c[1] == "test" for side in ("left", "right")]
         body += [(c, "left") for c in comparisons if c[1] == "catch"]
         rng.shuffle(body)
-        order = [(practice[0], rng.choice(("left", "right")))] + body
+        order = [(practice[0], rng.choice(("left", "right"))), *body]
         answered = {5: 7, 6: 0}.get(p, len(order))
         for index, ((cid, _kind), side) in enumerate(order):
             tid = conn.scalar(sa.text(

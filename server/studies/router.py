@@ -1,12 +1,10 @@
 from __future__ import annotations
 
-import csv
-import io
 import json
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, status
+from fastapi import APIRouter, Body, Depends, Request, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import PlainTextResponse, Response
 from pydantic import ValidationError
@@ -14,7 +12,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from server.deps import ResearcherDep, SessionDep, SettingsDep
-from server.errors import Conflict
+from server.errors import Conflict, Unprocessable
 from server.media.build import MANIFEST
 from server.participants.models import ParticipantSession, Vote
 
@@ -22,10 +20,11 @@ from . import service
 from .models import Study, StudyState
 from .results import participant_counts, study_results
 from .schemas import ExportJson, StudyPublic, StudyStateRead, StudySummary
-from .studyfile import StudyFile
+from .studyfile import StudyFile, StudyFileError, parse_study_text
 
 router = APIRouter(prefix="/api/v1", tags=["studies"])
 DATA_DICTIONARY = Path(__file__).with_name("DATA_DICTIONARY.md")
+MAX_STUDY_FILE_BYTES = 200_000
 
 
 def summary(session: Session, study: Study) -> StudySummary:
@@ -60,6 +59,30 @@ def create_study(body: StudyFile, session: SessionDep, settings: SettingsDep,
     return summary(session, service.create_study(session, media, body, owner=researcher))
 
 
+async def study_file_text(request: Request) -> str:
+    """The request body as the text of a study file (TOML)."""
+    raw = await request.body()
+    if len(raw) > MAX_STUDY_FILE_BYTES:
+        raise Unprocessable(f"a study file may hold at most {MAX_STUDY_FILE_BYTES} bytes")
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise Unprocessable("the study file is not UTF-8 text") from None
+
+
+@router.post("/studies/file", response_model=StudySummary, status_code=status.HTTP_201_CREATED,
+             openapi_extra={"requestBody": {"content": {"application/toml": {"schema": {"type": "string"}}}}})
+def create_study_from_file(text: Annotated[str, Depends(study_file_text)], session: SessionDep,
+                           settings: SettingsDep, researcher: ResearcherDep) -> StudySummary:
+    """As ``POST /studies``, from the study file itself (TOML text as the body): errors name field and line."""
+    try:
+        study_file = parse_study_text(text, "the study file")
+    except StudyFileError as exc:
+        raise RequestValidationError([{"loc": ("body",), "msg": e, "type": "value_error"} for e in exc.errors]
+                                     ) from None
+    return create_study(study_file, session, settings, researcher)
+
+
 @router.get("/studies/{slug}/definition", response_model=StudyFile)
 def read_definition(slug: str, session: SessionDep, researcher: ResearcherDep) -> StudyFile:
     return service.definition(service.managed_study(session, slug, researcher))
@@ -90,7 +113,8 @@ def read_study(slug: str, session: SessionDep) -> StudyPublic:
     study = service.get_study(session, slug)
     return StudyPublic(slug=study.slug, title=study.title, state=study.state, texts=study.texts,
                        consent_version=study.consent_version, trials_total=service.trials_total(study),
-                       scale=study.scale, questions=study.questions)
+                       scale=study.scale, questions=study.questions,
+                       parameters=study.recruitment["parameters"])
 
 
 @router.post("/studies/{slug}/open", response_model=StudyStateRead)
@@ -105,34 +129,17 @@ def close_study(slug: str, session: SessionDep, researcher: ResearcherDep) -> St
     return StudyStateRead(slug=study.slug, state=study.state)
 
 
-def csv_text(session: Session, study: Study) -> str:
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=service.export_columns(study), lineterminator="\n")
-    writer.writeheader()
-    for row in service.export_rows(session, study):
-        writer.writerow({k: str(v).lower() if isinstance(v, bool) else ("" if v is None else v)
-                         for k, v in row.items()})
-    return buffer.getvalue()
-
-
-def export_json_doc(session: Session, study: Study) -> ExportJson:
-    return ExportJson(study={"slug": study.slug, "title": study.title, "state": study.state,
-                             "design": study.design, "consent_version": study.consent_version,
-                             "questions": study.questions},
-                      columns=service.export_columns(study), votes=list(service.export_rows(session, study)))
-
-
 @router.get("/studies/{slug}/export.csv", response_class=Response,
             responses={200: {"content": {"text/csv": {}}}})
 def export_csv(slug: str, session: SessionDep, researcher: ResearcherDep) -> Response:
     study = service.managed_study(session, slug, researcher)
-    return Response(csv_text(session, study), media_type="text/csv; charset=utf-8",
+    return Response(service.export_csv(session, study), media_type="text/csv; charset=utf-8",
                     headers={"Content-Disposition": f'attachment; filename="{study.slug}-votes.csv"'})
 
 
 @router.get("/studies/{slug}/export.json", response_model=ExportJson)
 def export_json(slug: str, session: SessionDep, researcher: ResearcherDep) -> ExportJson:
-    return export_json_doc(session, service.managed_study(session, slug, researcher))
+    return ExportJson(**service.export_document(session, service.managed_study(session, slug, researcher)))
 
 
 @router.get("/data-dictionary", response_class=PlainTextResponse)

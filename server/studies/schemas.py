@@ -16,6 +16,7 @@ class StudyPublic(BaseModel):
     trials_total: int
     scale: dict[str, Any]
     questions: list[dict[str, Any]]
+    parameters: list[str]  # the URL parameters of the participant link the page passes on (e.g. PROLIFIC_PID)
 
 
 class StudyStateRead(BaseModel):

@@ -3,6 +3,8 @@ their votes."""
 
 from __future__ import annotations
 
+import csv
+import io
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -218,6 +220,33 @@ def export_columns(study: Study) -> list[str]:
     base = list(EXPORT_COLUMNS)
     at = base.index("answered_at")
     return base[:at] + [q["id"] for q in study.questions] + base[at:]
+
+
+def export_csv(session: Session, study: Study) -> str:
+    """The export as CSV: booleans ``true``/``false``, missing values empty."""
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=export_columns(study), lineterminator="\n")
+    writer.writeheader()
+    for row in export_rows(session, study):
+        writer.writerow({k: str(v).lower() if isinstance(v, bool) else ("" if v is None else v)
+                         for k, v in row.items()})
+    return buffer.getvalue()
+
+
+def export_document(session: Session, study: Study) -> dict[str, Any]:
+    """The export as one JSON document: the study, the columns, the rows."""
+    return {"study": {"slug": study.slug, "title": study.title, "state": study.state, "design": study.design,
+                      "consent_version": study.consent_version, "questions": study.questions},
+            "columns": export_columns(study), "votes": list(export_rows(session, study))}
+
+
+def pairs_in_use(session: Session) -> list[tuple[str, str]]:
+    """(left clip, right clip) of every pair video some study shows (rendering must keep them)."""
+    reference, test = aliased(Stimulus), aliased(Stimulus)
+    rows = session.execute(select(reference.clip_id, test.clip_id)
+                           .join(Comparison, Comparison.reference_id == reference.id)
+                           .join(test, Comparison.test_id == test.id)).all()
+    return list(dict.fromkeys(p for r, t in rows for p in ((r, t), (t, r))))
 
 
 def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
