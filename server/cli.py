@@ -81,7 +81,7 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, increme
            width: int, height: int, shadows: bool) -> int:
     """Render the clip set's videos into ``out`` (building the clip set first if it is missing)."""
     from anim_core.assets import AssetError
-    from server.media.build import MediaError, render_media
+    from server.media.build import MediaError, default_pairs, read_clip_set, render_media
     from server.media.scene import RenderSettings
 
     try:
@@ -93,8 +93,10 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, increme
                 write_clip_set(build_clip_set(settings.data, progress=lambda m: print(m, flush=True)), clips_dir)
             except ConfigError as exc:
                 return _fail(str(exc))
+        # The studies' own pairs too: rendering removes every video it was not asked for.
+        pairs = list(dict.fromkeys([*default_pairs(read_clip_set(clips_dir), increments), *_pairs_in_use(settings)]))
         render_media(settings.data, clips_dir, out, settings.secret,
-                     RenderSettings(width=width, height=height, shadows=shadows), increments=increments,
+                     RenderSettings(width=width, height=height, shadows=shadows), pairs=pairs,
                      workers=workers, progress=lambda m: print(m, flush=True))
     except (AssetError, MediaError) as exc:
         return _fail(str(exc))
@@ -118,6 +120,20 @@ def _render_for(settings: Settings, session: object, study_file: object) -> dict
     manifest = render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret, pairs=pairs,
                             progress=lambda m: print(m, flush=True))
     return json.loads(manifest.read_text(encoding="utf-8"))
+
+
+def _pairs_in_use(settings: Settings) -> list[tuple[str, str]]:
+    """The pair videos the studies in the database show (none without a database)."""
+    from server.db import make_engine, migrate, session_factory
+    from server.studies.service import pairs_in_use
+
+    engine = make_engine(settings.sqlalchemy_url)
+    try:
+        migrate(engine)
+        with session_factory(engine)() as session:
+            return pairs_in_use(session)
+    finally:
+        engine.dispose()
 
 
 def prepare_study(settings: Settings, session_factory: object) -> None:
