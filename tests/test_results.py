@@ -82,6 +82,16 @@ def test_results_match_an_independent_computation_from_the_csv(client, study, db
         running = max(running, min(1.0, (len(ps) - rank) * p))
         assert results["comparisons"][i]["p_holm"] == pytest.approx(running, rel=1e-9)
 
+    # The thesis grouping per test condition, counted from the CSV.
+    for entry in results["conditions"]:
+        scores = [int(r["score"]) for r in rows if r["test_condition"] == entry["condition"]
+                  and r["practice"] == "false" and r["catch"] == "false"]
+        assert (entry["votes"], entry["positive"], entry["negative"]) == (
+            len(scores), sum(s > -2 for s in scores), scores.count(-2))
+        assert (entry["test_better"], entry["equal"], entry["reference_better"]) == (
+            sum(s > 0 for s in scores), scores.count(0), sum(s < 0 for s in scores))
+    assert [e["condition"] for e in results["conditions"]] == ["hybrid0", "hybrid1"]
+
     # Side bias: mean raw answer (left = +2) per participant.
     raw = {"left_much": 2, "left_slightly": 1, "equal": 0, "right_slightly": -1, "right_much": -2}
     per = defaultdict(list)

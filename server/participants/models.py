@@ -54,7 +54,6 @@ class Trial(Base):
 
     session: Mapped[ParticipantSession] = relationship(back_populates="trials")
     comparison: Mapped[Comparison] = relationship()
-    vote: Mapped[Vote | None] = relationship(back_populates="trial", cascade="all, delete-orphan")
 
 
 class Vote(Base):
@@ -73,8 +72,6 @@ class Vote(Base):
     request_hash: Mapped[str] = mapped_column(String(64))
     extra: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     answered_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
-
-    trial: Mapped[Trial] = relationship(back_populates="vote")
 
 
 class PlaybackEvent(Base):

@@ -170,6 +170,15 @@ def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
     for entry, p in zip(comparisons, holm([c["wilcoxon_p"] for c in comparisons]), strict=True):
         entry["p_holm"] = p
 
+    # The thesis's grouping (and the neutral split) per test condition, over all its animations.
+    conditions = []
+    for condition in sorted({c["condition"] for c in comparisons}):
+        of = [c for c in comparisons if c["condition"] == condition]
+        conditions.append({"condition": condition, "reference": of[0]["reference"],
+                           "animations": [c["animation"] for c in of],
+                           **{k: sum(c[k] for c in of) for k in ("votes", "positive", "negative", "test_better",
+                                                                 "equal", "reference_better")}})
+
     # Side bias: each participant's mean raw answer, left = +2 ... right = -2, whatever is shown where.
     raw: dict[str, list[int]] = defaultdict(list)
     for v in analysed:
@@ -194,6 +203,7 @@ def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
     return {
         "participants": dict(participants),
         "comparisons": comparisons,
+        "conditions": conditions,
         "overall": _summary([float(np.mean([v["score"] for v in analysed if v["session_id"] == sid]))
                              for sid in {v["session_id"] for v in analysed}]),
         "side_bias": {"mean": float(np.mean(side_means)) if side_means else None, "p": wilcoxon_p(side_means),
