@@ -300,10 +300,17 @@ def test_patch_and_delete_rules(client, db, media_dir, researcher_headers):
     assert definition["recruitment"]["parameters"] == ["workerId"]
     r = client.patch("/api/v1/studies/gait", json={"texts": {"thanks": "x" * 1001}}, headers=researcher_headers)
     assert r.status_code == 422 and ["body", "texts", "thanks"] in [e["loc"] for e in r.json()["detail"]]
-    r = client.patch("/api/v1/studies/gait", json={"design": {**GAIT["design"], "repeats": 2}},
+    r = client.patch("/api/v1/studies/gait", json={"design": {**GAIT["design"], "repeats": 2, "catch_trials": 1}},
                      headers=researcher_headers)
-    assert r.status_code == 409
+    assert r.status_code == 200 and r.json()["trials_total"] == 4 * 2 * 2 + 1
+    study = db.query(Study).filter_by(slug="gait").one()
+    assert sorted(c.kind for c in study.comparisons) == ["catch"] + ["test"] * 4
+    r = client.patch("/api/v1/studies/gait", json={"design": {**GAIT["design"], "conditions": ["hybrid9"]}},
+                     headers=researcher_headers)
+    assert r.status_code == 422 and "hybrid9" in r.json()["detail"]
     client.post("/api/v1/studies/gait/open", headers=researcher_headers)
+    r = client.patch("/api/v1/studies/gait", json={"design": GAIT["design"]}, headers=researcher_headers)
+    assert r.status_code == 409
     client.post("/api/v1/studies/gait/close", headers=researcher_headers)
     r = client.patch("/api/v1/studies/gait", json={"texts": {"thanks": "Later"}}, headers=researcher_headers)
     assert r.status_code == 409

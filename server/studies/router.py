@@ -46,17 +46,20 @@ def list_studies(session: SessionDep, researcher: ResearcherDep) -> list[StudySu
     return [summary(session, s) for s in service.visible_studies(session, researcher)]
 
 
+def render_manifest(settings: Any) -> dict[str, Any]:
+    try:
+        return json.loads((settings.media_dir / MANIFEST).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        raise Conflict("no rendered videos on the server; create the study with `animstudy study create`, "
+                       "which renders them") from None
+
+
 @router.post("/studies", response_model=StudySummary, status_code=status.HTTP_201_CREATED)
 def create_study(body: StudyFile, session: SessionDep, settings: SettingsDep,
                  researcher: ResearcherDep) -> StudySummary:
     """A draft study from a study file's content (as JSON) over the rendered videos (``animstudy study create``
     renders what is missing; here the videos must exist)."""
-    try:
-        media = json.loads((settings.media_dir / MANIFEST).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        raise Conflict("no rendered videos on the server; create the study with `animstudy study create`, "
-                       "which renders them") from None
-    return summary(session, service.create_study(session, media, body, owner=researcher))
+    return summary(session, service.create_study(session, render_manifest(settings), body, owner=researcher))
 
 
 async def study_file_text(request: Request) -> str:
@@ -89,13 +92,15 @@ def read_definition(slug: str, session: SessionDep, researcher: ResearcherDep) -
 
 
 @router.patch("/studies/{slug}", response_model=StudySummary)
-def patch_study(slug: str, session: SessionDep, researcher: ResearcherDep,
+def patch_study(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep,
                 body: dict[str, Any] = Body(..., description="sections of the study file to change")  # noqa: B008
                 ) -> StudySummary:
-    """Texts, scale, questions and recruitment until the study first opens; never the design (409)."""
+    """Title, texts, scale, questions and recruitment until the study first opens; the design while it is a
+    draft; otherwise 409."""
     study = service.managed_study(session, slug, researcher)
+    media = render_manifest(settings) if "design" in body else None
     try:
-        service.update_study(session, study, body)
+        service.update_study(session, study, body, media)
     except ValidationError as exc:
         session.rollback()
         raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in exc.errors()]) from None

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from sqlalchemy import select
-from sqlalchemy.orm import Session, aliased
+from sqlalchemy.orm import Session, aliased, object_session
 
 from server.db import utcnow
 from server.errors import Conflict, Forbidden, NotFound, Unprocessable
@@ -90,14 +90,27 @@ def create_study(session: Session, media: Mapping[str, Any], study_file: StudyFi
     """A draft study over the videos of a render manifest (``server.media.build``), which must hold its pairs."""
     if session.scalar(select(Study.id).where(Study.slug == study_file.slug)) is not None:
         raise Conflict(f"a study with slug {study_file.slug!r} exists already")
-    design = study_file.design
+    study = Study(slug=study_file.slug, state=StudyState.draft, owner_id=owner.id if owner else None,
+                  **_columns(study_file))
+    _build_comparisons(study, media, study_file.design)
+    session.add(study)
+    session.commit()
+    return study
+
+
+def _build_comparisons(study: Study, media: Mapping[str, Any], design: Design) -> None:
+    """The study's stimuli and comparisons for ``design`` (replacing any it had)."""
     clips = clip_index(media["clips"].values())
     pair_videos = {(p["left"], p["right"]): p["video"] for p in media["pairs"]}
     missing = [p for p in required_pairs(design, clips) if p not in pair_videos]
     if missing:
         raise Conflict(f"the rendered videos lack the pairs {missing}; render them first")
-    study = Study(slug=study_file.slug, state=StudyState.draft, owner_id=owner.id if owner else None,
-                  **_columns(study_file))
+    if study.comparisons or study.stimuli:
+        study.comparisons.clear()
+        study.stimuli.clear()
+        session = object_session(study)
+        if session is not None:  # delete the old rows before the new ones meet the unique constraint
+            session.flush()
     stimuli: dict[StimulusKey, Stimulus] = {}
 
     def stimulus(key: StimulusKey) -> Stimulus:
@@ -113,9 +126,6 @@ def create_study(session: Session, media: Mapping[str, Any], study_file: StudyFi
         study.comparisons.append(Comparison(kind=kind, reference=stimulus(ref), test=stimulus(test),
                                             video_reference_left=pair_videos[(r, t)],
                                             video_reference_right=pair_videos[(t, r)]))
-    session.add(study)
-    session.commit()
-    return study
 
 
 def get_study(session: Session, slug: str) -> Study:
@@ -149,21 +159,25 @@ def default_study(session: Session) -> Study | None:
     return session.scalar(select(Study).where(Study.state == StudyState.open).order_by(Study.id).limit(1))
 
 
-def update_study(session: Session, study: Study, changes: Mapping[str, Any]) -> Study:
-    """Apply a partial study file: ``title``, ``texts``, ``scale``, ``questions`` and ``recruitment`` before the
-    study first opens, ``design`` only while it is a draft (a design change rebuilds its comparisons, which needs
-    the render manifest: not done here).  Anything else that would change what earlier participants saw: 409."""
+def update_study(session: Session, study: Study, changes: Mapping[str, Any],
+                 media: Mapping[str, Any] | None = None) -> Study:
+    """Apply a partial study file (sections are merged into the current ones): ``title``, ``texts``, ``scale``,
+    ``questions`` and ``recruitment`` until the study first opens; ``design`` only while it is a draft that never
+    opened (its comparisons are rebuilt over ``media``, the render manifest).  Otherwise 409: participants saw it
+    as it is.  An invalid result raises pydantic's ValidationError (the API answers 422)."""
     if study.opened_at is not None:
         raise Conflict(f"study {study.slug!r} has been open: participants saw it as it is; create a new study")
     if "slug" in changes and changes["slug"] != study.slug:
         raise Conflict("a study's slug cannot change")
-    if "design" in changes and changes["design"] != study.design:
-        raise Conflict("the design of a created study cannot change here; delete the draft and create it anew")
     current = definition(study).model_dump()
     for key, value in changes.items():
-        current[key] = {**current[key], **value} if isinstance(current.get(key), dict) and isinstance(value, dict) \
-            else value
-    updated = StudyFile.model_validate(current)  # the caller turns a ValidationError into a 422
+        merge = isinstance(current.get(key), dict) and isinstance(value, dict)
+        current[key] = {**current[key], **value} if merge else value
+    updated = StudyFile.model_validate(current)
+    if updated.design.model_dump() != study.design:
+        if study.state != StudyState.draft or media is None:
+            raise Conflict("the design can change only while the study is a draft")
+        _build_comparisons(study, media, updated.design)
     for key, value in _columns(updated).items():
         setattr(study, key, value)
     session.commit()
