@@ -178,6 +178,10 @@ def test_recruitment_parameters_completion_url_and_screening(client, db, researc
 
     kept = {ps.id: ps.external for ps in db.query(ParticipantSession)}
     assert set(map(json.dumps, kept.values())) == {json.dumps({"PROLIFIC_PID": "pid/1 x", "STUDY_ID": "s1"})}
+    rows = list(service.export_rows(db, service.get_study(db, "gait")))
+    assert service.export_columns(service.get_study(db, "gait"))[-2:] == ["PROLIFIC_PID", "STUDY_ID"]
+    assert len(rows) == 20 and {(r["PROLIFIC_PID"], r["STUDY_ID"]) for r in rows} == {("pid/1 x", "s1")}
+    assert "OTHER" not in rows[0]
 
 
 def _is_catch(db, trial_id):
@@ -359,5 +363,5 @@ def test_study_cli(tmp_path, monkeypatch, capsys):
     assert cli.main(["study", "export", "thesis", "--format", "csv", "--out", str(out)]) == 0
     assert out.read_text().splitlines()[0].startswith("session_id,trial_index,practice,catch,animation")
     assert cli.main(["study", "export", "thesis", "--format", "json"]) == 0
-    assert json.loads(capsys.readouterr().out)["columns"][-3:] == ["answered_at", "consent_version",
-                                                                   "session_state"]
+    assert json.loads(capsys.readouterr().out)["columns"][-6:] == [
+        "answered_at", "consent_version", "session_state", "PROLIFIC_PID", "STUDY_ID", "SESSION_ID"]

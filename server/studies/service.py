@@ -230,10 +230,11 @@ EXPORT_COLUMNS = ("session_id", "trial_index", "practice", "catch", "animation",
 
 
 def export_columns(study: Study) -> list[str]:
-    """The fixed columns, then one per question of the study (its id), before ``answered_at``."""
+    """The fixed columns, with one per question of the study (its id) before ``answered_at`` and one per accepted
+    URL parameter (its name, e.g. ``PROLIFIC_PID``) at the end."""
     base = list(EXPORT_COLUMNS)
     at = base.index("answered_at")
-    return base[:at] + [q["id"] for q in study.questions] + base[at:]
+    return base[:at] + [q["id"] for q in study.questions] + base[at:] + list(study.recruitment["parameters"])
 
 
 def export_csv(session: Session, study: Study) -> str:
@@ -267,6 +268,7 @@ def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
     """One row per vote (withdrawn participants' votes no longer exist), in session and trial order."""
     reference, test = aliased(Stimulus), aliased(Stimulus)
     questions = [q["id"] for q in study.questions]
+    parameters = list(study.recruitment["parameters"])
     rows = session.execute(
         select(Vote, Trial, ParticipantSession, Comparison.kind, reference.animation, reference.condition,
                test.condition)
@@ -279,7 +281,7 @@ def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
         .order_by(ParticipantSession.created_at, ParticipantSession.id, Trial.index)
     )
     for vote, trial, ps, kind, animation, ref_condition, test_condition in rows:
-        answers = ps.answers or {}
+        answers, external = ps.answers or {}, ps.external or {}
         yield {
             "session_id": ps.id, "trial_index": trial.index, "practice": trial.practice,
             "catch": kind == ComparisonKind.catch, "animation": animation, "reference_condition": ref_condition,
@@ -287,6 +289,6 @@ def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
             "test_side": other_side(trial.reference_side), "choice": vote.choice, "score": vote.score,
             "rt_ms": vote.rt_ms, **{q: answers.get(q) for q in questions},
             "answered_at": vote.answered_at.isoformat(), "consent_version": ps.consent_version,
-            "session_state": ps.state,
+            "session_state": ps.state, **{p: external.get(p) for p in parameters},
         }
 

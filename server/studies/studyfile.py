@@ -25,6 +25,7 @@ RESERVED_IDS = frozenset({
     "session_id", "trial_index", "practice", "catch", "animation", "reference_condition", "test_condition",
     "reference_side", "test_side", "choice", "score", "rt_ms", "answered_at", "consent_version", "session_state",
     "outcome"})
+# A URL parameter must not shadow an export column either (question ids are lower case, so they never meet).
 
 Slug = Annotated[str, StringConstraints(pattern=r"^[a-z0-9][a-z0-9-]{0,63}$")]
 Key = Annotated[str, StringConstraints(pattern=r"^[a-z][a-z0-9_]{0,31}$")]
@@ -112,6 +113,14 @@ class Recruitment(_Strict):
                                   "attention checks (catch trials)")
     catch_failures_allowed: int = Field(0, ge=0, le=16, description="failed catch trials (a 'significantly "
                                         "better' answer when both sides show the same clip) before screening out")
+
+    @field_validator("parameters")
+    @classmethod
+    def distinct_parameters(cls, value: list[str]) -> list[str]:
+        clash = sorted(set(value) & RESERVED_IDS)
+        if clash or len(set(value)) != len(value):
+            raise ValueError(f"parameters must be distinct and not export columns ({', '.join(clash) or 'repeated'})")
+        return value
 
     @model_validator(mode="after")
     def urls(self) -> Self:
