@@ -74,7 +74,8 @@ async def study_file_text(request: Request) -> str:
 
 
 @router.post("/studies/file", response_model=StudySummary, status_code=status.HTTP_201_CREATED,
-             openapi_extra={"requestBody": {"content": {"application/toml": {"schema": {"type": "string"}}}}})
+             openapi_extra={"requestBody": {"required": True,
+                                            "content": {"text/plain": {"schema": {"type": "string"}}}}})
 def create_study_from_file(text: Annotated[str, Depends(study_file_text)], session: SessionDep,
                            settings: SettingsDep, researcher: ResearcherDep) -> StudySummary:
     """As ``POST /studies``, from the study file itself (TOML text as the body): errors name field and line."""
