@@ -252,9 +252,9 @@ def ensure_researcher(settings: Settings, session_factory: object) -> None:
             return
         email = settings.admin_email or "admin@localhost"
         password = settings.admin_password or secrets.token_urlsafe(12)
-        create_researcher(session, email, password)
+        create_researcher(session, email, password, admin=True)  # manages every study, the default one too
         shown = password if not settings.admin_password else "(from ANIMSTUDY_ADMIN_PASSWORD)"
-        print(f"researcher account created: e-mail {email}, password {shown}", flush=True)
+        print(f"researcher account created (admin): e-mail {email}, password {shown}", flush=True)
 
 
 def serve(settings: Settings, host: str, port: int, workers: int) -> int:

@@ -341,16 +341,23 @@ def test_study_cli(tmp_path, monkeypatch, capsys):
     assert cli.main(["study", "validate", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "design.repeats (line" in err and "less than or equal to 5" in err
-    assert cli.main(["researcher", "create", "--email", "boss@example.org", "--password", "0123456789ab",
-                     "--admin"]) == 0
-    assert "admin" in capsys.readouterr().out
-    # A study in the CLI's database (the videos are fake: create needs the renderer, tested in the browser tests).
+    # The first account `serve` makes is an admin (it must manage the default study, which has no owner).
     from server.config import Settings
     from server.db import make_engine, migrate, session_factory
+    from server.researchers.models import Researcher
 
     settings = Settings.from_env()
     engine = make_engine(settings.sqlalchemy_url)
     migrate(engine)
+    cli.ensure_researcher(settings, session_factory(engine))
+    assert cli.main(["researcher", "create", "--email", "boss@example.org", "--password", "0123456789ab",
+                     "--admin"]) == 0
+    assert cli.main(["researcher", "create", "--email", "staff@example.org", "--password", "0123456789ab"]) == 0
+    with session_factory(engine)() as db:
+        assert [(r.email, r.is_admin) for r in db.query(Researcher).order_by(Researcher.id)] == [
+            ("admin@localhost", True), ("boss@example.org", True), ("staff@example.org", False)]
+    assert "(admin" in capsys.readouterr().out
+    # A study in the CLI's database (the videos are fake: create needs the renderer, tested in the browser tests).
     with session_factory(engine)() as db:
         service.create_study(db, fake_media(), thesis_study())
     engine.dispose()
