@@ -28,7 +28,7 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None, r
     if run_migrations:
         migrate(engine)
     app = FastAPI(title="animstudy", version="0.1.0",
-                  description="Side-by-side user studies of hybrid against keyframe character animation.")
+                  description="Side-by-side user studies of character animation: conditions against a reference.")
     app.state.settings = settings
     app.state.engine = engine
     app.state.read_engine = read_only(engine)
