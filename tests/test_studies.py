@@ -266,6 +266,15 @@ def test_unknown_condition_or_animation_and_taken_slug(client, db, media_dir, re
     assert db.query(Study).count() == 1
 
 
+def test_an_old_render_manifest_is_a_clear_conflict(client, db, media_dir, researcher_headers):
+    old = fake_media()
+    for entry in old["clips"].values():
+        del entry["condition"]
+    (media_dir / "manifest.json").write_text(json.dumps(old))
+    r = client.post("/api/v1/studies", json=GAIT, headers=researcher_headers)
+    assert r.status_code == 409 and "animstudy render" in r.json()["detail"]
+
+
 def test_study_file_upload_reports_lines(client, db, media_dir, researcher_headers):
     text = THESIS_FILE.read_text().replace('slug = "thesis"', 'slug = "upload"').replace("repeats = 1", "repeats = 0")
     r = client.post("/api/v1/studies/file", content=text.encode(), headers={**researcher_headers,

@@ -28,7 +28,11 @@ StimulusKey = tuple[str, str]  # (animation, condition)
 
 def clip_index(entries: Iterable[Mapping[str, Any]]) -> dict[StimulusKey, str]:
     """(animation, condition) -> clip id, from clip entries of the clip or render manifest (``id`` or ``clip``)."""
-    return {(e["animation"], e["condition"]): e.get("id", e.get("clip")) for e in entries}
+    try:
+        return {(e["animation"], e["condition"]): e.get("id", e.get("clip")) for e in entries}
+    except KeyError:
+        raise Conflict("the rendered videos' manifest names no conditions (it predates them): run "
+                       "`animstudy clips build` and `animstudy render` again") from None
 
 
 def clip_set_index(clips_dir: Path) -> dict[StimulusKey, str]:
