@@ -136,6 +136,10 @@
       `Consistency of the two side-swapped showings: weighted κ ${fmt(sc.weighted_kappa, 2)}, exact agreement ` +
       `${fmt(sc.exact_agreement, 2)}, within one step ${fmt(sc.within_one, 2)} (${sc.pairs} pairs). ` +
       `Krippendorff's α (ordinal): ${fmt(res.krippendorff_alpha_ordinal, 2)}. ${res.methods.wilcoxon}.`;
+    table($("table-ranking"), ["animation", "condition", "scale value", "95 % CI", "votes", "fit"],
+          (res.rankings || []).flatMap((r) => r.conditions.map((c) => [
+            r.animation, c.condition, c.value == null ? (c.bound ? `${c.bound} all others` : "–") : fmt(c.value, 2),
+            c.ci95 ? `${fmt(c.ci95[0], 2)} … ${fmt(c.ci95[1], 2)}` : "–", c.votes, r.fit.status])));
     renderQuestions(res, comps);
     renderMetrics(res.clips);
     renderBenchmark(res.benchmark);

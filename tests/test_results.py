@@ -10,6 +10,7 @@ import pytest
 from scipy import stats
 
 from server.participants import service
+from server.studies.ranking import rank_conditions
 
 CHOICES = ["right_much", "right_slightly", "equal", "left_slightly", "left_much"]  # raw -2 .. +2 (left view)
 
@@ -91,6 +92,21 @@ def test_results_match_an_independent_computation_from_the_csv(client, study, db
         assert (entry["test_better"], entry["equal"], entry["reference_better"]) == (
             sum(s > 0 for s in scores), scores.count(0), sum(s < 0 for s in scores))
     assert [e["condition"] for e in results["conditions"]] == ["hybrid0", "hybrid1"]
+
+    # The ranking per animation: the model on the CSV's analysed votes of that animation (the model itself is
+    # pinned to published values in test_ranking.py; this checks which votes reach it), the reference at 0.
+    assert [r["animation"] for r in results["rankings"]] == sorted({r["animation"] for r in rows})
+    for entry in results["rankings"]:
+        votes = [(r["session_id"], r["reference_condition"], r["test_condition"], int(r["score"])) for r in rows
+                 if r["animation"] == entry["animation"] and r["practice"] == "false" and r["catch"] == "false"]
+        expected = rank_conditions(votes)
+        assert entry["fit"]["n_votes_used"] == len(votes) and entry["fit"]["anchor"] == "keyframe"
+        assert {c["condition"]: c["value"] for c in entry["conditions"]} == pytest.approx(
+            {c.condition: c.value for c in expected.conditions}, abs=1e-9)
+        for c in entry["conditions"]:
+            if c["condition"] != "keyframe" and c["value"] is not None:
+                mean = sum(v[3] for v in votes if v[2] == c["condition"]) / sum(v[2] == c["condition"] for v in votes)
+                assert math.copysign(1, c["value"]) == math.copysign(1, mean) or abs(mean) < 0.05
 
     # Side bias: mean raw answer (left = +2) per participant.
     raw = {"left_much": 2, "left_slightly": 1, "equal": 0, "right_slightly": -1, "right_much": -2}

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from collections import defaultdict
 from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import asdict
 from typing import Any
 
 import numpy as np
@@ -20,6 +21,7 @@ from scipy import stats
 from statsmodels.stats.multitest import multipletests
 from statsmodels.stats.power import TTestPower
 
+from .ranking import GradedComparison, rank_conditions
 from .scale import CHOICE_SCORES, SCORES
 
 WILCOXON_ARE = 3 / math.pi  # asymptotic relative efficiency of Wilcoxon against t for a normal parent
@@ -179,6 +181,14 @@ def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
                            **{k: sum(c[k] for c in of) for k in ("votes", "positive", "negative", "test_better",
                                                                  "equal", "reference_better")}})
 
+    # All conditions of an animation on one scale (the reference at 0), from every graded vote.
+    rankings = []
+    for animation in sorted({v["animation"] for v in analysed}):
+        ranking = rank_conditions(GradedComparison(v["session_id"], v["reference_condition"], v["test_condition"],
+                                                   v["score"]) for v in analysed if v["animation"] == animation)
+        rankings.append({"animation": animation, "conditions": [asdict(c) for c in ranking.conditions],
+                         "fit": asdict(ranking.fit)})
+
     # Side bias: each participant's mean raw answer, left = +2 ... right = -2, whatever is shown where.
     raw: dict[str, list[int]] = defaultdict(list)
     for v in analysed:
@@ -204,6 +214,7 @@ def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
         "participants": dict(participants),
         "comparisons": comparisons,
         "conditions": conditions,
+        "rankings": rankings,
         "overall": _summary([float(np.mean([v["score"] for v in analysed if v["session_id"] == sid]))
                              for sid in {v["session_id"] for v in analysed}]),
         "side_bias": {"mean": float(np.mean(side_means)) if side_means else None, "p": wilcoxon_p(side_means),
@@ -223,6 +234,8 @@ def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
             "ci95": "Student t interval of the mean of participant means",
             "multiplicity": "Holm over the Wilcoxon p-values of all the study's comparisons",
             "power": "t-test power (statsmodels) at the observed d_z, divided by the Wilcoxon ARE 3/pi",
+            "ranking": "ordinal Bradley-Terry (Agresti 1992, logit) per animation, reference at 0; 95 % intervals "
+                       "from cluster-robust standard errors over participants (server/studies/ranking.py)",
             "thesis_grouping": "per comparison: negative = reference significantly better (-2); positive = "
                                "everything else",
         },
