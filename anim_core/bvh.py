@@ -27,6 +27,9 @@ from .skeleton import Skeleton
 
 Array = NDArray[np.float64]
 
+#: Limits checked while parsing, before memory is spent: a hostile or broken file fails fast with its line.
+MAX_JOINTS = 10_000
+MAX_FRAMES = 1_000_000
 CHANNEL_NAMES = ("Xposition", "Yposition", "Zposition", "Xrotation", "Yrotation", "Zrotation")
 
 
@@ -259,6 +262,8 @@ def parse_bvh(text: str, source: str = "<string>") -> Bvh:
         name = tokens[1]
         if name in defined:
             raise _fail(source, number, f"joint name {name!r} already used on line {defined[name]}")
+        if len(names) >= MAX_JOINTS:
+            raise _fail(source, number, f"more than {MAX_JOINTS} joints")
         defined[name] = number
         _expect(lines, "{", f"after {keyword} {name!r}")
         offsets.append(_parse_offset(lines, f"in joint {name!r}"))
@@ -291,6 +296,8 @@ def parse_bvh(text: str, source: str = "<string>") -> Bvh:
     if tokens[0] != "Frames:" or len(tokens) != 2 or not re.fullmatch(r"[0-9]+", tokens[1]):
         raise lines.error(number, "'Frames: <count>'", line)
     n_frames, declared = int(tokens[1]), f"declared on line {number}"
+    if n_frames > MAX_FRAMES:
+        raise _fail(source, number, f"{n_frames} frames declared; at most {MAX_FRAMES} are supported")
     number, line, tokens = lines.next("'Frame Time: <seconds>'")
     frame_time = _to_float(tokens[2]) if tokens[:2] == ["Frame", "Time:"] and len(tokens) == 3 else None
     if frame_time is None or frame_time <= 0:
@@ -375,10 +382,18 @@ def format_bvh(bvh: Bvh) -> str:
 
 
 def write_bvh(bvh: Bvh, path: str | os.PathLike[str]) -> None:
-    """Write :func:`format_bvh` text to ``path``, gzip-compressed if it ends with ``.gz``."""
+    """Write :func:`format_bvh` text to ``path``, gzip-compressed if it ends with ``.gz``.
+
+    The text is written to a temporary name and renamed, so a failure leaves no half-written file.
+    """
     path = Path(path)
     data = format_bvh(bvh).encode("utf-8")
-    path.write_bytes(gzip.compress(data, mtime=0) if path.suffix == ".gz" else data)
+    tmp = path.with_name(path.name + ".part")
+    try:
+        tmp.write_bytes(gzip.compress(data, mtime=0) if path.suffix == ".gz" else data)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def bvh_from_poses(skeleton: Skeleton, rotations: ArrayLike, root_translation: ArrayLike, frame_time: float,

@@ -66,7 +66,7 @@ REQUIRED_PARTS: dict[str, tuple[str, ...]] = {
 }
 #: Limits on what a source may hold, so hostile files fail fast instead of exhausting memory.
 MAX_JOINTS = 1000
-MAX_FRAMES = 500_000
+MAX_FRAMES = 1_000_000
 
 _PREFIX = re.compile(r"^(?:.*[:|])?(?:armature_?)?(?:mixamorig[_:]?)?", re.IGNORECASE)
 # (pattern, side group, strong): a strong marker without a partner is an error in mirroring, a weak one is central.
@@ -459,6 +459,14 @@ def map_skeleton(skeleton: Skeleton, explicit: Mapping[str, str] | None = None) 
                            for part in missing)
         raise RigMapError(f"cannot find the {', '.join(missing)} of the skeleton (missing {detail}); give them in "
                           f"an explicit mapping (character joint = source joint)")
+    # The bones that carry the limbs' and the trunk's lengths must have a length.
+    short = [f"{a}-{b} ({names[mapper.map[a]]!r}-{names[mapper.map[b]]!r})"
+             for a, b in (("LeftUpLeg", "LeftLeg"), ("LeftLeg", "LeftFoot"), ("RightUpLeg", "RightLeg"),
+                          ("RightLeg", "RightFoot"), ("LeftArm", "LeftForeArm"), ("LeftForeArm", "LeftHand"),
+                          ("RightArm", "RightForeArm"), ("RightForeArm", "RightHand"), ("Hips", "Head"))
+             if mapper.dist(mapper.map[a], mapper.map[b]) < 1e-9]
+    if short:
+        raise RigMapError(f"zero-length bones where the character needs a length: {', '.join(short)}")
     index = np.array([mapper.map.get(n, -1) for n in CANONICAL_NAMES], dtype=np.intp)
     decisions = tuple(Decision(n, names[mapper.map[n]] if n in mapper.map else None,
                                mapper.why.get(n, "not found: synthesised with zero length and no rotation"))
@@ -614,7 +622,7 @@ def normalize_bvh(bvh: Bvh, explicit: Mapping[str, str] | None = None, units: st
     if bvh.skeleton.n_joints > MAX_JOINTS:
         raise RigMapError(f"{bvh.source}: {bvh.skeleton.n_joints} joints; at most {MAX_JOINTS} are supported")
     if bvh.n_frames == 0:
-        raise RigMapError(f"{bvh.source}: the MOTION section has no frames")
+        raise RigMapError(f"{bvh.source}: the MOTION section has no frames ('Frames: 0')")
     zero = [bvh.skeleton.names[j] for j in range(1, bvh.skeleton.n_joints)
             if np.linalg.norm(bvh.skeleton.offsets[j]) < 1e-12 and not bvh.skeleton.children(j)
             and np.linalg.norm(bvh.end_sites.get(j, np.zeros(3))) < 1e-12]

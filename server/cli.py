@@ -21,6 +21,22 @@ def _fail(message: str) -> int:
     return 2
 
 
+def clips_inspect(path: Path, mapping: Path | None, units: str | None, up_axis: str | None) -> int:
+    """Print what a BVH or glTF file holds and how it maps onto the character (``animstudy clips inspect``)."""
+    from anim_core.rigmap import read_mapping_file
+    from anim_core.sourceinfo import format_report, inspect_source
+
+    if not path.is_file():
+        return _fail(f"{path}: no such file")
+    try:
+        explicit = read_mapping_file(mapping) if mapping else None
+        reports = inspect_source(path, explicit, units, up_axis)
+    except (ValueError, OSError) as exc:  # BvhError, GltfError and RigMapError name the file (and line)
+        return _fail(str(exc))
+    print(format_report(path, reports))
+    return 0
+
+
 def inspect(data_dir: Path) -> int:
     """Print what the motion-capture files in the data directory hold."""
     import numpy as np
@@ -448,6 +464,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     build = clips_sub.add_parser("build", help="build the clip set from the data directory")
     build.add_argument("--out", type=Path, default=None, help="output folder (default: <var dir>/clips)")
     build.add_argument("--config", type=Path, default=None, help="clip set TOML (default: the built-in one)")
+    cinspect = clips_sub.add_parser("inspect", help="what a BVH/glTF motion file holds and how it maps onto the "
+                                                   "character (joints, mapping, units, contacts, suggested kind)")
+    cinspect.add_argument("file", type=Path, help=".bvh, .bvh.gz, .glb or .gltf file")
+    cinspect.add_argument("--mapping", type=Path, default=None,
+                          help="explicit joint mapping (.toml or .json: character joint = file joint)")
+    cinspect.add_argument("--units", choices=["m", "cm", "mm", "inch", "cmu"], default=None,
+                          help="length unit of the file (default: detected from the skeleton's height)")
+    cinspect.add_argument("--up", choices=["y", "z"], default=None, help="up axis of the file (default: detected)")
     rend = sub.add_parser("render", help="pre-render every clip and compared pair into blind videos")
     rend.add_argument("--out", type=Path, default=None, help="video folder (default: <var dir>/media)")
     rend.add_argument("--clips", type=Path, default=None, help="clip set folder (default: <var dir>/clips)")
@@ -511,6 +535,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "render":
         return render(settings, args.out or settings.var / "media", args.clips or settings.var / "clips",
                       max(1, args.workers), args.increments, args.width, args.height, not args.no_shadows)
+    if args.clips_command == "inspect":
+        return clips_inspect(args.file, args.mapping, args.units, args.up)
     return clips_build(settings.data, args.out or settings.var / "clips", args.config)
 
 
