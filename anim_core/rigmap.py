@@ -554,7 +554,10 @@ def normalize_motion(skeleton: Skeleton, rotations: Array, root_translation: Arr
         raise RigMapError(f"{source}: the motion has no frames")
     if not (np.all(np.isfinite(rotations)) and np.all(np.isfinite(root_translation))):
         raise RigMapError(f"{source}: the motion holds NaN or infinite values")
-    mapping = map_skeleton(skeleton, explicit)
+    try:
+        mapping = map_skeleton(skeleton, explicit)
+    except RigMapError as exc:
+        raise RigMapError(f"{source}: {exc}") from None
     idx = mapping.source_index
     rest_rot, rest_pos = skeleton.rest_global()
     hips, head = idx[0], idx[CANONICAL_NAMES.index("Head")]
