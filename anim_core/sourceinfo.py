@@ -1,4 +1,5 @@
-"""What a motion file holds, for a user about to add it to a clip set (``animstudy clips inspect FILE``).
+"""What a motion file holds, for a user about to add it to a clip set (``animstudy clips inspect FILE``), and the
+motion on the character as glTF or BVH (``animstudy clips convert FILE OUT``).
 
 :func:`inspect_source` reads a BVH (``.bvh``, ``.bvh.gz``) or glTF (``.glb``, ``.gltf``) file, maps its skeleton
 (:mod:`anim_core.rigmap`) and reports, per motion: joints, convention and mapping with reasons, units, up axis,
@@ -18,9 +19,10 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from .bvh import Bvh, read_bvh
+from .bvh import Bvh, bvh_from_poses, read_bvh, write_bvh
+from .character import Character, retarget
 from .contacts import contact_intervals, foot_down
-from .gltf import read_gltf
+from .gltf import GltfAnimation, read_gltf, write_gltf
 from .rigmap import CANONICAL_NAMES, Normalized, normalize_bvh, normalize_motion
 
 Array = NDArray[np.float64]
@@ -167,3 +169,24 @@ def format_report(path: str | os.PathLike[str], reports: list[MotionReport]) -> 
         if m.unmapped:
             lines.append(f"  unmapped (ignored): {', '.join(m.unmapped)}")
     return "\n".join(lines)
+
+
+def export_on_character(normalized: Normalized, character: Character, path: str | os.PathLike[str],
+                        name: str = "motion") -> None:
+    """Write a normalized motion retargeted onto ``character``: ``.glb``/``.gltf`` (character + animation) or
+    ``.bvh``/``.bvh.gz`` (the character's skeleton, metres), for a look in Blender or a web viewer."""
+    path = Path(path)
+    bvh = normalized.bvh
+    rt = retarget(character, bvh.posed_skeleton(), bvh.end_sites)
+    rot, root = bvh.pose_arrays()
+    root = root * rt.root_scale
+    times = np.arange(bvh.n_frames) * bvh.frame_time
+    lower = path.name.lower()
+    if lower.endswith((".glb", ".gltf")):
+        write_gltf(path, rt.skeleton, rt.mesh.vertices, rt.mesh.normals, rt.faces, rt.mesh.joints, rt.mesh.weights,
+                   rt.mesh.inverse_bind, (GltfAnimation(name, times, rot, root),))
+    elif lower.endswith((".bvh", ".bvh.gz")):
+        ends = {j: np.asarray(e) * rt.root_scale for j, e in bvh.end_sites.items()}
+        write_bvh(bvh_from_poses(rt.skeleton, rot, root, bvh.frame_time, ends, path.name), path)
+    else:
+        raise ValueError(f"{path.name}: export writes .glb, .gltf, .bvh or .bvh.gz")

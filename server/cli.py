@@ -21,6 +21,15 @@ def _fail(message: str) -> int:
     return 2
 
 
+def _source_options(parser: argparse.ArgumentParser) -> None:
+    """--mapping, --units and --up of ``clips inspect`` and ``clips convert``."""
+    parser.add_argument("--mapping", type=Path, default=None,
+                        help="explicit joint mapping (.toml or .json: character joint = file joint)")
+    parser.add_argument("--units", choices=["m", "cm", "mm", "inch", "cmu"], default=None,
+                        help="length unit of the file (default: detected from the skeleton's height)")
+    parser.add_argument("--up", choices=["y", "z"], default=None, help="up axis of the file (default: detected)")
+
+
 def clips_inspect(path: Path, mapping: Path | None, units: str | None, up_axis: str | None) -> int:
     """Print what a BVH or glTF file holds and how it maps onto the character (``animstudy clips inspect``)."""
     from anim_core.rigmap import read_mapping_file
@@ -34,6 +43,26 @@ def clips_inspect(path: Path, mapping: Path | None, units: str | None, up_axis: 
     except (ValueError, OSError) as exc:  # BvhError, GltfError and RigMapError name the file (and line)
         return _fail(str(exc))
     print(format_report(path, reports))
+    return 0
+
+
+def clips_convert(data_dir: Path, path: Path, out: Path, mapping: Path | None, units: str | None,
+                  up_axis: str | None) -> int:
+    """Write a BVH/glTF motion retargeted onto the character as .glb/.gltf or .bvh (``animstudy clips convert``)."""
+    from anim_core.assets import AssetError
+    from anim_core.character import load_character
+    from anim_core.rigmap import read_mapping_file
+    from anim_core.sourceinfo import export_on_character, inspect_source
+
+    if not path.is_file():
+        return _fail(f"{path}: no such file")
+    try:
+        explicit = read_mapping_file(mapping) if mapping else None
+        report = inspect_source(path, explicit, units, up_axis)[0]
+        export_on_character(report.normalized, load_character(data_dir), out, report.name)
+    except (ValueError, OSError, AssetError) as exc:
+        return _fail(str(exc))
+    print(f"wrote {out} ({report.n_frames} frames at {report.fps:g} fps on the character)")
     return 0
 
 
@@ -467,11 +496,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     cinspect = clips_sub.add_parser("inspect", help="what a BVH/glTF motion file holds and how it maps onto the "
                                                    "character (joints, mapping, units, contacts, suggested kind)")
     cinspect.add_argument("file", type=Path, help=".bvh, .bvh.gz, .glb or .gltf file")
-    cinspect.add_argument("--mapping", type=Path, default=None,
-                          help="explicit joint mapping (.toml or .json: character joint = file joint)")
-    cinspect.add_argument("--units", choices=["m", "cm", "mm", "inch", "cmu"], default=None,
-                          help="length unit of the file (default: detected from the skeleton's height)")
-    cinspect.add_argument("--up", choices=["y", "z"], default=None, help="up axis of the file (default: detected)")
+    _source_options(cinspect)
+    convert = clips_sub.add_parser("convert", help="a BVH/glTF motion retargeted onto the character, written as "
+                                                   ".glb/.gltf (character + animation) or .bvh")
+    convert.add_argument("file", type=Path, help=".bvh, .bvh.gz, .glb or .gltf file (a glTF's first animation)")
+    convert.add_argument("out", type=Path, help="output .glb, .gltf, .bvh or .bvh.gz")
+    _source_options(convert)
     rend = sub.add_parser("render", help="pre-render every clip and compared pair into blind videos")
     rend.add_argument("--out", type=Path, default=None, help="video folder (default: <var dir>/media)")
     rend.add_argument("--clips", type=Path, default=None, help="clip set folder (default: <var dir>/clips)")
@@ -537,6 +567,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                       max(1, args.workers), args.increments, args.width, args.height, not args.no_shadows)
     if args.clips_command == "inspect":
         return clips_inspect(args.file, args.mapping, args.units, args.up)
+    if args.clips_command == "convert":
+        return clips_convert(settings.data, args.file, args.out, args.mapping, args.units, args.up)
     return clips_build(settings.data, args.out or settings.var / "clips", args.config)
 
 

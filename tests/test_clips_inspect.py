@@ -147,3 +147,32 @@ def test_bad_input_gives_one_clear_error_line_and_writes_nothing(walk_text, tmp_
         assert "Traceback" not in err
         assert re.search(pattern, err), (name, err)
         assert sorted(p.name for p in folder.iterdir()) == before
+
+
+def test_convert_writes_the_motion_on_the_character(data, tmp_path, capsys):
+    import trimesh
+
+    from anim_core.character import load_character, retarget
+    from anim_core.gltf import read_gltf
+
+    source = data / "mocap" / "cmu" / "12_03_walk.bvh.gz"
+    bvh = read_bvh(source)
+    rt = retarget(load_character(data), bvh.posed_skeleton(), bvh.end_sites)
+    rot, root = bvh.pose_arrays()
+    expected = rt.skeleton.forward_kinematics(rot, root * rt.root_scale)[1]
+    for name in ("walk.glb", "walk.bvh"):
+        code, out, err = run(["clips", "convert", str(source), str(tmp_path / name)], capsys)
+        assert code == 0 and err == "" and "566 frames" in out
+    asset = read_gltf(tmp_path / "walk.glb")
+    (anim,) = asset.animations
+    got = asset.skeleton.forward_kinematics(anim.rotations, anim.root_translation)[1]
+    assert np.abs(got - expected).max() < 1e-5
+    back = read_bvh(tmp_path / "walk.bvh")
+    got = back.skeleton.forward_kinematics(*back.pose_arrays())[1]
+    assert np.abs(got - expected).max() < 1e-9
+    # Another reader takes the .glb too: trimesh finds the character's mesh with all its vertices.
+    scene = trimesh.load(tmp_path / "walk.glb")
+    assert sum(len(g.vertices) for g in scene.geometry.values()) == len(rt.mesh.vertices)
+    code, _, err = run(["clips", "convert", str(source), str(tmp_path / "walk.fbx")], capsys)
+    assert code == 2 and "walk.fbx: export writes .glb, .gltf, .bvh or .bvh.gz" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["walk.bvh", "walk.glb"]

@@ -328,3 +328,32 @@ def test_units_and_up_axis_overrides_and_errors(walks):
         normalize_bvh(bvh, units="furlong")
     with pytest.raises(RigMapError, match="up axis"):
         normalize_bvh(bvh, up_axis="x")
+
+
+def test_rig_with_joint_frames_not_aligned_to_the_world(character, walks, rng):
+    """A glTF-like rig: every joint frame turned at random in the rest pose (Mixamo names, metres). Removing the
+    rest pose must give the very same character poses as the CMU file."""
+    from anim_core.quat import quat_normalize
+    from anim_core.rigmap import normalize_motion
+
+    bvh = walks[0]
+    s = bvh.posed_skeleton()
+    rot, root = bvh.pose_arrays()
+    g_rot, _ = s.forward_kinematics(rot, root)
+    g0 = quat_normalize(rng.normal(size=(s.n_joints, 4)))  # random global rest frames
+    par = np.maximum(s.parents, 0)
+    g0_parent = np.where((s.parents >= 0)[:, None], g0[par], [1.0, 0, 0, 0])
+    rest_local = quat_mul(quat_conj(g0_parent), g0)
+    offsets = rotate(quat_conj(g0_parent), s.offsets)  # world rest offsets, expressed in the parent's frame
+    offsets[0] = s.offsets[0]
+    g = quat_mul(g_rot, g0)  # the same world motion of the turned frames
+    local = g.copy()
+    local[:, 1:] = quat_mul(quat_conj(g[:, s.parents[1:]]), g[:, 1:])
+    table = convention_table("mixamo", "mixamorig:")
+    metres = 0.0254 / 0.45
+    rig = Skeleton([table[n] for n in s.names], s.parents, offsets * metres, rest_local)
+    ends = {j: rotate(quat_conj(g0[j]), e) * metres for j, e in bvh.end_sites.items()}
+    out = normalize_motion(rig, local, root * metres, bvh.frame_time, ends, "turned.glb")
+    assert out.units == "m"
+    err = np.abs(character_positions(character, out.bvh) - character_positions(character, bvh)).max()
+    assert err < 1e-6, err
