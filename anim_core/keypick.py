@@ -1,0 +1,67 @@
+"""Generic hybrid keys for an animation of kind ``other``: the fewest keys, spread by an error criterion.
+
+Conventions: a source is a :class:`~anim_core.clip.KeyframeClip` (one key per mocap frame); its hybrid is SQUAD
+through the picked keys played ping-pong (:func:`~anim_core.hybrid.build_idle`, no mirroring).  The error of a
+set of keys is the largest distance, over all source frames and joints, between the joint positions of the hybrid
+and of the source (forward kinematics, metres = source units x ``metres_per_unit``).
+
+:func:`pick_keys` is greedy (Douglas-Peucker-like refinement): it starts from the first and last frames and adds,
+one at a time, the frame where the error is largest, until the error is within ``tolerance`` metres.  The result
+is small but not proven minimal.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .clip import KeyframeClip
+from .hybrid import build_idle
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PickedKeys:
+    """``frames``: source frame indices of the keys (increasing); ``times``: their times (s); ``error``: the largest
+    joint position error (m) of the hybrid through them; ``tolerance``: what was asked."""
+
+    frames: tuple[int, ...]
+    times: tuple[float, ...]
+    error: float
+    tolerance: float
+
+
+def hybrid_error(source: KeyframeClip, frames: NDArray[np.intp], metres_per_unit: float = 1.0) -> Array:
+    """``(F,)`` largest joint position error (m) per source frame of the SQUAD hybrid through ``frames``."""
+    times = source.times[frames]
+    clip = build_idle(source, times.tolist())
+    pose = clip.sample(source.times - times[0])
+    target = source.skeleton.forward_kinematics(source.rotations, source.root_translation)[1]
+    got = source.skeleton.forward_kinematics(pose.rotations, pose.root_translation)[1]
+    return np.linalg.norm(got - target, axis=-1).max(axis=-1) * metres_per_unit
+
+
+def pick_keys(source: KeyframeClip, tolerance: float = 0.02, metres_per_unit: float = 1.0,
+              max_keys: int = 64) -> PickedKeys:
+    """Keys whose SQUAD hybrid reproduces ``source`` within ``tolerance`` metres at every frame (see module).
+
+    Raises ``ValueError`` if ``max_keys`` keys do not reach the tolerance (the error reached is in the message).
+    """
+    if not tolerance > 0:
+        raise ValueError(f"tolerance must be positive, got {tolerance}")
+    n = len(source.times)
+    frames = np.array([0, n - 1], dtype=np.intp)
+    while True:
+        err = hybrid_error(source, frames, metres_per_unit)
+        worst = int(np.argmax(err))
+        if err[worst] <= tolerance:
+            break
+        if len(frames) >= max_keys or worst in frames:
+            raise ValueError(f"{len(frames)} keys reproduce the motion within {err[worst] * 1000:.1f} mm only, not "
+                             f"{tolerance * 1000:.1f} mm; allow more keys or a larger tolerance")
+        frames = np.sort(np.append(frames, worst))
+    return PickedKeys(tuple(int(f) for f in frames), tuple(float(t) for t in source.times[frames]),
+                      float(err.max()), tolerance)
