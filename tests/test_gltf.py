@@ -176,3 +176,26 @@ def test_write_leaves_nothing_on_failure(tmp_path):
                    np.zeros((3, 1), int), np.ones((3, 1)), np.tile(np.eye(4), (2, 1, 1)),
                    (GltfAnimation("a", np.zeros(2), np.zeros((2, 3, 4)), np.zeros((2, 3))),))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_mixamo_gltf_with_turned_joint_frames_is_a_clip_source(exported, tmp_path, data, rng):
+    """glTF in: a Mixamo-named rig whose joint frames are not world-aligned, written and read as glTF, maps and
+    retargets to the character poses of the CMU file it came from (float32 in the file)."""
+    from anim_core.character import load_character
+    from tests.test_rigmap import character_positions, rig_with_turned_frames
+
+    rt, _, _, _, _, bvh = exported
+    rig, local, root, _ = rig_with_turned_frames(bvh, rng)
+    path = tmp_path / "mixamo.glb"
+    times = np.arange(bvh.n_frames) * bvh.frame_time
+    write_gltf(path, rig, rt.mesh.vertices, rt.mesh.normals, rt.faces, rt.mesh.joints, rt.mesh.weights,
+               rt.mesh.inverse_bind, (GltfAnimation("walk", times, local, root),))
+    asset = read_gltf(path)
+    anim = asset.animations[0]
+    out = normalize_motion(asset.skeleton, anim.rotations, anim.root_translation, anim.frame_time, {},
+                           asset.source)
+    assert out.mapping.convention == "Mixamo" and out.units == "m" and out.bvh.n_frames == bvh.n_frames
+    character = load_character(data)
+    err = np.abs(character_positions(character, out.bvh) - character_positions(character, bvh)).max()
+    print(f"Mixamo glTF -> character: max joint error {err:.2e} m")
+    assert err < 1e-4

@@ -330,13 +330,11 @@ def test_units_and_up_axis_overrides_and_errors(walks):
         normalize_bvh(bvh, up_axis="x")
 
 
-def test_rig_with_joint_frames_not_aligned_to_the_world(character, walks, rng):
-    """A glTF-like rig: every joint frame turned at random in the rest pose (Mixamo names, metres). Removing the
-    rest pose must give the very same character poses as the CMU file."""
+def rig_with_turned_frames(bvh: Bvh, rng: np.random.Generator):
+    """The motion on a glTF-like rig: Mixamo names, metres, every joint frame turned at random in the rest pose
+    (same world motion).  Returns the skeleton, local rotations, root translation and end sites."""
     from anim_core.quat import quat_normalize
-    from anim_core.rigmap import normalize_motion
 
-    bvh = walks[0]
     s = bvh.posed_skeleton()
     rot, root = bvh.pose_arrays()
     g_rot, _ = s.forward_kinematics(rot, root)
@@ -353,7 +351,16 @@ def test_rig_with_joint_frames_not_aligned_to_the_world(character, walks, rng):
     metres = 0.0254 / 0.45
     rig = Skeleton([table[n] for n in s.names], s.parents, offsets * metres, rest_local)
     ends = {j: rotate(quat_conj(g0[j]), e) * metres for j, e in bvh.end_sites.items()}
-    out = normalize_motion(rig, local, root * metres, bvh.frame_time, ends, "turned.glb")
+    return rig, local, root * metres, ends
+
+
+def test_rig_with_joint_frames_not_aligned_to_the_world(character, walks, rng):
+    """Removing the rest pose of a rig whose joint frames are turned must give the very same character poses."""
+    from anim_core.rigmap import normalize_motion
+
+    bvh = walks[0]
+    rig, local, root, ends = rig_with_turned_frames(bvh, rng)
+    out = normalize_motion(rig, local, root, bvh.frame_time, ends, "turned.glb")
     assert out.units == "m"
     err = np.abs(character_positions(character, out.bvh) - character_positions(character, bvh)).max()
     assert err < 1e-6, err
