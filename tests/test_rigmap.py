@@ -364,3 +364,78 @@ def test_rig_with_joint_frames_not_aligned_to_the_world(character, walks, rng):
     assert out.units == "m"
     err = np.abs(character_positions(character, out.bvh) - character_positions(character, bvh)).max()
     assert err < 1e-6, err
+
+
+def _biped(spec: list[tuple[str, str | None, tuple[float, float, float]]]) -> Skeleton:
+    names = [n for n, _, _ in spec]
+    return Skeleton(names, [names.index(p) if p else -1 for _, p, _ in spec], np.array([o for _, _, o in spec]))
+
+
+def _mirror_spec(spec, left: str, right: str):
+    out = []
+    for name, parent, (x, y, z) in spec:
+        out.append((name, parent, (x, y, z)))
+        if left in name:
+            out.append((name.replace(left, right), parent.replace(left, right) if parent else parent, (-x, y, z)))
+    return out
+
+
+def test_real_mixamo_and_unreal_hierarchies_map_as_expected():
+    """Hierarchies as the tools export them (geometry approximate, cm): Mixamo without pelvis bones, three spine
+    joints, end joints and four-joint fingers; the UE4 mannequin with a root, twist bones beside the limb chains and
+    IK helper bones under the root."""
+    mixamo = _mirror_spec([
+        ("mixamorig:Hips", None, (0, 100, 0)), ("mixamorig:Spine", "mixamorig:Hips", (0, 10, 0)),
+        ("mixamorig:Spine1", "mixamorig:Spine", (0, 12, 0)), ("mixamorig:Spine2", "mixamorig:Spine1", (0, 14, 0)),
+        ("mixamorig:Neck", "mixamorig:Spine2", (0, 15, 0)), ("mixamorig:Head", "mixamorig:Neck", (0, 10, 2)),
+        ("mixamorig:HeadTop_End", "mixamorig:Head", (0, 18, 0)),
+        ("mixamorig:LeftShoulder", "mixamorig:Spine2", (6, 10, 0)),
+        ("mixamorig:LeftArm", "mixamorig:LeftShoulder", (12, 0, 0)),
+        ("mixamorig:LeftForeArm", "mixamorig:LeftArm", (27, 0, 0)),
+        ("mixamorig:LeftHand", "mixamorig:LeftForeArm", (26, 0, 0)),
+        ("mixamorig:LeftHandThumb1", "mixamorig:LeftHand", (3, 0, 3)),
+        ("mixamorig:LeftHandIndex1", "mixamorig:LeftHand", (9, 0, 2)),
+        ("mixamorig:LeftHandIndex2", "mixamorig:LeftHandIndex1", (4, 0, 0)),
+        ("mixamorig:LeftUpLeg", "mixamorig:Hips", (9, -5, 0)),
+        ("mixamorig:LeftLeg", "mixamorig:LeftUpLeg", (0, -42, 0)),
+        ("mixamorig:LeftFoot", "mixamorig:LeftLeg", (0, -42, 0)),
+        ("mixamorig:LeftToeBase", "mixamorig:LeftFoot", (0, -8, 12)),
+        ("mixamorig:LeftToe_End", "mixamorig:LeftToeBase", (0, 0, 8)),
+    ], "Left", "Right")
+    m = map_skeleton(_biped(mixamo))
+    d = m.as_dict()
+    assert m.convention == "Mixamo"
+    assert (d["LowerBack"], d["Spine"], d["Spine1"], d["Neck1"], d["Head"]) == tuple(
+        "mixamorig:" + n for n in ("Spine", "Spine1", "Spine2", "Neck", "Head"))
+    assert (d["LeftShoulder"], d["LeftArm"], d["LeftForeArm"], d["LeftHand"]) == tuple(
+        "mixamorig:" + n for n in ("LeftShoulder", "LeftArm", "LeftForeArm", "LeftHand"))
+    assert (d["RightUpLeg"], d["RightLeg"], d["RightFoot"], d["RightToeBase"]) == tuple(
+        "mixamorig:" + n for n in ("RightUpLeg", "RightLeg", "RightFoot", "RightToeBase"))
+    assert d["LThumb"] == "mixamorig:LeftHandThumb1" and d["LeftHandIndex1"] == "mixamorig:LeftHandIndex1"
+    assert "LHipJoint" not in d and "mixamorig:HeadTop_End" in m.unmapped
+
+    unreal = _mirror_spec([
+        ("root", None, (0, 0, 0)), ("pelvis", "root", (0, 100, 0)), ("spine_01", "pelvis", (0, 10, 0)),
+        ("spine_02", "spine_01", (0, 14, 0)), ("spine_03", "spine_02", (0, 14, 0)),
+        ("neck_01", "spine_03", (0, 16, 0)), ("head", "neck_01", (0, 10, 0)),
+        ("clavicle_l", "spine_03", (4, 10, 0)), ("upperarm_l", "clavicle_l", (15, 0, 0)),
+        ("upperarm_twist_01_l", "upperarm_l", (14, 0, 0)), ("lowerarm_l", "upperarm_l", (28, 0, 0)),
+        ("lowerarm_twist_01_l", "lowerarm_l", (13, 0, 0)), ("hand_l", "lowerarm_l", (26, 0, 0)),
+        ("index_01_l", "hand_l", (10, 0, 2)), ("thumb_01_l", "hand_l", (3, 0, 3)),
+        ("thigh_l", "pelvis", (9, -4, 0)), ("thigh_twist_01_l", "thigh_l", (0, -20, 0)),
+        ("calf_l", "thigh_l", (0, -43, 0)), ("calf_twist_01_l", "calf_l", (0, -20, 0)),
+        ("foot_l", "calf_l", (0, -42, 0)), ("ball_l", "foot_l", (0, -8, 13)),
+        ("ik_foot_root", "root", (0, 0, 0)), ("ik_foot_l", "ik_foot_root", (9, 8, 0)),
+    ], "_l", "_r")
+    m = map_skeleton(_biped(unreal))
+    d = m.as_dict()
+    assert m.convention == "Unreal"
+    assert (d["Hips"], d["LowerBack"], d["Spine"], d["Spine1"], d["Neck1"], d["Head"]) == \
+        ("pelvis", "spine_01", "spine_02", "spine_03", "neck_01", "head")
+    assert (d["LeftShoulder"], d["LeftArm"], d["LeftForeArm"], d["LeftHand"]) == \
+        ("clavicle_l", "upperarm_l", "lowerarm_l", "hand_l")
+    assert (d["RightUpLeg"], d["RightLeg"], d["RightFoot"], d["RightToeBase"]) == \
+        ("thigh_r", "calf_r", "foot_r", "ball_r")
+    assert {"upperarm_twist_01_l", "thigh_twist_01_r", "ik_foot_l", "root"} <= set(m.unmapped)
+    assert mirror_partners(m.source_names)[m.source_names.index("upperarm_twist_01_l")] == \
+        m.source_names.index("upperarm_twist_01_r")
