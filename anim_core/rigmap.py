@@ -6,8 +6,9 @@ are).  Every other part of anim_core that takes a BVH (clips, retargeting, foot 
 a source from another rig is first brought into it with :func:`normalize_bvh`.
 
 Names are read as *side* + *stem* (:func:`split_side`): prefixes of Mixamo (``mixamorig:``, ``mixamorig_``,
-``Armature_mixamorig``) and any ``namespace:``/``Armature|`` are dropped, then a side is recognised as a word
-(``Left``/``Right`` before or after the stem, any case), ``L_``/``R_`` prefixes, ``.L``/``_L``/``_l`` suffixes
+``Armature_mixamorig``), Blender's ``DEF-``, 3ds Max's ``Bip01 `` and any ``namespace:``/``Armature|`` are dropped,
+then a side is recognised as a word
+(``Left``/``Right`` before or after the stem, any case), ``L_``/``R_``/``L `` prefixes, ``.L``/``_L``/``_l`` suffixes
 (Blender, Unreal's ``thigh_l``), or a single letter glued to a capitalised stem (CMU's ``LHipJoint``, Poser/DAZ's
 ``lThigh``).  Stems give candidate roles; the hierarchy and the rest-pose bone lengths decide: a limb is the path
 from the hips (legs) or the chest (arms: the joint where both arms' paths meet) to its end joint (``foot``/
@@ -68,13 +69,13 @@ REQUIRED_PARTS: dict[str, tuple[str, ...]] = {
 MAX_JOINTS = 1000
 MAX_FRAMES = 1_000_000
 
-_PREFIX = re.compile(r"^(?:.*[:|])?(?:armature_?)?(?:mixamorig[_:]?)?", re.IGNORECASE)
+_PREFIX = re.compile(r"^(?:.*[:|])?(?:armature_?)?(?:mixamorig[_:]?)?(?:def[-_])?(?:bip0*1[ _])?", re.IGNORECASE)
 # (pattern, side group, strong): a strong marker without a partner is an error in mirroring, a weak one is central.
 _SIDES: tuple[tuple[re.Pattern[str], bool], ...] = (
     (re.compile(r"^(?P<side>left|right)(?=[^a-z]|$)[ _.]?", re.IGNORECASE), True),
     (re.compile(r"^(?P<side>left|right)", re.IGNORECASE), True),
     (re.compile(r"[ _.]?(?P<side>left|right)$", re.IGNORECASE), True),
-    (re.compile(r"^(?P<side>[LRlr])[_.]"), True),
+    (re.compile(r"^(?P<side>[LRlr])[_. ]"), True),
     (re.compile(r"[_.](?P<side>[LRlr])$"), True),
     (re.compile(r"^(?P<side>[LRlr])(?=[A-Z])"), False),
 )

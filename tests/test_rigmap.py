@@ -439,3 +439,22 @@ def test_real_mixamo_and_unreal_hierarchies_map_as_expected():
     assert {"upperarm_twist_01_l", "thigh_twist_01_r", "ik_foot_l", "root"} <= set(m.unmapped)
     assert mirror_partners(m.source_names)[m.source_names.index("upperarm_twist_01_l")] == \
         m.source_names.index("upperarm_twist_01_r")
+
+
+@pytest.mark.parametrize(("name", "side", "stem", "partner"), [
+    ("mixamorig:LeftUpLeg", "L", "upleg", "mixamorig:RightUpLeg"),
+    ("Armature_mixamorigLeftShoulder", "L", "shoulder", "Armature_mixamorigRightShoulder"),
+    ("mixamorig_RightArm", "R", "arm", "mixamorig_LeftArm"),
+    ("thigh_l", "L", "thigh", "thigh_r"), ("hand.R", "R", "hand", "hand.L"), ("Thigh_L", "L", "thigh", "Thigh_R"),
+    ("lThigh", "L", "thigh", "rThigh"), ("rShin", "R", "shin", "lShin"), ("lCollar", "L", "collar", "rCollar"),
+    ("L_Hip", "L", "hip", "R_Hip"), ("left_hip", "L", "hip", "right_hip"), ("ThighLeft", "L", "thigh", "ThighRight"),
+    ("LHipJoint", "L", "hipjoint", "RHipJoint"), ("DEF-thigh.L", "L", "thigh", "DEF-thigh.R"),
+    ("Bip01 L Thigh", "L", "thigh", "Bip01 R Thigh"), ("LEFT_ARM", "L", "arm", "RIGHT_ARM"),
+    ("Hips", None, "hips", None), ("LowerBack", None, "lowerback", None), ("spine.001", None, "spine001", None),
+    ("Lthing", None, "lthing", None),
+])
+def test_names_read_as_side_and_stem(name, side, stem, partner):
+    from anim_core.rigmap import partner_name, split_side
+
+    s = split_side(name)
+    assert (s.side, s.stem, partner_name(name)) == (side, stem, partner)
