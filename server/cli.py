@@ -49,7 +49,6 @@ def clips_inspect(path: Path, mapping: Path | None, units: str | None, up_axis: 
 def clips_convert(data_dir: Path, path: Path, out: Path, mapping: Path | None, units: str | None,
                   up_axis: str | None) -> int:
     """Write a BVH/glTF motion retargeted onto the character as .glb/.gltf or .bvh (``animstudy clips convert``)."""
-    from anim_core.assets import AssetError
     from anim_core.character import load_character
     from anim_core.rigmap import read_mapping_file
     from anim_core.sourceinfo import export_on_character, inspect_source
@@ -60,7 +59,7 @@ def clips_convert(data_dir: Path, path: Path, out: Path, mapping: Path | None, u
         explicit = read_mapping_file(mapping) if mapping else None
         report = inspect_source(path, explicit, units, up_axis)[0]
         export_on_character(report.normalized, load_character(data_dir), out, report.name)
-    except (ValueError, OSError, AssetError) as exc:
+    except (ValueError, OSError) as exc:  # file, mapping and character errors are ValueErrors naming the file
         return _fail(str(exc))
     print(f"wrote {out} ({report.n_frames} frames at {report.fps:g} fps on the character)")
     return 0
