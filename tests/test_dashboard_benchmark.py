@@ -29,7 +29,7 @@ def site(data, tmp_path_factory):
     migrate(engine)
     with session_factory(engine)() as db:
         make_study(db)
-        create_researcher(db, "lead@example.org", "correct horse battery")
+        create_researcher(db, "lead@example.org", "correct horse battery", admin=True)
     with live_server(create_app(settings, engine, run_migrations=False)) as base:
         yield base, doc
     engine.dispose()
