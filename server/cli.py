@@ -54,8 +54,11 @@ def _fmt(value: float | None, digits: int) -> str:
 
 def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
     """Build the clip set, write it to ``out`` and print its metric table."""
-    from anim_core.assets import AssetError
-    from anim_core.clipset import ConfigError, build_clip_set, clip_warnings, load_config, write_clip_set
+    from anim_core.clipset import ConfigError, clip_warnings
+    from server.assets import AssetError
+    from server.clipset.build import build_clip_set
+    from server.clipset.config import load_config
+    from server.clipset.manifest import write_clip_set
 
     started = time.perf_counter()
     try:
@@ -75,7 +78,7 @@ def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
               f"{m['foot_slide_mm']:8.2f} {m['penetration_mm']:6.1f} {m['floating_mm']:8.1f} "
               f"{_fmt(m['mpjpe_mm'], 1):>8} {m['key_velocity_jump_rad_s']:14.3f} {m['jerk_mean']:9.1f} "
               f"{m['bytes']:6d}")
-    _print_comparison(clips, clip_warnings(clips, cfg))
+    _print_comparison(clips, clip_warnings(clips))
     return 0
 
 
@@ -95,13 +98,15 @@ def _print_comparison(clips: list, warnings: list[str]) -> None:
 def render(settings: Settings, out: Path, clips_dir: Path, workers: int, increments: list[int],
            width: int, height: int, shadows: bool) -> int:
     """Render the clip set's videos into ``out`` (building the clip set first if it is missing)."""
-    from anim_core.assets import AssetError
+    from anim_core.clipset import ConfigError
+    from server.assets import AssetError
+    from server.clipset.build import build_clip_set
+    from server.clipset.manifest import MANIFEST, write_clip_set
     from server.media.build import MediaError, render_media
     from server.media.scene import RenderSettings
 
     try:
-        if not (clips_dir / "manifest.json").is_file():
-            from anim_core.clipset import ConfigError, build_clip_set, write_clip_set
+        if not (clips_dir / MANIFEST).is_file():
 
             print(f"no clip set in {clips_dir}: building it", flush=True)
             try:
@@ -123,7 +128,8 @@ def prepare_study(settings: Settings, session_factory: object) -> None:
     missing), then create and open the default study."""
     from sqlalchemy import select
 
-    from anim_core.clipset import build_clip_set, write_clip_set
+    from server.clipset.build import build_clip_set
+    from server.clipset.manifest import MANIFEST, write_clip_set
     from server.media.build import render_media
     from server.studies.design import Design
     from server.studies.models import Study, StudyState
@@ -133,7 +139,7 @@ def prepare_study(settings: Settings, session_factory: object) -> None:
         if session.scalar(select(Study.id).limit(1)) is not None:
             return
         design = Design()
-        if not (settings.clips_dir / "manifest.json").is_file():
+        if not (settings.clips_dir / MANIFEST).is_file():
             print(f"building the clip set in {settings.clips_dir}", flush=True)
             write_clip_set(build_clip_set(settings.data, progress=lambda m: print(m, flush=True)), settings.clips_dir)
         manifest = render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret,
@@ -167,8 +173,8 @@ def serve(settings: Settings, host: str, port: int, workers: int) -> int:
     """Migrate, prepare the default study if there is none, and serve."""
     import uvicorn
 
-    from anim_core.assets import AssetError
     from anim_core.clipset import ConfigError
+    from server.assets import AssetError
     from server.db import make_engine, migrate, session_factory
     from server.errors import ServiceError
     from server.media.build import MediaError
@@ -213,8 +219,9 @@ def bench(settings: Settings, json_path: Path, characters: list[int], stages: li
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
     from anim_core import benchmark
-    from anim_core.assets import AssetError
-    from anim_core.clipset import ConfigError, build_clip_set
+    from anim_core.clipset import ConfigError
+    from server.assets import AssetError
+    from server.clipset.build import build_clip_set
 
     started = time.perf_counter()
     try:

@@ -26,8 +26,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from anim_core import assets
-from anim_core.assets import CHARACTER_FILES
+from server import assets
+from server.assets import CHARACTER_FILES
+from server.clipset.manifest import ManifestError, read_clip_manifest
 
 from .scene import Framing, RenderSettings, frame_motion
 
@@ -51,8 +52,9 @@ class ClipFile:
 
     id: str
     animation: str
+    condition: str
     method: str
-    increment: int | None
+    params: dict[str, Any]
     path: Path
     fps: int
     frames: int
@@ -106,29 +108,26 @@ def _digest_arrays(path: Path) -> str:
 
 
 def read_clip_set(clips_dir: Path) -> list[ClipFile]:
-    """The clips listed in ``clips_dir/manifest.json``."""
-    manifest_path = Path(clips_dir) / MANIFEST
+    """The clips listed in the clip manifest of ``clips_dir`` (:mod:`server.clipset.manifest`)."""
     try:
-        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
-        clips = []
-        for e in manifest["clips"]:
-            path = Path(clips_dir) / e["file"]
-            clips.append(ClipFile(e["id"], e["animation"], e["method"], e["increment"], path, int(e["fps"]),
-                                  round(e["duration_s"] * e["fps"]), e["playback"], bool(e["in_place"]),
-                                  float(e["root_speed_mps"]), _digest_arrays(path)))
+        manifest = read_clip_manifest(clips_dir)
+        return [ClipFile(e.id, e.animation, e.condition, e.method, e.params, Path(clips_dir) / e.file, e.fps,
+                         e.frames, e.playback, e.in_place, e.root_speed_mps, _digest_arrays(Path(clips_dir) / e.file))
+                for e in manifest.clips]
+    except ManifestError as exc:
+        raise MediaError(str(exc)) from None
     except FileNotFoundError as exc:
         raise MediaError(f"no clip set at {clips_dir}: {exc.filename} is missing (run `animstudy clips build`)"
                          ) from None
-    except (KeyError, TypeError, ValueError, OSError) as exc:
+    except (KeyError, ValueError, OSError) as exc:
         raise MediaError(f"the clip set in {clips_dir} is unreadable ({exc!r}); rebuild it") from None
-    return clips
 
 
 def default_pairs(clips: Sequence[ClipFile], increments: Sequence[int]) -> list[tuple[str, str]]:
     """Keyframe against each compared hybrid increment, in both side orders (the thesis design)."""
     pairs = []
     for c in clips:
-        if c.method == "hybrid" and c.increment in increments:
+        if c.method == "hybrid" and c.params["increment"] in increments:
             keyframe = f"{c.animation}-keyframe"
             pairs += [(keyframe, c.id), (c.id, keyframe)]
     return pairs
@@ -226,9 +225,7 @@ def _release_memory() -> None:
 
 @functools.cache
 def _character(data_dir: Path) -> Character:
-    from anim_core.character import load_character
-
-    return load_character(data_dir)  # once per worker process, not per job
+    return assets.character(data_dir)  # once per worker process, not per job
 
 
 def run_job(job: AnimationJob) -> list[tuple[str, float]]:
