@@ -224,3 +224,21 @@ def test_default_clip_set_arrays_are_bit_identical_to_before_the_registry(data, 
                 h.update(np.ascontiguousarray(a).tobytes())
         digests[path.stem] = h.hexdigest()[:32]
     assert digests == BEFORE_REGISTRY
+
+
+def test_render_manifest_round_trip_and_version_check(tmp_path):
+    from server.media.manifest import read_render_manifest, write_render_manifest
+    from tests.server_fixtures import fake_media
+
+    media = fake_media()
+    write_render_manifest(tmp_path, media)
+    assert read_render_manifest(tmp_path) == media
+    assert media.clip_index()[("walk", "hybrid1")] == "walk-hybrid1"
+    raw = json.loads((tmp_path / MANIFEST).read_text())
+    (tmp_path / MANIFEST).write_text(json.dumps({**raw, "version": 1}))
+    with pytest.raises(ManifestError, match=r"render manifest .* version 1, .* rebuild it with `animstudy render`"):
+        read_render_manifest(tmp_path)
+    del raw["pairs"][0]["video"]
+    (tmp_path / MANIFEST).write_text(json.dumps(raw))
+    with pytest.raises(ManifestError, match=r"corrupt \(pairs\.0\.video: Field required\)"):
+        read_render_manifest(tmp_path)

@@ -18,7 +18,8 @@ from anim_core.character import bind_mesh
 from server.assets import character as load_character
 from server.clipset.build import build_clip_set
 from server.clipset.manifest import write_clip_set
-from server.media.build import BODY_PADDING_M, MANIFEST, MEDIA_NAME, grid_spacing, read_clip_set, render_media
+from server.media.build import BODY_PADDING_M, MEDIA_NAME, grid_spacing, read_clip_set, render_media
+from server.media.manifest import MANIFEST
 from server.media.renderer import ClipRenderer
 from server.media.scene import RenderSettings, frame_motion
 from server.media.video import FILE_TIME, decode, probe
@@ -50,6 +51,9 @@ def test_every_video_decodes_with_the_expected_frames(media, clips_dir):
     out, manifest, _ = media
     clips = {c.id: c for c in read_clip_set(clips_dir)}
     assert len(manifest["clips"]) == 16 and len(manifest["pairs"]) == 16
+    # The server finds stimuli by (animation, condition): every clip entry says both, as the clip set does.
+    assert {(e["animation"], e["condition"]) for e in manifest["clips"].values()} == {
+        (c.animation, c.condition) for c in clips.values()}
     for entry in [*manifest["clips"].values(), *manifest["pairs"]]:
         info = probe(out / entry["video"])
         clip = clips[entry.get("clip") or entry["left"]]

@@ -30,12 +30,12 @@ from server import assets
 from server.assets import CHARACTER_FILES
 from server.clipset.manifest import ManifestError, read_clip_manifest
 
+from .manifest import RenderedClip, RenderedPair, RenderManifest, write_render_manifest
 from .scene import Framing, RenderSettings, frame_motion
 
 if TYPE_CHECKING:
     from anim_core.character import Character
 
-MANIFEST = "manifest.json"
 MEDIA_NAME = re.compile(r"^[0-9a-f]{24}\.(mp4|jpg)$")
 DIVIDER_PX = 4
 DIVIDER_RGB = (58, 60, 64)
@@ -397,11 +397,7 @@ def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
                     results = [f.result() for f in as_completed(futures)]
         progress(f"rendered {sum(len(r) for r in results)} videos in {time.perf_counter() - started:.1f} s, "
                  f"peak memory {memory.peak_bytes / 2**20:.0f} MiB (all processes)")
-    manifest = _manifest(p, settings)
-    path = out_dir / MANIFEST
-    tmp = path.with_name(f".{MANIFEST}.tmp")
-    tmp.write_text(json.dumps(manifest, indent=2) + "\n", encoding="utf-8")
-    tmp.replace(path)
+    path = write_render_manifest(out_dir, _manifest(p, settings))
     keep = {o.video for o in p.outputs} | {o.poster for o in p.outputs}
     stale = [f for f in out_dir.iterdir() if (MEDIA_NAME.match(f.name) and f.name not in keep)
              or f.name.endswith(".tmp")]
@@ -416,17 +412,17 @@ def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
     return path
 
 
-def _manifest(p: Plan, settings: RenderSettings) -> dict[str, Any]:
-    def entry(o: Output, width: int) -> dict[str, Any]:
+def _manifest(p: Plan, settings: RenderSettings) -> RenderManifest:
+    def video(o: Output, width: int) -> dict[str, Any]:
         c = p.clips[o.clips[0]]
         return {"video": o.video, "poster": o.poster, "frames": c.frames, "fps": c.fps, "width": width,
                 "height": settings.height}
 
     pair_width = 2 * settings.width + DIVIDER_PX
-    return {
-        "version": 1,
-        "settings": settings.as_dict(),
-        "clips": {i: {"clip": i, **entry(o, settings.width)} for i, o in p.clip_outputs.items()},
-        "pairs": [{"left": left, "right": right, **entry(o, pair_width)}
-                  for (left, right), o in p.pair_outputs.items()],
-    }
+    return RenderManifest(
+        settings=settings.as_dict(),
+        clips={i: RenderedClip(clip=i, animation=p.clips[i].animation, condition=p.clips[i].condition,
+                               **video(o, settings.width)) for i, o in p.clip_outputs.items()},
+        pairs=[RenderedPair(left=left, right=right, **video(o, pair_width))
+               for (left, right), o in p.pair_outputs.items()],
+    )
