@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from . import metrics
+from .clip import KeyframeClip
 from .clipset import BuiltClip
 from .crowd import CrowdBuffers, bake, numba
 from .hybrid import SquadClip
@@ -81,7 +82,7 @@ def lod_variants() -> list[tuple[str, dict[str, Any]]]:
 
 
 def _reference_step(clip: Any) -> Callable[[np.ndarray, int], Any]:
-    sample = (lambda t: clip.sample(t, method="nlerp")) if hasattr(clip, "resample") else clip.sample
+    sample = (lambda t: clip.sample(t, method="nlerp")) if isinstance(clip, KeyframeClip) else clip.sample
     return lambda t, _f: clip.skeleton.forward_kinematics(*sample(t))
 
 
@@ -138,7 +139,7 @@ def _time(cases: Sequence[Case], phases: np.ndarray, frames: int, warmup: int) -
 
 
 def _case(c: BuiltClip, variant: str, step: Callable[[np.ndarray, int], Any]) -> Case:
-    return Case(c.animation, c.method, c.increment, variant, step)
+    return Case(c.animation, c.method, c.params.get("increment"), variant, step)
 
 
 def reference_bytes(clip: Any, naive: bool = False) -> int:
@@ -195,7 +196,7 @@ def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTE
     accuracy: list[dict[str, Any]] = []
     lods = dict(lod_variants())
     for c in clips:
-        label = {"clip": c.id, "animation": c.animation, "method": c.method, "increment": c.increment}
+        label = {"clip": c.id, "animation": c.animation, "method": c.method, "increment": c.params.get("increment")}
         stored = metrics.storage_bytes(c.key_times.size, c.character.skeleton.n_joints)
         rate = ACCURACY_OVERSAMPLING * c.fps
         for v in timed_variants:

@@ -1,6 +1,7 @@
 """The skinned character (MakeHuman base mesh on the 31-joint ``cmu_mb`` rig) and retargeting of mocap onto it.
 
-Source files (``character/makehuman_cmu_mb/`` of the data directory): ``base.obj.gz`` (decimetres, Y up, A-pose;
+Source files (:func:`load_character` takes their paths; the server finds and verifies them in its data directory,
+``server.assets``): ``base.obj.gz`` (decimetres, Y up, A-pose;
 only the group ``body`` is the character, the rest is helper geometry), ``rig.cmu_mb.json`` (bone heads and tails
 in metres, Blender Z up) and ``weights.cmu_mb.json.gz`` (per bone ``[vertex, weight]`` lists, up to 8 bones per
 vertex).  Everything here is converted to **metres, Y up**, the character facing +Z with its left at +X (the
@@ -15,6 +16,7 @@ the A-posed mesh; it is computed down each chain relative to the parent's, so tw
 
 from __future__ import annotations
 
+import gzip
 import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -23,8 +25,6 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from . import assets
-from .assets import CHARACTER_FILES, AssetError
 from .clip import Pose
 from .quat import identity, quat_conj, quat_from_axis_angle, quat_mul, rotate
 from .skeleton import Skeleton
@@ -33,6 +33,11 @@ from .skinning import MAX_INFLUENCES, SkinnedMesh, invert_transforms, transforms
 Array = NDArray[np.float64]
 
 BODY_GROUP = "body"
+
+
+class CharacterError(ValueError):
+    """A character file is unreadable or not what the loader expects; the message names the file."""
+
 #: BVH joint name -> rig joint name where they differ.
 CMU_TO_RIG = {"LeftHandIndex1": "LeftHandFinger1", "RightHandIndex1": "RightHandFinger1"}
 #: Pelvis "bones" from the hip centre to each hip socket: the mocap and the rig disagree on where these point
@@ -70,16 +75,19 @@ class Character:
 
 def _open_text(path: Path) -> str:
     try:
-        return assets.read_bytes(path).decode("utf-8")
+        data = path.read_bytes()
+        return (gzip.decompress(data) if path.suffix == ".gz" else data).decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise AssetError(f"{path} is not UTF-8 text: {exc}") from None
+        raise CharacterError(f"{path} is not UTF-8 text: {exc}") from None
+    except (OSError, EOFError) as exc:
+        raise CharacterError(f"cannot read {path}: {exc} (corrupt file?)") from None
 
 
 def _load_json(path: Path) -> dict:
     try:
         return json.loads(_open_text(path))
     except json.JSONDecodeError as exc:
-        raise AssetError(f"{path} is not valid JSON: {exc}") from None
+        raise CharacterError(f"{path} is not valid JSON: {exc}") from None
 
 
 def _yup(blender: Array) -> Array:
@@ -103,13 +111,13 @@ def _parse_obj(text: str, path: Path) -> tuple[Array, NDArray[np.intp]]:
                 idx = [int(tok.split("/")[0]) - 1 for tok in line.split()[1:]]
                 faces.extend([idx[0], idx[k], idx[k + 1]] for k in range(1, len(idx) - 1))
     except (ValueError, IndexError):
-        raise AssetError(f"{path}, line {number}: malformed OBJ line {line[:60]!r}") from None
+        raise CharacterError(f"{path}, line {number}: malformed OBJ line {line[:60]!r}") from None
     if not faces:
-        raise AssetError(f"{path} has no faces in group {BODY_GROUP!r}")
+        raise CharacterError(f"{path} has no faces in group {BODY_GROUP!r}")
     v = np.array(vertices, dtype=np.float64)
     f = np.array(faces, dtype=np.intp)
     if f.min() < 0 or f.max() >= len(v):
-        raise AssetError(f"{path}: a face refers to a vertex that does not exist")
+        raise CharacterError(f"{path}: a face refers to a vertex that does not exist")
     return v, f
 
 
@@ -123,13 +131,14 @@ def vertex_normals(vertices: Array, faces: NDArray[np.intp]) -> Array:
     return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-20)
 
 
-def load_character(data_dir: Path) -> Character:
-    """Load the MakeHuman character from ``data_dir`` (body only, metres, Y up, weights normalized per vertex)."""
-    rig_path, weights_path, obj_path = (assets.verify(data_dir, name) for name in CHARACTER_FILES)
+def load_character(rig_path: Path, weights_path: Path, obj_path: Path) -> Character:
+    """Load the MakeHuman character from its rig, weights and mesh files (each may be gzip-compressed, ``.gz``):
+    body only, metres, Y up, weights normalized per vertex."""
+    rig_path, weights_path, obj_path = Path(rig_path), Path(weights_path), Path(obj_path)
     rig = _load_json(rig_path)
     weight_lists = _load_json(weights_path).get("weights")
     if not isinstance(weight_lists, dict):
-        raise AssetError(f"{weights_path} has no 'weights' table")
+        raise CharacterError(f"{weights_path} has no 'weights' table")
     all_vertices, faces = _parse_obj(_open_text(obj_path), obj_path)
 
     # Rig joints in topological order (parents first), names as in the file.
@@ -139,7 +148,7 @@ def load_character(data_dir: Path) -> Character:
         while pending:
             ready = [n for n, b in pending.items() if b["parent"] == "" or b["parent"] in order]
             if not ready:
-                raise AssetError(f"rig bones {sorted(pending)} have parents that are not in the rig")
+                raise CharacterError(f"rig bones {sorted(pending)} have parents that are not in the rig")
             for n in sorted(ready):
                 order.append(n)
                 del pending[n]
@@ -147,7 +156,7 @@ def load_character(data_dir: Path) -> Character:
         heads = _yup(np.array([rig[n]["head"]["default_position"] for n in order]))
         tails = _yup(np.array([rig[n]["tail"]["default_position"] for n in order]))
     except (KeyError, TypeError, ValueError) as exc:
-        raise AssetError(f"{rig_path} is not a rig file as expected: {exc!r}") from None
+        raise CharacterError(f"{rig_path} is not a rig file as expected: {exc!r}") from None
 
     # Keep the body's vertices only, re-indexed.
     used = np.unique(faces)
@@ -159,15 +168,15 @@ def load_character(data_dir: Path) -> Character:
     influences: list[list[tuple[int, float]]] = [[] for _ in range(len(used))]
     for bone, pairs in weight_lists.items():
         if bone not in order:
-            raise AssetError(f"skin weights name bone {bone!r}, which is not in the rig")
+            raise CharacterError(f"skin weights name bone {bone!r}, which is not in the rig")
         j = order.index(bone)
         for vertex, weight in pairs:
             if 0 <= vertex < len(remap) and remap[vertex] >= 0 and weight > 0:
                 influences[remap[vertex]].append((j, float(weight)))
     if any(len(inf) == 0 for inf in influences):
-        raise AssetError("some body vertices have no skin weights")
+        raise CharacterError("some body vertices have no skin weights")
     if max(len(inf) for inf in influences) > MAX_INFLUENCES:
-        raise AssetError(f"some vertices have more than {MAX_INFLUENCES} influences")
+        raise CharacterError(f"some vertices have more than {MAX_INFLUENCES} influences")
     joints = np.zeros((len(used), MAX_INFLUENCES), dtype=np.intp)
     weights = np.zeros((len(used), MAX_INFLUENCES))
     for v, inf in enumerate(influences):  # once at load time
@@ -175,7 +184,7 @@ def load_character(data_dir: Path) -> Character:
         weights[v, : len(inf)] = [w for _, w in inf]
     sums = weights.sum(axis=1)
     if np.abs(sums - 1.0).max() > 1e-3:
-        raise AssetError(f"skin weights of the body do not sum to 1 (worst vertex sums to {sums.min():.4f})")
+        raise CharacterError(f"skin weights of the body do not sum to 1 (worst vertex sums to {sums.min():.4f})")
     weights /= sums[:, None]
     return Character(tuple(order), parents, heads, tails, vertices, vertex_normals(vertices, faces), faces,
                      joints, weights)
@@ -230,11 +239,11 @@ def bind_mesh(character: Character, joint_names: Sequence[str], bind_rotations: 
     for j, name in enumerate(joint_names):
         rig = name_map.get(name, name)
         if rig not in character.names:
-            raise AssetError(f"the character has no joint for {name!r}")
+            raise CharacterError(f"the character has no joint for {name!r}")
         rig_to_joint[character.index(rig)] = j
     joints = rig_to_joint[character.joints]
     if np.any((joints < 0) & (character.weights > 0)):
-        raise AssetError("the mesh is weighted to rig joints that the skeleton does not have")
+        raise CharacterError("the mesh is weighted to rig joints that the skeleton does not have")
     weights = np.where(joints >= 0, character.weights, 0.0)
     inverse_bind = invert_transforms(transforms(bind_rotations, bind_positions))
     return SkinnedMesh(character.vertices, character.normals, np.maximum(joints, 0), weights, inverse_bind)
@@ -257,11 +266,11 @@ def retarget(character: Character, mocap: Skeleton, end_sites: Mapping[int, Arra
         rig_index = np.array([character.index(name_map.get(n, n)) for n in mocap.names])
     except ValueError:
         missing = [n for n in mocap.names if name_map.get(n, n) not in character.names]
-        raise AssetError(f"the character has no joints for mocap joints {missing}") from None
+        raise CharacterError(f"the character has no joints for mocap joints {missing}") from None
     rig_parents = character.parents[rig_index]
     expected = np.where(mocap.parents >= 0, rig_index[np.maximum(mocap.parents, 0)], -1)
     if not np.array_equal(rig_parents, expected):
-        raise AssetError("the character's joint hierarchy differs from the mocap skeleton's")
+        raise CharacterError("the character's joint hierarchy differs from the mocap skeleton's")
 
     n = mocap.n_joints
     heads = character.heads[rig_index]
@@ -309,7 +318,7 @@ def retarget(character: Character, mocap: Skeleton, end_sites: Mapping[int, Arra
     try:
         chain = [mocap.index(name) for name in leg]
     except KeyError as exc:
-        raise AssetError(f"cannot scale the root: {exc}") from None
+        raise CharacterError(f"cannot scale the root: {exc}") from None
     mocap_leg = sum(np.linalg.norm(mocap.offsets[j]) for k, j in enumerate(chain) if k % 3)
     character_leg = sum(np.linalg.norm(offsets[j]) for k, j in enumerate(chain) if k % 3)
     contact = p_bind[:, 1] - character.sole_height

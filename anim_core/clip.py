@@ -13,7 +13,7 @@ the clip's own time axis ``[0, duration]``:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal, NamedTuple, Protocol
+from typing import TYPE_CHECKING, Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -34,18 +34,6 @@ class Pose(NamedTuple):
 
     rotations: Array
     root_translation: Array
-
-
-class Clip(Protocol):
-    """What every playable clip offers (keyframe and hybrid alike)."""
-
-    skeleton: Skeleton
-    mode: PlaybackMode
-
-    @property
-    def duration(self) -> float: ...
-
-    def sample(self, t: ArrayLike) -> Pose: ...
 
 
 def playback_time(t: ArrayLike, duration: float, mode: PlaybackMode) -> tuple[Array, Array]:
@@ -124,6 +112,16 @@ class KeyframeClip:
     def n_keys(self) -> int:
         return int(self.times.shape[0])
 
+    @property
+    def key_times(self) -> Array:
+        """``(K,)`` times of the stored keys: a loop's last key repeats its first and is not stored."""
+        return self.times[:-1] if self.mode == "loop" else self.times
+
+    @property
+    def key_rotations(self) -> Array:
+        """``(K, J, 4)`` rotations of the stored keys (as :attr:`key_times`)."""
+        return self.rotations[: self.key_times.size]
+
     def _segments(self, clip_t: Array) -> tuple[Array, Array]:
         i = np.clip(np.searchsorted(self.times, clip_t, side="right") - 1, 0, self.n_keys - 2)
         frac = (clip_t - self.times[i]) / (self.times[i + 1] - self.times[i])
@@ -147,12 +145,6 @@ class KeyframeClip:
         elif self.mode == "loop":
             root = root + self.velocity * (cycles * self.duration)[..., None]
         return Pose(rot, root)
-
-    def sample_frames(self, fps: float, n_frames: int | None = None) -> Pose:
-        """Poses at ``fps`` frames per second from time 0: ``n_frames`` of them, default one whole clip."""
-        if n_frames is None:
-            n_frames = int(np.floor(self.duration * fps + 1e-9)) + 1
-        return self.sample(np.arange(n_frames) / fps)
 
     def resample(self, rate: float) -> KeyframeClip:
         """A clip with keys every ``1 / rate`` seconds (slerp between the original keys); the end key is kept."""

@@ -1,59 +1,54 @@
-"""The thesis clip set: CMU motion capture on the MakeHuman character, keyframe and hybrid, with motion metrics.
+"""Building a clip set from motion capture: one animation's reference on the frame grid, every condition's clip
+from it (:mod:`anim_core.conditions`), the clips sampled, placed on the floor and measured.
 
-For each animation of ``clipset.toml`` (walk, run, crouch, idle) the builder
+For each animation (an :class:`AnimationConfig`, read from the clip-set file by ``server.clipset``) the builder
 
-1. reads the BVH file (checksum-verified) and retargets it onto the character (metres, Y up), turned to face +Z;
-2. picks what the file does not give: the gait cycle and keys from the feet, the crouch keys from the hip height,
-   the idle keys from the sway;
-3. makes the **keyframe** clip: the chosen stretch of mocap resampled to ``fps`` keys per second on a grid whose
-   length is a whole number of frames (the stretch is time-scaled by under half a frame to fit; a gait cycle also
-   gets an even number of frames so its mirrored half-cycle lands on the grid, and it fades in from the mocap's
-   next cycle so the loop is C1; a ping-pong clip eases to rest at its turns); the feet are kept planted where the
-   source's feet are down (two-bone IK after retargeting);
-4. builds the **hybrid** clips (increments 0, 1, 2) from keys of that keyframe clip, with exactly its period;
+1. takes the BVH motion and retargets it onto the character (metres, Y up), turned to face +Z
+   (:func:`source_from_bvh`);
+2. picks what the description does not give: the gait cycle and keys from the feet, the crouch keys from the hip
+   height, the idle keys from the sway;
+3. makes the **reference** keyframe clip: the chosen stretch of mocap resampled to ``fps`` keys per second on a
+   grid whose length is a whole number of frames (the stretch is time-scaled by under half a frame to fit; a gait
+   cycle also gets an even number of frames so its mirrored half-cycle lands on the grid, and it fades in from the
+   mocap's next cycle so the loop is C1; a ping-pong clip eases to rest at its turns); the feet are kept planted
+   where the source's feet are down (two-bone IK after retargeting) (:func:`reference_animation`);
+4. builds each condition's clip with its registered method from that reference and its base keys, with exactly
+   its period;
 5. samples every clip on the same grid (one loop, or one forward-and-back period), puts the floor under the
-   keyframe clip's planted feet and measures the motion metrics, hybrids against their keyframe clip.
+   reference's planted feet and measures the motion metrics, every other condition against the reference.
 
-``write_clip_set`` stores ``manifest.json`` plus one ``<clip_id>.npz`` per clip.
+Nothing here reads files: the server finds, verifies and writes them (``server.clipset``, ``server.assets``).
 """
 
 from __future__ import annotations
 
-import json
-import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from . import assets, contacts, metrics
-from .assets import AssetError
-from .bvh import BvhError, read_bvh
-from .character import Character, RetargetedCharacter, load_character, retarget
-from .clip import PLAYBACK_MODES, KeyframeClip, PlaybackMode, Pose, horizontal
+from . import contacts, metrics
+from .bvh import Bvh
+from .character import Character, RetargetedCharacter, retarget
+from .clip import KeyframeClip, PlaybackMode, Pose, horizontal
+from .conditions import REFERENCE, Animation, AnimClip, Condition, Kind
 from .footplant import plant_feet
-from .hybrid import HybridClip, build_crouch, build_gait, build_idle
 from .quat import quat_from_axis_angle, quat_mul, rotate, slerp
 from .skeleton import Skeleton
 
 Array = NDArray[np.float64]
-Kind = Literal["gait", "crouch", "idle"]
 
-DEFAULT_CONFIG = Path(__file__).with_name("clipset.toml")
-ANIMATIONS = ("walk", "run", "crouch", "idle")
 FEET = (("LeftFoot", "LeftToeBase"), ("RightFoot", "RightToeBase"))  # each foot: ankle and toe joints
 UP = 1
 FLOOR_PERCENTILE = 10  # the floor goes under the feet in the lowest 10 % of frames: planted, not mid-stride
-MANIFEST = "manifest.json"
 LEGS = (("LeftUpLeg", "LeftLeg", "LeftFoot"), ("RightUpLeg", "RightLeg", "RightFoot"))  # IK chains, as FEET
 METRES_PER_CMU_UNIT = 0.056444  # the source measured on its own skeleton
 LOOP_BLEND_S = 0.2  # a gait loop fades in from the mocap's next cycle over this long (seam C1)
 TURN_EASE_S = 0.2  # a ping-pong keyframe clip slows to rest over this long at each turn (no bounce)
 CROUCH_START = 0.02  # the crouch starts where the hips have gone 2 % of its depth down
-MAX_LAG_FRAMES = {"gait": 2, "crouch": 1, "idle": 1}  # a hybrid further out of phase gets a warning
+MAX_LAG_FRAMES = {"gait": 2, "crouch": 1, "idle": 1}  # a clip further out of phase with its reference: a warning
 
 
 class ConfigError(ValueError):
@@ -62,6 +57,9 @@ class ConfigError(ValueError):
 
 @dataclass(frozen=True)
 class AnimationConfig:
+    """One animation of a clip set: ``source`` names its BVH file (for the manifest; the caller reads it),
+    ``frames`` the source frames searched, ``keys``/``cycle`` source frames that override the automatic picks."""
+
     name: str
     kind: Kind
     source: str
@@ -70,72 +68,6 @@ class AnimationConfig:
     in_place: bool
     keys: tuple[int, ...] | None = None
     cycle: tuple[int, int] | None = None
-
-
-@dataclass(frozen=True)
-class ClipSetConfig:
-    fps: int
-    increments: tuple[int, ...]
-    relocate: tuple[str, ...]
-    animations: dict[str, AnimationConfig]
-
-
-def _frames(value: Any, where: str, count: int | None = None) -> tuple[int, ...]:
-    if (not isinstance(value, list) or not all(isinstance(v, int) and v >= 0 for v in value)
-            or (count is not None and len(value) != count) or list(value) != sorted(set(value))):
-        n = f"{count} " if count else ""
-        raise ConfigError(f"{where} must be a list of {n}increasing frame numbers, got {value!r}")
-    return tuple(value)
-
-
-def load_config(path: Path = DEFAULT_CONFIG) -> ClipSetConfig:
-    """Read and validate the clip set file."""
-    try:
-        raw = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"clip set file {path} does not exist") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: {exc}") from None
-    fps = raw.get("fps", 30)
-    if not isinstance(fps, int) or not 1 <= fps <= 240:
-        raise ConfigError(f"{path}: fps must be a whole number of frames per second (1..240), got {fps!r}")
-    increments = raw.get("increments", [0, 1, 2])
-    if not isinstance(increments, list) or not all(isinstance(i, int) and 0 <= i <= 4 for i in increments):
-        raise ConfigError(f"{path}: increments must be a list of integers 0..4, got {increments!r}")
-    relocate = raw.get("character", {}).get("relocate", [])
-    animations: dict[str, AnimationConfig] = {}
-    table = raw.get("animations", {})
-    for name in table:
-        if name not in ANIMATIONS:
-            raise ConfigError(f"{path}: unknown animation {name!r}; the clip set has {', '.join(ANIMATIONS)}")
-    for name in ANIMATIONS:
-        where = f"{path} [animations.{name}]"
-        entry = table.get(name)
-        if not isinstance(entry, dict):
-            raise ConfigError(f"{where} is missing")
-        kind = entry.get("kind")
-        if kind not in ("gait", "crouch", "idle"):
-            raise ConfigError(f"{where}: kind must be 'gait', 'crouch' or 'idle', got {kind!r}")
-        if not isinstance(entry.get("source"), str):
-            raise ConfigError(f"{where}: source must name a BVH file in the data directory")
-        playback = entry.get("playback", "loop" if kind == "gait" else "pingpong")
-        if playback not in PLAYBACK_MODES[:2]:
-            raise ConfigError(f"{where}: playback must be 'loop' or 'pingpong', got {playback!r}")
-        if (kind == "gait") != (playback == "loop"):
-            raise ConfigError(f"{where}: a {kind} plays {'loop' if kind == 'gait' else 'pingpong'} in the hybrid "
-                              f"method, so its keyframe clip must too")
-        in_place = entry.get("in_place", kind == "gait")
-        if not isinstance(in_place, bool):
-            raise ConfigError(f"{where}: in_place must be true or false")
-        keys = entry.get("keys")
-        cycle = entry.get("cycle")
-        if cycle is not None and kind != "gait":
-            raise ConfigError(f"{where}: only a gait has a cycle")
-        animations[name] = AnimationConfig(
-            name, kind, entry["source"], _frames(entry.get("frames"), f"{where} frames", 2), playback, in_place,
-            None if keys is None else _frames(keys, f"{where} keys", 2),
-            None if cycle is None else _frames(cycle, f"{where} cycle", 2))  # type: ignore[arg-type]
-    return ClipSetConfig(fps, tuple(increments), tuple(relocate), animations)
 
 
 # --- sources ---------------------------------------------------------------------------------------------------
@@ -172,17 +104,14 @@ def _turn(pose: Pose, yaw: float) -> Pose:
     return Pose(rot, rotate(q, pose.root_translation))
 
 
-def load_source(data_dir: Path, character: Character, config: AnimationConfig, relocate: tuple[str, ...]) -> Source:
-    """Read, retarget and turn one animation's source file (errors name the file)."""
-    path = assets.verify(data_dir, config.source)
-    try:
-        bvh = read_bvh(path)
-        rotations, root = bvh.pose_arrays()
-    except BvhError as exc:
-        raise AssetError(f"corrupt motion file: {exc}") from None
+def source_from_bvh(bvh: Bvh, character: Character, config: AnimationConfig,
+                    relocate: tuple[str, ...]) -> Source:
+    """One animation's mocap (``bvh``, read from ``config.source``) retargeted onto ``character`` and turned to
+    face +Z (errors name the file and the entry)."""
+    rotations, root = bvh.pose_arrays()
     first, last = config.frames
     if last >= bvh.n_frames:
-        raise ConfigError(f"[animations.{config.name}] frames {first}..{last} exceed {path.name}'s "
+        raise ConfigError(f"[animations.{config.name}] frames {first}..{last} exceed {config.source}'s "
                           f"{bvh.n_frames} frames")
     rc = retarget(character, bvh.skeleton, bvh.end_sites, relocate=relocate)
     pose = rc.pose(Pose(rotations[first:last + 1], root[first:last + 1]))
@@ -276,9 +205,11 @@ class BuiltClip:
 
     id: str
     animation: str
-    method: Literal["keyframe", "hybrid"]
-    increment: int | None
-    clip: KeyframeClip | HybridClip
+    kind: Kind
+    condition: str
+    method: str
+    params: dict[str, Any]
+    clip: AnimClip
     key_times: Array
     key_rotations: Array
     fps: int
@@ -301,20 +232,6 @@ class BuiltClip:
     @property
     def duration_s(self) -> float:
         return self.n_frames / self.fps
-
-    @property
-    def condition(self) -> str:
-        """The condition id the study server finds this clip by (with its animation)."""
-        return "keyframe" if self.method == "keyframe" else f"hybrid{self.increment}"
-
-    def manifest_entry(self) -> dict[str, Any]:
-        return {
-            "id": self.id, "animation": self.animation, "method": self.method, "increment": self.increment,
-            "key_count": int(self.key_times.size), "duration_s": self.duration_s, "fps": self.fps,
-            "frames": self.n_frames, "playback": self.playback, "in_place": self.in_place,
-            "root_speed_mps": self.root_speed_mps, "metrics": self.metrics, "source": self.source,
-            "file": f"{self.id}.npz", "condition": self.condition,
-        }
 
     def arrays(self) -> dict[str, Array]:
         sk = self.character.skeleton
@@ -431,9 +348,9 @@ def _on_grid(t: float, start: float, stop: float, clip: KeyframeClip) -> float:
     return clip.nearest_key_time((t - start) / (stop - start) * clip.duration)
 
 
-def build_animation(source: Source, fps: int, increments: tuple[int, ...],
-                    progress: Callable[[str], None] = lambda _msg: None) -> list[BuiltClip]:
-    """The keyframe clip and the hybrid increments of one animation, sampled and measured."""
+def reference_animation(source: Source, fps: int) -> tuple[Animation, dict[str, Any]]:
+    """The reference keyframe clip of one animation on the frame grid, with its base keys, as builders receive it
+    (:class:`~anim_core.conditions.Animation`); and what the manifest records of the source."""
     cfg = source.config
     t = source.time_of
     if cfg.kind == "gait":
@@ -446,44 +363,53 @@ def build_animation(source: Source, fps: int, increments: tuple[int, ...],
         start, stop = t(cycle[0]), t(cycle[1])
         keyframe, src_t = _grid_clip(source, start, stop, fps, even=True, mode="loop")
         keyframe = _planted(source, _crossfaded_loop(source, keyframe, src_t, LOOP_BLEND_S), src_t)
-        key_grid = [_on_grid(t(k), start, stop, keyframe) for k in keys]
-        hybrids = [build_gait(keyframe, key_grid, keyframe.duration, increment=i, in_place=cfg.in_place,
-                              name=cfg.name) for i in increments]
+        key_grid = tuple(_on_grid(t(k), start, stop, keyframe) for k in keys)
         keyframe = KeyframeClip(keyframe.skeleton, keyframe.times, keyframe.rotations, keyframe.root_translation,
                                 "loop", cfg.in_place, UP, cfg.name)
         source_info = {"file": cfg.source, "cycle_frames": list(cycle), "key_frames": list(keys)}
-    elif cfg.kind == "crouch":
-        # One stand -> deepest segment played forward and back: both clips are deepest at the turn.
-        keys = cfg.keys or pick_crouch(source)
-        start, stop = t(keys[0]), t(keys[1])
-        keyframe, src_t = _grid_clip(source, start, stop, fps, even=False, mode="pingpong", ease=TURN_EASE_S)
-        keyframe = _planted(source, keyframe, src_t)
-        hybrids = [build_crouch(keyframe, [0.0, keyframe.duration], increment=i, duration=keyframe.duration,
-                                time_scale=None, name=cfg.name) for i in increments]
-        source_info = {"file": cfg.source, "frames": [int(keys[0]), int(keys[1])], "key_frames": list(keys)}
     else:
-        keys = cfg.keys or pick_idle(source)
+        # crouch: one stand -> deepest segment played forward and back, so reference and hybrid are deepest at the
+        # turn; idle: the sway between its two extremes.
+        keys = cfg.keys or (pick_crouch(source) if cfg.kind == "crouch" else pick_idle(source))
         start, stop = t(keys[0]), t(keys[1])
         keyframe, src_t = _grid_clip(source, start, stop, fps, even=False, mode="pingpong", ease=TURN_EASE_S)
         keyframe = _planted(source, keyframe, src_t)
-        hybrids = [build_idle(keyframe, [0.0, keyframe.duration], increment=i, name=cfg.name) for i in increments]
+        key_grid = (0.0, keyframe.duration)
         source_info = {"file": cfg.source, "frames": [int(keys[0]), int(keys[1])], "key_frames": list(keys)}
-    source_skate = _source_skate(source, t(cfg.frames[0]), t(cfg.frames[1]), fps)
+    animation = Animation(cfg.name, cfg.kind, keyframe, key_grid, keyframe.duration, cfg.in_place, fps)
+    return animation, source_info
+
+
+def build_animation(source: Source, fps: int, conditions: Sequence[Condition],
+                    progress: Callable[[str], None] = lambda _msg: None) -> list[BuiltClip]:
+    """One clip per condition of one animation (the reference first), sampled and measured; clip ids are
+    ``<animation>-<condition id>``."""
+    cfg = source.config
+    reference = [c for c in conditions if c.is_reference]
+    if len(reference) != 1:
+        raise ConfigError(f"the clip set needs exactly one condition with method {REFERENCE!r} (the reference), "
+                          f"got {len(reference)}")
+    ordered = [*reference, *(c for c in conditions if not c.is_reference)]
+    animation, source_info = reference_animation(source, fps)
+    keyframe = animation.reference
+    source_skate = _source_skate(source, source.time_of(cfg.frames[0]), source.time_of(cfg.frames[1]), fps)
 
     n_frames = keyframe.n_keys - 1 if cfg.playback == "loop" else 2 * (keyframe.n_keys - 1)
     speed = float(np.linalg.norm(keyframe.velocity)) if cfg.in_place else 0.0
-    clips = [(f"{cfg.name}-keyframe", "keyframe", None, keyframe,
-              keyframe.times[:-1] if cfg.playback == "loop" else keyframe.times, keyframe.rotations)]
-    for i, h in zip(increments, hybrids, strict=True):
-        clips.append((f"{cfg.name}-hybrid{i}", "hybrid", i, h, np.asarray(h.key_times), h.key_rotations))
-
     built: list[BuiltClip] = []
-    for clip_id, method, inc, clip, key_times, key_rot in clips:
-        progress(f"  {clip_id}: {len(key_times)} keys")
+    for condition in ordered:
+        clip_id = f"{cfg.name}-{condition.id}"
+        try:
+            clip = condition.build(animation)
+        except ValueError as exc:
+            raise ConfigError(f"[[conditions]] {condition.id!r} on animation {cfg.name!r}: {exc}") from None
+        key_times = np.asarray(clip.key_times, np.float64)
+        progress(f"  {clip_id}: {key_times.size} keys")
         pose = clip.sample(np.arange(n_frames) / fps)
-        built.append(BuiltClip(clip_id, cfg.name, method, inc, clip, np.asarray(key_times, np.float64),
-                               np.asarray(key_rot[: len(key_times)]), fps, n_frames, cfg.playback, cfg.in_place,
-                               speed, source_info, source.character, pose.rotations, pose.root_translation,
+        built.append(BuiltClip(clip_id, cfg.name, cfg.kind, condition.id, condition.method,
+                               condition.params_dict(), clip, key_times, np.asarray(clip.key_rotations), fps,
+                               n_frames, cfg.playback, cfg.in_place, speed, source_info, source.character,
+                               pose.rotations, pose.root_translation,
                                *source.character.skeleton.forward_kinematics(*pose)))
     return _measure(_place_on_floor(built), keyframe.velocity if cfg.in_place else np.zeros(3), cfg.kind,
                     source_skate)
@@ -528,7 +454,7 @@ def _measure(clips: list[BuiltClip], ground_velocity: Array, kind: Kind, source_
         m["foot_skate_ratio"] = contacts.foot_skate_ratio(c.world_positions[:, feet], c.fps, UP, periodic=True,
                                                           ground_velocity=ground_velocity)
         m["source_foot_skate_ratio"] = source_skate
-        m["mpjpe_mm"] = (None if c.method == "keyframe"
+        m["mpjpe_mm"] = (None if c is keyframe
                          else metrics.mpjpe_mm(c.world_positions, keyframe.world_positions))
         m["key_velocity_jump_rad_s"] = metrics.angular_velocity_jumps(lambda t, c=c: c.clip.sample(t).rotations,
                                                                       c.key_times)
@@ -539,7 +465,7 @@ def _measure(clips: list[BuiltClip], ground_velocity: Array, kind: Kind, source_
         m["median_step_mm"] = float(np.median(steps[:-1]))
         for name in ("phase_hips_r", "phase_hips_lag", "phase_knee_r", "phase_knee_lag"):
             m[name] = None
-        if c.method == "hybrid":
+        if c is not keyframe:
             # A gait's hips bob twice per cycle: a lag of half a cycle would look in phase.
             m["phase_hips_r"], m["phase_hips_lag"] = metrics.phase_alignment(
                 keyframe.world_positions[:, 0, UP], c.world_positions[:, 0, UP],
@@ -550,10 +476,11 @@ def _measure(clips: list[BuiltClip], ground_velocity: Array, kind: Kind, source_
     return clips
 
 
-def clip_warnings(clips: list[BuiltClip], config: ClipSetConfig | None = None) -> list[str]:
-    """What makes a side-by-side comparison show more than the method: a hybrid out of phase with its keyframe
-    clip (best lag beyond :data:`MAX_LAG_FRAMES`) or a seam that jumps (more than twice the median step + 5 mm)."""
-    config = config or load_config()
+def clip_warnings(clips: list[BuiltClip]) -> list[str]:
+    """What makes a side-by-side comparison show more than the method: a clip out of phase with its animation's
+    reference (best lag beyond :data:`MAX_LAG_FRAMES`) or a seam that jumps (more than twice the median step +
+    5 mm)."""
+    reference = {c.animation: c.id for c in clips if c.method == REFERENCE}
     out = []
     for c in clips:
         m = c.metrics
@@ -561,44 +488,12 @@ def clip_warnings(clips: list[BuiltClip], config: ClipSetConfig | None = None) -
         if m["seam_jump_mm"] > limit:
             out.append(f"{c.id}: the seam jumps {m['seam_jump_mm']:.1f} mm (limit {limit:.1f} mm: twice the "
                        f"median step {m['median_step_mm']:.1f} mm + 5 mm)")
-        if c.method == "hybrid":
-            allowed = MAX_LAG_FRAMES[config.animations[c.animation].kind]
+        if c.method != REFERENCE:
+            allowed = MAX_LAG_FRAMES[c.kind]
             for part in ("hips", "knee"):
                 lag = m[f"phase_{part}_lag"]
                 if abs(lag) > allowed:
-                    out.append(f"{c.id}: out of phase with {c.animation}-keyframe: {part} best lag {lag:+d} frames "
-                               f"(allowed ±{allowed}), r = {m[f'phase_{part}_r']:.2f} at lag 0")
+                    ref = reference.get(c.animation, "its reference")
+                    out.append(f"{c.id}: out of phase with {ref}: {part} best lag {lag:+d} "
+                               f"frames (allowed ±{allowed}), r = {m[f'phase_{part}_r']:.2f} at lag 0")
     return out
-
-
-# --- the whole set ---------------------------------------------------------------------------------------------
-
-def build_clip_set(data_dir: Path, config: ClipSetConfig | None = None,
-                   progress: Callable[[str], None] = lambda _msg: None) -> list[BuiltClip]:
-    """All clips of the set (4 animations x (keyframe + increments)), in manifest order."""
-    config = config or load_config()
-    assets.check_data_dir(data_dir)
-    progress("loading the character")
-    character = load_character(data_dir)
-    clips: list[BuiltClip] = []
-    for k, name in enumerate(ANIMATIONS, 1):
-        cfg = config.animations[name]
-        progress(f"[{k}/{len(ANIMATIONS)}] {name}: {cfg.source}")
-        source = load_source(data_dir, character, cfg, config.relocate)
-        clips.extend(build_animation(source, config.fps, config.increments, progress))
-    return clips
-
-
-def write_clip_set(clips: list[BuiltClip], out: Path) -> Path:
-    """Write ``<id>.npz`` per clip and ``manifest.json``; returns the manifest path."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    for c in clips:
-        np.savez_compressed(out / f"{c.id}.npz", **c.arrays())
-    manifest = {"version": 1, "units": {"length": "m", "time": "s", "up": "+y", "quaternion": "w,x,y,z"},
-                "clips": [c.manifest_entry() for c in clips]}
-    path = out / MANIFEST
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(manifest, indent=2) + "\n", encoding="utf-8")
-    tmp.replace(path)  # readers never see a half-written manifest
-    return path

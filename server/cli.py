@@ -9,9 +9,12 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .config import Settings
+
+if TYPE_CHECKING:
+    from .media.manifest import RenderManifest
 
 CMU_METRES_PER_UNIT = 0.056444
 
@@ -98,8 +101,11 @@ def _fmt(value: float | None, digits: int) -> str:
 
 def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
     """Build the clip set, write it to ``out`` and print its metric table."""
-    from anim_core.assets import AssetError
-    from anim_core.clipset import ConfigError, build_clip_set, clip_warnings, load_config, write_clip_set
+    from anim_core.clipset import ConfigError, clip_warnings
+    from server.assets import AssetError
+    from server.clipset.build import build_clip_set
+    from server.clipset.config import load_config
+    from server.clipset.manifest import write_clip_set
 
     started = time.perf_counter()
     try:
@@ -119,7 +125,7 @@ def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
               f"{m['foot_slide_mm']:8.2f} {m['penetration_mm']:6.1f} {m['floating_mm']:8.1f} "
               f"{_fmt(m['mpjpe_mm'], 1):>8} {m['key_velocity_jump_rad_s']:14.3f} {m['jerk_mean']:9.1f} "
               f"{m['bytes']:6d}")
-    _print_comparison(clips, clip_warnings(clips, cfg))
+    _print_comparison(clips, clip_warnings(clips))
     return 0
 
 
@@ -139,14 +145,15 @@ def _print_comparison(clips: list, warnings: list[str]) -> None:
 def render(settings: Settings, out: Path, clips_dir: Path, workers: int, increments: list[int],
            width: int, height: int, shadows: bool) -> int:
     """Render the clip set's videos into ``out`` (building the clip set first if it is missing)."""
-    from anim_core.assets import AssetError
+    from anim_core.clipset import ConfigError
+    from server.assets import AssetError
+    from server.clipset.build import build_clip_set
+    from server.clipset.manifest import MANIFEST, write_clip_set
     from server.media.build import MediaError, default_pairs, read_clip_set, render_media
     from server.media.scene import RenderSettings
 
     try:
-        if not (clips_dir / "manifest.json").is_file():
-            from anim_core.clipset import ConfigError, build_clip_set, write_clip_set
-
+        if not (clips_dir / MANIFEST).is_file():
             print(f"no clip set in {clips_dir}: building it", flush=True)
             try:
                 write_clip_set(build_clip_set(settings.data, progress=lambda m: print(m, flush=True)), clips_dir)
@@ -164,21 +171,23 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, increme
     return 0
 
 
-def _render_for(settings: Settings, session: object, study_file: object) -> dict:
+def _render_for(settings: Settings, session: object, study_file: object) -> RenderManifest:
     """Build the clip set if it is missing, render the videos ``study_file`` needs that are missing (keeping
     every other study's), and return the render manifest."""
-    from anim_core.clipset import build_clip_set, write_clip_set
+    from server.clipset.build import build_clip_set
+    from server.clipset.manifest import MANIFEST, write_clip_set
     from server.media.build import render_media
+    from server.media.manifest import read_render_manifest
     from server.studies.service import clip_set_index, pairs_in_use, required_pairs
 
-    if not (settings.clips_dir / "manifest.json").is_file():
+    if not (settings.clips_dir / MANIFEST).is_file():
         print(f"building the clip set in {settings.clips_dir}", flush=True)
         write_clip_set(build_clip_set(settings.data, progress=lambda m: print(m, flush=True)), settings.clips_dir)
     needed = required_pairs(study_file.design, clip_set_index(settings.clips_dir))  # type: ignore[attr-defined]
     pairs = list(dict.fromkeys([*pairs_in_use(session), *needed]))  # type: ignore[arg-type]
-    manifest = render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret, pairs=pairs,
-                            progress=lambda m: print(m, flush=True))
-    return json.loads(manifest.read_text(encoding="utf-8"))
+    render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret, pairs=pairs,
+                 progress=lambda m: print(m, flush=True))
+    return read_render_manifest(settings.media_dir)
 
 
 def _pairs_in_use(settings: Settings) -> list[tuple[str, str]]:
@@ -225,8 +234,9 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
     """``animstudy study ...``: schema, validate, create, list, open, close, export."""
     from sqlalchemy import select
 
-    from anim_core.assets import AssetError
     from anim_core.clipset import ConfigError
+    from server.assets import AssetError
+    from server.clipset.manifest import MANIFEST
     from server.errors import ServiceError
     from server.media.build import MediaError
     from server.researchers.models import Researcher
@@ -243,7 +253,7 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
     try:
         if command == "validate":
             study_file = load_study_file(args.file)
-            if (settings.clips_dir / "manifest.json").is_file():
+            if (settings.clips_dir / MANIFEST).is_file():
                 service.check_known(study_file.design, service.clip_set_index(settings.clips_dir))
                 checked = f"; its animations and conditions are in the clip set {settings.clips_dir}"
             else:
@@ -320,8 +330,8 @@ def serve(settings: Settings, host: str, port: int, workers: int) -> int:
     """Migrate, prepare the default study if there is none, and serve."""
     import uvicorn
 
-    from anim_core.assets import AssetError
     from anim_core.clipset import ConfigError
+    from server.assets import AssetError
     from server.db import make_engine, migrate, session_factory
     from server.errors import ServiceError
     from server.media.build import MediaError
@@ -366,8 +376,9 @@ def bench(settings: Settings, json_path: Path, characters: list[int], stages: li
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
     from anim_core import benchmark
-    from anim_core.assets import AssetError
-    from anim_core.clipset import ConfigError, build_clip_set
+    from anim_core.clipset import ConfigError
+    from server.assets import AssetError
+    from server.clipset.build import build_clip_set
 
     started = time.perf_counter()
     try:

@@ -32,6 +32,7 @@ from sqlalchemy import make_url, select, text
 
 from .config import REPO_ROOT, normalize_database_url
 from .db import make_engine, migrate, session_factory
+from .media.manifest import RenderedClip, RenderedPair, RenderManifest
 from .participants.models import Vote
 from .studies.design import Design
 from .studies.models import StudyState
@@ -42,17 +43,18 @@ from .studies.studyfile import thesis_study
 DEFAULT_PG = "postgresql://postgres@127.0.0.1:5432/animstudy_load"
 
 
-def synthetic_media(design: Design) -> dict[str, Any]:
+def synthetic_media(design: Design) -> RenderManifest:
     """A render manifest with opaque names, for studies whose videos nobody watches (API load tests)."""
     clips, pairs = {}, []
     keys = {(a, c): f"{a}-{c}" for a in design.animations
             for c in (design.reference, *design.conditions, *([design.practice] if design.practice else []))}
     for i, ((animation, condition), clip) in enumerate(sorted(keys.items())):
-        clips[clip] = {"clip": clip, "animation": animation, "condition": condition, "video": f"{i:024x}.mp4",
-                       "poster": f"{i:024x}.jpg", "frames": 40, "fps": 30}
+        clips[clip] = RenderedClip(clip=clip, animation=animation, condition=condition, video=f"{i:024x}.mp4",
+                                   poster=f"{i:024x}.jpg", frames=40, fps=30, width=640, height=480)
     for k, (left, right) in enumerate(required_pairs(design, keys)):
-        pairs.append({"left": left, "right": right, "video": f"{k + 1000:024x}.mp4", "poster": f"{k + 1000:024x}.jpg"})
-    return {"clips": clips, "pairs": pairs}
+        pairs.append(RenderedPair(left=left, right=right, video=f"{k + 1000:024x}.mp4",
+                                  poster=f"{k + 1000:024x}.jpg", frames=40, fps=30, width=1284, height=480))
+    return RenderManifest(clips=clips, pairs=pairs)
 
 
 def prepare_database(kind: str, workdir: Path, pg_url: str = DEFAULT_PG) -> str:

@@ -19,6 +19,7 @@ from sqlalchemy.orm import Session
 from server.app import create_app
 from server.config import Settings
 from server.deps import get_session
+from server.media.manifest import RenderedClip, RenderedPair, RenderManifest
 from server.researchers.service import create_researcher
 from server.studies.design import Design
 from server.studies.models import Study, StudyState
@@ -34,22 +35,22 @@ def fake_name(text: str) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:24]
 
 
-def fake_media(design: Design | None = None) -> dict:
+def fake_media(design: Design | None = None) -> RenderManifest:
     """A render manifest with opaque names for every clip and every pair a design can need."""
     clips = {}
     for a in ANIMATIONS:
         for m in CONDITIONS:
             cid = f"{a}-{m}"
-            clips[cid] = {"clip": cid, "animation": a, "condition": m, "video": f"{fake_name(cid)}.mp4",
-                          "poster": f"{fake_name(cid)}.jpg", "frames": 40, "fps": 30, "width": 640, "height": 480}
+            clips[cid] = RenderedClip(clip=cid, animation=a, condition=m, video=f"{fake_name(cid)}.mp4",
+                                      poster=f"{fake_name(cid)}.jpg", frames=40, fps=30, width=640, height=480)
     pairs = []
     for left, lc in clips.items():
         for right, rc in clips.items():
-            if lc["animation"] == rc["animation"]:
+            if lc.animation == rc.animation:
                 name = fake_name(f"{left}|{right}")
-                pairs.append({"left": left, "right": right, "video": f"{name}.mp4", "poster": f"{name}.jpg",
-                              "frames": 40, "fps": 30, "width": 1284, "height": 480})
-    return {"clips": clips, "pairs": pairs}
+                pairs.append(RenderedPair(left=left, right=right, video=f"{name}.mp4", poster=f"{name}.jpg",
+                                          frames=40, fps=30, width=1284, height=480))
+    return RenderManifest(clips=clips, pairs=pairs)
 
 
 def study_file(design: Design | None = None, slug: str = "thesis", **sections: object) -> StudyFile:

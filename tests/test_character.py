@@ -6,10 +6,11 @@ import shutil
 import numpy as np
 import pytest
 
-from anim_core.assets import CHARACTER_DIR, AssetError
 from anim_core.bvh import read_bvh
-from anim_core.character import load_character, retarget
+from anim_core.character import CharacterError, retarget
 from anim_core.clip import Pose
+from server.assets import CHARACTER_DIR, AssetError
+from server.assets import character as load_character
 
 
 @pytest.fixture(scope="module")
@@ -129,5 +130,5 @@ def test_uncompressed_copies_are_accepted(data, tmp_path):
 
 def test_retargeting_needs_matching_joints(character, data):
     bvh = read_bvh(data / "mocap/cmu/12_03_walk.bvh.gz")
-    with pytest.raises(AssetError, match="no joints for mocap joints"):
+    with pytest.raises(CharacterError, match="no joints for mocap joints"):
         retarget(character, bvh.skeleton, bvh.end_sites, name_map={})

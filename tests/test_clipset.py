@@ -7,19 +7,15 @@ import numpy as np
 import pytest
 
 from anim_core import quat as Q
-from anim_core.assets import AssetError
-from anim_core.clipset import (
-    ANIMATIONS,
-    FEET,
-    MANIFEST,
-    ConfigError,
-    build_clip_set,
-    load_config,
-    write_clip_set,
-)
+from anim_core.clipset import FEET, ConfigError
 from anim_core.skeleton import Skeleton
+from server.assets import AssetError
 from server.cli import main
+from server.clipset.build import build_clip_set
+from server.clipset.config import load_config
+from server.clipset.manifest import MANIFEST, write_clip_set
 
+ANIMATIONS = ("walk", "run", "crouch", "idle")
 KEY_COUNTS = {"walk": [4, 8, 16], "run": [4, 8, 16], "crouch": [2, 3, 5], "idle": [2, 3, 5]}
 
 
@@ -38,7 +34,7 @@ def test_sixteen_clips_with_the_thesis_key_counts(clips):
                                      for m in ("keyframe", "hybrid0", "hybrid1", "hybrid2")]
     for c in clips:
         if c.method == "hybrid":
-            assert c.key_times.size == KEY_COUNTS[c.animation][c.increment]
+            assert c.key_times.size == KEY_COUNTS[c.animation][c.params["increment"]]
         else:  # dense: 30 keys per second
             assert c.key_times.size >= c.fps * c.duration_s / (2 if c.playback == "pingpong" else 1) - 1
 
@@ -125,11 +121,11 @@ def test_written_files_follow_the_schema(clips, tmp_path):
     manifest = json.loads((tmp_path / MANIFEST).read_text())
     assert len(manifest["clips"]) == 16
     for entry in manifest["clips"]:
-        assert {"id", "animation", "method", "increment", "key_count", "duration_s", "fps", "playback", "metrics",
-                "in_place", "root_speed_mps"} <= set(entry)
+        assert {"id", "animation", "condition", "method", "params", "key_count", "duration_s", "fps", "playback",
+                "metrics", "in_place", "root_speed_mps"} <= set(entry)
         assert entry["animation"] in ANIMATIONS and entry["method"] in ("keyframe", "hybrid")
-        assert (entry["increment"] is None) == (entry["method"] == "keyframe")
-        assert entry["condition"] == ("keyframe" if entry["method"] == "keyframe" else f"hybrid{entry['increment']}")
+        assert entry["id"] == f"{entry['animation']}-{entry['condition']}"
+        assert entry["params"] == ({} if entry["method"] == "keyframe" else {"increment": int(entry["condition"][-1])})
         assert entry["playback"] in ("loop", "pingpong")
         assert (entry["root_speed_mps"] > 0) == entry["in_place"]
         arrays = np.load(tmp_path / entry["file"])
@@ -173,8 +169,8 @@ def test_config_errors_name_the_entry(tmp_path):
     bad.write_text("fps = [\n")
     with pytest.raises(ConfigError, match=r"clips\.toml"):
         load_config(bad)
-    bad.write_text('[animations.dance]\nkind = "gait"\n')
-    with pytest.raises(ConfigError, match="unknown animation 'dance'"):
+    bad.write_text('[animations.Dance]\nkind = "gait"\n')
+    with pytest.raises(ConfigError, match=r"\[animations.Dance\]: an animation name is"):
         load_config(bad)
 
 

@@ -9,8 +9,8 @@ import pytest
 from anim_core import benchmark
 from anim_core import quat as Q
 from anim_core.clip import KeyframeClip
-from anim_core.clipset import build_clip_set
 from anim_core.crowd import BAKE_TOLERANCE_DEG, bake, numba, pose_crowd, pose_crowd_numpy, table_from_keyframes
+from server.clipset.build import build_clip_set
 from tests.synthetic import biped, random_rotations
 
 

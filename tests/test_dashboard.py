@@ -3,8 +3,9 @@
 import pytest
 from playwright.sync_api import sync_playwright
 
-from anim_core.clipset import build_clip_set, write_clip_set
 from server.app import create_app
+from server.clipset.build import build_clip_set
+from server.clipset.manifest import write_clip_set
 from server.config import Settings
 from server.db import migrate, session_factory
 from server.researchers.service import create_researcher

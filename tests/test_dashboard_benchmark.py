@@ -6,8 +6,8 @@ import pytest
 from playwright.sync_api import sync_playwright
 
 from anim_core import benchmark
-from anim_core.clipset import build_clip_set
 from server.app import create_app
+from server.clipset.build import build_clip_set
 from server.config import Settings
 from server.db import migrate, session_factory
 from server.researchers.service import create_researcher
@@ -29,7 +29,7 @@ def site(data, tmp_path_factory):
     migrate(engine)
     with session_factory(engine)() as db:
         make_study(db)
-        create_researcher(db, "lead@example.org", "correct horse battery")
+        create_researcher(db, "lead@example.org", "correct horse battery", admin=True)
     with live_server(create_app(settings, engine, run_migrations=False)) as base:
         yield base, doc
     engine.dispose()

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from anim_core import assets
+from server import assets
 from tests.conftest import REPO
 
 SHIPPED = REPO / "data"

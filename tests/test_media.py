@@ -14,9 +14,12 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from anim_core.character import bind_mesh, load_character
-from anim_core.clipset import build_clip_set, write_clip_set
-from server.media.build import BODY_PADDING_M, MANIFEST, MEDIA_NAME, grid_spacing, read_clip_set, render_media
+from anim_core.character import bind_mesh
+from server.assets import character as load_character
+from server.clipset.build import build_clip_set
+from server.clipset.manifest import write_clip_set
+from server.media.build import BODY_PADDING_M, MEDIA_NAME, grid_spacing, read_clip_set, render_media
+from server.media.manifest import MANIFEST
 from server.media.renderer import ClipRenderer
 from server.media.scene import RenderSettings, frame_motion
 from server.media.video import FILE_TIME, decode, probe

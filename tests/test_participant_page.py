@@ -9,11 +9,13 @@ import pytest
 from playwright.sync_api import sync_playwright
 from sqlalchemy import func, select
 
-from anim_core.clipset import build_clip_set, write_clip_set
 from server.app import create_app
+from server.clipset.build import build_clip_set
+from server.clipset.manifest import write_clip_set
 from server.config import Settings
 from server.db import migrate, session_factory
 from server.media.build import render_media
+from server.media.manifest import read_render_manifest
 from server.media.scene import RenderSettings
 from server.participants.models import ParticipantSession, Vote
 from server.studies.models import StudyState
@@ -45,7 +47,7 @@ def site(data, tmp_path_factory):
     migrate(engine)
     factory = session_factory(engine)
     with factory() as db:
-        set_state(db, create_study(db, json.loads(manifest.read_text()), study_file), StudyState.open)
+        set_state(db, create_study(db, read_render_manifest(manifest.parent), study_file), StudyState.open)
     app = create_app(settings, engine, run_migrations=False)
     with live_server(app) as base:
         yield base, factory

@@ -5,9 +5,9 @@ import pytest
 
 from anim_core import quat as Q
 from anim_core import runtime as R
-from anim_core.clipset import build_clip_set
 from anim_core.crowd import CrowdBuffers
 from anim_core.hybrid import SpringClip, SquadClip
+from server.clipset.build import build_clip_set
 
 
 @pytest.fixture(scope="module")

@@ -10,8 +10,12 @@ from scipy.signal import find_peaks
 from anim_core import contacts
 from anim_core import quat as Q
 from anim_core.bvh import read_bvh
-from anim_core.clipset import ANIMATIONS, FEET, build_clip_set, clip_warnings, load_config
+from anim_core.clipset import FEET, clip_warnings
+from server.assets import character as load_character
+from server.clipset.build import build_clip_set, load_source
+from server.clipset.config import load_config
 
+ANIMATIONS = ("walk", "run", "crouch", "idle")
 CMU_METRES = 0.056444
 
 
@@ -131,11 +135,10 @@ def bone_angles_deg(skeleton, a, b):
 def test_planting_turns_only_the_legs_and_them_a_little(data, animation):
     """Bone directions stay the mocap's except where IK pins a foot; there the largest deviation is printed."""
     from anim_core import clipset as cs
-    from anim_core.character import load_character
 
     config = load_config()
     cfg = config.animations[animation]
-    source = cs.load_source(data, load_character(data), cfg, config.relocate)
+    source = load_source(data, load_character(data), cfg, config.relocate)
     t = source.time_of
     if cfg.kind == "gait":
         first, _, last = cs.pick_gait(source)

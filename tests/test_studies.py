@@ -74,7 +74,7 @@ def media_dir(client):
     """The render manifest the API creates studies over (fake, opaque names)."""
     media = client.app.state.settings.media_dir
     media.mkdir(parents=True, exist_ok=True)
-    (media / "manifest.json").write_text(json.dumps(fake_media()))
+    (media / "manifest.json").write_text(fake_media().model_dump_json())
     return media
 
 
@@ -267,7 +267,7 @@ def test_unknown_condition_or_animation_and_taken_slug(client, db, media_dir, re
 
 
 def test_an_old_render_manifest_is_a_clear_conflict(client, db, media_dir, researcher_headers):
-    old = fake_media()
+    old = fake_media().model_dump()
     for entry in old["clips"].values():
         del entry["condition"]
     (media_dir / "manifest.json").write_text(json.dumps(old))

@@ -3,7 +3,6 @@ studies page lists studies with their counts, creates one from an uploaded study
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import pytest
@@ -30,7 +29,7 @@ def site(tmp_path_factory):
         pytest.fail(f"{CHROMIUM} is missing: `make test` installs Debian's chromium")
     settings = Settings(var_dir=tmp_path_factory.mktemp("var"), secret_key="studies-browser-secret-0123456789abcd")
     settings.media_dir.mkdir(parents=True)
-    (settings.media_dir / "manifest.json").write_text(json.dumps(fake_media()))
+    (settings.media_dir / "manifest.json").write_text(fake_media().model_dump_json())
     engine = _fresh_engine("sqlite", tmp_path_factory)
     migrate(engine)
     factory = session_factory(engine)

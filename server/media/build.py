@@ -26,15 +26,16 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from anim_core import assets
-from anim_core.assets import CHARACTER_FILES
+from server import assets
+from server.assets import CHARACTER_FILES
+from server.clipset.manifest import ManifestError, read_clip_manifest
 
+from .manifest import RenderedClip, RenderedPair, RenderManifest, write_render_manifest
 from .scene import Framing, RenderSettings, frame_motion
 
 if TYPE_CHECKING:
     from anim_core.character import Character
 
-MANIFEST = "manifest.json"
 MEDIA_NAME = re.compile(r"^[0-9a-f]{24}\.(mp4|jpg)$")
 DIVIDER_PX = 4
 DIVIDER_RGB = (58, 60, 64)
@@ -53,7 +54,7 @@ class ClipFile:
     animation: str
     condition: str
     method: str
-    increment: int | None
+    params: dict[str, Any]
     path: Path
     fps: int
     frames: int
@@ -107,29 +108,26 @@ def _digest_arrays(path: Path) -> str:
 
 
 def read_clip_set(clips_dir: Path) -> list[ClipFile]:
-    """The clips listed in ``clips_dir/manifest.json``."""
-    manifest_path = Path(clips_dir) / MANIFEST
+    """The clips listed in the clip manifest of ``clips_dir`` (:mod:`server.clipset.manifest`)."""
     try:
-        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
-        clips = []
-        for e in manifest["clips"]:
-            path = Path(clips_dir) / e["file"]
-            clips.append(ClipFile(e["id"], e["animation"], e["condition"], e["method"], e["increment"], path,
-                                  int(e["fps"]), round(e["duration_s"] * e["fps"]), e["playback"], bool(e["in_place"]),
-                                  float(e["root_speed_mps"]), _digest_arrays(path)))
+        manifest = read_clip_manifest(clips_dir)
+        return [ClipFile(e.id, e.animation, e.condition, e.method, e.params, Path(clips_dir) / e.file, e.fps,
+                         e.frames, e.playback, e.in_place, e.root_speed_mps, _digest_arrays(Path(clips_dir) / e.file))
+                for e in manifest.clips]
+    except ManifestError as exc:
+        raise MediaError(str(exc)) from None
     except FileNotFoundError as exc:
         raise MediaError(f"no clip set at {clips_dir}: {exc.filename} is missing (run `animstudy clips build`)"
                          ) from None
-    except (KeyError, TypeError, ValueError, OSError) as exc:
+    except (KeyError, ValueError, OSError) as exc:
         raise MediaError(f"the clip set in {clips_dir} is unreadable ({exc!r}); rebuild it") from None
-    return clips
 
 
 def default_pairs(clips: Sequence[ClipFile], increments: Sequence[int]) -> list[tuple[str, str]]:
     """Keyframe against each compared hybrid increment, in both side orders (the thesis design)."""
     pairs = []
     for c in clips:
-        if c.method == "hybrid" and c.increment in increments:
+        if c.method == "hybrid" and c.params["increment"] in increments:
             keyframe = f"{c.animation}-keyframe"
             pairs += [(keyframe, c.id), (c.id, keyframe)]
     return pairs
@@ -227,9 +225,7 @@ def _release_memory() -> None:
 
 @functools.cache
 def _character(data_dir: Path) -> Character:
-    from anim_core.character import load_character
-
-    return load_character(data_dir)  # once per worker process, not per job
+    return assets.character(data_dir)  # once per worker process, not per job
 
 
 def run_job(job: AnimationJob) -> list[tuple[str, float]]:
@@ -401,11 +397,7 @@ def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
                     results = [f.result() for f in as_completed(futures)]
         progress(f"rendered {sum(len(r) for r in results)} videos in {time.perf_counter() - started:.1f} s, "
                  f"peak memory {memory.peak_bytes / 2**20:.0f} MiB (all processes)")
-    manifest = _manifest(p, settings)
-    path = out_dir / MANIFEST
-    tmp = path.with_name(f".{MANIFEST}.tmp")
-    tmp.write_text(json.dumps(manifest, indent=2) + "\n", encoding="utf-8")
-    tmp.replace(path)
+    path = write_render_manifest(out_dir, _manifest(p, settings))
     keep = {o.video for o in p.outputs} | {o.poster for o in p.outputs}
     stale = [f for f in out_dir.iterdir() if (MEDIA_NAME.match(f.name) and f.name not in keep)
              or f.name.endswith(".tmp")]
@@ -420,18 +412,17 @@ def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
     return path
 
 
-def _manifest(p: Plan, settings: RenderSettings) -> dict[str, Any]:
-    def entry(o: Output, width: int) -> dict[str, Any]:
+def _manifest(p: Plan, settings: RenderSettings) -> RenderManifest:
+    def video(o: Output, width: int) -> dict[str, Any]:
         c = p.clips[o.clips[0]]
         return {"video": o.video, "poster": o.poster, "frames": c.frames, "fps": c.fps, "width": width,
                 "height": settings.height}
 
     pair_width = 2 * settings.width + DIVIDER_PX
-    return {
-        "version": 1,
-        "settings": settings.as_dict(),
-        "clips": {i: {"clip": i, "animation": p.clips[i].animation, "condition": p.clips[i].condition,
-                      **entry(o, settings.width)} for i, o in p.clip_outputs.items()},
-        "pairs": [{"left": left, "right": right, **entry(o, pair_width)}
-                  for (left, right), o in p.pair_outputs.items()],
-    }
+    return RenderManifest(
+        settings=settings.as_dict(),
+        clips={i: RenderedClip(clip=i, animation=p.clips[i].animation, condition=p.clips[i].condition,
+                               **video(o, settings.width)) for i, o in p.clip_outputs.items()},
+        pairs=[RenderedPair(left=left, right=right, **video(o, pair_width))
+               for (left, right), o in p.pair_outputs.items()],
+    )

@@ -12,6 +12,7 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from server.clipset.manifest import ManifestError, read_clip_manifest
 from server.participants.models import ParticipantSession, SessionState, Vote
 
 from .models import Study
@@ -59,12 +60,13 @@ def study_results(session: Session, study: Study, clips_dir: Path, benchmark_pat
             ParticipantSession.study_id == study.id)) or 0,
         "median_completion_s": pystats.median(durations) if durations else None,
     }
-    manifest = _read_json(clips_dir / "manifest.json")
-    results["clips"] = [
-        {"id": c["id"], "animation": c["animation"], "condition": c.get("condition"), "method": c["method"],
-         "increment": c["increment"],
-         "key_count": c["key_count"], "metrics": c["metrics"], "shown": c["id"] in {s.clip_id for s in study.stimuli}}
-        for c in (manifest or {}).get("clips", [])
-    ]
+    try:
+        clips = read_clip_manifest(clips_dir).clips
+    except ManifestError:
+        clips = []  # the dashboard says there is no clip set
+    shown = {s.clip_id for s in study.stimuli}
+    results["clips"] = [{"id": c.id, "animation": c.animation, "condition": c.condition, "method": c.method,
+                         "params": c.params, "key_count": c.key_count, "metrics": c.metrics, "shown": c.id in shown}
+                        for c in clips]
     results["benchmark"] = _read_json(benchmark_path)
     return results

@@ -1,6 +1,5 @@
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -13,7 +12,7 @@ from sqlalchemy.orm import Session
 
 from server.deps import ResearcherDep, SessionDep, SettingsDep
 from server.errors import Conflict, Unprocessable
-from server.media.build import MANIFEST
+from server.media.manifest import ManifestError, RenderManifest, read_render_manifest
 from server.participants.models import ParticipantSession, Vote
 
 from . import service
@@ -46,12 +45,12 @@ def list_studies(session: SessionDep, researcher: ResearcherDep) -> list[StudySu
     return [summary(session, s) for s in service.visible_studies(session, researcher)]
 
 
-def render_manifest(settings: Any) -> dict[str, Any]:
+def render_manifest(settings: Any) -> RenderManifest:
+    """409 when the videos are missing or their manifest is old or corrupt (the message says to render)."""
     try:
-        return json.loads((settings.media_dir / MANIFEST).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        raise Conflict("no rendered videos on the server; create the study with `animstudy study create`, "
-                       "which renders them") from None
+        return read_render_manifest(settings.media_dir)
+    except ManifestError as exc:
+        raise Conflict(f"{exc}; `animstudy study create` renders what a study needs") from None
 
 
 @router.post("/studies", response_model=StudySummary, status_code=status.HTTP_201_CREATED)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import csv
 import io
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +15,7 @@ from sqlalchemy.orm import Session, aliased, object_session
 from server.db import utcnow
 from server.errors import Conflict, Forbidden, NotFound, Unprocessable
 from server.media.build import read_clip_set
+from server.media.manifest import RenderManifest
 from server.participants.models import ParticipantSession, Trial, Vote
 from server.researchers.models import Researcher
 
@@ -24,15 +25,6 @@ from .scale import other_side
 from .studyfile import Recruitment, StudyFile, Texts
 
 StimulusKey = tuple[str, str]  # (animation, condition)
-
-
-def clip_index(entries: Iterable[Mapping[str, Any]]) -> dict[StimulusKey, str]:
-    """(animation, condition) -> clip id, from clip entries of the clip or render manifest (``id`` or ``clip``)."""
-    try:
-        return {(e["animation"], e["condition"]): e.get("id", e.get("clip")) for e in entries}
-    except KeyError:
-        raise Conflict("the rendered videos' manifest names no conditions (it predates them): run "
-                       "`animstudy clips build` and `animstudy render` again") from None
 
 
 def clip_set_index(clips_dir: Path) -> dict[StimulusKey, str]:
@@ -89,7 +81,7 @@ def definition(study: Study) -> StudyFile:
         "scale": study.scale, "questions": study.questions, "design": study.design, "recruitment": study.recruitment})
 
 
-def create_study(session: Session, media: Mapping[str, Any], study_file: StudyFile,
+def create_study(session: Session, media: RenderManifest, study_file: StudyFile,
                  owner: Researcher | None = None) -> Study:
     """A draft study over the videos of a render manifest (``server.media.build``), which must hold its pairs."""
     if session.scalar(select(Study.id).where(Study.slug == study_file.slug)) is not None:
@@ -102,10 +94,10 @@ def create_study(session: Session, media: Mapping[str, Any], study_file: StudyFi
     return study
 
 
-def _build_comparisons(study: Study, media: Mapping[str, Any], design: Design) -> None:
+def _build_comparisons(study: Study, media: RenderManifest, design: Design) -> None:
     """The study's stimuli and comparisons for ``design`` (replacing any it had)."""
-    clips = clip_index(media["clips"].values())
-    pair_videos = {(p["left"], p["right"]): p["video"] for p in media["pairs"]}
+    clips = media.clip_index()
+    pair_videos = media.pair_videos()
     missing = [p for p in required_pairs(design, clips) if p not in pair_videos]
     if missing:
         raise Conflict(f"the rendered videos lack the pairs {missing}; render them first")
@@ -119,9 +111,9 @@ def _build_comparisons(study: Study, media: Mapping[str, Any], design: Design) -
 
     def stimulus(key: StimulusKey) -> Stimulus:
         if key not in stimuli:
-            entry = media["clips"][clips[key]]
-            stimuli[key] = Stimulus(clip_id=clips[key], animation=key[0], condition=key[1], video=entry["video"],
-                                    poster=entry["poster"], frames=entry["frames"], fps=entry["fps"])
+            entry = media.clips[clips[key]]
+            stimuli[key] = Stimulus(clip_id=clips[key], animation=key[0], condition=key[1], video=entry.video,
+                                    poster=entry.poster, frames=entry.frames, fps=entry.fps)
             study.stimuli.append(stimuli[key])
         return stimuli[key]
 
@@ -164,7 +156,7 @@ def default_study(session: Session) -> Study | None:
 
 
 def update_study(session: Session, study: Study, changes: Mapping[str, Any],
-                 media: Mapping[str, Any] | None = None) -> Study:
+                 media: RenderManifest | None = None) -> Study:
     """Apply a partial study file (sections are merged into the current ones): ``title``, ``texts``, ``scale``,
     ``questions`` and ``recruitment`` until the study first opens; ``design`` only while it is a draft that never
     opened (its comparisons are rebuilt over ``media``, the render manifest).  Otherwise 409: participants saw it

@@ -1,4 +1,8 @@
-"""The source data files: where they are in the data directory and what their content must be.
+"""The source data files: where they are in the data directory, what their content must be, and loading them.
+
+anim_core opens no data directory: its loaders take file paths (:func:`anim_core.character.load_character`,
+:func:`anim_core.bvh.read_bvh`); this module finds and verifies those files and turns the loaders' errors into
+:class:`AssetError` naming the file.
 
 The repository ships them in ``data/`` (see its README for origins and licenses); the server reads them from the
 data directory of its settings (``ANIMSTUDY_DATA_DIR``, default that folder).  Each file may be stored
@@ -11,6 +15,9 @@ from __future__ import annotations
 import gzip
 import hashlib
 from pathlib import Path
+
+from anim_core.bvh import Bvh, BvhError, read_bvh
+from anim_core.character import Character, CharacterError, load_character
 
 #: path in the data directory (as mirrored, gzip-compressed where marked) -> sha256 of the uncompressed content
 CHECKSUMS: dict[str, str] = {
@@ -73,3 +80,20 @@ def verify(data_dir: Path, name: str) -> Path:
             raise AssetError(f"{path} is corrupt or a different version: sha256 of its content is {actual}, "
                              f"expected {expected}")
     return path
+
+
+def character(data_dir: Path) -> Character:
+    """The character of the data directory, its files verified against :data:`CHARACTER_FILES`' checksums."""
+    try:
+        return load_character(*(verify(data_dir, name) for name in CHARACTER_FILES))
+    except CharacterError as exc:
+        raise AssetError(str(exc)) from None
+
+
+def motion(data_dir: Path, name: str) -> Bvh:
+    """The BVH file ``name`` of the data directory (checksum-verified where listed)."""
+    path = verify(data_dir, name)
+    try:
+        return read_bvh(path)
+    except BvhError as exc:
+        raise AssetError(f"corrupt motion file: {exc}") from None

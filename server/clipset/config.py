@@ -1,0 +1,130 @@
+"""The clip-set file (TOML): animations x conditions.  Read and validated here only; errors name the file, the
+entry and the field.  The format is documented in the README ("Clip-set file")."""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from anim_core.clip import PLAYBACK_MODES
+from anim_core.clipset import AnimationConfig, ConfigError
+from anim_core.conditions import REFERENCE, Condition, ConditionError
+
+DEFAULT_CONFIG = Path(__file__).with_name("thesis.toml")
+KINDS = ("gait", "crouch", "idle")
+#: Animation names and condition ids: a clip's id is ``<animation>-<condition>``, so neither holds a "-".
+NAME = re.compile(r"^[a-z0-9][a-z0-9_]{0,31}$")
+
+
+@dataclass(frozen=True)
+class ClipSetConfig:
+    fps: int
+    relocate: tuple[str, ...]
+    animations: dict[str, AnimationConfig]
+    conditions: tuple[Condition, ...]
+
+
+def _frames(value: Any, where: str, count: int | None = None) -> tuple[int, ...]:
+    if (not isinstance(value, list) or not all(isinstance(v, int) and v >= 0 for v in value)
+            or (count is not None and len(value) != count) or list(value) != sorted(set(value))):
+        n = f"{count} " if count else ""
+        raise ConfigError(f"{where} must be a list of {n}increasing frame numbers, got {value!r}")
+    return tuple(value)
+
+
+def _animation(name: str, entry: Any, where: str) -> AnimationConfig:
+    if not NAME.match(name):
+        raise ConfigError(f"{where}: an animation name is 1..32 lower-case letters, digits or '_' (no '-')")
+    if not isinstance(entry, dict):
+        raise ConfigError(f"{where} must be a table")
+    known = {"kind", "source", "frames", "playback", "in_place", "keys", "cycle"}
+    if unknown := sorted(set(entry) - known):
+        raise ConfigError(f"{where}: unknown field {unknown[0]!r}; allowed: {', '.join(sorted(known))}")
+    kind = entry.get("kind")
+    if kind not in KINDS:
+        raise ConfigError(f"{where}: kind must be 'gait', 'crouch' or 'idle', got {kind!r}")
+    if not isinstance(entry.get("source"), str):
+        raise ConfigError(f"{where}: source must name a BVH file in the data directory")
+    playback = entry.get("playback", "loop" if kind == "gait" else "pingpong")
+    if playback not in PLAYBACK_MODES[:2]:
+        raise ConfigError(f"{where}: playback must be 'loop' or 'pingpong', got {playback!r}")
+    if (kind == "gait") != (playback == "loop"):
+        raise ConfigError(f"{where}: a {kind} plays {'loop' if kind == 'gait' else 'pingpong'} in the hybrid "
+                          f"method, so its keyframe clip must too")
+    in_place = entry.get("in_place", kind == "gait")
+    if not isinstance(in_place, bool):
+        raise ConfigError(f"{where}: in_place must be true or false")
+    keys = entry.get("keys")
+    cycle = entry.get("cycle")
+    if cycle is not None and kind != "gait":
+        raise ConfigError(f"{where}: only a gait has a cycle")
+    return AnimationConfig(
+        name, kind, entry["source"], _frames(entry.get("frames"), f"{where} frames", 2), playback, in_place,
+        None if keys is None else _frames(keys, f"{where} keys", 2),
+        None if cycle is None else _frames(cycle, f"{where} cycle", 2))  # type: ignore[arg-type]
+
+
+def _conditions(raw: Any, path: Path) -> tuple[Condition, ...]:
+    if not isinstance(raw, list) or not raw:
+        raise ConfigError(f"{path}: [[conditions]] must list the conditions (at least the reference, method "
+                          f"{REFERENCE!r})")
+    out: list[Condition] = []
+    for k, entry in enumerate(raw, 1):
+        where = f"{path} [[conditions]] #{k}"
+        if not isinstance(entry, dict):
+            raise ConfigError(f"{where} must be a table")
+        if unknown := sorted(set(entry) - {"id", "method", "params"}):
+            raise ConfigError(f"{where}: unknown field {unknown[0]!r}; allowed: id, method, params")
+        cid = entry.get("id")
+        if not isinstance(cid, str) or not NAME.match(cid):
+            raise ConfigError(f"{where}: id must be 1..32 lower-case letters, digits or '_' (no '-'), got {cid!r}")
+        where = f"{path} [[conditions]] id = {cid!r}"
+        if any(c.id == cid for c in out):
+            raise ConfigError(f"{where}: duplicate id (condition ids are unique)")
+        method = entry.get("method")
+        if not isinstance(method, str):
+            raise ConfigError(f"{where}: method must be a string naming a registered method")
+        params = entry.get("params", {})
+        if not isinstance(params, dict):
+            raise ConfigError(f"{where}: params must be a table, e.g. params = {{ increment = 0 }}")
+        try:
+            out.append(Condition.parse(cid, method, params))
+        except ConditionError as exc:
+            raise ConfigError(f"{where}: {exc}") from None
+    references = [c.id for c in out if c.is_reference]
+    if len(references) != 1:
+        raise ConfigError(f"{path}: [[conditions]] must hold exactly one condition with method {REFERENCE!r} "
+                          f"(the reference the others are compared with), got {references or 'none'}")
+    return tuple(out)
+
+
+def load_config(path: Path = DEFAULT_CONFIG) -> ClipSetConfig:
+    """Read and validate a clip-set file."""
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"clip set file {path} does not exist") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read clip set file {path}: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    if unknown := sorted(set(raw) - {"fps", "character", "animations", "conditions"}):
+        hint = " (conditions are listed as [[conditions]] now)" if "increments" in unknown else ""
+        raise ConfigError(f"{path}: unknown field {unknown[0]!r}{hint}; allowed: fps, character, animations, "
+                          f"conditions")
+    fps = raw.get("fps", 30)
+    if not isinstance(fps, int) or isinstance(fps, bool) or not 1 <= fps <= 240:
+        raise ConfigError(f"{path}: fps must be a whole number of frames per second (1..240), got {fps!r}")
+    character = raw.get("character", {})
+    relocate = character.get("relocate", []) if isinstance(character, dict) else None
+    if not isinstance(relocate, list) or not all(isinstance(r, str) for r in relocate):
+        raise ConfigError(f"{path} [character]: relocate must be a list of joint names")
+    table = raw.get("animations")
+    if not isinstance(table, dict) or not table:
+        raise ConfigError(f"{path}: [animations.<name>] must describe at least one animation")
+    animations = {name: _animation(name, entry, f"{path} [animations.{name}]") for name, entry in table.items()}
+    return ClipSetConfig(fps, tuple(relocate), animations, _conditions(raw.get("conditions"), path))

@@ -1,0 +1,119 @@
+"""The clip manifest (``manifest.json`` of ``animstudy clips build``) and its ``.npz`` files: the one schema,
+written and read here only.
+
+Version 2 (this one) names each clip's animation, condition, method and method parameters; readers never parse
+clip ids.  A manifest of another version, or one that does not validate, raises :class:`ManifestError` saying to
+rebuild the clip set.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Literal, TypeVar
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from anim_core.clipset import BuiltClip
+
+MANIFEST = "manifest.json"
+VERSION = 2
+M = TypeVar("M", bound=BaseModel)
+
+
+class ManifestError(ValueError):
+    """A manifest is missing, corrupt or of another version; the message says what to rebuild."""
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class Units(_Model):
+    length: Literal["m"] = "m"
+    time: Literal["s"] = "s"
+    up: Literal["+y"] = "+y"
+    quaternion: Literal["w,x,y,z"] = "w,x,y,z"
+
+
+class ClipEntry(_Model):
+    """One clip: ``file`` (``<id>.npz`` beside the manifest) holds its arrays (README: "Clip manifest")."""
+
+    id: str
+    animation: str
+    kind: Literal["gait", "crouch", "idle"]
+    condition: str
+    method: str
+    params: dict[str, Any]
+    key_count: int = Field(ge=1)
+    duration_s: float = Field(gt=0)
+    fps: int = Field(ge=1)
+    frames: int = Field(ge=1)
+    playback: Literal["loop", "pingpong"]
+    in_place: bool
+    root_speed_mps: float = Field(ge=0)
+    metrics: dict[str, float | int | None]
+    source: dict[str, Any]
+    file: str
+
+
+class ClipManifest(_Model):
+    version: Literal[2] = VERSION
+    units: Units = Units()
+    clips: list[ClipEntry]
+
+    def clip(self, animation: str, condition: str) -> ClipEntry | None:
+        return next((c for c in self.clips if c.animation == animation and c.condition == condition), None)
+
+
+def entry(c: BuiltClip) -> ClipEntry:
+    return ClipEntry(id=c.id, animation=c.animation, kind=c.kind, condition=c.condition, method=c.method,
+                     params=c.params, key_count=int(c.key_times.size), duration_s=c.duration_s, fps=c.fps,
+                     frames=c.n_frames, playback=c.playback, in_place=c.in_place, root_speed_mps=c.root_speed_mps,
+                     metrics=c.metrics, source=c.source, file=f"{c.id}.npz")
+
+
+def write_clip_set(clips: list[BuiltClip], out: Path) -> Path:
+    """Write ``<id>.npz`` per clip and ``manifest.json``; returns the manifest path."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    manifest = ClipManifest(clips=[entry(c) for c in clips])
+    for c in clips:
+        np.savez_compressed(out / f"{c.id}.npz", **c.arrays())
+    return write_json(out / MANIFEST, manifest)
+
+
+def write_json(path: Path, model: BaseModel) -> Path:
+    """Write ``model`` as JSON through a temporary file: readers never see a half-written manifest."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(model.model_dump_json(indent=2) + "\n", encoding="utf-8")
+    tmp.replace(path)
+    return path
+
+
+def read_json(path: Path, model: type[M], what: str, rebuild: str) -> M:
+    """Read and validate a manifest; every problem is a :class:`ManifestError` that says to run ``rebuild``."""
+    try:
+        raw = json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ManifestError(f"no {what} at {path} (run `{rebuild}`)") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ManifestError(f"the {what} {path} is unreadable ({exc}); rebuild it with `{rebuild}`") from None
+    version = model.model_fields["version"].default
+    if not isinstance(raw, dict) or raw.get("version") != version:
+        found = raw.get("version") if isinstance(raw, dict) else None
+        raise ManifestError(f"the {what} {path} is of version {found!r}, this animstudy reads version {version}; "
+                            f"rebuild it with `{rebuild}`")
+    try:
+        return model.model_validate(raw)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        field = ".".join(str(p) for p in first["loc"])
+        raise ManifestError(f"the {what} {path} is corrupt ({field}: {first['msg']}); rebuild it with "
+                            f"`{rebuild}`") from None
+
+
+def read_clip_manifest(clips_dir: Path) -> ClipManifest:
+    """The manifest of the clip set in ``clips_dir``."""
+    return read_json(Path(clips_dir) / MANIFEST, ClipManifest, "clip manifest", "animstudy clips build")
