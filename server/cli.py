@@ -52,9 +52,9 @@ def clips_inspect(path: Path, mapping: Path | None, units: str | None, up_axis: 
 def clips_convert(data_dir: Path, path: Path, out: Path, mapping: Path | None, units: str | None,
                   up_axis: str | None) -> int:
     """Write a BVH/glTF motion retargeted onto the character as .glb/.gltf or .bvh (``animstudy clips convert``)."""
-    from anim_core.character import load_character
     from anim_core.rigmap import read_mapping_file
     from anim_core.sourceinfo import export_on_character, inspect_source
+    from server.assets import character as load_character
 
     if not path.is_file():
         return _fail(f"{path}: no such file")

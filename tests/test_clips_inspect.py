@@ -152,8 +152,9 @@ def test_bad_input_gives_one_clear_error_line_and_writes_nothing(walk_text, tmp_
 def test_convert_writes_the_motion_on_the_character(data, tmp_path, capsys):
     import trimesh
 
-    from anim_core.character import load_character, retarget
+    from anim_core.character import retarget
     from anim_core.gltf import read_gltf
+    from server.assets import character as load_character
 
     source = data / "mocap" / "cmu" / "12_03_walk.bvh.gz"
     bvh = read_bvh(source)

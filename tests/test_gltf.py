@@ -7,12 +7,13 @@ import numpy as np
 import pytest
 
 from anim_core.bvh import bvh_from_poses, format_bvh, parse_bvh, read_bvh
-from anim_core.character import load_character, retarget
+from anim_core.character import retarget
 from anim_core.gltf import GltfAnimation, GltfError, read_gltf, write_gltf
 from anim_core.quat import quat_from_axis_angle, quat_mul
 from anim_core.rigmap import normalize_motion
 from anim_core.skeleton import Skeleton
 from anim_core.skinning import SkinnedMesh
+from server.assets import character as load_character
 
 
 @pytest.fixture(scope="module")
@@ -181,7 +182,7 @@ def test_write_leaves_nothing_on_failure(tmp_path):
 def test_mixamo_gltf_with_turned_joint_frames_is_a_clip_source(exported, tmp_path, data, rng):
     """glTF in: a Mixamo-named rig whose joint frames are not world-aligned, written and read as glTF, maps and
     retargets to the character poses of the CMU file it came from (float32 in the file)."""
-    from anim_core.character import load_character
+    from server.assets import character as load_character
     from tests.test_rigmap import character_positions, rig_with_turned_frames
 
     rt, _, _, _, _, bvh = exported

@@ -5,11 +5,12 @@ import numpy as np
 import pytest
 
 from anim_core.bvh import Bvh, read_bvh
-from anim_core.character import load_character, retarget
+from anim_core.character import retarget
 from anim_core.mirror import mirror_partners
 from anim_core.quat import quat_conj, quat_from_axis_angle, quat_mul, rotate
 from anim_core.rigmap import CANONICAL_NAMES, RigMapError, map_skeleton, normalize_bvh, read_mapping_file
 from anim_core.skeleton import Skeleton
+from server.assets import character as load_character
 
 CMU = CANONICAL_NAMES
 
