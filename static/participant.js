@@ -18,6 +18,8 @@
   let viewed = false; // watched one full loop
   let playback = null; // measurements of the current trial's playback
   const videos = new Map(); // url -> Promise of an object URL of the fully downloaded file
+  let device = null; // what the device gate measured last
+  let gated = false; // the gate is on screen (the flow underneath keeps its state)
 
   function readCreds() {
     try { return JSON.parse(localStorage.getItem(storeKey)); } catch { return null; }
@@ -33,9 +35,66 @@
 
   function status(text) { $("status").textContent = text || ""; }
 
+  // --- device gate ------------------------------------------------------------------------------------------
+  // The pair video must show each character at no less than `min_scale` of its rendered size.  The scale the
+  // video would get is computed from the same box the stylesheet gives it (stage width, --stage-max-height), so
+  // the gate can decide before consent, while the trial page is still hidden, and again on resize/rotation.
+  // The study may set its own `device_gate`; the video's width/height attributes are the rendered default size.
+  function gateSettings() {
+    const video = $("video");
+    return { min_scale: 0.8, video_width: Number(video.getAttribute("width")),
+             video_height: Number(video.getAttribute("height")), ...((study && study.device_gate) || {}) };
+  }
+
+  function px(style, name) { return parseFloat(style.getPropertyValue(name)) || 0; }
+
+  function measureDevice() {
+    const settings = gateSettings();
+    const video = $("video");
+    const width = video.videoWidth || settings.video_width;
+    const height = video.videoHeight || settings.video_height;
+    const main = getComputedStyle($("main"));
+    const trial = getComputedStyle($("page-trial"));
+    const stage = Math.min(
+      $("main").clientWidth - px(main, "padding-left") - px(main, "padding-right")
+        - px(trial, "padding-left") - px(trial, "padding-right")
+        - px(trial, "border-left-width") - px(trial, "border-right-width"),
+      1284);
+    const maxHeight = window.innerHeight * px(getComputedStyle(document.documentElement), "--stage-max-height") / 100;
+    const scale = Math.min(1, stage / width, maxHeight / height);
+    return { viewport_width: window.innerWidth, viewport_height: window.innerHeight,
+             device_pixel_ratio: window.devicePixelRatio, video_width: width, video_height: height,
+             scale: Math.round(scale * 1000) / 1000, scaled: scale < 1, passed: scale >= settings.min_scale };
+  }
+
+  // Returns whether the participant may go on.
+  function checkGate() {
+    device = measureDevice();
+    if (device.passed === !gated) return !gated;
+    gated = !device.passed;
+    $("gate").hidden = !gated;
+    $("flow").hidden = gated;
+    $("withdraw").hidden = gated || $("withdraw").dataset.hiddenByPage === "1";
+    const video = $("video");
+    if (gated) {
+      video.pause();
+      $("gate-title").tabIndex = -1;
+      $("gate-title").focus({ preventScroll: true });
+    } else if (!$("page-trial").hidden && video.src && $("play").hidden) {
+      video.play().catch(() => refusedAutoplay());
+    }
+    return !gated;
+  }
+  let resizeTimer = null;
+  const onResize = () => { clearTimeout(resizeTimer); resizeTimer = setTimeout(() => { if (study) checkGate(); }, 150); };
+  window.addEventListener("resize", onResize);
+  window.addEventListener("orientationchange", onResize);
+
   function show(page) {
     for (const p of PAGES) $(`page-${p}`).hidden = p !== page;
-    $("withdraw").hidden = !creds || ["withdrawn", "thanks"].includes(page);
+    const noWithdraw = !creds || ["withdrawn", "thanks"].includes(page);
+    $("withdraw").dataset.hiddenByPage = noWithdraw ? "1" : "";
+    $("withdraw").hidden = noWithdraw || gated;
     if (page !== "trial") stopVideo();
     const heading = $(`page-${page}`).querySelector("h2");
     if (heading) { heading.tabIndex = -1; heading.focus({ preventScroll: true }); }
@@ -89,6 +148,7 @@
     paragraphs($("consent-text"), study.texts.consent);
     paragraphs($("instructions-text"), study.texts.instructions);
     paragraphs($("thanks-text"), study.texts.thanks);
+    checkGate();
     if (creds) { await resume(); return; }
     if (study.state !== "open") { message("Study closed", "This study is not taking participants at the moment."); return; }
     show("info");
@@ -229,6 +289,7 @@
       stalls: m.stalls || 0, loops: m.loops || 0,
       dropped_frames: q ? q.droppedVideoFrames : null, total_frames: q ? q.totalVideoFrames : null,
       watched_ms: m.started_ms ? Math.round(performance.now() - m.started_ms) : 0,
+      autoplay_refused: Boolean(m.autoplay_refused), play_wait_ms: m.play_wait_ms ?? null,
     };
   }
 
@@ -275,13 +336,40 @@
       else video.addEventListener("canplay", resolve, { once: true });
     });
     loading.hidden = true;
+    checkGate(); // now with the real video's size
     playback = measure(video, () => {
       if (current !== trial) return;
       viewed = true;
       updateSubmit();
     });
-    try { await video.play(); } catch { /* autoplay of a muted video is allowed; ignore a rare refusal */ }
+    $("play").hidden = true;
+    if (gated) video.pause();
+    else {
+      try {
+        await video.play();
+      } catch (error) {
+        if (error.name === "NotAllowedError" && current === trial) { refusedAutoplay(); return; }
+      }
+    }
     $("vote-form").querySelector("input").focus({ preventScroll: true });
+  }
+
+  // The browser refused to start the video without a click: a Play button, and the refusal goes with the vote.
+  function refusedAutoplay() {
+    const m = playback;
+    if (!m) return;
+    m.autoplay_refused = true;
+    const refusedAt = performance.now();
+    const button = $("play");
+    button.hidden = false;
+    button.focus({ preventScroll: true });
+    button.onclick = async () => {
+      try { await $("video").play(); } catch { return; }
+      button.hidden = true;
+      m.started_ms = performance.now(); // the viewing time starts with the click
+      if (m.play_wait_ms == null) m.play_wait_ms = Math.round(performance.now() - refusedAt);
+      $("vote-form").querySelector("input").focus({ preventScroll: true });
+    };
   }
 
   function updateSubmit() {
@@ -301,19 +389,19 @@
     $("vote-submit").disabled = true;
     status("Saving your vote…");
     const body = { choice, rt_ms: Math.round(playbackReport().watched_ms), idempotency_key: uuid(),
-                   playback: playbackReport() };
+                   playback: playbackReport(), device };
     // The page moves on only once the server has the vote: retried until acknowledged (same idempotency key,
     // so a retry never creates a second vote).
     const r = await persist(() => api("POST", `/sessions/${creds.session_id}/trials/${trial.trial_id}/vote`, body),
                             "saving your vote");
-    status("");
+    status(r.ok ? "Vote saved." : "");
     if ([401, 403].includes(r.status)) { clearCreds(); await start(); return; }
     // 201/200: stored, and the answer names the next trial; 409: the server already moved on, ask it where to.
     await nextTrial(r.ok ? (await r.json()).next : undefined);
   });
 
   document.addEventListener("keydown", (e) => {
-    if ($("page-trial").hidden || e.altKey || e.ctrlKey || e.metaKey) return;
+    if ($("page-trial").hidden || gated || e.altKey || e.ctrlKey || e.metaKey) return;
     if (e.key >= "1" && e.key <= "5") {
       const input = $("vote-form").querySelectorAll("input[name=choice]")[Number(e.key) - 1];
       input.checked = true;
