@@ -18,6 +18,7 @@ from server.participants.models import ParticipantSession, Vote
 
 from . import service
 from .models import Study, StudyState
+from .page import Page
 from .results import participant_counts, study_results
 from .schemas import ExportJson, StudyPublic, StudyStateRead, StudySummary
 from .studyfile import StudyFile, StudyFileError, parse_study_text
@@ -120,7 +121,8 @@ def read_study(slug: str, session: SessionDep) -> StudyPublic:
     return StudyPublic(slug=study.slug, title=study.title, state=study.state, texts=study.texts,
                        consent_version=study.consent_version, trials_total=service.trials_total(study),
                        scale=study.scale, questions=study.questions,
-                       parameters=study.recruitment["parameters"])
+                       parameters=study.recruitment["parameters"],
+                       page=Page.model_validate(study.page or {}).public())
 
 
 @router.post("/studies/{slug}/open", response_model=StudyStateRead)

@@ -79,14 +79,16 @@ def _columns(definition: StudyFile) -> dict[str, Any]:
     texts = definition.texts.model_dump()
     return {"title": definition.title, "consent_version": texts.pop("consent_version"), "texts": texts,
             "scale": definition.scale.model_dump(), "questions": [q.model_dump() for q in definition.questions],
-            "design": definition.design.model_dump(), "recruitment": definition.recruitment.model_dump()}
+            "design": definition.design.model_dump(), "recruitment": definition.recruitment.model_dump(),
+            "page": definition.page.model_dump()}
 
 
 def definition(study: Study) -> StudyFile:
     """The study file a study was made from (with its edits)."""
     return StudyFile.model_validate({
         "slug": study.slug, "title": study.title, "texts": {**study.texts, "consent_version": study.consent_version},
-        "scale": study.scale, "questions": study.questions, "design": study.design, "recruitment": study.recruitment})
+        "scale": study.scale, "questions": study.questions, "design": study.design, "recruitment": study.recruitment,
+        "page": study.page or {}})
 
 
 def create_study(session: Session, media: Mapping[str, Any], study_file: StudyFile,

@@ -16,6 +16,7 @@ from urllib.parse import quote, urlsplit
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, ValidationError, field_validator, model_validator
 
 from .design import Design
+from .page import Page
 from .scale import DEFAULT_LABELS, DEFAULT_QUESTION
 
 REPO_STUDIES = Path(__file__).resolve().parents[2] / "studies"
@@ -164,6 +165,7 @@ class StudyFile(_Strict):
     questions: list[Question] = Field(default_factory=lambda: list(THESIS_QUESTIONS), max_length=10)
     design: Design = Field(default_factory=Design)
     recruitment: Recruitment = Field(default_factory=Recruitment)
+    page: Page = Field(default_factory=Page, description="the page's language, its own wording and the device gate")
 
     @model_validator(mode="after")
     def unique_questions(self) -> Self:
