@@ -17,8 +17,9 @@ from server.media.build import render_media
 from server.media.scene import RenderSettings
 from server.participants.models import ParticipantSession, Vote
 from server.studies.models import StudyState
+from server.studies.page import Chrome
 from server.studies.service import clip_set_index, create_study, required_pairs, set_state
-from server.studies.studyfile import thesis_study
+from server.studies.studyfile import REPO_STUDIES, load_study_file, thesis_study
 from tests.conftest import _fresh_engine
 from tests.server_fixtures import live_server
 
@@ -28,6 +29,7 @@ ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-f
 ARTIFACTS = Path(__file__).resolve().parents[1] / "var" / "test-artifacts" / "browser"
 VIDEO = RenderSettings(width=320, height=240)  # real renders, smaller than the default to keep the suite quick
 LEAKS = ("hybrid", "keyframe", "increment", "mocap")
+SWEDISH = REPO_STUDIES / "thesis-sv.toml"
 
 
 @pytest.fixture(scope="module")
@@ -46,6 +48,7 @@ def site(data, tmp_path_factory):
     factory = session_factory(engine)
     with factory() as db:
         set_state(db, create_study(db, json.loads(manifest.read_text()), study_file), StudyState.open)
+        set_state(db, create_study(db, json.loads(manifest.read_text()), load_study_file(SWEDISH)), StudyState.open)
     app = create_app(settings, engine, run_migrations=False)
     with live_server(app) as base:
         yield base, factory
@@ -318,7 +321,8 @@ def study_with_gate(pg, base, gate):
     """The study as the API gives it, with a device-gate setting of the study added."""
     def patch(route):
         response = route.fetch()
-        route.fulfill(response=response, json={**response.json(), "device_gate": gate})
+        study = response.json()
+        route.fulfill(response=response, json={**study, "page": {**study["page"], "device_gate": gate}})
     pg.route(f"{base}/api/v1/studies/thesis", patch)
 
 
@@ -492,3 +496,135 @@ def test_autoplay_refusal_shows_play_and_is_recorded(site, playwright):
     with factory() as db:
         playback = db.scalars(select(Vote).where(Vote.session_id == sid)).one().extra["playback"]
     assert playback["autoplay_refused"] is True and playback["play_wait_ms"] > 0 and playback["loops"] >= 1
+
+
+def english_strings() -> set[str]:
+    """The page's English defaults and every English string of the thesis study (texts, labels, questions)."""
+    thesis = thesis_study()
+    found = {v for v in Chrome().model_dump().values()}
+    found |= {v for k, v in thesis.texts.model_dump().items() if k != "consent_version"}
+    found |= {thesis.title, thesis.scale.question, *thesis.scale.labels}
+    found |= {q.text for q in thesis.questions} | {c.label for q in thesis.questions for c in q.choices}
+    # A template counts up to its first placeholder ("Trial {index} of {total}" -> "Trial").
+    return {s.split("{")[0].strip() for s in found} - {""}
+
+
+VISIBLE_TEXT = """(() => {
+  const out = [document.title];
+  const walk = document.createTreeWalker(document.body, NodeFilter.SHOW_TEXT);
+  for (let n = walk.nextNode(); n; n = walk.nextNode()) {
+    const text = n.textContent.trim();
+    if (text && n.parentElement.checkVisibility({ checkVisibilityCSS: true })) out.push(text);
+  }
+  return out;
+})()"""
+
+
+def english_on_screen(pg, english):
+    texts = pg.evaluate(VISIBLE_TEXT)
+    assert texts, "no visible text"
+    # A text node that is an English string, or holds one of four letters or more.
+    return sorted({t for t in texts for e in english if t == e or (len(e) >= 4 and e in t)})
+
+
+def test_swedish_study_end_to_end_shows_no_english(site, browser):
+    base, factory = site
+    english = english_strings()
+    context = browser.new_context(viewport={"width": 1920, "height": 1080})
+    pg = context.new_page()
+    dialogs = []
+    seen = []
+
+    def check(where):
+        assert pg.evaluate("[document.documentElement.lang, document.documentElement.dir]") == ["sv", "ltr"]
+        left = english_on_screen(pg, english)
+        assert not left, f"{where}: English on screen: {left}"
+        seen.append(where)
+
+    pg.goto(f"{base}/s/thesis-sv")
+    visible(pg, "info")
+    check("information")
+    press_on(pg, "#info-next")
+    visible(pg, "consent")
+    check("consent")
+    press_on(pg, "#consent-box", "Space")
+    press_on(pg, "#consent-next")
+    visible(pg, "demographics")
+    check("demographics")
+    press_on(pg, "input[name=gamer][value=no]", "Space")
+    press_on(pg, "input[name=tech_savvy][value=no]", "Space")
+    press_on(pg, "#demographics-form button")
+    visible(pg, "instructions")
+    check("instructions")
+    press_on(pg, "#instructions-next")
+    for number in range(1, 17):
+        wait_until(pg, f"document.getElementById('trial-progress').textContent.startsWith('Försök {number} av 16')")
+        if number == 1:
+            check("trial loading")  # "Laddar…" (if the video is not there yet)
+        pg.wait_for_selector("#loading", state="hidden")
+        pg.keyboard.press("3")
+        if number == 1:
+            check("trial, before one full loop")  # the "watch it first" status
+            shot(pg, "sv-trial")
+        pg.wait_for_selector("#vote-submit:not([disabled])", timeout=15000)
+        pg.keyboard.press("Enter")
+    visible(pg, "thanks")
+    check("thanks")
+    shot(pg, "sv-thanks")
+    sid = pg.evaluate("JSON.parse(localStorage.getItem('animstudy:thesis-sv'))")["session_id"]
+    with factory() as db:
+        ps = db.get(ParticipantSession, sid)
+        assert ps.state == "completed" and len(db.scalars(select(Vote).where(Vote.session_id == sid)).all()) == 16
+    # Withdrawal (with its confirmation), the gate and a study that does not exist, in Swedish too.
+    pg.evaluate("localStorage.clear()")
+    pg.goto(f"{base}/s/thesis-sv")
+    visible(pg, "info")
+    press_on(pg, "#info-next")
+    press_on(pg, "#consent-box", "Space")
+    press_on(pg, "#consent-next")
+    visible(pg, "demographics")
+    pg.once("dialog", lambda d: (dialogs.append(d.message), d.accept()))
+    pg.click("#withdraw")
+    visible(pg, "withdrawn")
+    check("withdrawn")
+    assert dialogs and not [e for e in english if e in dialogs[0]], dialogs
+    pg.set_viewport_size({"width": 390, "height": 844})
+    pg.goto(f"{base}/s/thesis-sv")
+    pg.wait_for_selector("#gate:not([hidden])")
+    check("gate")
+    shot(pg, "sv-gate-390")
+    context.close()
+    print("Swedish study, pages checked for English:", seen, "- confirmation:", dialogs)
+
+
+def test_right_to_left_study_is_laid_out_right_to_left(site, browser):
+    base, _ = site
+    context = browser.new_context(viewport={"width": 390, "height": 844})
+    pg = context.new_page()
+
+    def arabic(route):
+        response = route.fetch()
+        study = response.json()
+        page = {**study["page"], "lang": "ar", "dir": "rtl", "device_gate": {"min_scale": 0.2}}
+        route.fulfill(response=response, json={**study, "page": page})
+    pg.route(f"{base}/api/v1/studies/thesis", arabic)
+    pg.goto(f"{base}/s/thesis")
+    visible(pg, "info")
+    assert pg.evaluate("getComputedStyle(document.body).direction") == "rtl"
+    press_on(pg, "#info-next")
+    press_on(pg, "#consent-box", "Space")
+    press_on(pg, "#consent-next")
+    visible(pg, "demographics")
+    press_on(pg, "input[name=gamer][value=no]", "Space")
+    press_on(pg, "input[name=tech_savvy][value=no]", "Space")
+    press_on(pg, "#demographics-form button")
+    press_on(pg, "#instructions-next")
+    wait_trial(pg, 1)
+    overflow = pg.evaluate("[document.documentElement.scrollWidth, document.documentElement.clientWidth]")
+    assert overflow[0] <= overflow[1]
+    # Right to left: a radio button sits at the right end of its answer, the title at the right of the bar.
+    label = pg.eval_on_selector("#vote-form label", "l => l.getBoundingClientRect().toJSON()")
+    radio = pg.eval_on_selector("#vote-form input", "i => i.getBoundingClientRect().toJSON()")
+    assert radio["left"] > label["left"] + label["width"] / 2, (radio, label)
+    shot(pg, "rtl-trial-390")
+    context.close()

@@ -55,7 +55,6 @@ class Chrome(_Strict):
     completion_link: str = _s("Return to the study platform")
     withdrawn_title: str = _s("Your answers have been deleted")
     withdrawn_text: str = _s("You have left the study. Nothing you answered is kept. Thank you for your time.")
-    error_title: str = _s("Sorry")
     retry: str = _s("Try again")
     not_found_title: str = _s("Study not found")
     not_found_text: str = _s("This study does not exist. Please check the link.")

@@ -115,6 +115,12 @@ def delete_study(slug: str, session: SessionDep, researcher: ResearcherDep) -> R
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
+@router.get("/page-defaults")
+def page_defaults() -> dict[str, Any]:
+    """The participant page's default language, wording and gate (for a link to a study that does not exist)."""
+    return Page().public()
+
+
 @router.get("/studies/{slug}", response_model=StudyPublic)
 def read_study(slug: str, session: SessionDep) -> StudyPublic:
     study = service.get_study(session, slug)
