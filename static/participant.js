@@ -213,7 +213,7 @@
     const params = new URLSearchParams(location.search);
     const external = {};
     for (const name of study.parameters) if (params.get(name)) external[name] = params.get(name).slice(0, 200);
-    const body = { consent: true, external: Object.keys(external).length ? external : null };
+    const body = { consent: true, external: Object.keys(external).length ? external : null, device: measureDevice() };
     const r = await persist(() => api("POST", `/studies/${encodeURIComponent(slug)}/sessions`, body));
     if (r.status !== 201) { message(t("cannot_start_title"), t("closed_text")); return; }
     const created = await r.json();

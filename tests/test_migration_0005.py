@@ -21,7 +21,7 @@ TABLES = ("studies", "sessions", "trials", "votes", "comparisons", "stimuli")
 def dump(conn: sa.Connection) -> dict[str, list[tuple]]:
     out = {}
     for table in TABLES:
-        cols = [c["name"] for c in sa.inspect(conn).get_columns(table) if c["name"] != "page"]
+        cols = [c["name"] for c in sa.inspect(conn).get_columns(table) if c["name"] not in ("page", "device")]
         quoted = ", ".join(f'"{c}"' for c in cols)
         rows = conn.execute(sa.text(f"SELECT {quoted} FROM {table} ORDER BY 1")).all()
         out[table] = [tuple(map(str, r)) for r in rows]
@@ -46,9 +46,12 @@ def test_0005_adds_the_page_and_keeps_everything(kind, tmp_path_factory):
         with engine.connect() as conn:
             assert dump(conn) == before
             assert conn.scalar(sa.text("SELECT page FROM studies")) is None
+            assert conn.scalar(sa.text("SELECT count(*) FROM sessions WHERE device IS NOT NULL")) == 0
         with Session(engine) as db:
             page = service.definition(db.get(Study, study_id)).page
             assert (page.lang, page.dir, page.device_gate.min_scale) == ("en", "ltr", 0.8)
             assert page.chrome.submit == "Submit vote" and page.chrome.next == "Continue"
+            rows = list(service.export_rows(db, db.get(Study, study_id)))
+            assert rows and all(r["viewport_width"] is None and r["video_scaled"] is None for r in rows)
     finally:
         engine.dispose()

@@ -18,7 +18,7 @@ from server.media.scene import RenderSettings
 from server.participants.models import ParticipantSession, Vote
 from server.studies.models import StudyState
 from server.studies.page import Chrome
-from server.studies.service import clip_set_index, create_study, required_pairs, set_state
+from server.studies.service import clip_set_index, create_study, export_rows, required_pairs, set_state
 from server.studies.studyfile import REPO_STUDIES, load_study_file, thesis_study
 from tests.conftest import _fresh_engine
 from tests.server_fixtures import live_server
@@ -389,6 +389,12 @@ def test_every_layout_fits_gates_and_has_no_axe_violations(site, sized, axe_sour
         device = vote.extra["device"]
     assert (device["viewport_width"], device["device_pixel_ratio"]) == (width, 1)
     assert device["scaled"] == (width < 660) and device["passed"] is True  # the test renders are 644 px wide
+    with factory() as db:  # the device at the start is the session's, and exported
+        ps = db.get(ParticipantSession, creds["session_id"])
+        assert (ps.device["viewport_width"], ps.device["viewport_height"]) == (width, int(size.split("x")[1]))
+        row = next(r for r in export_rows(db, ps.study) if r["session_id"] == ps.id)
+        assert (row["viewport_width"], row["device_pixel_ratio"]) == (width, 1)
+        assert row["video_scaled"] == ps.device["scaled"] and row["video_scale"] == ps.device["scale"]
     api_vote_rest(base, creds)
     pg.reload()
     visible(pg, "thanks")
