@@ -4,6 +4,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
+AXE := var/node/node_modules/axe-core/axe.min.js
 
 .PHONY: install run test lint clean
 
@@ -36,6 +37,10 @@ test: lint
 	@# The browser tests drive Debian's Chromium through Playwright (never a downloaded browser).
 	@test -x /usr/bin/chromium || { echo "installing chromium (apt-get)"; \
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; }
+	@# axe-core 4 (the accessibility checker the browser tests inject) from the npm registry, once, into var/.
+	@command -v npm >/dev/null || { echo "installing npm (apt-get)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq npm; }
+	@test -f $(AXE) || npm install --no-save --no-audit --no-fund --prefix var/node axe-core@4
 	$(BIN)/python -m pytest
 
 clean:

@@ -17,6 +17,8 @@
   let viewed = false; // watched one full loop
   let playback = null; // measurements of the current trial's playback
   const videos = new Map(); // url -> Promise of an object URL of the fully downloaded file
+  let device = null; // what the device gate measured last
+  let gated = false; // the gate is on screen (the flow underneath keeps its state)
 
   function readCreds() {
     try { return JSON.parse(localStorage.getItem(storeKey)); } catch { return null; }
@@ -30,11 +32,81 @@
     return Array.from(b, (x) => x.toString(16).padStart(2, "0")).join("");
   }
 
+  // The page's own wording: the study's [page] chrome (defaults: server/studies/page.py), {name} filled in.
+  let chrome = {};
+  function t(key, values = {}) {
+    return String(chrome[key] ?? key).replace(/\{(\w+)\}/g, (m, name) => (name in values ? values[name] : m));
+  }
+  function applyPage(page) {
+    chrome = page.chrome;
+    document.documentElement.lang = page.lang;
+    document.documentElement.dir = page.dir;
+    document.querySelectorAll("[data-t]").forEach((el) => { el.textContent = t(el.dataset.t); });
+  }
+
   function status(text) { $("status").textContent = text || ""; }
+
+  // --- device gate ------------------------------------------------------------------------------------------
+  // The pair video must show each character at no less than `min_scale` of its rendered size.  The scale the
+  // video would get is computed from the same box the stylesheet gives it (stage width, --stage-max-height), so
+  // the gate can decide before consent, while the trial page is still hidden, and again on resize/rotation.
+  // The study's [page.device_gate] sets min_scale; the video's width/height attributes are the rendered default
+  // size until the trial's video tells its own.
+  function gateSettings() {
+    const video = $("video");
+    return { video_width: Number(video.getAttribute("width")), video_height: Number(video.getAttribute("height")),
+             ...study.page.device_gate };
+  }
+
+  function px(style, name) { return parseFloat(style.getPropertyValue(name)) || 0; }
+
+  function measureDevice() {
+    const settings = gateSettings();
+    const video = $("video");
+    const width = video.videoWidth || settings.video_width;
+    const height = video.videoHeight || settings.video_height;
+    const main = getComputedStyle($("main"));
+    const trial = getComputedStyle($("page-trial"));
+    const stage = Math.min(
+      $("main").clientWidth - px(main, "padding-left") - px(main, "padding-right")
+        - px(trial, "padding-left") - px(trial, "padding-right")
+        - px(trial, "border-left-width") - px(trial, "border-right-width"),
+      1284);
+    const maxHeight = window.innerHeight * px(getComputedStyle(document.documentElement), "--stage-max-height") / 100;
+    const scale = Math.min(1, stage / width, maxHeight / height);
+    return { viewport_width: window.innerWidth, viewport_height: window.innerHeight,
+             device_pixel_ratio: window.devicePixelRatio, video_width: width, video_height: height,
+             scale: Math.round(scale * 1000) / 1000, scaled: scale < 1, passed: scale >= settings.min_scale };
+  }
+
+  // Returns whether the participant may go on.
+  function checkGate() {
+    device = measureDevice();
+    if (device.passed === !gated) return !gated;
+    gated = !device.passed;
+    $("gate").hidden = !gated;
+    $("flow").hidden = gated;
+    $("withdraw").hidden = gated || $("withdraw").dataset.hiddenByPage === "1";
+    const video = $("video");
+    if (gated) {
+      video.pause();
+      $("gate-title").tabIndex = -1;
+      $("gate-title").focus({ preventScroll: true });
+    } else if (!$("page-trial").hidden && video.src && $("play").hidden) {
+      video.play().catch(() => refusedAutoplay());
+    }
+    return !gated;
+  }
+  let resizeTimer = null;
+  const onResize = () => { clearTimeout(resizeTimer); resizeTimer = setTimeout(() => { if (study) checkGate(); }, 150); };
+  window.addEventListener("resize", onResize);
+  window.addEventListener("orientationchange", onResize);
 
   function show(page) {
     for (const p of PAGES) $(`page-${p}`).hidden = p !== page;
-    $("withdraw").hidden = !creds || ["withdrawn", "thanks"].includes(page);
+    const noWithdraw = !creds || ["withdrawn", "thanks"].includes(page);
+    $("withdraw").dataset.hiddenByPage = noWithdraw ? "1" : "";
+    $("withdraw").hidden = noWithdraw || gated;
     if (page !== "trial") stopVideo();
     const heading = $(`page-${page}`).querySelector("h2");
     if (heading) { heading.tabIndex = -1; heading.focus({ preventScroll: true }); }
@@ -65,22 +137,28 @@
   }
 
   // Network calls that must get through: retried with backoff on network errors and 5xx answers.
-  async function persist(call, what) {
+  async function persist(call) {
     for (let attempt = 0; ; attempt++) {
       try {
         const r = await call();
         if (r.status < 500) { status(""); return r; }
       } catch { /* offline or connection dropped: try again */ }
-      status(`Connection problem while ${what}; retrying…`);
+      status(t("retrying"));
       await sleep(Math.min(10000, 500 * 2 ** attempt));
     }
   }
 
   // --- start and resume ---------------------------------------------------------------------------------
   async function start() {
-    const r = await persist(() => fetch(`/api/v1/studies/${encodeURIComponent(slug)}`), "loading the study");
-    if (!r.ok) { message("Study not found", "This study does not exist. Please check the link."); return; }
+    const r = await persist(() => fetch(`/api/v1/studies/${encodeURIComponent(slug)}`));
+    if (!r.ok) {
+      const defaults = await persist(() => fetch("/api/v1/page-defaults"));
+      applyPage(await defaults.json());
+      message(t("not_found_title"), t("not_found_text"));
+      return;
+    }
     study = await r.json();
+    applyPage(study.page);
     $("study-title").textContent = study.title;
     document.title = study.title;
     paragraphs($("info-text"), study.texts.information);
@@ -91,15 +169,14 @@
     $("scale-question").textContent = study.scale.question;
     document.querySelectorAll("#vote-form .choice-label").forEach((el, i) => { el.textContent = study.scale.labels[i]; });
     buildQuestions(study.questions);
+    checkGate();
     if (creds) { await resume(); return; }
-    if (study.state !== "open") { message("Study closed", "This study is not taking participants at the moment."); return; }
+    if (study.state !== "open") { message(t("closed_title"), t("closed_text")); return; }
     show("info");
   }
 
   // The study's questions, one fieldset each (radio buttons named by the question id, valued by the choice id).
   function buildQuestions(questions) {
-    const counts = ["No questions", "One question", "Two questions", "Three questions"];
-    $("questions-title").textContent = `${counts[questions.length] || "A few questions"} about you`;
     const form = $("demographics-form");
     form.querySelectorAll("fieldset").forEach((f) => f.remove());
     for (const q of questions) {
@@ -119,7 +196,7 @@
   }
 
   async function resume() {
-    const r = await persist(() => api("GET", `/sessions/${creds.session_id}`), "resuming");
+    const r = await persist(() => api("GET", `/sessions/${creds.session_id}`));
     if ([401, 403, 404].includes(r.status)) { clearCreds(); await start(); return; }
     const state = await r.json();
     if (state.state === "completed") { thanks(state); return; }
@@ -136,9 +213,9 @@
     const params = new URLSearchParams(location.search);
     const external = {};
     for (const name of study.parameters) if (params.get(name)) external[name] = params.get(name).slice(0, 200);
-    const body = { consent: true, external: Object.keys(external).length ? external : null };
-    const r = await persist(() => api("POST", `/studies/${encodeURIComponent(slug)}/sessions`, body), "starting");
-    if (r.status !== 201) { message("Cannot start", "The study is not open at the moment."); return; }
+    const body = { consent: true, external: Object.keys(external).length ? external : null, device: measureDevice() };
+    const r = await persist(() => api("POST", `/studies/${encodeURIComponent(slug)}/sessions`, body));
+    if (r.status !== 201) { message(t("cannot_start_title"), t("closed_text")); return; }
     const created = await r.json();
     creds = { session_id: created.session_id, token: created.token, instructed: false };
     saveCreds();
@@ -150,7 +227,7 @@
     const form = new FormData(e.target);
     const body = Object.fromEntries(study.questions.map((q) => [q.id, form.get(q.id)]));
     if (Object.values(body).some((v) => !v)) return;
-    const r = await persist(() => api("PUT", `/sessions/${creds.session_id}/demographics`, body), "saving");
+    const r = await persist(() => api("PUT", `/sessions/${creds.session_id}/demographics`, body));
     if (r.ok) show("instructions");
     else if (r.status === 401) { clearCreds(); await start(); }
   });
@@ -253,6 +330,7 @@
       stalls: m.stalls || 0, loops: m.loops || 0,
       dropped_frames: q ? q.droppedVideoFrames : null, total_frames: q ? q.totalVideoFrames : null,
       watched_ms: m.started_ms ? Math.round(performance.now() - m.started_ms) : 0,
+      autoplay_refused: Boolean(m.autoplay_refused), play_wait_ms: m.play_wait_ms ?? null,
     };
   }
 
@@ -266,28 +344,28 @@
     if (known === null) { await finish(); return; }
     let trial = known;
     if (trial === undefined) {
-      const r = await persist(() => api("GET", `/sessions/${creds.session_id}/next`), "loading the next trial");
+      const r = await persist(() => api("GET", `/sessions/${creds.session_id}/next`));
       if (r.status === 204) { await finish(); return; }
       if ([401, 403, 404].includes(r.status)) { clearCreds(); await start(); return; }
       trial = await r.json();
     }
     current = trial;
-    $("trial-progress").textContent = `Trial ${trial.index + 1} of ${trial.total}${trial.practice ? " (practice, not counted)" : ""}`;
+    $("trial-progress").textContent = t("progress", { index: trial.index + 1, total: trial.total })
+      + (trial.practice ? ` ${t("practice")}` : "");
     const loading = $("loading");
     loading.hidden = false;
     $("loading-bar").value = 0;
-    $("loading-text").textContent = "Loading…";
+    $("loading-text").textContent = t("loading");
     let url;
     try {
       url = await fetchVideo(trial.video_url, (f) => {
         $("loading-bar").value = Math.round(f * 100);
-        $("loading-text").textContent = `Loading… ${Math.round(f * 100)} %`;
+        $("loading-text").textContent = t("loading_percent", { percent: Math.round(f * 100) });
       });
     } catch (error) {
       await persist(() => api("POST", `/sessions/${creds.session_id}/events`,
-                              { kind: "load_failure", trial_id: trial.trial_id, detail: { error: String(error) } }),
-                    "reporting a problem");
-      message("The video could not be loaded", "Please check your connection and try again.", () => nextTrial());
+                              { kind: "load_failure", trial_id: trial.trial_id, detail: { error: String(error) } }));
+      message(t("load_failed_title"), t("load_failed_text"), () => nextTrial());
       return;
     }
     if (current !== trial) return;
@@ -299,19 +377,46 @@
       else video.addEventListener("canplay", resolve, { once: true });
     });
     loading.hidden = true;
+    checkGate(); // now with the real video's size
     playback = measure(video, () => {
       if (current !== trial) return;
       viewed = true;
       updateSubmit();
     });
-    try { await video.play(); } catch { /* autoplay of a muted video is allowed; ignore a rare refusal */ }
+    $("play").hidden = true;
+    if (gated) video.pause();
+    else {
+      try {
+        await video.play();
+      } catch (error) {
+        if (error.name === "NotAllowedError" && current === trial) { refusedAutoplay(); return; }
+      }
+    }
     $("vote-form").querySelector("input").focus({ preventScroll: true });
+  }
+
+  // The browser refused to start the video without a click: a Play button, and the refusal goes with the vote.
+  function refusedAutoplay() {
+    const m = playback;
+    if (!m) return;
+    m.autoplay_refused = true;
+    const refusedAt = performance.now();
+    const button = $("play");
+    button.hidden = false;
+    button.focus({ preventScroll: true });
+    button.onclick = async () => {
+      try { await $("video").play(); } catch { return; }
+      button.hidden = true;
+      m.started_ms = performance.now(); // the viewing time starts with the click
+      if (m.play_wait_ms == null) m.play_wait_ms = Math.round(performance.now() - refusedAt);
+      $("vote-form").querySelector("input").focus({ preventScroll: true });
+    };
   }
 
   function updateSubmit() {
     const chosen = new FormData($("vote-form")).get("choice");
     $("vote-submit").disabled = !(viewed && chosen);
-    if (chosen && !viewed) status("Please watch the clip play through once.");
+    if (chosen && !viewed) status(t("watch_first"));
     else status("");
   }
   $("vote-form").addEventListener("change", updateSubmit);
@@ -323,21 +428,20 @@
     const trial = current;
     current = null;
     $("vote-submit").disabled = true;
-    status("Saving your vote…");
+    status(t("saving"));
     const body = { choice, rt_ms: Math.round(playbackReport().watched_ms), idempotency_key: uuid(),
-                   playback: playbackReport() };
+                   playback: playbackReport(), device };
     // The page moves on only once the server has the vote: retried until acknowledged (same idempotency key,
     // so a retry never creates a second vote).
-    const r = await persist(() => api("POST", `/sessions/${creds.session_id}/trials/${trial.trial_id}/vote`, body),
-                            "saving your vote");
-    status("");
+    const r = await persist(() => api("POST", `/sessions/${creds.session_id}/trials/${trial.trial_id}/vote`, body));
+    status(r.ok ? t("saved") : "");
     if ([401, 403].includes(r.status)) { clearCreds(); await start(); return; }
     // 201/200: stored, and the answer names the next trial; 409: the server already moved on, ask it where to.
     await nextTrial(r.ok ? (await r.json()).next : undefined);
   });
 
   document.addEventListener("keydown", (e) => {
-    if ($("page-trial").hidden || e.altKey || e.ctrlKey || e.metaKey) return;
+    if ($("page-trial").hidden || gated || e.altKey || e.ctrlKey || e.metaKey) return;
     if (e.key >= "1" && e.key <= "5") {
       const input = $("vote-form").querySelectorAll("input[name=choice]")[Number(e.key) - 1];
       input.checked = true;
@@ -352,7 +456,7 @@
 
   // --- the end ----------------------------------------------------------------------------------------------
   async function finish() {
-    const r = await persist(() => api("GET", `/sessions/${creds.session_id}`), "finishing");
+    const r = await persist(() => api("GET", `/sessions/${creds.session_id}`));
     thanks(r.ok ? await r.json() : {});
   }
 
@@ -368,8 +472,8 @@
   }
 
   $("withdraw").addEventListener("click", async () => {
-    if (!creds || !confirm("Withdraw from the study and delete all your answers?")) return;
-    const r = await persist(() => api("POST", `/sessions/${creds.session_id}/withdraw`), "withdrawing");
+    if (!creds || !confirm(t("withdraw_confirm"))) return;
+    const r = await persist(() => api("POST", `/sessions/${creds.session_id}/withdraw`));
     if (r.ok || r.status === 401) { clearCreds(); show("withdrawn"); }
   });
 

@@ -201,3 +201,29 @@ def test_completion_code_and_practice_trial(client, db):
     state = client.get(f"/api/v1/sessions/{sid}", headers=headers).json()
     assert state["completion_code"] == "C0DE42" and state["outcome"] == "completed"
     assert state["completion_url"] == "https://app.prolific.com/submissions/complete?cc=C0DE42&p=pp"
+
+
+DEVICE = {"viewport_width": 1920, "viewport_height": 1080, "device_pixel_ratio": 1.5, "video_width": 1284,
+          "video_height": 480, "scale": 0.983, "scaled": True, "passed": True}
+
+
+def test_the_device_at_the_start_is_kept_with_the_session(client, study, db):
+    for bad in ({**DEVICE, "viewport_width": "1920"}, {**DEVICE, "scale": 2}, {**DEVICE, "extra": 1},
+                {k: v for k, v in DEVICE.items() if k != "passed"}):
+        r = client.post("/api/v1/studies/thesis/sessions", json={"consent": True, "device": bad})
+        assert r.status_code == 422 and "device" in r.text, r.text
+    assert db.scalar(select(func.count(ParticipantSession.id))) == 0
+    r = client.post("/api/v1/studies/thesis/sessions", json={"consent": True, "device": DEVICE})
+    assert r.status_code == 201
+    assert db.get(ParticipantSession, r.json()["session_id"]).device == DEVICE
+    r = client.post("/api/v1/studies/thesis/sessions", json={"consent": True})  # an older page: no device
+    assert r.status_code == 201 and db.get(ParticipantSession, r.json()["session_id"]).device is None
+
+
+def test_public_study_has_its_page_settings(client, study):
+    page = client.get("/api/v1/studies/thesis").json()["page"]
+    assert (page["lang"], page["dir"], page["device_gate"]) == ("en", "ltr", {"min_scale": 0.8})
+    assert page["chrome"]["submit"] == "Submit vote" and page["chrome"]["progress"] == "Trial {index} of {total}"
+    defaults = client.get("/api/v1/page-defaults").json()["chrome"]
+    assert defaults == {**page["chrome"], "questions_title": "Questions about you"}  # the thesis words it its way
+    assert page["chrome"]["questions_title"] == "Two questions about you"

@@ -19,8 +19,9 @@ from server.media.manifest import read_render_manifest
 from server.media.scene import RenderSettings
 from server.participants.models import ParticipantSession, Vote
 from server.studies.models import StudyState
-from server.studies.service import clip_set_index, create_study, required_pairs, set_state
-from server.studies.studyfile import thesis_study
+from server.studies.page import Chrome
+from server.studies.service import clip_set_index, create_study, export_rows, required_pairs, set_state
+from server.studies.studyfile import REPO_STUDIES, load_study_file, thesis_study
 from tests.conftest import _fresh_engine
 from tests.server_fixtures import live_server
 
@@ -30,6 +31,7 @@ ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-f
 ARTIFACTS = Path(__file__).resolve().parents[1] / "var" / "test-artifacts" / "browser"
 VIDEO = RenderSettings(width=320, height=240)  # real renders, smaller than the default to keep the suite quick
 LEAKS = ("hybrid", "keyframe", "increment", "mocap")
+SWEDISH = REPO_STUDIES / "thesis-sv.toml"
 
 
 @pytest.fixture(scope="module")
@@ -48,6 +50,8 @@ def site(data, tmp_path_factory):
     factory = session_factory(engine)
     with factory() as db:
         set_state(db, create_study(db, read_render_manifest(manifest.parent), study_file), StudyState.open)
+        set_state(db, create_study(db, read_render_manifest(manifest.parent), load_study_file(SWEDISH)),
+                  StudyState.open)
     app = create_app(settings, engine, run_migrations=False)
     with live_server(app) as base:
         yield base, factory
@@ -55,11 +59,16 @@ def site(data, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def browser():
+def playwright():
     with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-        yield b
-        b.close()
+        yield p
+
+
+@pytest.fixture(scope="module")
+def browser(playwright):
+    b = playwright.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+    yield b
+    b.close()
 
 
 @pytest.fixture
@@ -251,3 +260,383 @@ def test_pages_fit_a_720p_screen(site, page):
                         " return [r.width, r.height, v.videoWidth, v.videoHeight]; })()")
     assert box[2] == 2 * VIDEO.width + 4  # the side-by-side video, both halves in one frame
     assert box[0] > 0 and box[1] > 0
+
+
+# --- issue 17: narrow screens, the device gate, accessibility, autoplay refusal ---------------------------------
+AXE = Path(__file__).resolve().parents[1] / "var" / "node" / "node_modules" / "axe-core" / "axe.min.js"
+WCAG = ["wcag2a", "wcag2aa", "wcag21a", "wcag21aa"]
+# Viewport -> whether the thesis study's gate (each character at >= 80 % of its 642 px render, the pair video
+# 1284x480) must stop a participant: only the 1920-wide window leaves room for 1284 px minus the page's margins.
+LAYOUTS = {(320, 640): True, (390, 844): True, (768, 1024): True, (1920, 1080): False}
+SMALL_SCREEN_STUDY = {"min_scale": 0.2}  # a study that accepts phones (the gate's per-study setting)
+
+
+@pytest.fixture(scope="module")
+def axe_source():
+    if not AXE.exists():
+        pytest.fail(f"{AXE} is missing: `make test` installs axe-core 4 from the npm registry")
+    return AXE.read_text()
+
+
+def check_page(pg, axe_source, name):
+    """No sideways scrolling, zero axe-core WCAG 2.1 A/AA violations, and a screenshot."""
+    overflow = pg.evaluate("[document.documentElement.scrollWidth, document.documentElement.clientWidth]")
+    assert overflow[0] <= overflow[1], f"{name}: page is {overflow[0]} px wide in a {overflow[1]} px window"
+    if not pg.evaluate("typeof window.axe === 'object'"):
+        pg.add_script_tag(content=axe_source)  # the context bypasses the page's CSP for this inline script
+    result = pg.evaluate("tags => axe.run(document, {runOnly: {type: 'tag', values: tags}})", WCAG)
+    violations = [(v["id"], v["impact"], [n["target"] for n in v["nodes"]][:3]) for v in result["violations"]]
+    assert not violations, f"{name}: {violations}"
+    print(f"axe-core {result['testEngine']['version']} {name}: 0 violations, {len(result['passes'])} rules passed,"
+          f" {len(result['incomplete'])} to review by hand {[v['id'] for v in result['incomplete']]}")
+    shot(pg, f"layout-{name}")
+
+
+def api_call(base, method, path, body=None, token=None):
+    import urllib.request
+    headers = {"Content-Type": "application/json"} | ({"Authorization": f"Bearer {token}"} if token else {})
+    data = None if body is None else json.dumps(body).encode()
+    with urllib.request.urlopen(urllib.request.Request(f"{base}/api/v1{path}", data=data, headers=headers,
+                                                       method=method)) as r:
+        return r.status, (json.loads(r.read() or b"null"))
+
+
+def api_session(base):
+    """A participant who consented and answered the questions, through the API."""
+    _, created = api_call(base, "POST", "/studies/thesis/sessions", {"consent": True})
+    api_call(base, "PUT", f"/sessions/{created['session_id']}/demographics", {"gamer": "no", "tech_savvy": "no"},
+             created["token"])
+    return created
+
+
+def api_vote_rest(base, creds):
+    """Answer the remaining trials through the API (the page's own voting is tested above)."""
+    sid, token = creds["session_id"], creds["token"]
+    while True:
+        status, trial = api_call(base, "GET", f"/sessions/{sid}/next", token=token)
+        if status == 204:
+            return
+        api_call(base, "POST", f"/sessions/{sid}/trials/{trial['trial_id']}/vote",
+                 {"choice": "equal", "rt_ms": 3000, "idempotency_key": f"k{trial['trial_id']}"}, token)
+
+
+def study_with_gate(pg, base, gate):
+    """The study as the API gives it, with a device-gate setting of the study added."""
+    def patch(route):
+        response = route.fetch()
+        study = response.json()
+        route.fulfill(response=response, json={**study, "page": {**study["page"], "device_gate": gate}})
+    pg.route(f"{base}/api/v1/studies/thesis", patch)
+
+
+@pytest.fixture
+def sized(browser, request):
+    width, height = request.param
+    context = browser.new_context(viewport={"width": width, "height": height}, bypass_csp=True)
+    pg = context.new_page()
+    errors = []
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    yield pg, f"{width}x{height}"
+    context.close()
+    assert not errors, errors
+
+
+@pytest.mark.parametrize("sized", list(LAYOUTS), indirect=True, ids=lambda s: f"{s[0]}x{s[1]}")
+def test_every_layout_fits_gates_and_has_no_axe_violations(site, sized, axe_source):
+    base, factory = site
+    pg, size = sized
+    width = int(size.split("x")[0])
+    pg.goto(f"{base}/study/thesis")
+    wait_until(pg, "!document.getElementById('gate').hidden || !document.getElementById('page-info').hidden")
+    gated = pg.is_visible("#gate")
+    assert gated == LAYOUTS[(width, int(size.split("x")[1]))], size
+    if gated:
+        assert not pg.is_visible("#info-next") and not pg.is_visible("#consent-next")  # cannot start
+        check_page(pg, axe_source, f"{size}-gate")
+        # A study that accepts small screens: the whole flow at this size.
+        study_with_gate(pg, base, SMALL_SCREEN_STUDY)
+        pg.reload()
+    visible(pg, "info")
+    assert not pg.is_visible("#gate")
+    check_page(pg, axe_source, f"{size}-1-information")
+    press_on(pg, "#info-next")
+    visible(pg, "consent")
+    press_on(pg, "#consent-box", "Space")
+    check_page(pg, axe_source, f"{size}-2-consent")
+    press_on(pg, "#consent-next")
+    visible(pg, "demographics")
+    press_on(pg, "input[name=gamer][value=no]", "Space")
+    press_on(pg, "input[name=tech_savvy][value=yes]", "Space")
+    check_page(pg, axe_source, f"{size}-3-demographics")
+    press_on(pg, "#demographics-form button")
+    visible(pg, "instructions")
+    check_page(pg, axe_source, f"{size}-4-instructions")
+    press_on(pg, "#instructions-next")
+    wait_trial(pg, 1)
+    pg.keyboard.press("4")
+    check_page(pg, axe_source, f"{size}-5-trial")
+    labels = pg.eval_on_selector_all("#vote-form label", "ls => ls.map(l => l.getBoundingClientRect().toJSON())")
+    video = pg.eval_on_selector("#video", "v => v.getBoundingClientRect().toJSON()")
+    assert all(r["right"] <= width for r in labels) and video["right"] <= width
+    in_one_row = len({round(r["top"]) for r in labels}) == 1
+    assert in_one_row == (width >= 1024), labels  # five in a row on wide screens, stacked on narrow ones
+    if not in_one_row:
+        assert [r["top"] for r in labels] == sorted(r["top"] for r in labels)  # in the scale's order
+    pg.wait_for_selector("#vote-submit:not([disabled])", timeout=15000)
+    pg.keyboard.press("Enter")
+    wait_trial(pg, 2)
+    assert "Vote saved" in pg.inner_text("#status")  # the vote is announced (role=status)
+    creds = credentials(pg)
+    with factory() as db:
+        vote = db.scalars(select(Vote).where(Vote.session_id == creds["session_id"])).one()
+        device = vote.extra["device"]
+    assert (device["viewport_width"], device["device_pixel_ratio"]) == (width, 1)
+    assert device["scaled"] == (width < 660) and device["passed"] is True  # the test renders are 644 px wide
+    with factory() as db:  # the device at the start is the session's, and exported
+        ps = db.get(ParticipantSession, creds["session_id"])
+        assert (ps.device["viewport_width"], ps.device["viewport_height"]) == (width, int(size.split("x")[1]))
+        row = next(r for r in export_rows(db, ps.study) if r["session_id"] == ps.id)
+        assert (row["viewport_width"], row["device_pixel_ratio"]) == (width, 1)
+        assert row["video_scaled"] == ps.device["scaled"] and row["video_scale"] == ps.device["scale"]
+    api_vote_rest(base, creds)
+    pg.reload()
+    visible(pg, "thanks")
+    check_page(pg, axe_source, f"{size}-6-thanks")
+    pg.evaluate("localStorage.clear()")
+    begin(pg, base, query="")
+    wait_trial(pg, 1)
+    pg.once("dialog", lambda d: d.accept())
+    pg.click("#withdraw")
+    visible(pg, "withdrawn")
+    check_page(pg, axe_source, f"{size}-7-withdrawn")
+    pg.goto(f"{base}/study/no-such-study")
+    visible(pg, "message")
+    check_page(pg, axe_source, f"{size}-8-message")
+
+
+@pytest.mark.parametrize("sized", list(LAYOUTS), indirect=True, ids=lambda s: f"{s[0]}x{s[1]}")
+def test_dashboard_has_no_axe_violations(site, sized, axe_source):
+    from server.researchers.service import create_researcher
+    base, factory = site
+    pg, size = sized
+    api_vote_rest(base, api_session(base))  # a completed participant, so the charts have data
+    with factory() as db:
+        try:
+            create_researcher(db, "axe@example.org", "correct horse battery", admin=True)  # sees the ownerless studies
+        except Exception:  # already made for an earlier layout
+            db.rollback()
+    pg.goto(f"{base}/dashboard")
+    pg.wait_for_selector("#login:not([hidden])")
+    check_page(pg, axe_source, f"{size}-dashboard-login")
+    pg.fill("#email", "axe@example.org")
+    pg.fill("#password", "correct horse battery")
+    pg.click("#login-form button")
+    pg.wait_for_selector("#dashboard:not([hidden])")
+    pg.wait_for_timeout(500)  # charts drawn
+    check_page(pg, axe_source, f"{size}-dashboard")
+
+
+def test_gate_comes_back_on_resize_and_pauses_the_trial(site, browser):
+    base, _ = site
+    context = browser.new_context(viewport={"width": 1920, "height": 1080})
+    pg = context.new_page()
+    begin(pg, base, query="")
+    wait_trial(pg, 1)
+    pg.set_viewport_size({"width": 390, "height": 844})  # e.g. the window made narrow, or a tablet turned
+    pg.wait_for_selector("#gate:not([hidden])")
+    assert pg.is_hidden("#page-trial") and pg.evaluate("document.getElementById('video').paused")
+    pg.keyboard.press("3")  # no answer while the gate is up
+    assert pg.evaluate("!document.querySelector('input[name=choice]:checked')")
+    pg.set_viewport_size({"width": 1920, "height": 1080})
+    pg.wait_for_selector("#gate", state="hidden")
+    assert pg.is_visible("#page-trial")
+    wait_until(pg, "!document.getElementById('video').paused")
+    playing_check(pg)
+    context.close()
+
+
+def test_reduced_motion_keeps_the_stimulus_playing(site, browser):
+    base, _ = site
+    context = browser.new_context(viewport={"width": 1920, "height": 1080}, reduced_motion="reduce")
+    pg = context.new_page()
+    begin(pg, base, query="")
+    wait_trial(pg, 1)
+    playing_check(pg)  # the stimulus is the task: it plays
+    durations = pg.evaluate("Array.from(document.querySelectorAll('*'), e => getComputedStyle(e))"
+                            ".flatMap(s => [s.transitionDuration, s.animationDuration])")
+    assert set(durations) <= {"0s"}, set(durations)
+    context.close()
+
+
+# Chromium lets a muted video autoplay under every --autoplay-policy (tried: document-user-activation-required and
+# user-gesture-required both play it), while Safari in Low Power Mode and some embedded browsers refuse it.  So the
+# refusal is that of such a browser: play() outside the handler of a real click or key press is refused with the
+# NotAllowedError a browser raises; inside one (the participant's click on Play) it is Chromium's own play().
+REFUSE_WITHOUT_GESTURE = """
+const play = HTMLMediaElement.prototype.play;
+HTMLMediaElement.prototype.play = function () {
+  const e = window.event;
+  if (!(e && e.isTrusted && ["click", "keydown", "keyup"].includes(e.type)))
+    return Promise.reject(new DOMException("play() needs a user gesture", "NotAllowedError"));
+  return play.call(this);
+};
+"""
+
+
+def test_autoplay_refusal_shows_play_and_is_recorded(site, playwright):
+    base, factory = site
+    b = playwright.chromium.launch(executable_path=CHROMIUM,
+                                   args=[*ARGS, "--autoplay-policy=document-user-activation-required"])
+    pg = b.new_page(viewport={"width": 1920, "height": 1080})
+    pg.add_init_script(REFUSE_WITHOUT_GESTURE)
+    begin(pg, base, query="")
+    pg.wait_for_selector("#play:not([hidden])")
+    assert pg.evaluate("document.getElementById('video').paused")
+    assert pg.evaluate("document.activeElement.id") == "play"  # the keyboard reaches it first
+    shot(pg, "autoplay-refused")
+    pg.keyboard.press("Enter")
+    pg.wait_for_selector("#play", state="hidden")
+    playing_check(pg)
+    vote_by_keyboard(pg, "2")
+    wait_until(pg, "document.getElementById('trial-progress').textContent.startsWith('Trial 2 of')")
+    pg.wait_for_selector("#play:not([hidden])")  # refused again: the next trial asks again
+    sid = credentials(pg)["session_id"]
+    b.close()
+    with factory() as db:
+        playback = db.scalars(select(Vote).where(Vote.session_id == sid)).one().extra["playback"]
+    assert playback["autoplay_refused"] is True and playback["play_wait_ms"] > 0 and playback["loops"] >= 1
+
+
+def english_strings() -> set[str]:
+    """The page's English defaults and every English string of the thesis study (texts, labels, questions)."""
+    thesis = thesis_study()
+    found = {v for v in Chrome().model_dump().values()}
+    found |= {v for k, v in thesis.texts.model_dump().items() if k != "consent_version"}
+    found |= {thesis.title, thesis.scale.question, *thesis.scale.labels}
+    found |= {q.text for q in thesis.questions} | {c.label for q in thesis.questions for c in q.choices}
+    # A template counts up to its first placeholder ("Trial {index} of {total}" -> "Trial").
+    return {s.split("{")[0].strip() for s in found} - {""}
+
+
+VISIBLE_TEXT = """(() => {
+  const out = [document.title];
+  const walk = document.createTreeWalker(document.body, NodeFilter.SHOW_TEXT);
+  for (let n = walk.nextNode(); n; n = walk.nextNode()) {
+    const text = n.textContent.trim();
+    if (text && n.parentElement.checkVisibility({ checkVisibilityCSS: true })) out.push(text);
+  }
+  return out;
+})()"""
+
+
+def english_on_screen(pg, english):
+    texts = pg.evaluate(VISIBLE_TEXT)
+    assert texts, "no visible text"
+    # A text node that is an English string, or holds one of four letters or more.
+    return sorted({t for t in texts for e in english if t == e or (len(e) >= 4 and e in t)})
+
+
+def test_swedish_study_end_to_end_shows_no_english(site, browser):
+    base, factory = site
+    english = english_strings()
+    context = browser.new_context(viewport={"width": 1920, "height": 1080})
+    pg = context.new_page()
+    dialogs = []
+    seen = []
+
+    def check(where):
+        assert pg.evaluate("[document.documentElement.lang, document.documentElement.dir]") == ["sv", "ltr"]
+        left = english_on_screen(pg, english)
+        assert not left, f"{where}: English on screen: {left}"
+        seen.append(where)
+
+    pg.goto(f"{base}/s/thesis-sv")
+    visible(pg, "info")
+    check("information")
+    press_on(pg, "#info-next")
+    visible(pg, "consent")
+    check("consent")
+    press_on(pg, "#consent-box", "Space")
+    press_on(pg, "#consent-next")
+    visible(pg, "demographics")
+    check("demographics")
+    press_on(pg, "input[name=gamer][value=no]", "Space")
+    press_on(pg, "input[name=tech_savvy][value=no]", "Space")
+    press_on(pg, "#demographics-form button")
+    visible(pg, "instructions")
+    check("instructions")
+    press_on(pg, "#instructions-next")
+    for number in range(1, 17):
+        wait_until(pg, f"document.getElementById('trial-progress').textContent.startsWith('Försök {number} av 16')")
+        if number == 1:
+            check("trial loading")  # "Laddar…" (if the video is not there yet)
+        pg.wait_for_selector("#loading", state="hidden")
+        pg.keyboard.press("3")
+        if number == 1:
+            check("trial, before one full loop")  # the "watch it first" status
+            shot(pg, "sv-trial")
+        pg.wait_for_selector("#vote-submit:not([disabled])", timeout=15000)
+        pg.keyboard.press("Enter")
+    visible(pg, "thanks")
+    check("thanks")
+    shot(pg, "sv-thanks")
+    sid = pg.evaluate("JSON.parse(localStorage.getItem('animstudy:thesis-sv'))")["session_id"]
+    with factory() as db:
+        ps = db.get(ParticipantSession, sid)
+        assert ps.state == "completed" and len(db.scalars(select(Vote).where(Vote.session_id == sid)).all()) == 16
+    # Withdrawal (with its confirmation), the gate and a study that does not exist, in Swedish too.
+    pg.evaluate("localStorage.clear()")
+    pg.goto(f"{base}/s/thesis-sv")
+    visible(pg, "info")
+    press_on(pg, "#info-next")
+    visible(pg, "consent")
+    press_on(pg, "#consent-box", "Space")
+    press_on(pg, "#consent-next")
+    visible(pg, "demographics")
+    pg.once("dialog", lambda d: (dialogs.append(d.message), d.accept()))
+    pg.click("#withdraw")
+    visible(pg, "withdrawn")
+    check("withdrawn")
+    assert dialogs and not [e for e in english if e in dialogs[0]], dialogs
+    pg.set_viewport_size({"width": 390, "height": 844})
+    pg.goto(f"{base}/s/thesis-sv")
+    pg.wait_for_selector("#gate:not([hidden])")
+    check("gate")
+    shot(pg, "sv-gate-390")
+    context.close()
+    print("Swedish study, pages checked for English:", seen, "- confirmation:", dialogs)
+
+
+def test_right_to_left_study_is_laid_out_right_to_left(site, browser):
+    base, _ = site
+    context = browser.new_context(viewport={"width": 390, "height": 844})
+    pg = context.new_page()
+
+    def arabic(route):
+        response = route.fetch()
+        study = response.json()
+        page = {**study["page"], "lang": "ar", "dir": "rtl", "device_gate": {"min_scale": 0.2}}
+        route.fulfill(response=response, json={**study, "page": page})
+    pg.route(f"{base}/api/v1/studies/thesis", arabic)
+    pg.goto(f"{base}/s/thesis")
+    visible(pg, "info")
+    assert pg.evaluate("getComputedStyle(document.body).direction") == "rtl"
+    press_on(pg, "#info-next")
+    visible(pg, "consent")
+    press_on(pg, "#consent-box", "Space")
+    press_on(pg, "#consent-next")
+    visible(pg, "demographics")
+    press_on(pg, "input[name=gamer][value=no]", "Space")
+    press_on(pg, "input[name=tech_savvy][value=no]", "Space")
+    press_on(pg, "#demographics-form button")
+    visible(pg, "instructions")
+    press_on(pg, "#instructions-next")
+    wait_trial(pg, 1)
+    overflow = pg.evaluate("[document.documentElement.scrollWidth, document.documentElement.clientWidth]")
+    assert overflow[0] <= overflow[1]
+    # Right to left: a radio button sits at the right end of its answer, the title at the right of the bar.
+    label = pg.eval_on_selector("#vote-form label", "l => l.getBoundingClientRect().toJSON()")
+    radio = pg.eval_on_selector("#vote-form input", "i => i.getBoundingClientRect().toJSON()")
+    assert radio["left"] > label["left"] + label["width"] / 2, (radio, label)
+    shot(pg, "rtl-trial-390")
+    context.close()

@@ -379,5 +379,6 @@ def test_study_cli(tmp_path, monkeypatch, capsys):
     assert cli.main(["study", "export", "thesis", "--format", "csv", "--out", str(out)]) == 0
     assert out.read_text().splitlines()[0].startswith("session_id,trial_index,practice,catch,animation")
     assert cli.main(["study", "export", "thesis", "--format", "json"]) == 0
-    assert json.loads(capsys.readouterr().out)["columns"][-6:] == [
-        "answered_at", "consent_version", "session_state", "PROLIFIC_PID", "STUDY_ID", "SESSION_ID"]
+    assert json.loads(capsys.readouterr().out)["columns"][-11:] == [
+        "answered_at", "consent_version", "session_state", "viewport_width", "viewport_height",
+        "device_pixel_ratio", "video_scale", "video_scaled", "PROLIFIC_PID", "STUDY_ID", "SESSION_ID"]

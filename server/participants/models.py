@@ -32,6 +32,7 @@ class ParticipantSession(Base):
     consent_version: Mapped[str | None] = mapped_column(String(40))
     answers: Mapped[dict[str, str] | None] = mapped_column(JSON)  # question id -> choice id
     external: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # the study's accepted URL parameters
+    device: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # schemas.DeviceReport at the start (0005)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     completed_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     withdrawn_at: Mapped[datetime | None] = mapped_column(UTCDateTime)

@@ -47,7 +47,8 @@ def media_url(name: str) -> str:
              dependencies=[Depends(limit_new_sessions)])
 async def create_session(slug: str, body: SessionCreate, session: SessionDep) -> SessionCreated:
     study = get_study(session, slug)
-    new = service.start_session(session, study, body.external)
+    new = service.start_session(session, study, body.external,
+                                body.device.model_dump() if body.device else None)
     return SessionCreated(session_id=new.session.id, token=new.token, trials_total=new.session.trials_total)
 
 

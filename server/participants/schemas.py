@@ -17,12 +17,28 @@ MAX_EXTRA_BYTES = 16_384
 STRICT = ConfigDict(strict=True)
 
 
+class DeviceReport(BaseModel):
+    """What the page's device gate measured when the participant started (see README, "Device gate")."""
+
+    model_config = ConfigDict(strict=True, extra="forbid")
+
+    viewport_width: int = Field(ge=1, le=100_000)
+    viewport_height: int = Field(ge=1, le=100_000)
+    device_pixel_ratio: float = Field(gt=0, le=16)
+    video_width: int = Field(ge=1, le=100_000)
+    video_height: int = Field(ge=1, le=100_000)
+    scale: float = Field(ge=0, le=1)
+    scaled: bool
+    passed: bool
+
+
 class SessionCreate(BaseModel):
     model_config = STRICT
 
     consent: bool
     external: dict[str, str] | None = Field(default=None, description="ids from a recruiting platform, e.g. "
                                             "PROLIFIC_PID, STUDY_ID, SESSION_ID")
+    device: DeviceReport | None = None
 
     @field_validator("consent")
     @classmethod

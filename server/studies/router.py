@@ -17,6 +17,7 @@ from server.participants.models import ParticipantSession, Vote
 
 from . import service
 from .models import Study, StudyState
+from .page import Page
 from .results import participant_counts, study_results
 from .schemas import ExportJson, StudyPublic, StudyStateRead, StudySummary
 from .studyfile import StudyFile, StudyFileError, parse_study_text
@@ -113,13 +114,20 @@ def delete_study(slug: str, session: SessionDep, researcher: ResearcherDep) -> R
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
+@router.get("/page-defaults")
+def page_defaults() -> dict[str, Any]:
+    """The participant page's default language, wording and gate (for a link to a study that does not exist)."""
+    return Page().public()
+
+
 @router.get("/studies/{slug}", response_model=StudyPublic)
 def read_study(slug: str, session: SessionDep) -> StudyPublic:
     study = service.get_study(session, slug)
     return StudyPublic(slug=study.slug, title=study.title, state=study.state, texts=study.texts,
                        consent_version=study.consent_version, trials_total=service.trials_total(study),
                        scale=study.scale, questions=study.questions,
-                       parameters=study.recruitment["parameters"])
+                       parameters=study.recruitment["parameters"],
+                       page=Page.model_validate(study.page or {}).public())
 
 
 @router.post("/studies/{slug}/open", response_model=StudyStateRead)

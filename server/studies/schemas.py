@@ -17,6 +17,7 @@ class StudyPublic(BaseModel):
     scale: dict[str, Any]
     questions: list[dict[str, Any]]
     parameters: list[str]  # the URL parameters of the participant link the page passes on (e.g. PROLIFIC_PID)
+    page: dict[str, Any]  # lang, dir, chrome (every string of the page's own), device_gate: studies.page.Page
 
 
 class StudyStateRead(BaseModel):

@@ -71,14 +71,16 @@ def _columns(definition: StudyFile) -> dict[str, Any]:
     texts = definition.texts.model_dump()
     return {"title": definition.title, "consent_version": texts.pop("consent_version"), "texts": texts,
             "scale": definition.scale.model_dump(), "questions": [q.model_dump() for q in definition.questions],
-            "design": definition.design.model_dump(), "recruitment": definition.recruitment.model_dump()}
+            "design": definition.design.model_dump(), "recruitment": definition.recruitment.model_dump(),
+            "page": definition.page.model_dump()}
 
 
 def definition(study: Study) -> StudyFile:
     """The study file a study was made from (with its edits)."""
     return StudyFile.model_validate({
         "slug": study.slug, "title": study.title, "texts": {**study.texts, "consent_version": study.consent_version},
-        "scale": study.scale, "questions": study.questions, "design": study.design, "recruitment": study.recruitment})
+        "scale": study.scale, "questions": study.questions, "design": study.design, "recruitment": study.recruitment,
+        "page": study.page or {}})
 
 
 def create_study(session: Session, media: RenderManifest, study_file: StudyFile,
@@ -222,7 +224,8 @@ def texts(study: Study) -> Texts:
 
 EXPORT_COLUMNS = ("session_id", "trial_index", "practice", "catch", "animation", "reference_condition",
                   "test_condition", "reference_side", "test_side", "choice", "score", "rt_ms", "answered_at",
-                  "consent_version", "session_state")
+                  "consent_version", "session_state", "viewport_width", "viewport_height", "device_pixel_ratio",
+                  "video_scale", "video_scaled")
 
 
 def export_columns(study: Study) -> list[str]:
@@ -295,7 +298,7 @@ def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
         .order_by(ParticipantSession.created_at, ParticipantSession.id, Trial.index)
     )
     for vote, trial, ps, kind, animation, ref_condition, test_condition in rows:
-        answers, external = ps.answers or {}, ps.external or {}
+        answers, external, device = ps.answers or {}, ps.external or {}, ps.device or {}
         yield {
             "session_id": ps.id, "trial_index": trial.index, "practice": trial.practice,
             "catch": kind == ComparisonKind.catch, "animation": animation, "reference_condition": ref_condition,
@@ -303,6 +306,9 @@ def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
             "test_side": other_side(trial.reference_side), "choice": vote.choice, "score": vote.score,
             "rt_ms": vote.rt_ms, **{q: answers.get(q) for q in questions},
             "answered_at": vote.answered_at.isoformat(), "consent_version": ps.consent_version,
-            "session_state": ps.state, **{p: external.get(p) for p in parameters},
+            "session_state": ps.state, "viewport_width": device.get("viewport_width"),
+            "viewport_height": device.get("viewport_height"), "device_pixel_ratio": device.get("device_pixel_ratio"),
+            "video_scale": device.get("scale"), "video_scaled": device.get("scaled"),
+            **{p: external.get(p) for p in parameters},
         }
 

@@ -16,6 +16,7 @@ from urllib.parse import quote, urlsplit
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, ValidationError, field_validator, model_validator
 
 from .design import Design
+from .page import Page
 from .scale import DEFAULT_LABELS, DEFAULT_QUESTION
 
 REPO_STUDIES = Path(__file__).resolve().parents[2] / "studies"
@@ -24,7 +25,7 @@ THESIS_FILE = REPO_STUDIES / "thesis.toml"
 RESERVED_IDS = frozenset({
     "session_id", "trial_index", "practice", "catch", "animation", "reference_condition", "test_condition",
     "reference_side", "test_side", "choice", "score", "rt_ms", "answered_at", "consent_version", "session_state",
-    "outcome"})
+    "outcome", "viewport_width", "viewport_height", "device_pixel_ratio", "video_scale", "video_scaled"})
 # A URL parameter must not shadow an export column either (question ids are lower case, so they never meet).
 
 Slug = Annotated[str, StringConstraints(pattern=r"^[a-z0-9][a-z0-9-]{0,63}$")]
@@ -164,6 +165,7 @@ class StudyFile(_Strict):
     questions: list[Question] = Field(default_factory=lambda: list(THESIS_QUESTIONS), max_length=10)
     design: Design = Field(default_factory=Design)
     recruitment: Recruitment = Field(default_factory=Recruitment)
+    page: Page = Field(default_factory=Page, description="the page's language, its own wording and the device gate")
 
     @model_validator(mode="after")
     def unique_questions(self) -> Self:
