@@ -69,8 +69,9 @@ class Case:
     """One thing to time: a clip in one variant."""
 
     animation: str
+    condition: str
     method: str
-    increment: int | None
+    increment: int | None  # the hybrid's parameter, kept in the results for the thesis's figures
     variant: str
     step: Callable[[np.ndarray, int], Any]  # poses all characters at the given times, in the given frame
 
@@ -139,7 +140,7 @@ def _time(cases: Sequence[Case], phases: np.ndarray, frames: int, warmup: int) -
 
 
 def _case(c: BuiltClip, variant: str, step: Callable[[np.ndarray, int], Any]) -> Case:
-    return Case(c.animation, c.method, c.params.get("increment"), variant, step)
+    return Case(c.animation, c.condition, c.method, c.params.get("increment"), variant, step)
 
 
 def reference_bytes(clip: Any, naive: bool = False) -> int:
@@ -196,7 +197,8 @@ def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTE
     accuracy: list[dict[str, Any]] = []
     lods = dict(lod_variants())
     for c in clips:
-        label = {"clip": c.id, "animation": c.animation, "method": c.method, "increment": c.params.get("increment")}
+        label = {"clip": c.id, "animation": c.animation, "condition": c.condition, "method": c.method,
+                 "increment": c.params.get("increment")}
         stored = metrics.storage_bytes(c.key_times.size, c.character.skeleton.n_joints)
         rate = ACCURACY_OVERSAMPLING * c.fps
         for v in timed_variants:
@@ -247,13 +249,15 @@ def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTE
                         rounds.append((1, numpy_cases, *short))
                 for threads, round_cases, n_frames, n_warmup in rounds:
                     if stage == "skin":
-                        round_cases = [Case(k.animation, k.method, k.increment, k.variant, _skinned(k.step, mesh))
+                        round_cases = [Case(k.animation, k.condition, k.method, k.increment, k.variant,
+                                            _skinned(k.step, mesh))
                                        for k in round_cases]
                     timed = _time(round_cases, phases, n_frames, n_warmup)
                     for i, case in enumerate(round_cases):
                         ms = np.asarray(timed[i])
                         median = float(np.median(ms))
-                        results.append({"animation": case.animation, "method": case.method,
+                        results.append({"animation": case.animation, "condition": case.condition,
+                                        "method": case.method,
                                         "increment": case.increment, "variant": case.variant, "stage": stage,
                                         "characters": n, "threads": threads, "median_ms": median,
                                         "p95_ms": float(np.percentile(ms, 95)), "fps": 1000.0 / median,

@@ -17,7 +17,8 @@ For each animation (an :class:`AnimationConfig`, read from the clip-set file by 
 5. samples every clip on the same grid (one loop, or one forward-and-back period), puts the floor under the
    reference's planted feet and measures the motion metrics, every other condition against the reference.
 
-Nothing here reads files: the server finds, verifies and writes them (``server.clipset``, ``server.assets``).
+The metrics are measured by :mod:`anim_core.clipmetrics`. Nothing here reads files: the server finds, verifies
+and writes them (``server.clipset``, ``server.assets``).
 """
 
 from __future__ import annotations
@@ -29,10 +30,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from . import contacts, metrics
+from . import contacts
 from .bvh import Bvh
 from .character import Character, RetargetedCharacter, retarget
 from .clip import KeyframeClip, PlaybackMode, Pose, horizontal
+from .clipmetrics import FEET, LEGS, UP, clip_feet, measure
 from .conditions import REFERENCE, Animation, AnimClip, Condition, Kind
 from .footplant import plant_feet
 from .quat import quat_from_axis_angle, quat_mul, rotate, slerp
@@ -40,15 +42,11 @@ from .skeleton import Skeleton
 
 Array = NDArray[np.float64]
 
-FEET = (("LeftFoot", "LeftToeBase"), ("RightFoot", "RightToeBase"))  # each foot: ankle and toe joints
-UP = 1
 FLOOR_PERCENTILE = 10  # the floor goes under the feet in the lowest 10 % of frames: planted, not mid-stride
-LEGS = (("LeftUpLeg", "LeftLeg", "LeftFoot"), ("RightUpLeg", "RightLeg", "RightFoot"))  # IK chains, as FEET
 METRES_PER_CMU_UNIT = 0.056444  # the source measured on its own skeleton
 LOOP_BLEND_S = 0.2  # a gait loop fades in from the mocap's next cycle over this long (seam C1)
 TURN_EASE_S = 0.2  # a ping-pong keyframe clip slows to rest over this long at each turn (no bounce)
 CROUCH_START = 0.02  # the crouch starts where the hips have gone 2 % of its depth down
-MAX_LAG_FRAMES = {"gait": 2, "crouch": 1, "idle": 1}  # a clip further out of phase with its reference: a warning
 
 
 class ConfigError(ValueError):
@@ -411,89 +409,18 @@ def build_animation(source: Source, fps: int, conditions: Sequence[Condition],
                                n_frames, cfg.playback, cfg.in_place, speed, source_info, source.character,
                                pose.rotations, pose.root_translation,
                                *source.character.skeleton.forward_kinematics(*pose)))
-    return _measure(_place_on_floor(built), keyframe.velocity if cfg.in_place else np.zeros(3), cfg.kind,
+    return measure(_place_on_floor(built), keyframe.velocity if cfg.in_place else np.zeros(3), cfg.kind,
                     source_skate)
-
-
-def _feet(clip: BuiltClip) -> tuple[NDArray[np.intp], Array]:
-    """Foot joint indices ``(2, 2)`` and their flat-standing heights above the soles."""
-    idx = np.array([clip.character.skeleton.indices(foot) for foot in FEET])
-    return idx, clip.character.contact_heights[idx]
 
 
 def _place_on_floor(clips: list[BuiltClip]) -> list[BuiltClip]:
     """Shift every clip of an animation by the same amount so the keyframe clip's planted feet are at y = 0 and
     its root is centred horizontally."""
     keyframe = clips[0]
-    feet, contact = _feet(keyframe)
+    feet, contact = clip_feet(keyframe)
     clearance = (keyframe.world_positions[:, feet, UP] - contact).min(axis=(1, 2))
     shift = np.zeros(3)
     shift[UP] = -np.percentile(clearance, FLOOR_PERCENTILE)
     shift[[0, 2]] = -keyframe.root_positions[:, [0, 2]].mean(axis=0)
     return [BuiltClip(**{**c.__dict__, "root_positions": c.root_positions + shift,
                          "world_positions": c.world_positions + shift}) for c in clips]
-
-
-def _knee_flexion(clip: BuiltClip) -> Array:
-    """``(T, 2)`` bend of each knee in radians (0 = straight leg), from the joint positions."""
-    legs = np.array([clip.character.skeleton.indices(leg) for leg in LEGS])
-    p = clip.world_positions
-    thigh = p[:, legs[:, 1]] - p[:, legs[:, 0]]
-    shin = p[:, legs[:, 2]] - p[:, legs[:, 1]]
-    return np.arctan2(np.linalg.norm(np.cross(thigh, shin), axis=-1), np.sum(thigh * shin, axis=-1))
-
-
-def _measure(clips: list[BuiltClip], ground_velocity: Array, kind: Kind, source_skate: float) -> list[BuiltClip]:
-    """Fill in each clip's metrics; hybrids are compared with the keyframe clip (the first) frame by frame."""
-    keyframe = clips[0]
-    feet, contact = _feet(keyframe)
-    for c in clips:
-        m: dict[str, float | None] = {**metrics.foot_metrics(c.world_positions[:, feet], contact, c.fps,
-                                                             periodic=True, ground_velocity=ground_velocity)}
-        # The skate of issue 14: standing heights from the clip itself, as for the source on its own skeleton.
-        m["foot_skate_ratio"] = contacts.foot_skate_ratio(c.world_positions[:, feet], c.fps, UP, periodic=True,
-                                                          ground_velocity=ground_velocity)
-        m["source_foot_skate_ratio"] = source_skate
-        m["mpjpe_mm"] = (None if c is keyframe
-                         else metrics.mpjpe_mm(c.world_positions, keyframe.world_positions))
-        m["key_velocity_jump_rad_s"] = metrics.angular_velocity_jumps(lambda t, c=c: c.clip.sample(t).rotations,
-                                                                      c.key_times)
-        m["jerk_mean"] = metrics.jerk_mean(c.world_positions, c.fps, periodic=True)
-        m["bytes"] = metrics.storage_bytes(c.key_times.size, c.character.skeleton.n_joints)
-        steps = metrics.frame_steps_mm(c.world_positions)
-        m["seam_jump_mm"] = float(steps[-1])
-        m["median_step_mm"] = float(np.median(steps[:-1]))
-        for name in ("phase_hips_r", "phase_hips_lag", "phase_knee_r", "phase_knee_lag"):
-            m[name] = None
-        if c is not keyframe:
-            # A gait's hips bob twice per cycle: a lag of half a cycle would look in phase.
-            m["phase_hips_r"], m["phase_hips_lag"] = metrics.phase_alignment(
-                keyframe.world_positions[:, 0, UP], c.world_positions[:, 0, UP],
-                max_lag=c.n_frames // 4 if kind == "gait" else None)
-            m["phase_knee_r"], m["phase_knee_lag"] = metrics.phase_alignment(_knee_flexion(keyframe),
-                                                                             _knee_flexion(c))
-        c.metrics.update(m)
-    return clips
-
-
-def clip_warnings(clips: list[BuiltClip]) -> list[str]:
-    """What makes a side-by-side comparison show more than the method: a clip out of phase with its animation's
-    reference (best lag beyond :data:`MAX_LAG_FRAMES`) or a seam that jumps (more than twice the median step +
-    5 mm)."""
-    reference = {c.animation: c.id for c in clips if c.method == REFERENCE}
-    out = []
-    for c in clips:
-        m = c.metrics
-        limit = 2.0 * m["median_step_mm"] + 5.0
-        if m["seam_jump_mm"] > limit:
-            out.append(f"{c.id}: the seam jumps {m['seam_jump_mm']:.1f} mm (limit {limit:.1f} mm: twice the "
-                       f"median step {m['median_step_mm']:.1f} mm + 5 mm)")
-        if c.method != REFERENCE:
-            allowed = MAX_LAG_FRAMES[c.kind]
-            for part in ("hips", "knee"):
-                lag = m[f"phase_{part}_lag"]
-                if abs(lag) > allowed:
-                    ref = reference.get(c.animation, "its reference")
-                    out.append(f"{c.id}: out of phase with {ref}: {part} best lag {lag:+d} "
-                               f"frames (allowed ±{allowed}), r = {m[f'phase_{part}_r']:.2f} at lag 0")
-    return out

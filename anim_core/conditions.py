@@ -56,12 +56,9 @@ from typing import Any, Generic, Literal, TypeVar
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .clip import KeyframeClip
-from .hybrid import SpringClip, SquadClip, build_crouch, build_gait, build_idle
+from .hybrid import AnimClip, SpringClip, SquadClip, build_crouch, build_gait, build_idle
 
 Kind = Literal["gait", "crouch", "idle"]
-#: What a builder returns: every clip type has ``skeleton``, ``mode``, ``duration``, ``sample(t)``, ``key_times``
-#: and ``key_rotations``.
-AnimClip = KeyframeClip | SquadClip | SpringClip
 REFERENCE = "keyframe"  # the method every other condition is compared with
 
 

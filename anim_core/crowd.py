@@ -14,7 +14,7 @@ costs: gather two keys, nlerp, forward kinematics; the memory of dense keys is t
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,6 +22,9 @@ from numpy.typing import NDArray
 from .clip import PLAYBACK_MODES, KeyframeClip, playback_time
 from .quat import make_continuous, quat_angle
 from .skeleton import Skeleton
+
+if TYPE_CHECKING:
+    from .hybrid import AnimClip
 
 Array = NDArray[np.float64]
 BAKE_RATE = 30.0  # keys per second a baked hybrid table starts from (the keyframe rate), doubled as needed
@@ -76,13 +79,13 @@ def _table(skeleton: Skeleton, rotations: Array, root: Array, times: Array, dt: 
                      np.asarray(velocity if travels else np.zeros(3), np.float32))
 
 
-def bake(clip: Any, rate: float = BAKE_RATE, tolerance_deg: float = BAKE_TOLERANCE_DEG) -> PoseTable:
+def bake(clip: AnimClip, rate: float = BAKE_RATE, tolerance_deg: float = BAKE_TOLERANCE_DEG) -> PoseTable:
     """Sample any clip (hybrid or keyframe) over one period into a table.
 
     Starts at ``rate`` keys per second and doubles it until every joint's global rotation between two table keys
     is within ``tolerance_deg`` of the exact curve (checked halfway between all keys, where the error peaks).
     """
-    mode = getattr(clip, "mode", "loop")
+    mode = clip.mode
     if mode not in PLAYBACK_MODES:
         raise ValueError(f"cannot bake playback mode {mode!r}")
     while True:
@@ -98,16 +101,16 @@ def bake(clip: Any, rate: float = BAKE_RATE, tolerance_deg: float = BAKE_TOLERAN
         rate *= 2
 
 
-def _bake_at(clip: Any, rate: float, mode: str) -> PoseTable:
+def _bake_at(clip: AnimClip, rate: float, mode: str) -> PoseTable:
     duration = float(clip.duration)
     n = max(2, int(np.ceil(duration * rate)))
     times = np.linspace(0.0, duration, n + 1)
     # Inside one period: a loop's end is its start again, which sample() would map to the next cycle's time 0.
     pose = clip.sample(np.minimum(times, np.nextafter(duration, 0.0)) if mode == "loop" else times)
-    velocity = np.asarray(getattr(clip, "velocity", np.zeros(3)), np.float64)
+    velocity = np.asarray(clip.velocity, np.float64)
     # The samples are already in place when the clip is; a travelling loop's travel comes off the table.
     table = _table(clip.skeleton, make_continuous(pose.rotations, axis=0), pose.root_translation, times,
-                   duration / n, mode, velocity, travels=mode == "loop" and not getattr(clip, "in_place", False),
+                   duration / n, mode, velocity, travels=mode == "loop" and not clip.in_place,
                    in_place=False)
     if mode == "loop":  # close exactly: the last key is the first one, on the side that keeps the keys continuous
         sign = np.where(np.sum(table.rotations[-2] * table.rotations[0], axis=-1, keepdims=True) < 0, -1, 1)

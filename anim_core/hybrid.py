@@ -220,6 +220,16 @@ class SpringClip:
     def n_keys(self) -> int:
         return int(self.key_params.size)
 
+    @property
+    def in_place(self) -> bool:
+        """A crouch never travels (it plays ping-pong on the spot)."""
+        return False
+
+    @property
+    def velocity(self) -> Array:
+        """``(3,)`` horizontal travel per second: none."""
+        return np.zeros(3)
+
     def path_parameter(self, t: ArrayLike) -> Array:
         """``u (...)`` along the key path at running times ``t (...)`` seconds."""
         clip_t, _ = playback_time(t, self.duration, self.mode)
@@ -355,3 +365,8 @@ def build_crouch(source: KeyframeClip, key_times: Sequence[float], increment: in
         duration = spring_settle_time(zeta, omega, time_scale)
     return SpringClip(source.skeleton, params, keys.rotations, keys.root_translation, float(duration),
                       zeta, omega, time_scale, name=name)
+
+
+#: Every clip type: each has ``skeleton``, ``mode``, ``duration``, ``sample(t)``, ``key_times``, ``key_rotations``,
+#: ``velocity`` and ``in_place``.
+AnimClip = KeyframeClip | SquadClip | SpringClip

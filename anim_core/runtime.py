@@ -42,7 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .clip import PLAYBACK_MODES, KeyframeClip, Pose
 from .crowd import CrowdBuffers, PoseTable, numba, table_from_keyframes
-from .hybrid import SpringClip, SquadClip, spring
+from .hybrid import AnimClip, SpringClip, SquadClip, spring
 from .mirror import Mirror
 from .quat import quat_angle, squad_eval
 from .skeleton import Skeleton
@@ -227,7 +227,7 @@ AnyRuntime = TableRuntime | SplineRuntime | SpringRuntime
 
 # --- building (offline, once per clip) ---------------------------------------------------------------------------
 
-def runtime_for(clip: Any) -> AnyRuntime:
+def runtime_for(clip: AnimClip) -> AnyRuntime:
     """The keys runtime of a clip: its dense keys, its SQUAD keys as fitted segments, or its spring keys."""
     if isinstance(clip, KeyframeClip):
         return TableRuntime.from_table(table_from_keyframes(clip))
@@ -355,18 +355,18 @@ def _crouch_u_numpy(ct: Array, params: Array) -> Array:
 
 # --- accuracy ----------------------------------------------------------------------------------------------------
 
-def period(clip: Any) -> float:
+def period(clip: AnimClip) -> float:
     """Seconds after which the clip's playback repeats (a ping-pong clip's forward and back)."""
     return float(clip.duration) * (2.0 if clip.mode == "pingpong" else 1.0)
 
 
-def sample_times(clip: Any, rate: float) -> Array:
+def sample_times(clip: AnimClip, rate: float) -> Array:
     """One period at ``rate`` samples per second, offset off any grid so no sample sits on a table key."""
     n = max(8, int(np.ceil(period(clip) * rate)))
     return (np.arange(n) + 0.3711) * (period(clip) / n)
 
 
-def exact_global(clip: Any, t: Array) -> tuple[Array, Array]:
+def exact_global(clip: AnimClip, t: Array) -> tuple[Array, Array]:
     """The reference curve's global rotations and positions (numpy, float64; nlerp for keyframe clips)."""
     pose = clip.sample(t, method="nlerp") if isinstance(clip, KeyframeClip) else clip.sample(t)
     return clip.skeleton.forward_kinematics(pose.rotations, pose.root_translation)
@@ -386,7 +386,7 @@ def angle_error_deg(a: ArrayLike, b: ArrayLike) -> tuple[float, float]:
     return float(angle.max()), float(angle.mean())
 
 
-def max_error_deg(runtime: AnyRuntime, clip: Any, rate: float, **lod: Any) -> float:
+def max_error_deg(runtime: AnyRuntime, clip: AnimClip, rate: float, **lod: Any) -> float:
     """Largest angle (degrees) between a joint's global rotation from ``runtime`` and from the exact curve over
     one period at ``rate`` samples per second (``lod``: see :func:`lod_pose`)."""
     t = sample_times(clip, rate)

@@ -101,7 +101,8 @@ def _fmt(value: float | None, digits: int) -> str:
 
 def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
     """Build the clip set, write it to ``out`` and print its metric table."""
-    from anim_core.clipset import ConfigError, clip_warnings
+    from anim_core.clipmetrics import clip_warnings
+    from anim_core.clipset import ConfigError
     from server.assets import AssetError
     from server.clipset.build import build_clip_set
     from server.clipset.config import load_config

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from anim_core import quat as Q
-from anim_core.clipset import FEET, ConfigError
+from anim_core.clipmetrics import FEET
+from anim_core.clipset import ConfigError
 from anim_core.skeleton import Skeleton
 from server.assets import AssetError
 from server.cli import main

@@ -67,8 +67,8 @@ def test_travelling_loops_keep_walking(rng):
 def test_short_benchmark_run_writes_results_and_plots(clips, tmp_path):
     few = [c for c in clips if c.animation in ("walk", "crouch")]
     doc = benchmark.run(few, characters=(1, 10), stages=("pose", "skin"), frames=3, warmup=1)  # skin: only 1
-    keys = {"animation", "method", "increment", "variant", "stage", "characters", "threads", "median_ms", "p95_ms",
-            "fps"}
+    keys = {"animation", "condition", "method", "increment", "variant", "stage", "characters", "threads",
+            "median_ms", "p95_ms", "fps"}
     assert all(keys <= set(r) for r in doc["results"])
     variants = {(r["variant"], r["method"]) for r in doc["results"]}
     assert {("keys", "keyframe"), ("keys", "hybrid"), ("baked", "hybrid"), ("reference", "keyframe"),
@@ -86,8 +86,9 @@ def test_short_benchmark_run_writes_results_and_plots(clips, tmp_path):
                                                              else set())
         assert {v for clip, v in memory if clip == c.id} == expected
     assert all(m["runtime_bytes"] > 0 and m["stored_bytes"] > 0 for m in doc["memory"])
-    assert {"clip", "animation", "method", "increment", "variant", "stored_bytes", "runtime_bytes"} == set(
-        doc["memory"][0])
+    assert {"clip", "animation", "condition", "method", "increment", "variant", "stored_bytes",
+            "runtime_bytes"} == set(doc["memory"][0])
+    assert {(r["animation"], r["condition"]) for r in doc["results"]} == {(c.animation, c.condition) for c in few}
     # Keyframe clips: keys and baked are the same table; a hybrid's keys runtime is far smaller than its table.
     assert memory[("walk-keyframe", "keys")]["runtime_bytes"] == memory[("walk-keyframe", "baked")]["runtime_bytes"]
     for c in few:

@@ -10,7 +10,7 @@ from scipy.signal import find_peaks
 from anim_core import contacts
 from anim_core import quat as Q
 from anim_core.bvh import read_bvh
-from anim_core.clipset import FEET, clip_warnings
+from anim_core.clipmetrics import FEET, clip_warnings
 from server.assets import character as load_character
 from server.clipset.build import build_clip_set, load_source
 from server.clipset.config import load_config

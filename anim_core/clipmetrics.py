@@ -1,0 +1,96 @@
+"""Motion metrics of a built clip set (:mod:`anim_core.clipset`): per clip, every other condition against its
+animation's reference on the same frame grid, and the warnings ``animstudy clips build`` prints.
+
+Metrics and units are listed in the README ("How the thesis clips are built", metrics paragraph).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import contacts, metrics
+from .conditions import REFERENCE, Kind
+
+if TYPE_CHECKING:
+    from .clipset import BuiltClip
+
+Array = NDArray[np.float64]
+
+FEET = (("LeftFoot", "LeftToeBase"), ("RightFoot", "RightToeBase"))  # each foot: ankle and toe joints
+LEGS = (("LeftUpLeg", "LeftLeg", "LeftFoot"), ("RightUpLeg", "RightLeg", "RightFoot"))  # IK chains, as FEET
+UP = 1
+MAX_LAG_FRAMES = {"gait": 2, "crouch": 1, "idle": 1}  # a clip further out of phase with its reference: a warning
+
+
+def clip_feet(clip: BuiltClip) -> tuple[NDArray[np.intp], Array]:
+    """Foot joint indices ``(2, 2)`` and their flat-standing heights above the soles."""
+    idx = np.array([clip.character.skeleton.indices(foot) for foot in FEET])
+    return idx, clip.character.contact_heights[idx]
+
+
+def _knee_flexion(clip: BuiltClip) -> Array:
+    """``(T, 2)`` bend of each knee in radians (0 = straight leg), from the joint positions."""
+    legs = np.array([clip.character.skeleton.indices(leg) for leg in LEGS])
+    p = clip.world_positions
+    thigh = p[:, legs[:, 1]] - p[:, legs[:, 0]]
+    shin = p[:, legs[:, 2]] - p[:, legs[:, 1]]
+    return np.arctan2(np.linalg.norm(np.cross(thigh, shin), axis=-1), np.sum(thigh * shin, axis=-1))
+
+
+def measure(clips: list[BuiltClip], ground_velocity: Array, kind: Kind, source_skate: float) -> list[BuiltClip]:
+    """Fill in each clip's metrics; hybrids are compared with the keyframe clip (the first) frame by frame."""
+    keyframe = clips[0]
+    feet, contact = clip_feet(keyframe)
+    for c in clips:
+        m: dict[str, float | None] = {**metrics.foot_metrics(c.world_positions[:, feet], contact, c.fps,
+                                                             periodic=True, ground_velocity=ground_velocity)}
+        # The skate of issue 14: standing heights from the clip itself, as for the source on its own skeleton.
+        m["foot_skate_ratio"] = contacts.foot_skate_ratio(c.world_positions[:, feet], c.fps, UP, periodic=True,
+                                                          ground_velocity=ground_velocity)
+        m["source_foot_skate_ratio"] = source_skate
+        m["mpjpe_mm"] = (None if c is keyframe
+                         else metrics.mpjpe_mm(c.world_positions, keyframe.world_positions))
+        m["key_velocity_jump_rad_s"] = metrics.angular_velocity_jumps(lambda t, c=c: c.clip.sample(t).rotations,
+                                                                      c.key_times)
+        m["jerk_mean"] = metrics.jerk_mean(c.world_positions, c.fps, periodic=True)
+        m["bytes"] = metrics.storage_bytes(c.key_times.size, c.character.skeleton.n_joints)
+        steps = metrics.frame_steps_mm(c.world_positions)
+        m["seam_jump_mm"] = float(steps[-1])
+        m["median_step_mm"] = float(np.median(steps[:-1]))
+        for name in ("phase_hips_r", "phase_hips_lag", "phase_knee_r", "phase_knee_lag"):
+            m[name] = None
+        if c is not keyframe:
+            # A gait's hips bob twice per cycle: a lag of half a cycle would look in phase.
+            m["phase_hips_r"], m["phase_hips_lag"] = metrics.phase_alignment(
+                keyframe.world_positions[:, 0, UP], c.world_positions[:, 0, UP],
+                max_lag=c.n_frames // 4 if kind == "gait" else None)
+            m["phase_knee_r"], m["phase_knee_lag"] = metrics.phase_alignment(_knee_flexion(keyframe),
+                                                                             _knee_flexion(c))
+        c.metrics.update(m)
+    return clips
+
+
+def clip_warnings(clips: list[BuiltClip]) -> list[str]:
+    """What makes a side-by-side comparison show more than the method: a clip out of phase with its animation's
+    reference (best lag beyond :data:`MAX_LAG_FRAMES`) or a seam that jumps (more than twice the median step +
+    5 mm)."""
+    reference = {c.animation: c.id for c in clips if c.method == REFERENCE}
+    out = []
+    for c in clips:
+        m = c.metrics
+        limit = 2.0 * m["median_step_mm"] + 5.0
+        if m["seam_jump_mm"] > limit:
+            out.append(f"{c.id}: the seam jumps {m['seam_jump_mm']:.1f} mm (limit {limit:.1f} mm: twice the "
+                       f"median step {m['median_step_mm']:.1f} mm + 5 mm)")
+        if c.method != REFERENCE:
+            allowed = MAX_LAG_FRAMES[c.kind]
+            for part in ("hips", "knee"):
+                lag = m[f"phase_{part}_lag"]
+                if abs(lag) > allowed:
+                    ref = reference.get(c.animation, "its reference")
+                    out.append(f"{c.id}: out of phase with {ref}: {part} best lag {lag:+d} "
+                               f"frames (allowed ±{allowed}), r = {m[f'phase_{part}_r']:.2f} at lag 0")
+    return out
