@@ -302,13 +302,18 @@ class BuiltClip:
     def duration_s(self) -> float:
         return self.n_frames / self.fps
 
+    @property
+    def condition(self) -> str:
+        """The condition id the study server finds this clip by (with its animation)."""
+        return "keyframe" if self.method == "keyframe" else f"hybrid{self.increment}"
+
     def manifest_entry(self) -> dict[str, Any]:
         return {
             "id": self.id, "animation": self.animation, "method": self.method, "increment": self.increment,
             "key_count": int(self.key_times.size), "duration_s": self.duration_s, "fps": self.fps,
             "frames": self.n_frames, "playback": self.playback, "in_place": self.in_place,
             "root_speed_mps": self.root_speed_mps, "metrics": self.metrics, "source": self.source,
-            "file": f"{self.id}.npz",
+            "file": f"{self.id}.npz", "condition": self.condition,
         }
 
     def arrays(self) -> dict[str, Array]:

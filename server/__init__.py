@@ -1,1 +1,1 @@
-"""The animstudy service: configuration and command line (the web API arrives with the study-server issue)."""
+"""The animstudy service: settings, database, the study API and pages, media, and the command line."""

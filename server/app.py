@@ -34,7 +34,7 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None, r
         migrate(engine)
     # No trailing-slash redirects: Starlette builds their Location from the request's Host header.
     app = FastAPI(title="animstudy", version="0.1.0", redirect_slashes=False,
-                  description="Side-by-side user studies of hybrid against keyframe character animation.")
+                  description="Side-by-side user studies of character animation: conditions against a reference.")
     app.state.settings = settings
     app.state.engine = engine
     app.state.read_engine = read_only(engine)

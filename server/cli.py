@@ -96,7 +96,7 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, increme
            width: int, height: int, shadows: bool) -> int:
     """Render the clip set's videos into ``out`` (building the clip set first if it is missing)."""
     from anim_core.assets import AssetError
-    from server.media.build import MediaError, render_media
+    from server.media.build import MediaError, default_pairs, read_clip_set, render_media
     from server.media.scene import RenderSettings
 
     try:
@@ -108,8 +108,10 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, increme
                 write_clip_set(build_clip_set(settings.data, progress=lambda m: print(m, flush=True)), clips_dir)
             except ConfigError as exc:
                 return _fail(str(exc))
+        # The studies' own pairs too: rendering removes every video it was not asked for.
+        pairs = list(dict.fromkeys([*default_pairs(read_clip_set(clips_dir), increments), *_pairs_in_use(settings)]))
         render_media(settings.data, clips_dir, out, settings.secret,
-                     RenderSettings(width=width, height=height, shadows=shadows), increments=increments,
+                     RenderSettings(width=width, height=height, shadows=shadows), pairs=pairs,
                      workers=workers, progress=lambda m: print(m, flush=True))
     except (AssetError, MediaError) as exc:
         return _fail(str(exc))
@@ -118,30 +120,137 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, increme
     return 0
 
 
-def prepare_study(settings: Settings, session_factory: object) -> None:
-    """When the database holds no study: build the clip set and the videos the thesis design needs (what is
-    missing), then create and open the default study."""
-    from sqlalchemy import select
-
+def _render_for(settings: Settings, session: object, study_file: object) -> dict:
+    """Build the clip set if it is missing, render the videos ``study_file`` needs that are missing (keeping
+    every other study's), and return the render manifest."""
     from anim_core.clipset import build_clip_set, write_clip_set
     from server.media.build import render_media
-    from server.studies.design import Design
+    from server.studies.service import clip_set_index, pairs_in_use, required_pairs
+
+    if not (settings.clips_dir / "manifest.json").is_file():
+        print(f"building the clip set in {settings.clips_dir}", flush=True)
+        write_clip_set(build_clip_set(settings.data, progress=lambda m: print(m, flush=True)), settings.clips_dir)
+    needed = required_pairs(study_file.design, clip_set_index(settings.clips_dir))  # type: ignore[attr-defined]
+    pairs = list(dict.fromkeys([*pairs_in_use(session), *needed]))  # type: ignore[arg-type]
+    manifest = render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret, pairs=pairs,
+                            progress=lambda m: print(m, flush=True))
+    return json.loads(manifest.read_text(encoding="utf-8"))
+
+
+def _pairs_in_use(settings: Settings) -> list[tuple[str, str]]:
+    """The pair videos the studies in the database show (none without a database)."""
+    from server.db import make_engine, migrate, session_factory
+    from server.studies.service import pairs_in_use
+
+    engine = make_engine(settings.sqlalchemy_url)
+    try:
+        migrate(engine)
+        with session_factory(engine)() as session:
+            return pairs_in_use(session)
+    finally:
+        engine.dispose()
+
+
+def prepare_study(settings: Settings, session_factory: object) -> None:
+    """When the database holds no study: build the clip set and the videos the thesis study
+    (studies/thesis.toml) needs (what is missing), then create and open it."""
+    from sqlalchemy import select
+
     from server.studies.models import Study, StudyState
-    from server.studies.service import create_study, required_pairs, set_state
+    from server.studies.service import create_study, set_state
+    from server.studies.studyfile import thesis_study
 
     with session_factory() as session:  # type: ignore[operator]
         if session.scalar(select(Study.id).limit(1)) is not None:
             return
-        design = Design()
-        if not (settings.clips_dir / "manifest.json").is_file():
-            print(f"building the clip set in {settings.clips_dir}", flush=True)
-            write_clip_set(build_clip_set(settings.data, progress=lambda m: print(m, flush=True)), settings.clips_dir)
-        manifest = render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret,
-                                pairs=required_pairs(design), progress=lambda m: print(m, flush=True))
-        media = json.loads(manifest.read_text(encoding="utf-8"))
-        study = create_study(session, media, design)
+        study_file = thesis_study()
+        study = create_study(session, _render_for(settings, session, study_file), study_file)
         set_state(session, study, StudyState.open)
         print(f"created and opened study {study.slug!r} ({len(study.comparisons)} comparisons)", flush=True)
+
+
+def _study_session(settings: Settings) -> object:
+    from server.db import make_engine, migrate, session_factory
+
+    engine = make_engine(settings.sqlalchemy_url)
+    migrate(engine)
+    return session_factory(engine)()
+
+
+def study_command(settings: Settings, args: argparse.Namespace) -> int:
+    """``animstudy study ...``: schema, validate, create, list, open, close, export."""
+    from sqlalchemy import select
+
+    from anim_core.assets import AssetError
+    from anim_core.clipset import ConfigError
+    from server.errors import ServiceError
+    from server.media.build import MediaError
+    from server.researchers.models import Researcher
+    from server.researchers.service import normalize_email
+    from server.studies import service
+    from server.studies.models import Study, StudyState
+    from server.studies.router import summary
+    from server.studies.studyfile import StudyFile, StudyFileError, load_study_file
+
+    command = args.study_command
+    if command == "schema":
+        print(json.dumps(StudyFile.model_json_schema(), indent=2))
+        return 0
+    try:
+        if command == "validate":
+            study_file = load_study_file(args.file)
+            if (settings.clips_dir / "manifest.json").is_file():
+                service.check_known(study_file.design, service.clip_set_index(settings.clips_dir))
+                checked = f"; its animations and conditions are in the clip set {settings.clips_dir}"
+            else:
+                checked = f" (no clip set in {settings.clips_dir}: animations and conditions not checked)"
+            print(f"{args.file}: study {study_file.slug!r} is valid, {study_file.design.trials_total()} trials per "
+                  f"participant{checked}")
+            return 0
+        with _study_session(settings) as session:  # type: ignore[attr-defined]
+            if command == "create":
+                study_file = load_study_file(args.file)
+                owner = None
+                if args.owner:
+                    owner = session.scalar(select(Researcher).where(Researcher.email == normalize_email(args.owner)))
+                    if owner is None:
+                        return _fail(f"no researcher {args.owner!r} (create one with `animstudy researcher create`)")
+                if session.scalar(select(Study.id).where(Study.slug == study_file.slug)) is not None:
+                    return _fail(f"a study with slug {study_file.slug!r} exists already")
+                study = service.create_study(session, _render_for(settings, session, study_file), study_file, owner)
+                if args.open:
+                    service.set_state(session, study, StudyState.open)
+                print(f"created study {study.slug!r} ({study.state}, {service.trials_total(study)} trials per "
+                      f"participant); participant link: /s/{study.slug}")
+            elif command == "list":
+                rows = [summary(session, s) for s in session.scalars(select(Study).order_by(Study.id))]
+                print(f"{'slug':24} {'state':7} {'started':>7} {'completed':>9} {'votes':>6}  title")
+                for r in rows:
+                    print(f"{r.slug:24} {r.state:7} {r.started:7d} {r.completed:9d} {r.votes:6d}  {r.title}")
+            elif command in ("open", "close"):
+                study = service.set_state(session, service.get_study(session, args.slug), StudyState(
+                    "open" if command == "open" else "closed"))
+                print(f"study {study.slug!r} is {study.state}")
+            elif command == "export":
+                study = service.get_study(session, args.slug)
+                text = (service.export_csv(session, study) if args.format == "csv" else
+                        json.dumps(service.export_document(session, study), indent=1) + "\n")
+                if args.out:
+                    args.out.write_text(text, encoding="utf-8")
+                    print(f"{text.count(chr(10)) - 1 if args.format == 'csv' else 'the'} rows of {study.slug!r} "
+                          f"-> {args.out}", file=sys.stderr)
+                else:
+                    sys.stdout.write(text)
+    except StudyFileError as exc:
+        print(f"error: {exc.source} is not a valid study file:", file=sys.stderr)
+        for line in exc.errors:
+            print(f"  {line}", file=sys.stderr)
+        return 2
+    except ServiceError as exc:
+        return _fail(exc.detail)
+    except (AssetError, ConfigError, MediaError, OSError) as exc:
+        return _fail(str(exc))
+    return 0
 
 
 def ensure_researcher(settings: Settings, session_factory: object) -> None:
@@ -158,9 +267,9 @@ def ensure_researcher(settings: Settings, session_factory: object) -> None:
             return
         email = settings.admin_email or "admin@localhost"
         password = settings.admin_password or secrets.token_urlsafe(12)
-        create_researcher(session, email, password)
+        create_researcher(session, email, password, admin=True)  # manages every study, the default one too
         shown = password if not settings.admin_password else "(from ANIMSTUDY_ADMIN_PASSWORD)"
-        print(f"researcher account created: e-mail {email}, password {shown}", flush=True)
+        print(f"researcher account created (admin): e-mail {email}, password {shown}", flush=True)
 
 
 def serve(settings: Settings, host: str, port: int, workers: int) -> int:
@@ -190,7 +299,7 @@ def serve(settings: Settings, host: str, port: int, workers: int) -> int:
     return 0
 
 
-def researcher_create(settings: Settings, email: str, password: str) -> int:
+def researcher_create(settings: Settings, email: str, password: str, admin: bool = False) -> int:
     from server.db import make_engine, migrate, session_factory
     from server.errors import ServiceError
     from server.researchers.service import create_researcher
@@ -199,10 +308,10 @@ def researcher_create(settings: Settings, email: str, password: str) -> int:
     migrate(engine)
     try:
         with session_factory(engine)() as session:
-            researcher = create_researcher(session, email, password)
+            researcher = create_researcher(session, email, password, admin=admin)
     except ServiceError as exc:
         return _fail(exc.detail)
-    print(f"researcher {researcher.email} created")
+    print(f"researcher {researcher.email} created{' (admin: sees and manages every study)' if admin else ''}")
     return 0
 
 
@@ -357,6 +466,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     rc = researcher_sub.add_parser("create", help="create a researcher account")
     rc.add_argument("--email", required=True)
     rc.add_argument("--password", required=True)
+    rc.add_argument("--admin", action="store_true", help="may see and manage every study, not only their own")
+    st = sub.add_parser("study", help="study files and studies: schema, validate, create, list, open, close, export")
+    st_sub = st.add_subparsers(dest="study_command", required=True)
+    st_sub.add_parser("schema", help="print the JSON Schema of study files")
+    sv = st_sub.add_parser("validate", help="check a study file (every error with its field and line)")
+    sv.add_argument("file", type=Path)
+    sc = st_sub.add_parser("create", help="render the videos a study file needs (what is missing) and create it "
+                           "as a draft")
+    sc.add_argument("file", type=Path)
+    sc.add_argument("--open", action="store_true", help="open it for participants at once")
+    sc.add_argument("--owner", default=None, help="e-mail of the researcher who owns it (default: none; admins "
+                    "manage it)")
+    st_sub.add_parser("list", help="every study with its state and counts")
+    for name in ("open", "close"):
+        so = st_sub.add_parser(name, help=f"{name} a study for participants")
+        so.add_argument("slug")
+    se = st_sub.add_parser("export", help="a study's votes, one row per vote (see the data dictionary)")
+    se.add_argument("slug")
+    se.add_argument("--format", choices=("csv", "json"), default="csv")
+    se.add_argument("--out", type=Path, default=None, help="file to write (default: standard output)")
     bn = sub.add_parser("bench", help="time pose evaluation of crowds, keyframe against hybrid")
     bn.add_argument("--json", type=Path, default=None, help="results file (default: <var dir>/benchmark/results.json)")
     bn.add_argument("--characters", type=_int_list(1, "10,200"), default=None, help="crowd sizes, e.g. 10,200,10000")
@@ -374,7 +503,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "serve":
         return serve(settings, args.host, args.port, max(1, args.workers))
     if args.command == "researcher":
-        return researcher_create(settings, args.email, args.password)
+        return researcher_create(settings, args.email, args.password, args.admin)
+    if args.command == "study":
+        return study_command(settings, args)
     if args.command == "inspect":
         return inspect(settings.data)
     if args.command == "render":

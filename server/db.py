@@ -7,6 +7,7 @@ import os
 import sqlite3
 import threading
 import time
+from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -215,16 +216,35 @@ def alembic_config(url: str | None = None) -> Config:
     return cfg
 
 
+def _alembic(engine: Engine, run: Callable[[Config], None]) -> None:
+    """Run an Alembic command on one connection in one transaction.
+
+    On SQLite foreign keys are off meanwhile (as SQLite's own procedure for schema changes says): batch mode
+    recreates a table to change it, and dropping the old copy with foreign keys on would cascade-delete the
+    rows that refer to it (dropping ``trials`` would delete every vote).  The keys are checked before the commit.
+    """
+    with engine.connect() as connection:
+        sqlite_db = engine.dialect.name == "sqlite"
+        if sqlite_db:  # outside any transaction, or SQLite ignores it
+            connection.connection.dbapi_connection.execute("PRAGMA foreign_keys=OFF")  # type: ignore[union-attr]
+        try:
+            with connection.begin():
+                cfg = alembic_config()
+                cfg.attributes["connection"] = connection
+                run(cfg)
+                if sqlite_db:
+                    broken = connection.exec_driver_sql("PRAGMA foreign_key_check").all()
+                    if broken:
+                        raise RuntimeError(f"the migration left rows without their parents: {broken[:5]}")
+        finally:
+            if sqlite_db:
+                connection.connection.dbapi_connection.execute("PRAGMA foreign_keys=ON")  # type: ignore[union-attr]
+
+
 def migrate(engine: Engine, revision: str = "head") -> None:
     """Upgrade the database to ``revision`` (run at start-up)."""
-    with engine.begin() as connection:
-        cfg = alembic_config()
-        cfg.attributes["connection"] = connection
-        command.upgrade(cfg, revision)
+    _alembic(engine, lambda cfg: command.upgrade(cfg, revision))
 
 
 def downgrade(engine: Engine, revision: str = "base") -> None:
-    with engine.begin() as connection:
-        cfg = alembic_config()
-        cfg.attributes["connection"] = connection
-        command.downgrade(cfg, revision)
+    _alembic(engine, lambda cfg: command.downgrade(cfg, revision))

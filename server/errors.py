@@ -30,3 +30,9 @@ class Forbidden(ServiceError):
 
 class TooManyRequests(ServiceError):
     status_code = 429
+
+
+class Unprocessable(ServiceError):
+    """Well-formed input that names something unknown (e.g. a condition the rendered clip set lacks)."""
+
+    status_code = 422

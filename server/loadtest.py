@@ -35,19 +35,22 @@ from .db import make_engine, migrate, session_factory
 from .participants.models import Vote
 from .studies.design import Design
 from .studies.models import StudyState
+from .studies.scale import CHOICES
 from .studies.service import create_study, required_pairs, set_state
+from .studies.studyfile import thesis_study
 
-CHOICES = ("left_much", "left_slightly", "equal", "right_slightly", "right_much")
 DEFAULT_PG = "postgresql://postgres@127.0.0.1:5432/animstudy_load"
 
 
 def synthetic_media(design: Design) -> dict[str, Any]:
     """A render manifest with opaque names, for studies whose videos nobody watches (API load tests)."""
     clips, pairs = {}, []
-    ids = sorted({c for p in required_pairs(design) for c in p})
-    for i, clip in enumerate(ids):
-        clips[clip] = {"video": f"{i:024x}.mp4", "poster": f"{i:024x}.jpg", "frames": 40, "fps": 30}
-    for k, (left, right) in enumerate(required_pairs(design)):
+    keys = {(a, c): f"{a}-{c}" for a in design.animations
+            for c in (design.reference, *design.conditions, *([design.practice] if design.practice else []))}
+    for i, ((animation, condition), clip) in enumerate(sorted(keys.items())):
+        clips[clip] = {"clip": clip, "animation": animation, "condition": condition, "video": f"{i:024x}.mp4",
+                       "poster": f"{i:024x}.jpg", "frames": 40, "fps": 30}
+    for k, (left, right) in enumerate(required_pairs(design, keys)):
         pairs.append({"left": left, "right": right, "video": f"{k + 1000:024x}.mp4", "poster": f"{k + 1000:024x}.jpg"})
     return {"clips": clips, "pairs": pairs}
 
@@ -72,8 +75,8 @@ def prepare_database(kind: str, workdir: Path, pg_url: str = DEFAULT_PG) -> str:
     engine = make_engine(url)
     migrate(engine)
     with session_factory(engine)() as db:
-        design = Design()
-        set_state(db, create_study(db, synthetic_media(design), design), StudyState.open)
+        study_file = thesis_study()
+        set_state(db, create_study(db, synthetic_media(study_file.design), study_file), StudyState.open)
     engine.dispose()
     return url
 

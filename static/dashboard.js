@@ -4,32 +4,24 @@
 (() => {
   const $ = (id) => document.getElementById(id);
   const params = new URLSearchParams(location.search);
-  const slug = params.get("study") || "thesis";
+  let slug = params.get("study"); // none: the first study the researcher may see
   const TOKEN = "animstudy:researcher-token";
-  const SCORE = [
-    { key: "-2", label: "keyframe significantly better", color: "#b2182b" },
-    { key: "-1", label: "keyframe slightly better", color: "#ef8a62" },
+  // Scores are from the test condition's point of view; the labels name the study's reference.
+  const scoreLegend = (ref) => [
+    { key: "-2", label: `${ref} significantly better`, color: "#b2182b" },
+    { key: "-1", label: `${ref} slightly better`, color: "#ef8a62" },
     { key: "0", label: "equal", color: "#cfcfcf" },
-    { key: "1", label: "hybrid slightly better", color: "#67a9cf" },
-    { key: "2", label: "hybrid significantly better", color: "#2166ac" },
+    { key: "1", label: "test slightly better", color: "#67a9cf" },
+    { key: "2", label: "test significantly better", color: "#2166ac" },
   ];
-  const ANSWERS = [
-    { key: "yes", label: "yes", color: "#2166ac" },
-    { key: "no", label: "no", color: "#ef8a62" },
-    { key: "dont_know", label: "don't know", color: "#9e9e9e" },
-    { key: "unanswered", label: "not answered", color: "#d9d9d9" },
-  ];
-  const METHODS = [
-    { key: "keyframe", label: "keyframe", color: "#555555" },
-    { key: "hybrid0", label: "hybrid increment 0", color: "#2166ac" },
-    { key: "hybrid1", label: "hybrid increment 1", color: "#67a9cf" },
-    { key: "hybrid2", label: "hybrid increment 2", color: "#b5d4e9" },
-  ];
+  // Enough distinct colours for any number of answers or conditions (cycled, then lightened).
+  const PALETTE = ["#2166ac", "#ef8a62", "#4d9221", "#762a83", "#b2182b", "#67a9cf", "#e08214", "#9e9e9e"];
+  const colour = (i) => PALETTE[i % PALETTE.length];
   let token = sessionStorage.getItem(TOKEN);
   let results = null;
   let timer = null;
 
-  const label = (c) => `${c.animation}, increment ${c.increment}`;
+  const label = (c) => `${c.animation}, ${c.condition}`;
   const fmt = (v, digits = 3) => (v === null || v === undefined ? "–" : Number(v).toFixed(digits));
   const p = (v) => (v === null || v === undefined ? "–" : v < 0.001 ? "< 0.001" : v.toFixed(3));
 
@@ -69,6 +61,13 @@
   }
 
   async function refresh() {
+    if (!slug) {
+      const list = await api("/studies");
+      const studies = list.ok ? await list.json() : [];
+      if (!studies.length) { location.href = "/dashboard/studies"; return; }
+      slug = studies[0].slug;
+    }
+    $("participant-link").href = `/s/${encodeURIComponent(slug)}`;
     const r = await api(`/studies/${encodeURIComponent(slug)}/results`);
     if (!r.ok) { $("status").textContent = `Cannot load the results (HTTP ${r.status}).`; return; }
     results = await r.json();
@@ -111,16 +110,18 @@
                                   card(n.withdrawn, "withdrawn"), card(n.active, "in progress"),
                                   card(o.votes, "votes"), card(minutes, "median completion time"));
     const comps = res.comparisons;
+    const ref = o.reference;
+    document.querySelectorAll(".reference-name").forEach((el) => { el.textContent = ref; });
     $("chart-distribution").replaceChildren(Charts.diverging(
-      comps.map((c) => ({ label: label(c), counts: c.counts })), SCORE, "Answers per comparison"));
+      comps.map((c) => ({ label: label(c), counts: c.counts })), scoreLegend(ref), "Answers per comparison"));
     $("chart-thesis").replaceChildren(Charts.stacked(
       comps.map((c) => ({ label: label(c), positive: c.positive, negative: c.negative })),
       [{ key: "positive", label: "positive", color: "#4d9221" }, { key: "negative", label: "negative", color: "#c51b7d" }],
       "Thesis grouping"));
     $("chart-split").replaceChildren(Charts.stacked(
-      comps.map((c) => ({ label: label(c), hybrid: c.hybrid_better, equal: c.equal, keyframe: c.keyframe_better })),
-      [{ key: "hybrid", label: "hybrid better", color: "#2166ac" }, { key: "equal", label: "equal", color: "#cfcfcf" },
-       { key: "keyframe", label: "keyframe better", color: "#b2182b" }], "Neutral split"));
+      comps.map((c) => ({ label: label(c), test: c.test_better, equal: c.equal, reference: c.reference_better })),
+      [{ key: "test", label: "test better", color: "#2166ac" }, { key: "equal", label: "equal", color: "#cfcfcf" },
+       { key: "reference", label: `${ref} better`, color: "#b2182b" }], "Neutral split"));
     $("chart-means").replaceChildren(Charts.forest(
       [...comps.map((c) => ({ label: label(c), value: c.mean_score, ci: c.ci95 })),
        { label: "all comparisons", value: res.overall.mean_score, ci: res.overall.ci95 }], -2, 2, "Mean preference"));
@@ -135,30 +136,53 @@
       `Consistency of the two side-swapped showings: weighted κ ${fmt(sc.weighted_kappa, 2)}, exact agreement ` +
       `${fmt(sc.exact_agreement, 2)}, within one step ${fmt(sc.within_one, 2)} (${sc.pairs} pairs). ` +
       `Krippendorff's α (ordinal): ${fmt(res.krippendorff_alpha_ordinal, 2)}. ${res.methods.wilcoxon}.`;
-    for (const [question, id] of [["gamer", "chart-gamer"], ["tech_savvy", "chart-tech"]]) {
-      const groups = res.demographics[question] || {};
+    table($("table-ranking"), ["animation", "condition", "scale value", "95 % CI", "votes", "fit"],
+          (res.rankings || []).flatMap((r) => r.conditions.map((c) => [
+            r.animation, c.condition, c.value == null ? (c.bound ? `${c.bound} all others` : "–") : fmt(c.value, 2),
+            c.ci95 ? `${fmt(c.ci95[0], 2)} … ${fmt(c.ci95[1], 2)}` : "–", c.votes, r.fit.status])));
+    renderQuestions(res, comps);
+    renderMetrics(res.clips);
+    renderBenchmark(res.benchmark);
+  }
+
+  // One panel per question of the study: the mean score of each comparison for each answer.
+  function renderQuestions(res, comps) {
+    const box = $("question-panels");
+    box.replaceChildren();
+    for (const q of res.overview.questions) {
+      const groups = res.demographics[q.id] || {};
       const rows = comps.map((c) => {
-        const key = `${c.animation}-${c.increment}`;
+        const key = `${c.animation}-${c.condition}`;
         const values = {};
         for (const [answer, g] of Object.entries(groups)) values[answer] = g.comparisons[key]?.mean_score;
         return { label: label(c), values };
       });
-      const present = ANSWERS.filter((a) => groups[a.key]).map((a) => ({ ...a, label: `${a.label} (${groups[a.key].participants})` }));
-      $(id).replaceChildren(Charts.groupedSigned(rows, present, -2, 2, `Mean score by ${question}`));
+      const present = Object.keys(groups).map((answer, i) => ({
+        key: answer, label: `${answer === "unanswered" ? "not answered" : answer} (${groups[answer].participants})`,
+        color: answer === "unanswered" ? "#d9d9d9" : colour(i) }));
+      const panel = document.createElement("section");
+      panel.className = "panel";
+      const h = document.createElement("h2");
+      h.textContent = `By answer: ${q.text}`;
+      const chart = document.createElement("div");
+      chart.className = "chart";
+      chart.id = `chart-q-${q.id}`;
+      chart.append(Charts.groupedSigned(rows, present, -2, 2, `Mean score by ${q.id}`));
+      panel.append(h, chart);
+      box.append(panel);
     }
-    renderMetrics(res.clips);
-    renderBenchmark(res.benchmark);
   }
 
   function renderMetrics(clips) {
     if (!clips.length) { $("chart-metrics").textContent = "No clip set found."; $("table-metrics").replaceChildren(); return; }
     const animations = [...new Set(clips.map((c) => c.animation))];
-    const methodKey = (c) => (c.method === "keyframe" ? "keyframe" : `hybrid${c.increment}`);
+    const conditions = [...new Set(clips.map((c) => c.condition))];
+    const legend = conditions.map((k, i) => ({ key: k, label: k, color: i === 0 ? "#555555" : colour(i - 1) }));
     const groups = animations.map((a) => ({
       label: `${a}: foot skate`,
-      values: Object.fromEntries(clips.filter((c) => c.animation === a).map((c) => [methodKey(c), c.metrics.foot_skate_ratio])),
+      values: Object.fromEntries(clips.filter((c) => c.animation === a).map((c) => [c.condition, c.metrics.foot_skate_ratio])),
     }));
-    $("chart-metrics").replaceChildren(Charts.columns(groups, METHODS, "Foot skate ratio per clip", (v) => `${Math.round(v * 100)} %`));
+    $("chart-metrics").replaceChildren(Charts.columns(groups, legend, "Foot skate ratio per clip", (v) => `${Math.round(v * 100)} %`));
     table($("table-metrics"), ["clip", "keys", "foot skate", "source skate", "slide mm", "penetration mm", "floating mm", "MPJPE mm",
                                "key velocity jump rad/s", "jerk m/s³", "bytes", "seam jump mm", "hips phase r (lag)",
                                "knee phase r (lag)"],

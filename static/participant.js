@@ -9,7 +9,6 @@
   const $ = (id) => document.getElementById(id);
   const sleep = (ms) => new Promise((resolve) => setTimeout(resolve, ms));
   const PAGES = ["info", "consent", "demographics", "instructions", "trial", "thanks", "withdrawn", "message"];
-  const EXTERNAL_IDS = ["PROLIFIC_PID", "STUDY_ID", "SESSION_ID"];
   const LOAD_ATTEMPTS = 4;
 
   let study = null;
@@ -89,9 +88,34 @@
     paragraphs($("consent-text"), study.texts.consent);
     paragraphs($("instructions-text"), study.texts.instructions);
     paragraphs($("thanks-text"), study.texts.thanks);
+    $("scale-question").textContent = study.scale.question;
+    document.querySelectorAll("#vote-form .choice-label").forEach((el, i) => { el.textContent = study.scale.labels[i]; });
+    buildQuestions(study.questions);
     if (creds) { await resume(); return; }
     if (study.state !== "open") { message("Study closed", "This study is not taking participants at the moment."); return; }
     show("info");
+  }
+
+  // The study's questions, one fieldset each (radio buttons named by the question id, valued by the choice id).
+  function buildQuestions(questions) {
+    const counts = ["No questions", "One question", "Two questions", "Three questions"];
+    $("questions-title").textContent = `${counts[questions.length] || "A few questions"} about you`;
+    const form = $("demographics-form");
+    form.querySelectorAll("fieldset").forEach((f) => f.remove());
+    for (const q of questions) {
+      const set = document.createElement("fieldset");
+      const legend = document.createElement("legend");
+      legend.textContent = q.text;
+      set.append(legend);
+      q.choices.forEach((c, i) => {
+        const label = document.createElement("label");
+        const input = Object.assign(document.createElement("input"), { type: "radio", name: q.id, value: c.id,
+                                                                         required: i === 0 });
+        label.append(input, ` ${c.label}`);
+        set.append(label);
+      });
+      form.insertBefore(set, form.querySelector("button"));
+    }
   }
 
   async function resume() {
@@ -111,7 +135,7 @@
     $("consent-next").disabled = true;
     const params = new URLSearchParams(location.search);
     const external = {};
-    for (const name of EXTERNAL_IDS) if (params.get(name)) external[name] = params.get(name).slice(0, 200);
+    for (const name of study.parameters) if (params.get(name)) external[name] = params.get(name).slice(0, 200);
     const body = { consent: true, external: Object.keys(external).length ? external : null };
     const r = await persist(() => api("POST", `/studies/${encodeURIComponent(slug)}/sessions`, body), "starting");
     if (r.status !== 201) { message("Cannot start", "The study is not open at the moment."); return; }
@@ -124,8 +148,8 @@
   $("demographics-form").addEventListener("submit", async (e) => {
     e.preventDefault();
     const form = new FormData(e.target);
-    const body = { gamer: form.get("gamer"), tech_savvy: form.get("tech_savvy") };
-    if (!body.gamer || !body.tech_savvy) return;
+    const body = Object.fromEntries(study.questions.map((q) => [q.id, form.get(q.id)]));
+    if (Object.values(body).some((v) => !v)) return;
     const r = await persist(() => api("PUT", `/sessions/${creds.session_id}/demographics`, body), "saving");
     if (r.ok) show("instructions");
     else if (r.status === 401) { clearCreds(); await start(); }

@@ -23,8 +23,10 @@ from server.researchers.service import create_researcher
 from server.studies.design import Design
 from server.studies.models import Study, StudyState
 from server.studies.service import create_study, set_state
+from server.studies.studyfile import StudyFile, thesis_study
 
 ANIMATIONS = ("walk", "run", "crouch", "idle")
+CONDITIONS = ("keyframe", "hybrid0", "hybrid1", "hybrid2")
 RESEARCHER = ("lead@example.org", "correct horse battery")
 
 
@@ -32,29 +34,36 @@ def fake_name(text: str) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:24]
 
 
-def fake_media(design: Design) -> dict:
+def fake_media(design: Design | None = None) -> dict:
     """A render manifest with opaque names for every clip and every pair a design can need."""
     clips = {}
     for a in ANIMATIONS:
-        for m in ("keyframe", "hybrid0", "hybrid1", "hybrid2"):
+        for m in CONDITIONS:
             cid = f"{a}-{m}"
-            clips[cid] = {"clip": cid, "video": f"{fake_name(cid)}.mp4", "poster": f"{fake_name(cid)}.jpg",
-                          "frames": 40, "fps": 30, "width": 640, "height": 480}
+            clips[cid] = {"clip": cid, "animation": a, "condition": m, "video": f"{fake_name(cid)}.mp4",
+                          "poster": f"{fake_name(cid)}.jpg", "frames": 40, "fps": 30, "width": 640, "height": 480}
     pairs = []
-    ids = list(clips)
-    for left in ids:
-        for right in ids:
-            if left.split("-")[0] == right.split("-")[0]:
+    for left, lc in clips.items():
+        for right, rc in clips.items():
+            if lc["animation"] == rc["animation"]:
                 name = fake_name(f"{left}|{right}")
                 pairs.append({"left": left, "right": right, "video": f"{name}.mp4", "poster": f"{name}.jpg",
                               "frames": 40, "fps": 30, "width": 1284, "height": 480})
     return {"clips": clips, "pairs": pairs}
 
 
+def study_file(design: Design | None = None, slug: str = "thesis", **sections: object) -> StudyFile:
+    """studies/thesis.toml with another design, slug or sections (given as dicts or models)."""
+    base = thesis_study().model_dump()
+    base.update(slug=slug, **{k: v.model_dump() if hasattr(v, "model_dump") else v for k, v in sections.items()})
+    if design is not None:
+        base["design"] = design.model_dump()
+    return StudyFile.model_validate(base)
+
+
 def make_study(db: Session, design: Design | None = None, slug: str = "thesis", state: StudyState = StudyState.open,
-               **kwargs: object) -> Study:
-    design = design or Design()
-    study = create_study(db, fake_media(design), design, slug=slug, **kwargs)
+               owner: object = None, **sections: object) -> Study:
+    study = create_study(db, fake_media(design), study_file(design, slug, **sections), owner=owner)  # type: ignore[arg-type]
     return set_state(db, study, state)
 
 
@@ -78,7 +87,7 @@ def study(db):
 
 @pytest.fixture
 def researcher_headers(db, client):
-    create_researcher(db, *RESEARCHER)
+    create_researcher(db, *RESEARCHER, admin=True)
     r = client.post("/api/v1/auth/token", data={"username": RESEARCHER[0], "password": RESEARCHER[1]})
     assert r.status_code == 200, r.text
     return {"Authorization": f"Bearer {r.json()['access_token']}"}

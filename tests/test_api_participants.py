@@ -66,7 +66,7 @@ def test_demographics(client, study, db):
     r = client.put(url, json={"gamer": "yes", "tech_savvy": "dont_know"}, headers=headers)
     assert r.status_code == 200
     ps = db.get(ParticipantSession, sid)
-    assert (ps.gamer, ps.tech_savvy) == ("yes", "dont_know")
+    assert ps.answers == {"gamer": "yes", "tech_savvy": "dont_know"}
     r = client.put(url, json={"gamer": "sometimes", "tech_savvy": "no"}, headers=headers)
     assert r.status_code == 422
     assert any(e["loc"][-1] == "gamer" for e in r.json()["detail"])
@@ -89,7 +89,8 @@ def test_next_trial_is_stable_until_answered_and_ends_with_204(client, study):
     assert [t["index"] for t in trials] == list(range(16))
     assert trials[-1]["preload_url"] is None
     state = client.get(f"/api/v1/sessions/{sid}", headers=headers).json()
-    assert state == {"state": "completed", "answered": 16, "trials_total": 16, "demographics_given": False}
+    assert state == {"state": "completed", "answered": 16, "trials_total": 16, "demographics_given": False,
+                     "outcome": "completed"}
 
 
 def test_a_vote_answers_with_the_next_trial(client, study):
@@ -114,13 +115,13 @@ def test_a_vote_answers_with_the_next_trial(client, study):
 def test_each_comparison_once_per_side_in_a_session(client, study, db):
     sid, headers = start(client)
     ps = db.get(ParticipantSession, sid)
-    shown = sorted((t.comparison_id, t.hybrid_side) for t in ps.trials)
+    shown = sorted((t.comparison_id, t.reference_side) for t in ps.trials)
     assert shown == sorted((c.id, side) for c in study.comparisons for side in ("left", "right"))
     assert all(a.comparison_id != b.comparison_id for a, b in zip(ps.trials, ps.trials[1:], strict=False))
     # The trial's video is the pair video of its comparison in its side order.
     first = client.get(f"/api/v1/sessions/{sid}/next", headers=headers).json()
     trial = ps.trials[0]
-    assert first["video_url"] == f"/media/{trial.comparison.video(trial.hybrid_side)}"
+    assert first["video_url"] == f"/media/{trial.comparison.video(trial.reference_side)}"
 
 
 def test_votes_are_stored_exactly_once(client, study, db):
@@ -177,16 +178,17 @@ def test_withdrawal_deletes_answers_and_keeps_only_a_count(client, study, db):
     assert r.status_code == 200 and r.json() == {"state": "withdrawn"}
     assert db.scalar(select(func.count(Vote.id)).where(Vote.session_id == sid)) == 0
     ps = db.get(ParticipantSession, sid)
-    assert (ps.gamer, ps.tech_savvy, ps.external, ps.token_hash) == (None, None, None, None)
+    assert (ps.answers, ps.external, ps.token_hash) == (None, None, None)
     assert ps.state == "withdrawn"
     assert client.get(f"/api/v1/sessions/{sid}", headers=headers).status_code == 401
     assert client.post(f"/api/v1/sessions/{sid}/withdraw", headers=headers).status_code == 401
 
 
 def test_completion_code_and_practice_trial(client, db):
-    design = Design(practice=True, catch_trials=2)
-    make_study(db, design, slug="prolific", completion_code="C0DE42",
-               completion_url="https://app.prolific.com/submissions/complete?cc=C0DE42")
+    design = Design(practice="hybrid2", catch_trials=2)
+    make_study(db, design, slug="prolific", recruitment={
+        "parameters": ["PROLIFIC_PID"], "completed": {
+            "code": "C0DE42", "url": "https://app.prolific.com/submissions/complete?cc={code}&p={PROLIFIC_PID}"}})
     info = client.get("/api/v1/studies/prolific").json()
     assert info["trials_total"] == 16 + 2 + 1
     sid, headers = start(client, "prolific", PROLIFIC_PID="pp")
@@ -197,4 +199,5 @@ def test_completion_code_and_practice_trial(client, db):
     rest = answer_all(client, sid, headers)
     assert not any(t["practice"] for t in rest)
     state = client.get(f"/api/v1/sessions/{sid}", headers=headers).json()
-    assert state["completion_code"] == "C0DE42" and state["completion_url"].endswith("cc=C0DE42")
+    assert state["completion_code"] == "C0DE42" and state["outcome"] == "completed"
+    assert state["completion_url"] == "https://app.prolific.com/submissions/complete?cc=C0DE42&p=pp"

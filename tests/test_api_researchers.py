@@ -9,8 +9,8 @@ from fastapi.testclient import TestClient
 from server.studies.service import EXPORT_COLUMNS
 from tests.server_fixtures import RESEARCHER, make_client, start, vote
 
-FIELDS = {"session_id", "trial_index", "practice", "animation", "increment", "hybrid_side", "choice", "score",
-          "rt_ms", "gamer", "tech_savvy", "answered_at"}
+FIELDS = {"session_id", "trial_index", "practice", "animation", "reference_condition", "test_condition",
+          "reference_side", "test_side", "choice", "score", "rt_ms", "gamer", "tech_savvy", "answered_at"}
 
 
 def test_login(client, researcher_headers):
@@ -37,7 +37,7 @@ def test_a_participant_token_is_not_a_researcher_token(client, study):
     assert client.get("/api/v1/studies/thesis/export.csv", headers=headers).status_code == 401
 
 
-def test_exports_one_row_per_vote_with_hybrid_scores(client, study, researcher_headers, db):
+def test_exports_one_row_per_vote_with_test_condition_scores(client, study, researcher_headers, db):
     sid, headers = start(client)
     client.put(f"/api/v1/sessions/{sid}/demographics", json={"gamer": "no", "tech_savvy": "yes"}, headers=headers)
     answered = []
@@ -64,13 +64,15 @@ def test_exports_one_row_per_vote_with_hybrid_scores(client, study, researcher_h
     trials = {t.index: t for t in db.get(ParticipantSession, sid).trials}
     values = {"left_much": 2, "left_slightly": 1, "equal": 0, "right_slightly": -1, "right_much": -2}
     for row, obj, (trial, choice) in zip(rows, data["votes"], answered, strict=True):
-        side = trials[trial["index"]].hybrid_side
+        side = "left" if trials[trial["index"]].reference_side == "right" else "right"  # the test's
         expected = values[choice] if side == "left" else -values[choice]
         assert (row["session_id"], int(row["trial_index"]), row["choice"]) == (sid, trial["index"], choice)
-        assert (row["hybrid_side"], int(row["score"]), row["practice"]) == (side, expected, "false")
+        assert (row["test_side"], int(row["score"]), row["practice"]) == (side, expected, "false")
+        assert row["reference_side"] == trials[trial["index"]].reference_side
         assert (row["gamer"], row["tech_savvy"], row["rt_ms"]) == ("no", "yes", "1234")
-        assert row["animation"] in ("walk", "run", "crouch", "idle") and row["increment"] in ("0", "1")
-        assert obj["score"] == expected and obj["practice"] is False and obj["increment"] in (0, 1)
+        assert row["animation"] in ("walk", "run", "crouch", "idle") and row["reference_condition"] == "keyframe"
+        assert row["test_condition"] in ("hybrid0", "hybrid1")
+        assert obj["score"] == expected and obj["practice"] is False and obj["test_condition"] in ("hybrid0", "hybrid1")
 
 
 def test_data_dictionary_documents_every_column(client):

@@ -129,6 +129,7 @@ def test_written_files_follow_the_schema(clips, tmp_path):
                 "in_place", "root_speed_mps"} <= set(entry)
         assert entry["animation"] in ANIMATIONS and entry["method"] in ("keyframe", "hybrid")
         assert (entry["increment"] is None) == (entry["method"] == "keyframe")
+        assert entry["condition"] == ("keyframe" if entry["method"] == "keyframe" else f"hybrid{entry['increment']}")
         assert entry["playback"] in ("loop", "pingpong")
         assert (entry["root_speed_mps"] > 0) == entry["in_place"]
         arrays = np.load(tmp_path / entry["file"])

@@ -13,7 +13,7 @@ from tests.server_fixtures import live_server, make_study
 from tests.test_participant_page import ARGS, ARTIFACTS, CHROMIUM, wait_until
 from tests.test_results import simulate
 
-CHARTS = ("chart-distribution", "chart-thesis", "chart-split", "chart-means", "chart-gamer", "chart-tech",
+CHARTS = ("chart-distribution", "chart-thesis", "chart-split", "chart-means", "chart-q-gamer", "chart-q-tech_savvy",
           "chart-metrics")
 
 
@@ -26,7 +26,7 @@ def dashboard_site(data, tmp_path_factory):
     migrate(engine)
     with session_factory(engine)() as db:
         simulate(db, make_study(db), n=20, seed=11)
-        create_researcher(db, "lead@example.org", "correct horse battery")
+        create_researcher(db, "lead@example.org", "correct horse battery", admin=True)
     with live_server(create_app(settings, engine, run_migrations=False)) as base:
         yield base
     engine.dispose()

@@ -20,12 +20,12 @@ def test_thousand_sessions_are_balanced_without_repeats_and_uniform():
         trials = trial_order(ComparisonIds(TEST), repeats=1, seed=seed)
         assert len(trials) == n_positions
         # Each comparison exactly once per side.
-        assert sorted((t.comparison_id, t.hybrid_side) for t in trials) == sorted(
+        assert sorted((t.comparison_id, t.reference_side) for t in trials) == sorted(
             (c, s) for c in TEST for s in ("left", "right"))
         assert all(a.comparison_id != b.comparison_id for a, b in itertools.pairwise(trials))
         for position, t in enumerate(trials):
             counts[t.comparison_id - 1, position] += 1
-            side_counts[(position, t.hybrid_side)] += 1
+            side_counts[(position, t.reference_side)] += 1
     # Every comparison equally likely at every position (expected 125 per cell).
     for comparison in range(len(TEST)):
         p = chisquare(counts[comparison]).pvalue
@@ -33,7 +33,7 @@ def test_thousand_sessions_are_balanced_without_repeats_and_uniform():
     p = chisquare(counts.ravel()).pvalue
     print(f"chi-square over all {counts.size} comparison x position cells: p = {p:.3f}")
     assert p > 1e-3
-    # And the hybrid is on the left as often as on the right at each position.
+    # And the reference is on the left as often as on the right at each position.
     lefts = np.array([side_counts[(i, "left")] for i in range(n_positions)])
     assert chisquare(np.stack([lefts, n_sessions - lefts]).ravel()).pvalue > 1e-3
 
@@ -48,9 +48,9 @@ def test_practice_first_catch_trials_and_repeats():
     trials = trial_order(ComparisonIds(TEST, catch=[20, 21], practice=30), repeats=2, seed=1)
     assert trials[0].practice and trials[0].comparison_id == 30
     assert not any(t.practice for t in trials[1:])
-    body = Counter((t.comparison_id, t.hybrid_side) for t in trials[1:])
+    body = Counter((t.comparison_id, t.reference_side) for t in trials[1:])
     assert all(body[(c, s)] == 2 for c in TEST for s in ("left", "right"))
-    assert body[(20, "left")] == 1 and body[(21, "left")] == 1
+    assert body[(20, "right")] == 1 and body[(21, "right")] == 1
     assert len(trials) == 1 + 8 * 4 + 2
 
 

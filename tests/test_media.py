@@ -48,6 +48,9 @@ def test_every_video_decodes_with_the_expected_frames(media, clips_dir):
     out, manifest, _ = media
     clips = {c.id: c for c in read_clip_set(clips_dir)}
     assert len(manifest["clips"]) == 16 and len(manifest["pairs"]) == 16
+    # The server finds stimuli by (animation, condition): every clip entry says both, as the clip set does.
+    assert {(e["animation"], e["condition"]) for e in manifest["clips"].values()} == {
+        (c.animation, c.condition) for c in clips.values()}
     for entry in [*manifest["clips"].values(), *manifest["pairs"]]:
         info = probe(out / entry["video"])
         clip = clips[entry.get("clip") or entry["left"]]

@@ -16,9 +16,9 @@ from server.db import migrate, session_factory
 from server.media.build import render_media
 from server.media.scene import RenderSettings
 from server.participants.models import ParticipantSession, Vote
-from server.studies.design import Design
 from server.studies.models import StudyState
-from server.studies.service import create_study, required_pairs, set_state
+from server.studies.service import clip_set_index, create_study, required_pairs, set_state
+from server.studies.studyfile import thesis_study
 from tests.conftest import _fresh_engine
 from tests.server_fixtures import live_server
 
@@ -38,14 +38,14 @@ def site(data, tmp_path_factory):
     var = tmp_path_factory.mktemp("var")
     settings = Settings(var_dir=var, data_dir=data, secret_key="browser-test-secret-0123456789abcdef")
     write_clip_set(build_clip_set(data), settings.clips_dir)
-    design = Design()
+    study_file = thesis_study()
     manifest = render_media(data, settings.clips_dir, settings.media_dir, settings.secret, VIDEO,
-                            pairs=required_pairs(design))
+                            pairs=required_pairs(study_file.design, clip_set_index(settings.clips_dir)))
     engine = _fresh_engine("sqlite", tmp_path_factory)
     migrate(engine)
     factory = session_factory(engine)
     with factory() as db:
-        set_state(db, create_study(db, json.loads(manifest.read_text()), design), StudyState.open)
+        set_state(db, create_study(db, json.loads(manifest.read_text()), study_file), StudyState.open)
     app = create_app(settings, engine, run_migrations=False)
     with live_server(app) as base:
         yield base, factory
@@ -165,7 +165,7 @@ def test_full_run_by_keyboard_with_real_videos(site, page):
         ps = db.get(ParticipantSession, sid)
         assert len(votes) == 16 and ps.state == "completed"
         assert ps.external == {"PROLIFIC_PID": "pp1", "STUDY_ID": "st", "SESSION_ID": "se"}
-        assert (ps.gamer, ps.tech_savvy) == ("yes", "dont_know")
+        assert ps.answers == {"gamer": "yes", "tech_savvy": "dont_know"}
         reports = [v.extra["playback"] for v in votes]
     # Every trial really played: frames were presented, it looped at least once, and it never waited for data.
     for r in reports:
@@ -235,7 +235,7 @@ def test_withdrawal_deletes_the_data(site, page):
     assert credentials(page) is None
     with factory() as db:
         ps = db.get(ParticipantSession, sid)
-        assert ps.state == "withdrawn" and ps.external is None and ps.gamer is None
+        assert ps.state == "withdrawn" and ps.external is None and ps.answers is None
         assert db.scalar(select(func.count(Vote.id)).where(Vote.session_id == sid)) == 0
 
 

@@ -10,6 +10,7 @@ import pytest
 from scipy import stats
 
 from server.participants import service
+from server.studies.ranking import rank_conditions
 
 CHOICES = ["right_much", "right_slightly", "equal", "left_slightly", "left_much"]  # raw -2 .. +2 (left view)
 
@@ -24,11 +25,12 @@ def simulate(db, study, n=17, seed=7):
     for p in range(n):
         ps = service.start_session(db, study, None).session
         if p % 3:
-            service.set_demographics(db, ps, ["yes", "no", "dont_know"][p // 3 % 3], ["no", "yes"][p % 2])
+            service.set_answers(db, ps, {"gamer": ["yes", "no", "dont_know"][p // 3 % 3],
+                                         "tech_savvy": ["no", "yes"][p % 2]})
         lean = rng.uniform(-0.3, 0.8)  # this participant's liking for the left side
         for trial in ps.trials[: 10 if p == n - 1 else 16]:  # the last one leaves early
-            pref = taste[trial.comparison.animation] + 0.3 * (trial.comparison.increment or 0)
-            latent = (pref if trial.hybrid_side == "left" else -pref) + lean + rng.gauss(0, 0.9)
+            pref = taste[trial.comparison.test.animation] + 0.3 * int(trial.comparison.test.condition[-1])
+            latent = (pref if trial.reference_side == "right" else -pref) + lean + rng.gauss(0, 0.9)
             raw = max(-2, min(2, round(latent)))
             service.cast_vote(db, ps, trial, CHOICES[raw + 2], 1000, f"k{trial.id}", {})
     service.withdraw(db, service.start_session(db, study, None).session)
@@ -51,10 +53,10 @@ def test_results_match_an_independent_computation_from_the_csv(client, study, db
     # Plain computation: participant means of the two showings, per comparison.
     by = defaultdict(lambda: defaultdict(list))
     for r in rows:
-        by[(r["animation"], int(r["increment"]))][r["session_id"]].append((int(r["trial_index"]), int(r["score"])))
+        by[(r["animation"], r["test_condition"])][r["session_id"]].append((int(r["trial_index"]), int(r["score"])))
     assert len(results["comparisons"]) == 8
     for c in results["comparisons"]:
-        per_person = by[(c["animation"], c["increment"])]
+        per_person = by[(c["animation"], c["condition"])]
         scores = [s for showings in per_person.values() for _, s in showings]
         means = [sum(s for _, s in sh) / 2 for sh in per_person.values() if len(sh) == 2]
         assert c["counts"] == {str(k): scores.count(k) for k in (-2, -1, 0, 1, 2)}
@@ -80,6 +82,31 @@ def test_results_match_an_independent_computation_from_the_csv(client, study, db
     for rank, (p, i) in enumerate(ps):
         running = max(running, min(1.0, (len(ps) - rank) * p))
         assert results["comparisons"][i]["p_holm"] == pytest.approx(running, rel=1e-9)
+
+    # The thesis grouping per test condition, counted from the CSV.
+    for entry in results["conditions"]:
+        scores = [int(r["score"]) for r in rows if r["test_condition"] == entry["condition"]
+                  and r["practice"] == "false" and r["catch"] == "false"]
+        assert (entry["votes"], entry["positive"], entry["negative"]) == (
+            len(scores), sum(s > -2 for s in scores), scores.count(-2))
+        assert (entry["test_better"], entry["equal"], entry["reference_better"]) == (
+            sum(s > 0 for s in scores), scores.count(0), sum(s < 0 for s in scores))
+    assert [e["condition"] for e in results["conditions"]] == ["hybrid0", "hybrid1"]
+
+    # The ranking per animation: the model on the CSV's analysed votes of that animation (the model itself is
+    # pinned to published values in test_ranking.py; this checks which votes reach it), the reference at 0.
+    assert [r["animation"] for r in results["rankings"]] == sorted({r["animation"] for r in rows})
+    for entry in results["rankings"]:
+        votes = [(r["session_id"], r["reference_condition"], r["test_condition"], int(r["score"])) for r in rows
+                 if r["animation"] == entry["animation"] and r["practice"] == "false" and r["catch"] == "false"]
+        expected = rank_conditions(votes)
+        assert entry["fit"]["n_votes_used"] == len(votes) and entry["fit"]["anchor"] == "keyframe"
+        assert {c["condition"]: c["value"] for c in entry["conditions"]} == pytest.approx(
+            {c.condition: c.value for c in expected.conditions}, abs=1e-9)
+        for c in entry["conditions"]:
+            if c["condition"] != "keyframe" and c["value"] is not None:
+                mean = sum(v[3] for v in votes if v[2] == c["condition"]) / sum(v[2] == c["condition"] for v in votes)
+                assert math.copysign(1, c["value"]) == math.copysign(1, mean) or abs(mean) < 0.05
 
     # Side bias: mean raw answer (left = +2) per participant.
     raw = {"left_much": 2, "left_slightly": 1, "equal": 0, "right_slightly": -1, "right_much": -2}

@@ -51,6 +51,7 @@ class ClipFile:
 
     id: str
     animation: str
+    condition: str
     method: str
     increment: int | None
     path: Path
@@ -113,8 +114,8 @@ def read_clip_set(clips_dir: Path) -> list[ClipFile]:
         clips = []
         for e in manifest["clips"]:
             path = Path(clips_dir) / e["file"]
-            clips.append(ClipFile(e["id"], e["animation"], e["method"], e["increment"], path, int(e["fps"]),
-                                  round(e["duration_s"] * e["fps"]), e["playback"], bool(e["in_place"]),
+            clips.append(ClipFile(e["id"], e["animation"], e["condition"], e["method"], e["increment"], path,
+                                  int(e["fps"]), round(e["duration_s"] * e["fps"]), e["playback"], bool(e["in_place"]),
                                   float(e["root_speed_mps"]), _digest_arrays(path)))
     except FileNotFoundError as exc:
         raise MediaError(f"no clip set at {clips_dir}: {exc.filename} is missing (run `animstudy clips build`)"
@@ -429,7 +430,8 @@ def _manifest(p: Plan, settings: RenderSettings) -> dict[str, Any]:
     return {
         "version": 1,
         "settings": settings.as_dict(),
-        "clips": {i: {"clip": i, **entry(o, settings.width)} for i, o in p.clip_outputs.items()},
+        "clips": {i: {"clip": i, "animation": p.clips[i].animation, "condition": p.clips[i].condition,
+                      **entry(o, settings.width)} for i, o in p.clip_outputs.items()},
         "pairs": [{"left": left, "right": right, **entry(o, pair_width)}
                   for (left, right), o in p.pair_outputs.items()],
     }

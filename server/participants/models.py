@@ -30,9 +30,8 @@ class ParticipantSession(Base):
     state: Mapped[str] = mapped_column(String(16), default=SessionState.active)
     consent_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     consent_version: Mapped[str | None] = mapped_column(String(40))
-    gamer: Mapped[str | None] = mapped_column(String(16))
-    tech_savvy: Mapped[str | None] = mapped_column(String(16))
-    external: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    answers: Mapped[dict[str, str] | None] = mapped_column(JSON)  # question id -> choice id
+    external: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # the study's accepted URL parameters
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     completed_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     withdrawn_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
@@ -50,12 +49,11 @@ class Trial(Base):
     session_id: Mapped[str] = mapped_column(ForeignKey("sessions.id", ondelete="CASCADE"), index=True)
     index: Mapped[int]
     comparison_id: Mapped[int] = mapped_column(ForeignKey("comparisons.id"))
-    hybrid_side: Mapped[str] = mapped_column(String(8))
+    reference_side: Mapped[str] = mapped_column(String(8))  # where the reference is; the test is opposite
     practice: Mapped[bool] = mapped_column(default=False)
 
     session: Mapped[ParticipantSession] = relationship(back_populates="trials")
     comparison: Mapped[Comparison] = relationship()
-    vote: Mapped[Vote | None] = relationship(back_populates="trial", cascade="all, delete-orphan")
 
 
 class Vote(Base):
@@ -74,8 +72,6 @@ class Vote(Base):
     request_hash: Mapped[str] = mapped_column(String(64))
     extra: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     answered_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
-
-    trial: Mapped[Trial] = relationship(back_populates="vote")
 
 
 class PlaybackEvent(Base):

@@ -14,15 +14,16 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Path, Response, status
+from fastapi.exceptions import RequestValidationError
 
 from server.deps import ParticipantTokenDep, SessionDep, limit_new_sessions
 from server.participants import service
+from server.studies import service as studies_service
 from server.studies.service import get_study
 
 from .models import ParticipantSession, SessionState, Trial
 from .schemas import (
-    DemographicsRead,
-    DemographicsUpdate,
+    Answers,
     EventCreate,
     EventRead,
     RowId,
@@ -50,22 +51,30 @@ async def create_session(slug: str, body: SessionCreate, session: SessionDep) ->
     return SessionCreated(session_id=new.session.id, token=new.token, trials_total=new.session.trials_total)
 
 
-@router.put("/sessions/{session_id}/demographics", response_model=DemographicsRead)
-async def put_demographics(session_id: str, body: DemographicsUpdate, token: ParticipantTokenDep,
-                           session: SessionDep) -> DemographicsRead:
+@router.put("/sessions/{session_id}/demographics", response_model=Answers)
+async def put_demographics(session_id: str, body: Answers, token: ParticipantTokenDep,
+                           session: SessionDep) -> dict[str, str]:
+    """The answers to the study's questions, ``{question id: choice id}`` (every question, once)."""
     ps = service.authorize(session, session_id, token, lock="update")
-    service.set_demographics(session, ps, body.gamer, body.tech_savvy)
-    return DemographicsRead(gamer=body.gamer, tech_savvy=body.tech_savvy)
+    errors = service.answer_errors(ps.study, body)
+    if errors:
+        raise RequestValidationError([{"loc": ("body", q), "msg": m, "type": "value_error"} for q, m in errors])
+    service.set_answers(session, ps, body)
+    return body
 
 
 @router.get("/sessions/{session_id}", response_model=SessionRead, response_model_exclude_none=True)
 async def get_session_state(session_id: str, token: ParticipantTokenDep, session: SessionDep) -> SessionRead:
     ps = service.authorize(session, session_id, token)
-    completed = ps.state == SessionState.completed
-    return SessionRead(state=ps.state, answered=service.answered(session, ps), trials_total=ps.trials_total,
-                       demographics_given=ps.gamer is not None and ps.tech_savvy is not None,
-                       completion_code=ps.study.completion_code if completed else None,
-                       completion_url=ps.study.completion_url if completed else None)
+    read = SessionRead(state=ps.state, answered=service.answered(session, ps), trials_total=ps.trials_total,
+                       demographics_given=service.questions_answered(ps))
+    if ps.state == SessionState.completed:
+        outcome = service.outcome(session, ps)
+        recruitment = studies_service.recruitment(ps.study)
+        code = getattr(recruitment, outcome).code
+        read.outcome, read.completion_code = outcome, code
+        read.completion_url = recruitment.completion_url(outcome, code, ps.external)
+    return read
 
 
 def trial_read(ps: ParticipantSession, upcoming: list[Trial]) -> TrialRead | None:
@@ -74,8 +83,8 @@ def trial_read(ps: ParticipantSession, upcoming: list[Trial]) -> TrialRead | Non
         return None
     trial, following = upcoming[0], (upcoming[1] if len(upcoming) > 1 else None)
     return TrialRead(trial_id=trial.id, index=trial.index, total=ps.trials_total,
-                     practice=trial.practice, video_url=media_url(trial.comparison.video(trial.hybrid_side)),
-                     preload_url=media_url(following.comparison.video(following.hybrid_side)) if following else None)
+                     practice=trial.practice, video_url=media_url(trial.comparison.video(trial.reference_side)),
+                     preload_url=media_url(following.comparison.video(following.reference_side)) if following else None)
 
 
 @router.get("/sessions/{session_id}/next", response_model=TrialRead,

@@ -4,14 +4,14 @@ import json
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints, field_validator, model_validator
+
+from server.studies.scale import Choice
 
 # Row ids are 32-bit integers in the schema; a larger id is refused as invalid input (422), not sent to the
 # database (SQLite cannot even bind integers over 64 bits).
 RowId = Annotated[int, Field(ge=1, le=2**31 - 1)]
 
-Answer = Literal["yes", "no", "dont_know"]
-Choice = Literal["left_much", "left_slightly", "equal", "right_slightly", "right_much"]
 MAX_EXTRA_BYTES = 16_384
 # Request bodies are strict: JSON true is consent, "true" or 1 is not; a number is a number, not a string of one.
 STRICT = ConfigDict(strict=True)
@@ -45,15 +45,9 @@ class SessionCreated(BaseModel):
     trials_total: int
 
 
-class DemographicsUpdate(BaseModel):
-    model_config = STRICT
-
-    gamer: Answer
-    tech_savvy: Answer
-
-
-class DemographicsRead(DemographicsUpdate):
-    pass
+Key = Annotated[str, StringConstraints(min_length=1, max_length=32)]
+# The answers to the study's questions: question id -> choice id (checked against the study by the endpoint).
+Answers = Annotated[dict[Key, Key], Field(max_length=10)]
 
 
 class SessionRead(BaseModel):
@@ -61,6 +55,7 @@ class SessionRead(BaseModel):
     answered: int
     trials_total: int
     demographics_given: bool
+    outcome: str | None = Field(None, description="once completed: completed or screened_out")
     completion_code: str | None = None
     completion_url: str | None = None
 

@@ -17,8 +17,9 @@ from sqlalchemy.orm import Session, joinedload
 from server.db import utcnow
 from server.errors import Conflict, Forbidden, NotFound, Unauthorized
 from server.studies.design import Design, trial_order
-from server.studies.models import Study, StudyState
-from server.studies.service import comparison_ids, score
+from server.studies.models import Comparison, ComparisonKind, Study, StudyState
+from server.studies.scale import score
+from server.studies.service import comparison_ids, recruitment
 
 from .models import ParticipantSession, PlaybackEvent, SessionState, Trial, Vote
 
@@ -39,13 +40,15 @@ def start_session(session: Session, study: Study, external: dict[str, str] | Non
         raise Conflict(f"study {study.slug!r} is not open for participants")
     token = secrets.token_urlsafe(32)
     seed = secrets.randbits(63)
+    accepted = recruitment(study).parameters  # only the study's accepted URL parameters are kept
+    kept = {k: v for k, v in (external or {}).items() if k in accepted}
     ps = ParticipantSession(id=uuid.uuid4().hex, study=study, token_hash=_hash(token), seed=seed,
                             state=SessionState.active, consent_at=utcnow(), consent_version=study.consent_version,
-                            external=external or None)
+                            external=kept or None)
     design = Design.model_validate(study.design)
     for index, planned in enumerate(trial_order(comparison_ids(study), design.repeats, seed)):
-        ps.trials.append(Trial(index=index, comparison_id=planned.comparison_id, hybrid_side=planned.hybrid_side,
-                               practice=planned.practice))
+        ps.trials.append(Trial(index=index, comparison_id=planned.comparison_id,
+                               reference_side=planned.reference_side, practice=planned.practice))
     ps.trials_total = len(ps.trials)
     session.add(ps)
     session.commit()
@@ -96,13 +99,43 @@ def _checked(session: Session, ps: ParticipantSession | None, token: str | None)
     raise Unauthorized("invalid or withdrawn token")
 
 
-def set_demographics(session: Session, ps: ParticipantSession, gamer: str, tech_savvy: str) -> ParticipantSession:
-    """Set (or correct) the two answers while the session is active; a finished session's data is final."""
+def answer_errors(study: Study, answers: dict[str, str]) -> list[tuple[str, str]]:
+    """(question id, message) for every question of ``study`` unanswered or answered with an unknown choice, and
+    every answer to a question the study does not ask."""
+    errors = []
+    for q in study.questions:
+        choices = [c["id"] for c in q["choices"]]
+        if q["id"] not in answers:
+            errors.append((q["id"], "Field required"))
+        elif answers[q["id"]] not in choices:
+            errors.append((q["id"], f"Input should be {', '.join(repr(c) for c in choices)}"))
+    asked = {q["id"] for q in study.questions}
+    errors += [(k, "this study asks no such question") for k in answers if k not in asked]
+    return errors
+
+
+def set_answers(session: Session, ps: ParticipantSession, answers: dict[str, str]) -> ParticipantSession:
+    """Store (or correct) the answers to the study's questions (checked with :func:`answer_errors` first) while
+    the session is active; a finished session's data is final."""
     if ps.state != SessionState.active:
         raise Conflict(f"this session is {ps.state}; its answers can no longer be changed")
-    ps.gamer, ps.tech_savvy = gamer, tech_savvy
+    ps.answers = dict(answers)
     session.commit()
     return ps
+
+
+def questions_answered(ps: ParticipantSession) -> bool:
+    return all(q["id"] in (ps.answers or {}) for q in ps.study.questions)
+
+
+def outcome(session: Session, ps: ParticipantSession) -> str:
+    """``completed``, or ``screened_out`` when more catch trials were failed (a 'significantly better' answer
+    with the same clip on both sides) than the study allows."""
+    failed = session.scalar(
+        select(func.count(Vote.id)).join(Trial, Vote.trial_id == Trial.id)
+        .join(Comparison, Trial.comparison_id == Comparison.id)
+        .where(Vote.session_id == ps.id, Comparison.kind == ComparisonKind.catch, func.abs(Vote.score) == 2)) or 0
+    return "screened_out" if failed > recruitment(ps.study).catch_failures_allowed else "completed"
 
 
 def answered(session: Session, ps: ParticipantSession) -> int:
@@ -170,7 +203,7 @@ def cast_vote(session: Session, ps: ParticipantSession, trial: Trial, choice: st
     now = utcnow()
     inserted = session.scalar(_VOTE_INSERT[session.get_bind().dialect.name], {
         "trial_id": trial.id, "session_id": ps.id, "index": trial.index, "choice": choice,
-        "score": score(choice, trial.hybrid_side), "rt_ms": rt_ms, "idempotency_key": idempotency_key,
+        "score": score(choice, trial.reference_side), "rt_ms": rt_ms, "idempotency_key": idempotency_key,
         "request_hash": body_hash, "extra": extra or None, "answered_at": now})
     if inserted is not None:
         if trial.index == ps.trials_total - 1:
@@ -194,9 +227,9 @@ def cast_vote(session: Session, ps: ParticipantSession, trial: Trial, choice: st
 
 
 def withdraw(session: Session, ps: ParticipantSession) -> ParticipantSession:
-    """Delete the session's votes, demographics and external ids; keep an anonymous row for the count."""
+    """Delete the session's votes, answers and external ids; keep an anonymous row for the count."""
     session.execute(delete(Vote).where(Vote.session_id == ps.id))
-    ps.gamer = ps.tech_savvy = None
+    ps.answers = None
     ps.external = None
     ps.token_hash = None
     ps.state = SessionState.withdrawn

@@ -24,7 +24,7 @@ def normalize_email(email: str) -> str:
     return email.strip().lower()
 
 
-def create_researcher(session: Session, email: str, password: str) -> Researcher:
+def create_researcher(session: Session, email: str, password: str, admin: bool = False) -> Researcher:
     email = normalize_email(email)
     if "@" not in email:
         raise Conflict(f"{email!r} is not an e-mail address")
@@ -32,7 +32,7 @@ def create_researcher(session: Session, email: str, password: str) -> Researcher
         raise Conflict(f"the password needs at least {MIN_PASSWORD} characters")
     if session.scalar(select(Researcher.id).where(Researcher.email == email)) is not None:
         raise Conflict(f"a researcher {email!r} exists already")
-    researcher = Researcher(email=email, password_hash=_hasher.hash(password))
+    researcher = Researcher(email=email, password_hash=_hasher.hash(password), is_admin=admin)
     session.add(researcher)
     session.commit()
     return researcher

@@ -1,9 +1,10 @@
 """A study's design and the trial order of one participant.
 
-Side balance is by construction: every test comparison is shown ``2 * repeats`` times, ``repeats`` times with the
-hybrid on each side.  The order is a uniformly random permutation (seeded per participant) among those with no
-comparison twice in a row, drawn by rejection: every valid order is equally likely, so every comparison is equally
-likely at every position.
+A design compares conditions (ids of the clip set, e.g. ``hybrid0``) with a reference condition (``keyframe``)
+for each of its animations.  Side balance is by construction: every test comparison is shown ``2 * repeats``
+times, ``repeats`` times with the reference on each side.  The order is a uniformly random permutation (seeded per
+participant) among those with no comparison twice in a row, drawn by rejection: every valid order is equally
+likely, so every comparison is equally likely at every position.
 """
 
 from __future__ import annotations
@@ -11,27 +12,63 @@ from __future__ import annotations
 import random
 from dataclasses import dataclass, field
 from itertools import pairwise
+from typing import Annotated, Self
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
 
 MAX_SHUFFLES = 10_000
+Ident = Annotated[str, StringConstraints(pattern=r"^[a-z0-9][a-z0-9_-]{0,31}$")]
+# The thesis design, and the default of every design field.
+THESIS_ANIMATIONS = ("walk", "run", "crouch", "idle")
+THESIS_REFERENCE = "keyframe"
+THESIS_CONDITIONS = ("hybrid0", "hybrid1")
 
 
 class Design(BaseModel):
-    """What a study shows.  The thesis default: increments 0 and 1 against keyframe, each once per side."""
+    """What a study shows: every condition against the reference, for every animation."""
 
-    animations: list[str] = Field(default_factory=lambda: ["walk", "run", "crouch", "idle"], min_length=1)
-    increments: list[int] = Field(default_factory=lambda: [0, 1], min_length=1)
-    repeats: int = Field(default=1, ge=1, le=5)
-    practice: bool = False
-    practice_increment: int = 2  # the practice trial: keyframe against this increment of the first animation
-    catch_trials: int = Field(default=0, ge=0, le=8)  # each shows one animation's keyframe clip on both sides
+    model_config = ConfigDict(extra="forbid")
+
+    reference: Ident = Field(THESIS_REFERENCE, description="the reference condition every other is compared with")
+    conditions: list[Ident] = Field(default_factory=lambda: list(THESIS_CONDITIONS), min_length=1, max_length=16,
+                                    description="the test conditions, each compared with the reference")
+    animations: list[Ident] = Field(default_factory=lambda: list(THESIS_ANIMATIONS), min_length=1, max_length=16)
+    repeats: int = Field(1, ge=1, le=5, description="showings of each comparison per side order")
+    practice: Ident | None = Field(None, description="a condition shown once against the reference (first "
+                                   "animation) as an unanalysed practice trial before the others")
+    catch_trials: int = Field(0, ge=0, le=16, description="attention checks: one animation's reference clip on "
+                              "both sides, one per animation in order")
+
+    @model_validator(mode="after")
+    def consistent(self) -> Self:
+        for name in ("conditions", "animations"):
+            values = getattr(self, name)
+            repeated = sorted({v for v in values if values.count(v) > 1})
+            if repeated:
+                raise ValueError(f"{name} lists {', '.join(repeated)} more than once")
+        if self.reference in self.conditions:
+            raise ValueError(f"the reference {self.reference!r} cannot also be a compared condition")
+        if self.catch_trials > len(self.animations):
+            raise ValueError(f"catch_trials ({self.catch_trials}) cannot exceed the number of animations "
+                             f"({len(self.animations)}): each uses a different animation")
+        if self.practice == self.reference:
+            raise ValueError("the practice condition must differ from the reference")
+        tests = len(self.animations) * len(self.conditions)
+        most = 2 * self.repeats  # showings of one test comparison; the others must separate them
+        if most - 1 > tests * most + self.catch_trials - most:
+            raise ValueError("this design cannot avoid showing a comparison twice in a row: add conditions, "
+                             "animations or catch trials")
+        return self
+
+    def trials_total(self) -> int:
+        return (len(self.animations) * len(self.conditions) * 2 * self.repeats + self.catch_trials
+                + (1 if self.practice else 0))
 
 
 @dataclass(frozen=True)
 class PlannedTrial:
     comparison_id: int
-    hybrid_side: str
+    reference_side: str
     practice: bool = False
 
 
@@ -47,13 +84,14 @@ class ComparisonIds:
 def trial_order(ids: ComparisonIds, repeats: int, seed: int) -> list[PlannedTrial]:
     """The trials of one session: the practice trial first, then tests and catch trials, shuffled."""
     rng = random.Random(seed)
-    items = [PlannedTrial(c, side) for c in ids.test for side in ("left", "right") for _ in range(repeats)]
-    items += [PlannedTrial(c, "left") for c in ids.catch]
+    items = [PlannedTrial(c, side) for c in ids.test for side in ("right", "left") for _ in range(repeats)]
+    # A catch trial shows one clip on both sides; the reference is said to be right, as it always was.
+    items += [PlannedTrial(c, "right") for c in ids.catch]
     for _ in range(MAX_SHUFFLES):
         rng.shuffle(items)
         if all(a.comparison_id != b.comparison_id for a, b in pairwise(items)):
             break
-    else:  # only a design with one comparison repeated cannot avoid repeats; say so rather than loop forever
+    else:  # Design refuses designs that cannot avoid repeats; say so rather than loop forever
         raise ValueError("this design cannot avoid showing a comparison twice in a row")
-    head = [PlannedTrial(ids.practice, rng.choice(("left", "right")), practice=True)] if ids.practice else []
+    head = [PlannedTrial(ids.practice, rng.choice(("right", "left")), practice=True)] if ids.practice else []
     return head + items

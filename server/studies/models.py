@@ -4,10 +4,11 @@ from datetime import datetime
 from enum import StrEnum
 from typing import Any
 
-from sqlalchemy import JSON, ForeignKey, String, Text, UniqueConstraint
+from sqlalchemy import JSON, ForeignKey, String, UniqueConstraint
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
 from server.db import Base, UTCDateTime, utcnow
+from server.researchers.models import Researcher
 
 
 class StudyState(StrEnum):
@@ -17,12 +18,14 @@ class StudyState(StrEnum):
 
 
 class ComparisonKind(StrEnum):
-    test = "test"  # keyframe against a hybrid increment: analysed
+    test = "test"  # the reference condition against a test condition: analysed
     catch = "catch"  # the same clip on both sides: checks attention, not analysed as a comparison
     practice = "practice"  # shown first, never analysed
 
 
 class Study(Base):
+    """A study: the sections of its study file (``studyfile.StudyFile``) as JSON, its state and its owner."""
+
     __tablename__ = "studies"
 
     id: Mapped[int] = mapped_column(primary_key=True)
@@ -30,21 +33,24 @@ class Study(Base):
     title: Mapped[str] = mapped_column(String(200))
     texts: Mapped[dict[str, Any]] = mapped_column(JSON)  # information, consent, instructions, thanks, contact
     consent_version: Mapped[str] = mapped_column(String(40))
+    scale: Mapped[dict[str, Any]] = mapped_column(JSON)
+    questions: Mapped[list[dict[str, Any]]] = mapped_column(JSON)
     design: Mapped[dict[str, Any]] = mapped_column(JSON)
+    recruitment: Mapped[dict[str, Any]] = mapped_column(JSON)
+    owner_id: Mapped[int | None] = mapped_column(ForeignKey("researchers.id", ondelete="SET NULL"), index=True)
     state: Mapped[str] = mapped_column(String(16), default=StudyState.draft)
-    completion_code: Mapped[str | None] = mapped_column(String(64))
-    completion_url: Mapped[str | None] = mapped_column(Text)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     opened_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     closed_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
 
+    owner: Mapped[Researcher | None] = relationship()
     stimuli: Mapped[list[Stimulus]] = relationship(back_populates="study", cascade="all, delete-orphan")
     comparisons: Mapped[list[Comparison]] = relationship(back_populates="study", cascade="all, delete-orphan",
                                                          order_by="Comparison.id")
 
 
 class Stimulus(Base):
-    """A rendered clip.  Its method and increment are known to the server only."""
+    """A rendered clip of one animation in one condition (as the render manifest names them)."""
 
     __tablename__ = "stimuli"
     __table_args__ = (UniqueConstraint("study_id", "clip_id"),)
@@ -53,8 +59,7 @@ class Stimulus(Base):
     study_id: Mapped[int] = mapped_column(ForeignKey("studies.id", ondelete="CASCADE"), index=True)
     clip_id: Mapped[str] = mapped_column(String(64))
     animation: Mapped[str] = mapped_column(String(32))
-    method: Mapped[str] = mapped_column(String(16))
-    increment: Mapped[int | None]
+    condition: Mapped[str] = mapped_column(String(32))
     video: Mapped[str] = mapped_column(String(64))
     poster: Mapped[str] = mapped_column(String(64))
     frames: Mapped[int]
@@ -64,23 +69,22 @@ class Stimulus(Base):
 
 
 class Comparison(Base):
-    """Keyframe clip against hybrid clip (or a clip against itself), with its side-by-side video for each side."""
+    """Reference stimulus against test stimulus (a catch trial: a stimulus against itself), with the
+    side-by-side video of each side order."""
 
     __tablename__ = "comparisons"
 
     id: Mapped[int] = mapped_column(primary_key=True)
     study_id: Mapped[int] = mapped_column(ForeignKey("studies.id", ondelete="CASCADE"), index=True)
     kind: Mapped[str] = mapped_column(String(16), default=ComparisonKind.test)
-    animation: Mapped[str] = mapped_column(String(32))
-    increment: Mapped[int | None]
-    keyframe_id: Mapped[int] = mapped_column(ForeignKey("stimuli.id"))
-    hybrid_id: Mapped[int] = mapped_column(ForeignKey("stimuli.id"))
-    video_hybrid_left: Mapped[str] = mapped_column(String(64))
-    video_hybrid_right: Mapped[str] = mapped_column(String(64))
+    reference_id: Mapped[int] = mapped_column(ForeignKey("stimuli.id"))
+    test_id: Mapped[int] = mapped_column(ForeignKey("stimuli.id"))
+    video_reference_left: Mapped[str] = mapped_column(String(64))
+    video_reference_right: Mapped[str] = mapped_column(String(64))
 
     study: Mapped[Study] = relationship(back_populates="comparisons")
-    keyframe: Mapped[Stimulus] = relationship(foreign_keys=[keyframe_id])
-    hybrid: Mapped[Stimulus] = relationship(foreign_keys=[hybrid_id])
+    reference: Mapped[Stimulus] = relationship(foreign_keys=[reference_id])
+    test: Mapped[Stimulus] = relationship(foreign_keys=[test_id])
 
-    def video(self, hybrid_side: str) -> str:
-        return self.video_hybrid_left if hybrid_side == "left" else self.video_hybrid_right
+    def video(self, reference_side: str) -> str:
+        return self.video_reference_left if reference_side == "left" else self.video_reference_right

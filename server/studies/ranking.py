@@ -169,10 +169,6 @@ def _reach(adjacency: csr_array, start: int) -> set[int]:
     return {int(i) for i in breadth_first_order(adjacency, start, directed=True, return_predecessors=False)}
 
 
-def _reach(adjacency: csr_array, start: int) -> set[int]:
-    return {int(i) for i in breadth_first_order(adjacency, start, directed=True, return_predecessors=False)}
-
-
 def _finite_component(votes: list[GradedComparison], names: list[str], anchor: str,
                       ) -> tuple[list[GradedComparison], dict[str, Literal["above", "below"] | None]]:
     """The votes among the conditions with a finite scale value, and where the others lie.

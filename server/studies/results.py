@@ -36,9 +36,9 @@ def _read_json(path: Path) -> Any:
 
 
 @lru_cache(maxsize=16)
-def _analyse_cached(votes: tuple[tuple[tuple[str, Any], ...], ...], counts: tuple[tuple[str, int], ...]
-                    ) -> dict[str, Any]:
-    return analyse([dict(v) for v in votes], dict(counts))
+def _analyse_cached(votes: tuple[tuple[tuple[str, Any], ...], ...], counts: tuple[tuple[str, int], ...],
+                    questions: tuple[str, ...]) -> dict[str, Any]:
+    return analyse([dict(v) for v in votes], dict(counts), questions)
 
 
 def study_results(session: Session, study: Study, clips_dir: Path, benchmark_path: Path) -> dict[str, Any]:
@@ -46,19 +46,23 @@ def study_results(session: Session, study: Study, clips_dir: Path, benchmark_pat
     up to 13 participants with ties enumerates sign patterns and takes seconds, and a dashboard polls."""
     votes = tuple(tuple(sorted(v.items())) for v in export_rows(session, study))
     counts = tuple(sorted(participant_counts(session, study).items()))
-    results = copy.deepcopy(_analyse_cached(votes, counts))
+    questions = tuple(q["id"] for q in study.questions)
+    results = copy.deepcopy(_analyse_cached(votes, counts, questions))
     durations = [(ps.completed_at - ps.created_at).total_seconds() for ps in session.scalars(
         select(ParticipantSession).where(ParticipantSession.study_id == study.id,
                                          ParticipantSession.state == SessionState.completed))]
     results["overview"] = {
         "slug": study.slug, "title": study.title, "state": study.state,
+        "reference": study.design["reference"], "conditions": study.design["conditions"],
+        "questions": [{"id": q["id"], "text": q["text"]} for q in study.questions],
         "votes": session.scalar(select(func.count(Vote.id)).join(ParticipantSession).where(
             ParticipantSession.study_id == study.id)) or 0,
         "median_completion_s": pystats.median(durations) if durations else None,
     }
     manifest = _read_json(clips_dir / "manifest.json")
     results["clips"] = [
-        {"id": c["id"], "animation": c["animation"], "method": c["method"], "increment": c["increment"],
+        {"id": c["id"], "animation": c["animation"], "condition": c.get("condition"), "method": c["method"],
+         "increment": c["increment"],
          "key_count": c["key_count"], "metrics": c["metrics"], "shown": c["id"] in {s.clip_id for s in study.stimuli}}
         for c in (manifest or {}).get("clips", [])
     ]

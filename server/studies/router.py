@@ -1,80 +1,151 @@
 from __future__ import annotations
 
-import csv
-import io
+import json
 from pathlib import Path
+from typing import Annotated, Any
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Body, Depends, Request, status
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import PlainTextResponse, Response
+from pydantic import ValidationError
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
 
 from server.deps import ResearcherDep, SessionDep, SettingsDep
+from server.errors import Conflict, Unprocessable
+from server.media.build import MANIFEST
+from server.participants.models import ParticipantSession, Vote
 
 from . import service
-from .models import StudyState
-from .results import study_results
-from .schemas import ExportJson, StudyPublic, StudyStateRead
+from .models import Study, StudyState
+from .results import participant_counts, study_results
+from .schemas import ExportJson, StudyPublic, StudyStateRead, StudySummary
+from .studyfile import StudyFile, StudyFileError, parse_study_text
 
 router = APIRouter(prefix="/api/v1", tags=["studies"])
 DATA_DICTIONARY = Path(__file__).with_name("DATA_DICTIONARY.md")
+MAX_STUDY_FILE_BYTES = 200_000
+
+
+def summary(session: Session, study: Study) -> StudySummary:
+    counts = participant_counts(session, study)
+    votes = session.scalar(select(func.count(Vote.id)).join(ParticipantSession).where(
+        ParticipantSession.study_id == study.id)) or 0
+    never_opened = study.opened_at is None
+    return StudySummary(slug=study.slug, title=study.title, state=study.state,
+                        owner=study.owner.email if study.owner else None, started=counts["started"],
+                        completed=counts["completed"], votes=votes, trials_total=service.trials_total(study),
+                        participant_url=f"/s/{study.slug}",
+                        editable={"texts": never_opened, "recruitment": never_opened,
+                                  "design": never_opened and study.state == StudyState.draft})
+
+
+@router.get("/studies", response_model=list[StudySummary])
+def list_studies(session: SessionDep, researcher: ResearcherDep) -> list[StudySummary]:
+    """The researcher's studies (an admin's: every study), with their participant counts."""
+    return [summary(session, s) for s in service.visible_studies(session, researcher)]
+
+
+def render_manifest(settings: Any) -> dict[str, Any]:
+    try:
+        return json.loads((settings.media_dir / MANIFEST).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        raise Conflict("no rendered videos on the server; create the study with `animstudy study create`, "
+                       "which renders them") from None
+
+
+@router.post("/studies", response_model=StudySummary, status_code=status.HTTP_201_CREATED)
+def create_study(body: StudyFile, session: SessionDep, settings: SettingsDep,
+                 researcher: ResearcherDep) -> StudySummary:
+    """A draft study from a study file's content (as JSON) over the rendered videos (``animstudy study create``
+    renders what is missing; here the videos must exist)."""
+    return summary(session, service.create_study(session, render_manifest(settings), body, owner=researcher))
+
+
+async def study_file_text(request: Request) -> str:
+    """The request body as the text of a study file (TOML)."""
+    raw = await request.body()
+    if len(raw) > MAX_STUDY_FILE_BYTES:
+        raise Unprocessable(f"a study file may hold at most {MAX_STUDY_FILE_BYTES} bytes")
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise Unprocessable("the study file is not UTF-8 text") from None
+
+
+@router.post("/studies/file", response_model=StudySummary, status_code=status.HTTP_201_CREATED,
+             openapi_extra={"requestBody": {"required": True,
+                                            "content": {"text/plain": {"schema": {"type": "string"}}}}})
+def create_study_from_file(text: Annotated[str, Depends(study_file_text)], session: SessionDep,
+                           settings: SettingsDep, researcher: ResearcherDep) -> StudySummary:
+    """As ``POST /studies``, from the study file itself (TOML text as the body): errors name field and line."""
+    try:
+        study_file = parse_study_text(text, "the study file")
+    except StudyFileError as exc:
+        raise RequestValidationError([{"loc": ("body",), "msg": e, "type": "value_error"} for e in exc.errors]
+                                     ) from None
+    return create_study(study_file, session, settings, researcher)
+
+
+@router.get("/studies/{slug}/definition", response_model=StudyFile)
+def read_definition(slug: str, session: SessionDep, researcher: ResearcherDep) -> StudyFile:
+    return service.definition(service.managed_study(session, slug, researcher))
+
+
+@router.patch("/studies/{slug}", response_model=StudySummary)
+def patch_study(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep,
+                body: dict[str, Any] = Body(..., description="sections of the study file to change")  # noqa: B008
+                ) -> StudySummary:
+    """Title, texts, scale, questions and recruitment until the study first opens; the design while it is a
+    draft; otherwise 409."""
+    study = service.managed_study(session, slug, researcher)
+    media = render_manifest(settings) if "design" in body else None
+    try:
+        service.update_study(session, study, body, media)
+    except ValidationError as exc:
+        session.rollback()
+        raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in exc.errors()]) from None
+    return summary(session, study)
+
+
+@router.delete("/studies/{slug}", status_code=status.HTTP_204_NO_CONTENT)
+def delete_study(slug: str, session: SessionDep, researcher: ResearcherDep) -> Response:
+    service.delete_study(session, service.managed_study(session, slug, researcher))
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
 @router.get("/studies/{slug}", response_model=StudyPublic)
 def read_study(slug: str, session: SessionDep) -> StudyPublic:
     study = service.get_study(session, slug)
     return StudyPublic(slug=study.slug, title=study.title, state=study.state, texts=study.texts,
-                       consent_version=study.consent_version, trials_total=service.trials_total(study))
+                       consent_version=study.consent_version, trials_total=service.trials_total(study),
+                       scale=study.scale, questions=study.questions,
+                       parameters=study.recruitment["parameters"])
 
 
 @router.post("/studies/{slug}/open", response_model=StudyStateRead)
-def open_study(slug: str, session: SessionDep, _: ResearcherDep) -> StudyStateRead:
-    study = service.set_state(session, service.get_study(session, slug), StudyState.open)
+def open_study(slug: str, session: SessionDep, researcher: ResearcherDep) -> StudyStateRead:
+    study = service.set_state(session, service.managed_study(session, slug, researcher), StudyState.open)
     return StudyStateRead(slug=study.slug, state=study.state)
 
 
 @router.post("/studies/{slug}/close", response_model=StudyStateRead)
-def close_study(slug: str, session: SessionDep, _: ResearcherDep) -> StudyStateRead:
-    study = service.set_state(session, service.get_study(session, slug), StudyState.closed)
+def close_study(slug: str, session: SessionDep, researcher: ResearcherDep) -> StudyStateRead:
+    study = service.set_state(session, service.managed_study(session, slug, researcher), StudyState.closed)
     return StudyStateRead(slug=study.slug, state=study.state)
-
-
-# A text cell beginning with one of these is a formula (or becomes one) in Excel, LibreOffice and Google Sheets.
-FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
-
-
-def csv_cell(value: object) -> object:
-    """A value as a CSV cell: booleans ``true``/``false``, None empty, and text that a spreadsheet would evaluate
-    (participant-supplied ids could be ``=HYPERLINK(...)``) prefixed with ``'``, which spreadsheets show as text.
-    Numbers stay numbers: a score of -2 is not text."""
-    if isinstance(value, bool):
-        return str(value).lower()
-    if value is None:
-        return ""
-    if isinstance(value, str) and value.startswith(FORMULA_STARTS):
-        return "'" + value
-    return value
 
 
 @router.get("/studies/{slug}/export.csv", response_class=Response,
             responses={200: {"content": {"text/csv": {}}}})
-def export_csv(slug: str, session: SessionDep, _: ResearcherDep) -> Response:
-    study = service.get_study(session, slug)
-    buffer = io.StringIO()
-    # RFC 4180 line ends: with "\n" alone the csv module would not quote a value holding a bare "\r", and every
-    # reader would split the row there.
-    writer = csv.DictWriter(buffer, fieldnames=service.EXPORT_COLUMNS, lineterminator="\r\n")
-    writer.writeheader()
-    for row in service.export_rows(session, study):
-        writer.writerow({k: csv_cell(v) for k, v in row.items()})
-    return Response(buffer.getvalue(), media_type="text/csv; charset=utf-8",
+def export_csv(slug: str, session: SessionDep, researcher: ResearcherDep) -> Response:
+    study = service.managed_study(session, slug, researcher)
+    return Response(service.export_csv(session, study), media_type="text/csv; charset=utf-8",
                     headers={"Content-Disposition": f'attachment; filename="{study.slug}-votes.csv"'})
 
 
 @router.get("/studies/{slug}/export.json", response_model=ExportJson)
-def export_json(slug: str, session: SessionDep, _: ResearcherDep) -> ExportJson:
-    study = service.get_study(session, slug)
-    return ExportJson(study={"slug": study.slug, "title": study.title, "state": study.state,
-                             "design": study.design, "consent_version": study.consent_version},
-                      columns=list(service.EXPORT_COLUMNS), votes=list(service.export_rows(session, study)))
+def export_json(slug: str, session: SessionDep, researcher: ResearcherDep) -> ExportJson:
+    return ExportJson(**service.export_document(session, service.managed_study(session, slug, researcher)))
 
 
 @router.get("/data-dictionary", response_class=PlainTextResponse)
@@ -84,7 +155,7 @@ def data_dictionary() -> str:
 
 
 @router.get("/studies/{slug}/results")
-def results(slug: str, session: SessionDep, settings: SettingsDep, _: ResearcherDep) -> dict:
+def results(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep) -> dict:
     """Progress and statistics (participants are the unit of analysis; see ``methods`` in the answer)."""
-    study = service.get_study(session, slug)
+    study = service.managed_study(session, slug, researcher)
     return study_results(session, study, settings.clips_dir, settings.benchmark_path)

@@ -14,11 +14,27 @@ class StudyPublic(BaseModel):
     texts: dict[str, str]
     consent_version: str
     trials_total: int
+    scale: dict[str, Any]
+    questions: list[dict[str, Any]]
+    parameters: list[str]  # the URL parameters of the participant link the page passes on (e.g. PROLIFIC_PID)
 
 
 class StudyStateRead(BaseModel):
     slug: str
     state: str
+
+
+class StudySummary(BaseModel):
+    slug: str
+    title: str
+    state: str
+    owner: str | None
+    started: int
+    completed: int
+    votes: int
+    trials_total: int
+    participant_url: str
+    editable: dict[str, bool]
 
 
 class ExportJson(BaseModel):

@@ -1,111 +1,135 @@
-"""Creating studies from the rendered clip set, opening and closing them, exporting their votes."""
+"""Creating studies from study files over the rendered clip set, editing, opening and closing them, exporting
+their votes."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping
+import csv
+import io
+from collections.abc import Iterable, Iterator, Mapping
+from pathlib import Path
 from typing import Any
 
 from sqlalchemy import select
-from sqlalchemy.orm import Session, selectinload
+from sqlalchemy.orm import Session, aliased, object_session
 
 from server.db import utcnow
-from server.errors import Conflict, NotFound
+from server.errors import Conflict, Forbidden, NotFound, Unprocessable
+from server.media.build import read_clip_set
+from server.participants.models import ParticipantSession, Trial, Vote
+from server.researchers.models import Researcher
 
 from .design import ComparisonIds, Design
 from .models import Comparison, ComparisonKind, Stimulus, Study, StudyState
+from .scale import other_side
+from .studyfile import Recruitment, StudyFile, Texts
 
-DEFAULT_SLUG = "thesis"
-DEFAULT_TITLE = "How good does this character animation look?"
-CONSENT_VERSION = "2026-11-1"
-DEFAULT_TEXTS = {
-    "information": (
-        "This study compares two ways of animating a human character. You will see two identical characters side "
-        "by side and say which animation looks better. It takes about 10 minutes. We store your answers and the "
-        "two demographic answers without your name or any other identifying information, and publish them "
-        "anonymously for research. Taking part is voluntary: you can stop at any time without giving a reason, "
-        "and withdraw to have your answers deleted."
-    ),
-    "consent": (
-        "I have read the information above. I agree to take part and to my anonymous answers being stored and "
-        "published for research."
-    ),
-    "instructions": (
-        "Each trial shows two characters moving in sync. Watch them, then choose which animation looks better: "
-        "significantly or slightly better on the left, equal, or slightly or significantly better on the right. "
-        "Pay attention to how natural the motion looks, including the feet on the floor."
-    ),
-    "thanks": "Thank you for taking part!",
-    "contact": "The researchers of this study (contact details are given by the person who invited you).",
-}
-CHOICE_SCORES = {"left_much": 2, "left_slightly": 1, "equal": 0, "right_slightly": -1, "right_much": -2}
+StimulusKey = tuple[str, str]  # (animation, condition)
 
 
-def required_pairs(design: Design) -> list[tuple[str, str]]:
-    """(left clip, right clip) of every side-by-side video the design shows."""
-    pairs = []
-    for animation in design.animations:
-        keyframe = f"{animation}-keyframe"
-        for increment in design.increments:
-            hybrid = f"{animation}-hybrid{increment}"
-            pairs += [(hybrid, keyframe), (keyframe, hybrid)]
-    for animation in design.animations[: design.catch_trials]:
-        pairs.append((f"{animation}-keyframe", f"{animation}-keyframe"))
+def clip_index(entries: Iterable[Mapping[str, Any]]) -> dict[StimulusKey, str]:
+    """(animation, condition) -> clip id, from clip entries of the clip or render manifest (``id`` or ``clip``)."""
+    try:
+        return {(e["animation"], e["condition"]): e.get("id", e.get("clip")) for e in entries}
+    except KeyError:
+        raise Conflict("the rendered videos' manifest names no conditions (it predates them): run "
+                       "`animstudy clips build` and `animstudy render` again") from None
+
+
+def clip_set_index(clips_dir: Path) -> dict[StimulusKey, str]:
+    """(animation, condition) -> clip id of the clip set in ``clips_dir`` (before its videos are rendered)."""
+    return {(c.animation, c.condition): c.id for c in read_clip_set(clips_dir)}
+
+
+def needed_stimuli(design: Design) -> list[tuple[ComparisonKind, StimulusKey, StimulusKey]]:
+    """(kind, reference, test) of every comparison of the design, in the order they are created."""
+    out = [(ComparisonKind.test, (a, design.reference), (a, c)) for a in design.animations for c in design.conditions]
+    out += [(ComparisonKind.catch, (a, design.reference), (a, design.reference))
+            for a in design.animations[: design.catch_trials]]
     if design.practice:
-        hybrid = f"{design.animations[0]}-hybrid{design.practice_increment}"
-        keyframe = f"{design.animations[0]}-keyframe"
-        pairs += [(hybrid, keyframe), (keyframe, hybrid)]
+        a = design.animations[0]
+        out.append((ComparisonKind.practice, (a, design.reference), (a, design.practice)))
+    return out
+
+
+def check_known(design: Design, clips: Mapping[StimulusKey, str]) -> None:
+    """422 naming the animations or conditions of ``design`` the clip set does not have."""
+    animations = {a for a, _ in clips}
+    unknown_animations = [a for a in design.animations if a not in animations]
+    if unknown_animations:
+        raise Unprocessable(f"design.animations: unknown animation(s) {', '.join(unknown_animations)} "
+                            f"(the clip set has {', '.join(sorted(animations))})")
+    conditions = [design.reference, *design.conditions, *([design.practice] if design.practice else [])]
+    missing = sorted({f"{c} of {a}" for a in design.animations for c in conditions if (a, c) not in clips})
+    if missing:
+        known = sorted({c for _, c in clips})
+        raise Unprocessable(f"design: unknown condition(s): {', '.join(missing)} (the clip set has "
+                            f"{', '.join(known)})")
+
+
+def required_pairs(design: Design, clips: Mapping[StimulusKey, str]) -> list[tuple[str, str]]:
+    """(left clip, right clip) of every side-by-side video the design shows."""
+    check_known(design, clips)
+    pairs = []
+    for _, ref, test in needed_stimuli(design):
+        pairs += [(clips[ref], clips[test]), (clips[test], clips[ref])]
     return list(dict.fromkeys(pairs))
 
 
-def create_study(session: Session, media: Mapping[str, Any], design: Design | None = None,
-                 slug: str = DEFAULT_SLUG, title: str = DEFAULT_TITLE, texts: Mapping[str, str] | None = None,
-                 completion_code: str | None = None, completion_url: str | None = None) -> Study:
+def _columns(definition: StudyFile) -> dict[str, Any]:
+    texts = definition.texts.model_dump()
+    return {"title": definition.title, "consent_version": texts.pop("consent_version"), "texts": texts,
+            "scale": definition.scale.model_dump(), "questions": [q.model_dump() for q in definition.questions],
+            "design": definition.design.model_dump(), "recruitment": definition.recruitment.model_dump()}
+
+
+def definition(study: Study) -> StudyFile:
+    """The study file a study was made from (with its edits)."""
+    return StudyFile.model_validate({
+        "slug": study.slug, "title": study.title, "texts": {**study.texts, "consent_version": study.consent_version},
+        "scale": study.scale, "questions": study.questions, "design": study.design, "recruitment": study.recruitment})
+
+
+def create_study(session: Session, media: Mapping[str, Any], study_file: StudyFile,
+                 owner: Researcher | None = None) -> Study:
     """A draft study over the videos of a render manifest (``server.media.build``), which must hold its pairs."""
-    design = design or Design()
-    if session.scalar(select(Study.id).where(Study.slug == slug)) is not None:
-        raise Conflict(f"a study with slug {slug!r} exists already")
-    if len(design.animations) * len(design.increments) == 1 and design.catch_trials == 0:
-        raise Conflict("a design with a single comparison cannot avoid showing it twice in a row")
-    pair_videos = {(p["left"], p["right"]): p["video"] for p in media["pairs"]}
-    missing = [p for p in required_pairs(design) if p not in pair_videos]
-    if missing:
-        raise Conflict(f"the rendered videos lack the pairs {missing}; render them first")
-    study = Study(slug=slug, title=title, texts={**DEFAULT_TEXTS, **(texts or {})}, consent_version=CONSENT_VERSION,
-                  design=design.model_dump(), state=StudyState.draft, completion_code=completion_code,
-                  completion_url=completion_url)
-    stimuli: dict[str, Stimulus] = {}
-
-    def stimulus(clip_id: str) -> Stimulus:
-        if clip_id not in stimuli:
-            entry = media["clips"][clip_id]
-            animation, method = clip_id.rsplit("-", 1)
-            increment = None if method == "keyframe" else int(method.removeprefix("hybrid"))
-            stimuli[clip_id] = Stimulus(clip_id=clip_id, animation=animation,
-                                        method="keyframe" if increment is None else "hybrid", increment=increment,
-                                        video=entry["video"], poster=entry["poster"], frames=entry["frames"],
-                                        fps=entry["fps"])
-            study.stimuli.append(stimuli[clip_id])
-        return stimuli[clip_id]
-
-    def comparison(kind: ComparisonKind, animation: str, left: str, right: str, increment: int | None) -> None:
-        study.comparisons.append(Comparison(
-            kind=kind, animation=animation, increment=increment, keyframe=stimulus(left), hybrid=stimulus(right),
-            video_hybrid_left=pair_videos[(right, left)], video_hybrid_right=pair_videos[(left, right)]))
-
-    for animation in design.animations:
-        for increment in design.increments:
-            comparison(ComparisonKind.test, animation, f"{animation}-keyframe", f"{animation}-hybrid{increment}",
-                       increment)
-    for animation in design.animations[: design.catch_trials]:
-        keyframe = f"{animation}-keyframe"
-        comparison(ComparisonKind.catch, animation, keyframe, keyframe, None)
-    if design.practice:
-        animation = design.animations[0]
-        comparison(ComparisonKind.practice, animation, f"{animation}-keyframe",
-                   f"{animation}-hybrid{design.practice_increment}", design.practice_increment)
+    if session.scalar(select(Study.id).where(Study.slug == study_file.slug)) is not None:
+        raise Conflict(f"a study with slug {study_file.slug!r} exists already")
+    study = Study(slug=study_file.slug, state=StudyState.draft, owner_id=owner.id if owner else None,
+                  **_columns(study_file))
+    _build_comparisons(study, media, study_file.design)
     session.add(study)
     session.commit()
     return study
+
+
+def _build_comparisons(study: Study, media: Mapping[str, Any], design: Design) -> None:
+    """The study's stimuli and comparisons for ``design`` (replacing any it had)."""
+    clips = clip_index(media["clips"].values())
+    pair_videos = {(p["left"], p["right"]): p["video"] for p in media["pairs"]}
+    missing = [p for p in required_pairs(design, clips) if p not in pair_videos]
+    if missing:
+        raise Conflict(f"the rendered videos lack the pairs {missing}; render them first")
+    if study.comparisons or study.stimuli:
+        study.comparisons.clear()
+        study.stimuli.clear()
+        session = object_session(study)
+        if session is not None:  # delete the old rows before the new ones meet the unique constraint
+            session.flush()
+    stimuli: dict[StimulusKey, Stimulus] = {}
+
+    def stimulus(key: StimulusKey) -> Stimulus:
+        if key not in stimuli:
+            entry = media["clips"][clips[key]]
+            stimuli[key] = Stimulus(clip_id=clips[key], animation=key[0], condition=key[1], video=entry["video"],
+                                    poster=entry["poster"], frames=entry["frames"], fps=entry["fps"])
+            study.stimuli.append(stimuli[key])
+        return stimuli[key]
+
+    for kind, ref, test in needed_stimuli(design):
+        r, t = clips[ref], clips[test]
+        study.comparisons.append(Comparison(kind=kind, reference=stimulus(ref), test=stimulus(test),
+                                            video_reference_left=pair_videos[(r, t)],
+                                            video_reference_right=pair_videos[(t, r)]))
 
 
 def get_study(session: Session, slug: str) -> Study:
@@ -113,6 +137,62 @@ def get_study(session: Session, slug: str) -> Study:
     if study is None:
         raise NotFound(f"no study {slug!r}")
     return study
+
+
+def can_manage(researcher: Researcher, study: Study) -> bool:
+    return researcher.is_admin or study.owner_id == researcher.id
+
+
+def managed_study(session: Session, slug: str, researcher: Researcher) -> Study:
+    """The study ``slug`` if ``researcher`` owns it or is an admin (403 otherwise)."""
+    study = get_study(session, slug)
+    if not can_manage(researcher, study):
+        raise Forbidden(f"study {slug!r} belongs to another researcher")
+    return study
+
+
+def visible_studies(session: Session, researcher: Researcher) -> list[Study]:
+    query = select(Study).order_by(Study.id)
+    if not researcher.is_admin:
+        query = query.where(Study.owner_id == researcher.id)
+    return list(session.scalars(query))
+
+
+def default_study(session: Session) -> Study | None:
+    """The open study created first (``animstudy serve`` creates the thesis study first)."""
+    return session.scalar(select(Study).where(Study.state == StudyState.open).order_by(Study.id).limit(1))
+
+
+def update_study(session: Session, study: Study, changes: Mapping[str, Any],
+                 media: Mapping[str, Any] | None = None) -> Study:
+    """Apply a partial study file (sections are merged into the current ones): ``title``, ``texts``, ``scale``,
+    ``questions`` and ``recruitment`` until the study first opens; ``design`` only while it is a draft that never
+    opened (its comparisons are rebuilt over ``media``, the render manifest).  Otherwise 409: participants saw it
+    as it is.  An invalid result raises pydantic's ValidationError (the API answers 422)."""
+    if study.opened_at is not None:
+        raise Conflict(f"study {study.slug!r} has been open: participants saw it as it is; create a new study")
+    if "slug" in changes and changes["slug"] != study.slug:
+        raise Conflict("a study's slug cannot change")
+    current = definition(study).model_dump()
+    for key, value in changes.items():
+        merge = isinstance(current.get(key), dict) and isinstance(value, dict)
+        current[key] = {**current[key], **value} if merge else value
+    updated = StudyFile.model_validate(current)
+    if updated.design.model_dump() != study.design:
+        if study.state != StudyState.draft or media is None:
+            raise Conflict("the design can change only while the study is a draft")
+        _build_comparisons(study, media, updated.design)
+    for key, value in _columns(updated).items():
+        setattr(study, key, value)
+    session.commit()
+    return study
+
+
+def delete_study(session: Session, study: Study) -> None:
+    if study.state != StudyState.draft or study.opened_at is not None:
+        raise Conflict(f"study {study.slug!r} is {study.state}; only a draft that never opened can be deleted")
+    session.delete(study)
+    session.commit()
 
 
 def comparison_ids(study: Study) -> ComparisonIds:
@@ -125,9 +205,7 @@ def comparison_ids(study: Study) -> ComparisonIds:
 
 
 def trials_total(study: Study) -> int:
-    design = Design.model_validate(study.design)
-    ids = comparison_ids(study)
-    return len(ids.test) * 2 * design.repeats + len(ids.catch) + (1 if ids.practice else 0)
+    return Design.model_validate(study.design).trials_total()
 
 
 def set_state(session: Session, study: Study, state: StudyState) -> Study:
@@ -142,40 +220,97 @@ def set_state(session: Session, study: Study, state: StudyState) -> Study:
     return study
 
 
-def score(choice: str, hybrid_side: str) -> int:
-    """The answer from the hybrid's point of view: +2 hybrid much better ... -2 keyframe much better."""
-    value = CHOICE_SCORES[choice]
-    return value if hybrid_side == "left" else -value
+def recruitment(study: Study) -> Recruitment:
+    return Recruitment.model_validate(study.recruitment)
 
 
-EXPORT_COLUMNS = ("session_id", "trial_index", "practice", "catch", "animation", "increment", "hybrid_side",
-                  "choice", "score", "rt_ms", "gamer", "tech_savvy", "answered_at", "consent_version",
-                  "session_state", "prolific_pid", "prolific_study_id", "prolific_session_id")
-# Export column <- key of the session's external ids (as the participant page passes them on from the URL).
-EXTERNAL_ID_COLUMNS = {"prolific_pid": "PROLIFIC_PID", "prolific_study_id": "STUDY_ID",
-                       "prolific_session_id": "SESSION_ID"}
+def texts(study: Study) -> Texts:
+    return Texts.model_validate({**study.texts, "consent_version": study.consent_version})
+
+
+EXPORT_COLUMNS = ("session_id", "trial_index", "practice", "catch", "animation", "reference_condition",
+                  "test_condition", "reference_side", "test_side", "choice", "score", "rt_ms", "answered_at",
+                  "consent_version", "session_state")
+
+
+def export_columns(study: Study) -> list[str]:
+    """The fixed columns, with one per question of the study (its id) before ``answered_at`` and one per accepted
+    URL parameter (its name, e.g. ``PROLIFIC_PID``) at the end."""
+    base = list(EXPORT_COLUMNS)
+    at = base.index("answered_at")
+    return base[:at] + [q["id"] for q in study.questions] + base[at:] + list(study.recruitment["parameters"])
+
+
+# A text cell beginning with one of these is a formula (or becomes one) in Excel, LibreOffice and Google Sheets.
+FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
+
+
+def csv_cell(value: object) -> object:
+    """A value as a CSV cell: booleans ``true``/``false``, None empty, and text that a spreadsheet would evaluate
+    (participant-supplied ids could be ``=HYPERLINK(...)``) prefixed with ``'``, which spreadsheets show as text.
+    Numbers stay numbers: a score of -2 is not text."""
+    if isinstance(value, bool):
+        return str(value).lower()
+    if value is None:
+        return ""
+    if isinstance(value, str) and value.startswith(FORMULA_STARTS):
+        return "'" + value
+    return value
+
+
+def export_csv(session: Session, study: Study) -> str:
+    """The export as CSV (cells as :func:`csv_cell` writes them)."""
+    buffer = io.StringIO()
+    # RFC 4180 line ends: with "\n" alone the csv module would not quote a value holding a bare "\r", and every
+    # reader would split the row there.
+    writer = csv.DictWriter(buffer, fieldnames=export_columns(study), lineterminator="\r\n")
+    writer.writeheader()
+    for row in export_rows(session, study):
+        writer.writerow({k: csv_cell(v) for k, v in row.items()})
+    return buffer.getvalue()
+
+
+def export_document(session: Session, study: Study) -> dict[str, Any]:
+    """The export as one JSON document: the study, the columns, the rows."""
+    return {"study": {"slug": study.slug, "title": study.title, "state": study.state, "design": study.design,
+                      "consent_version": study.consent_version, "questions": study.questions},
+            "columns": export_columns(study), "votes": list(export_rows(session, study))}
+
+
+def pairs_in_use(session: Session) -> list[tuple[str, str]]:
+    """(left clip, right clip) of every pair video some study shows (rendering must keep them)."""
+    reference, test = aliased(Stimulus), aliased(Stimulus)
+    rows = session.execute(select(reference.clip_id, test.clip_id)
+                           .join(Comparison, Comparison.reference_id == reference.id)
+                           .join(test, Comparison.test_id == test.id)).all()
+    return list(dict.fromkeys(p for r, t in rows for p in ((r, t), (t, r))))
 
 
 def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
     """One row per vote (withdrawn participants' votes no longer exist), in session and trial order."""
-    from server.participants.models import ParticipantSession, Trial, Vote
-
+    reference, test = aliased(Stimulus), aliased(Stimulus)
+    questions = [q["id"] for q in study.questions]
+    parameters = list(study.recruitment["parameters"])
     rows = session.execute(
-        select(Vote, Trial, ParticipantSession, Comparison)
+        select(Vote, Trial, ParticipantSession, Comparison.kind, reference.animation, reference.condition,
+               test.condition)
         .join(Trial, Vote.trial_id == Trial.id)
         .join(ParticipantSession, Trial.session_id == ParticipantSession.id)
         .join(Comparison, Trial.comparison_id == Comparison.id)
+        .join(reference, Comparison.reference_id == reference.id)
+        .join(test, Comparison.test_id == test.id)
         .where(ParticipantSession.study_id == study.id)
         .order_by(ParticipantSession.created_at, ParticipantSession.id, Trial.index)
-        .options(selectinload(Trial.comparison))
     )
-    for vote, trial, ps, comp in rows:
-        external = ps.external or {}
+    for vote, trial, ps, kind, animation, ref_condition, test_condition in rows:
+        answers, external = ps.answers or {}, ps.external or {}
         yield {
             "session_id": ps.id, "trial_index": trial.index, "practice": trial.practice,
-            "catch": comp.kind == ComparisonKind.catch, "animation": comp.animation, "increment": comp.increment,
-            "hybrid_side": trial.hybrid_side, "choice": vote.choice, "score": vote.score, "rt_ms": vote.rt_ms,
-            "gamer": ps.gamer, "tech_savvy": ps.tech_savvy, "answered_at": vote.answered_at.isoformat(),
-            "consent_version": ps.consent_version, "session_state": ps.state,
-            **{column: external.get(key) for column, key in EXTERNAL_ID_COLUMNS.items()},
+            "catch": kind == ComparisonKind.catch, "animation": animation, "reference_condition": ref_condition,
+            "test_condition": test_condition, "reference_side": trial.reference_side,
+            "test_side": other_side(trial.reference_side), "choice": vote.choice, "score": vote.score,
+            "rt_ms": vote.rt_ms, **{q: answers.get(q) for q in questions},
+            "answered_at": vote.answered_at.isoformat(), "consent_version": ps.consent_version,
+            "session_state": ps.state, **{p: external.get(p) for p in parameters},
         }
+

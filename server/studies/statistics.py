@@ -2,8 +2,10 @@
 
 Input is one record per vote (the export rows).  For every analysed comparison each participant contributes one
 number, the mean of their two side-swapped showings (practice and catch trials excluded); tests run on those
-participant means, never on raw votes (which are not independent).  Scores are from the hybrid's point of view:
-+2 hybrid significantly better ... -2 keyframe significantly better.  An undefined statistic is ``None``.
+participant means, never on raw votes (which are not independent).  A comparison is one test condition of one
+animation against the study's reference condition; scores are from the test condition's point of view (see
+``scale``): +2 test significantly better ... -2 reference significantly better.  An undefined statistic is
+``None``.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ from __future__ import annotations
 import math
 from collections import defaultdict
 from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import asdict
 from typing import Any
 
 import numpy as np
@@ -18,9 +21,9 @@ from scipy import stats
 from statsmodels.stats.multitest import multipletests
 from statsmodels.stats.power import TTestPower
 
-from .service import CHOICE_SCORES
+from .ranking import GradedComparison, rank_conditions
+from .scale import CHOICE_SCORES, SCORES
 
-SCORES = (-2, -1, 0, 1, 2)
 WILCOXON_ARE = 3 / math.pi  # asymptotic relative efficiency of Wilcoxon against t for a normal parent
 
 
@@ -144,29 +147,47 @@ def _summary(x: Sequence[float]) -> dict[str, Any]:
             "wilcoxon_p": wilcoxon_p(x), "sign_test_p": sign_test_p(x), "rank_biserial": rank_biserial(x)}
 
 
-def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int]) -> dict[str, Any]:
-    """The results document of a study from its votes (export rows) and participant counts."""
+def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
+            questions: Sequence[str] = ()) -> dict[str, Any]:
+    """The results document of a study from its votes (export rows), participant counts and question ids."""
     analysed = [v for v in votes if not v["practice"] and not v["catch"]]
-    by_comparison: dict[tuple[str, int], dict[str, list[tuple[int, int, str]]]] = defaultdict(lambda: defaultdict(list))
+    by_comparison: dict[tuple[str, str, str], dict[str, list[tuple[int, int, str]]]] = defaultdict(
+        lambda: defaultdict(list))
     for v in analysed:
-        by_comparison[(v["animation"], v["increment"])][v["session_id"]].append(
-            (v["trial_index"], v["score"], v["hybrid_side"]))
+        by_comparison[(v["animation"], v["test_condition"], v["reference_condition"])][v["session_id"]].append(
+            (v["trial_index"], v["score"], v["test_side"]))
 
     comparisons = []
-    for (animation, increment), per_person in sorted(by_comparison.items(),
-                                                     key=lambda kv: (kv[0][0], kv[0][1])):
+    for (animation, condition, reference), per_person in sorted(by_comparison.items()):
         scores = [s for showings in per_person.values() for _, s, _ in showings]
         means = [float(np.mean([s for _, s, _ in showings])) for showings in per_person.values()
                  if len(showings) == 2]
         counts = {str(s): scores.count(s) for s in SCORES}
-        entry = {"animation": animation, "increment": increment, **_summary(means), "counts": counts,
-                 "votes": len(scores), "positive": sum(s > -2 for s in scores), "negative": scores.count(-2),
-                 "hybrid_better": sum(s > 0 for s in scores), "equal": scores.count(0),
-                 "keyframe_better": sum(s < 0 for s in scores),
+        entry = {"animation": animation, "condition": condition, "reference": reference, **_summary(means),
+                 "counts": counts, "votes": len(scores), "positive": sum(s > -2 for s in scores),
+                 "negative": scores.count(-2), "test_better": sum(s > 0 for s in scores), "equal": scores.count(0),
+                 "reference_better": sum(s < 0 for s in scores),
                  "participants_for_80_power": participants_needed(means)}
         comparisons.append(entry)
     for entry, p in zip(comparisons, holm([c["wilcoxon_p"] for c in comparisons]), strict=True):
         entry["p_holm"] = p
+
+    # The thesis's grouping (and the neutral split) per test condition, over all its animations.
+    conditions = []
+    for condition in sorted({c["condition"] for c in comparisons}):
+        of = [c for c in comparisons if c["condition"] == condition]
+        conditions.append({"condition": condition, "reference": of[0]["reference"],
+                           "animations": [c["animation"] for c in of],
+                           **{k: sum(c[k] for c in of) for k in ("votes", "positive", "negative", "test_better",
+                                                                 "equal", "reference_better")}})
+
+    # All conditions of an animation on one scale (the reference at 0), from every graded vote.
+    rankings = []
+    for animation in sorted({v["animation"] for v in analysed}):
+        ranking = rank_conditions(GradedComparison(v["session_id"], v["reference_condition"], v["test_condition"],
+                                                   v["score"]) for v in analysed if v["animation"] == animation)
+        rankings.append({"animation": animation, "conditions": [asdict(c) for c in ranking.conditions],
+                         "fit": asdict(ranking.fit)})
 
     # Side bias: each participant's mean raw answer, left = +2 ... right = -2, whatever is shown where.
     raw: dict[str, list[int]] = defaultdict(list)
@@ -184,14 +205,16 @@ def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int])
                 second.append(b[1])
     pairs = list(zip(first, second, strict=True))
 
-    # Krippendorff: units = trial kinds (comparison x hybrid side), coders = participants.
-    units: dict[tuple[str, int, str], list[int]] = defaultdict(list)
+    # Krippendorff: units = trial kinds (comparison x test side), coders = participants.
+    units: dict[tuple[str, str, str], list[int]] = defaultdict(list)
     for v in analysed:
-        units[(v["animation"], v["increment"], v["hybrid_side"])].append(v["score"])
+        units[(v["animation"], v["test_condition"], v["test_side"])].append(v["score"])
 
     return {
         "participants": dict(participants),
         "comparisons": comparisons,
+        "conditions": conditions,
+        "rankings": rankings,
         "overall": _summary([float(np.mean([v["score"] for v in analysed if v["session_id"] == sid]))
                              for sid in {v["session_id"] for v in analysed}]),
         "side_bias": {"mean": float(np.mean(side_means)) if side_means else None, "p": wilcoxon_p(side_means),
@@ -203,26 +226,29 @@ def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int])
             "pairs": len(pairs),
         },
         "krippendorff_alpha_ordinal": krippendorff_alpha_ordinal(units.values()),
-        "demographics": _demographics(analysed),
+        "demographics": _demographics(analysed, questions),
         "methods": {
             "unit": "participant: mean of the two side-swapped showings of a comparison",
             "wilcoxon": "scipy.stats.wilcoxon(participant_means, zero_method='pratt'), two-sided, default method",
             "sign_test": "exact two-sided binomial test on the signs of participant means, zeros dropped",
             "ci95": "Student t interval of the mean of participant means",
-            "multiplicity": "Holm over the comparisons' Wilcoxon p-values",
+            "multiplicity": "Holm over the Wilcoxon p-values of all the study's comparisons",
             "power": "t-test power (statsmodels) at the observed d_z, divided by the Wilcoxon ARE 3/pi",
-            "thesis_grouping": "negative = keyframe significantly better (-2); positive = everything else",
+            "ranking": "ordinal Bradley-Terry (Agresti 1992, logit) per animation, reference at 0; 95 % intervals "
+                       "from cluster-robust standard errors over participants (server/studies/ranking.py)",
+            "thesis_grouping": "per comparison: negative = reference significantly better (-2); positive = "
+                               "everything else",
         },
     }
 
 
-def _demographics(analysed: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-    """Mean score and vote count per comparison for each answer to each demographic question."""
+def _demographics(analysed: Sequence[Mapping[str, Any]], questions: Sequence[str]) -> dict[str, Any]:
+    """Mean score and vote count per comparison (``animation-condition``) for each answer to each question."""
     out: dict[str, Any] = {}
-    for question in ("gamer", "tech_savvy"):
+    for question in questions:
         groups: dict[str, dict[str, list[int]]] = defaultdict(lambda: defaultdict(list))
         for v in analysed:
-            groups[v[question] or "unanswered"][f"{v['animation']}-{v['increment']}"].append(v["score"])
+            groups[v[question] or "unanswered"][f"{v['animation']}-{v['test_condition']}"].append(v["score"])
         out[question] = {
             answer: {
                 "participants": len({v["session_id"] for v in analysed if (v[question] or "unanswered") == answer}),
