@@ -78,6 +78,7 @@ class ClipSetConfig:
     increments: tuple[int, ...]
     relocate: tuple[str, ...]
     animations: dict[str, AnimationConfig]
+    extra_conditions: bool = False  # issue 16's conditions (anim_core/extra_conditions.py) beside the hybrids
 
 
 def _frames(value: Any, where: str, count: int | None = None) -> tuple[int, ...]:
@@ -135,7 +136,10 @@ def load_config(path: Path = DEFAULT_CONFIG) -> ClipSetConfig:
             name, kind, entry["source"], _frames(entry.get("frames"), f"{where} frames", 2), playback, in_place,
             None if keys is None else _frames(keys, f"{where} keys", 2),
             None if cycle is None else _frames(cycle, f"{where} cycle", 2))  # type: ignore[arg-type]
-    return ClipSetConfig(fps, tuple(increments), tuple(relocate), animations)
+    extra = raw.get("extra_conditions", False)
+    if not isinstance(extra, bool):
+        raise ConfigError(f"{path}: extra_conditions must be true or false, got {extra!r}")
+    return ClipSetConfig(fps, tuple(increments), tuple(relocate), animations, extra)
 
 
 # --- sources ---------------------------------------------------------------------------------------------------
@@ -293,6 +297,7 @@ class BuiltClip:
     world_rotations: Array = field(repr=False)
     world_positions: Array = field(repr=False)
     metrics: dict[str, float | None] = field(default_factory=dict)
+    condition_id: str | None = None  # set by builders of other conditions (anim_core/extra_conditions.py)
 
     @property
     def times(self) -> Array:
@@ -305,6 +310,8 @@ class BuiltClip:
     @property
     def condition(self) -> str:
         """The condition id the study server finds this clip by (with its animation)."""
+        if self.condition_id is not None:
+            return self.condition_id
         return "keyframe" if self.method == "keyframe" else f"hybrid{self.increment}"
 
     def manifest_entry(self) -> dict[str, Any]:
@@ -585,7 +592,13 @@ def build_clip_set(data_dir: Path, config: ClipSetConfig | None = None,
         cfg = config.animations[name]
         progress(f"[{k}/{len(ANIMATIONS)}] {name}: {cfg.source}")
         source = load_source(data_dir, character, cfg, config.relocate)
-        clips.extend(build_animation(source, config.fps, config.increments, progress))
+        built = build_animation(source, config.fps, config.increments, progress)
+        clips.extend(built)
+        if config.extra_conditions:
+            from .extra_conditions import build_extra  # it builds on this module
+
+            progress(f"  {name}: the conditions of issue 16")
+            clips.extend(build_extra(built, cfg.kind))
     return clips
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -52,7 +53,7 @@ def _fmt(value: float | None, digits: int) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
-def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
+def clips_build(data_dir: Path, out: Path, config: Path | None, extra_conditions: bool = False) -> int:
     """Build the clip set, write it to ``out`` and print its metric table."""
     from anim_core.assets import AssetError
     from anim_core.clipset import ConfigError, build_clip_set, clip_warnings, load_config, write_clip_set
@@ -60,6 +61,8 @@ def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
     started = time.perf_counter()
     try:
         cfg = load_config(config) if config else load_config()
+        if extra_conditions:
+            cfg = dataclasses.replace(cfg, extra_conditions=True)
         clips = build_clip_set(data_dir, cfg, progress=lambda msg: print(msg, flush=True))
         manifest = write_clip_set(clips, out)
     except (AssetError, ConfigError) as exc:
@@ -75,6 +78,13 @@ def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
               f"{m['foot_slide_mm']:8.2f} {m['penetration_mm']:6.1f} {m['floating_mm']:8.1f} "
               f"{_fmt(m['mpjpe_mm'], 1):>8} {m['key_velocity_jump_rad_s']:14.3f} {m['jerk_mean']:9.1f} "
               f"{m['bytes']:6d}")
+    extra = [c for c in clips if "key_accel_jump_rad_s2" in c.metrics]
+    if extra:
+        print(f"\n{'clip (issue 16)':26} {'accel jump rad/s2':>17} {'stored bytes':>12} {'max error deg':>13}")
+        for c in extra:
+            m = c.metrics
+            print(f"{c.id:26} {m['key_accel_jump_rad_s2']:17.3f} {m['stored_bytes']:12d} "
+                  f"{_fmt(m['max_global_error_deg'], 3):>13}")
     _print_comparison(clips, clip_warnings(clips, cfg))
     return 0
 
@@ -448,6 +458,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     build = clips_sub.add_parser("build", help="build the clip set from the data directory")
     build.add_argument("--out", type=Path, default=None, help="output folder (default: <var dir>/clips)")
     build.add_argument("--config", type=Path, default=None, help="clip set TOML (default: the built-in one)")
+    build.add_argument("--extra-conditions", action="store_true",
+                       help="also build hybrid_ik, hybrid_c2, reduced and quantized clips (issue 16)")
     rend = sub.add_parser("render", help="pre-render every clip and compared pair into blind videos")
     rend.add_argument("--out", type=Path, default=None, help="video folder (default: <var dir>/media)")
     rend.add_argument("--clips", type=Path, default=None, help="clip set folder (default: <var dir>/clips)")
@@ -511,7 +523,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "render":
         return render(settings, args.out or settings.var / "media", args.clips or settings.var / "clips",
                       max(1, args.workers), args.increments, args.width, args.height, not args.no_shadows)
-    return clips_build(settings.data, args.out or settings.var / "clips", args.config)
+    return clips_build(settings.data, args.out or settings.var / "clips", args.config, args.extra_conditions)
 
 
 if __name__ == "__main__":
