@@ -174,3 +174,46 @@ def test_reduction_and_quantization_on_the_clip_set(clip_set):
         q, tracks = quantized_clip(c.clip, 12)
         local = np.degrees(quat_angle(q.rotations, c.clip.rotations)).max()
         assert local <= 0.05 and local <= quantization_bound_deg(tracks).max() + 1e-9, c.id
+
+
+@pytest.fixture(scope="module")
+def extra(clip_set):
+    from anim_core.clipset import load_config
+    from anim_core.extra_conditions import build_extra
+    cfg = load_config()
+    out = {}
+    for a in ("walk", "run", "crouch", "idle"):
+        for c in build_extra([c for c in clip_set if c.animation == a], cfg.animations[a].kind):
+            out[c.id] = c
+    return out
+
+
+def test_extra_condition_ids_and_metrics(extra):
+    assert "walk-hybrid_ik0" in extra and extra["walk-hybrid_ik0"].condition == "hybrid_ik0"
+    assert {"crouch-hybrid_c2_0", "walk-reduced0_5", "run-quantized12", "walk-quantized12_reduced2"} <= set(extra)
+    assert "crouch-hybrid_c2_1" not in extra
+    for c in extra.values():
+        assert c.metrics["stored_bytes"] > 0 and np.isfinite(c.metrics["key_accel_jump_rad_s2"]), c.id
+    for a in ("walk", "run"):
+        assert extra[f"{a}-quantized12"].metrics["max_global_error_deg"] <= 0.05
+        for eps in ("0_5", "2", "5"):
+            assert extra[f"{a}-reduced{eps}"].metrics["max_global_error_deg"] <= float(eps.replace("_", ".")) + 1e-9
+
+
+def test_foot_locking_on_the_clip_set(clip_set, extra):
+    by_id = {c.id: c for c in clip_set}
+    for a in ("walk", "run", "crouch"):
+        reference = by_id[f"{a}-keyframe"].metrics["foot_skate_ratio"]
+        ik0 = extra[f"{a}-hybrid_ik0"]
+        # Increment 0 (the thesis's hybrid): no more skate than the keyframe clip, and less than the plain hybrid.
+        assert ik0.metrics["foot_skate_ratio"] <= reference, a
+        assert ik0.metrics["foot_skate_ratio"] < by_id[f"{a}-hybrid0"].metrics["foot_skate_ratio"], a
+        for i in (0, 1, 2):
+            c = extra[f"{a}-hybrid_ik{i}"]
+            sk = c.character.skeleton  # retargeted per source file
+            bones = np.linalg.norm(sk.offsets[1:], axis=-1)
+            p = c.world_positions
+            lengths = np.linalg.norm(p[:, 1:] - p[:, sk.parents[1:]], axis=-1)
+            assert np.allclose(lengths, bones, atol=1e-9), c.id  # bone lengths exact
+            assert c.metrics["seam_jump_mm"] <= 2 * c.metrics["median_step_mm"] + 5.0, c.id
+            assert np.all(np.isfinite(c.local_rotations)), c.id
