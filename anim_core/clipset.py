@@ -35,7 +35,7 @@ from .character import Character, RetargetedCharacter, retarget
 from .clip import KeyframeClip, PlaybackMode, Pose, horizontal
 from .conditions import REFERENCE, Animation, AnimClip, Condition, Kind
 from .footplant import plant_feet
-from .quat import quat_from_axis_angle, quat_mul, rotate, slerp
+from .quat import quat_angle, quat_from_axis_angle, quat_mul, rotate, slerp
 from .skeleton import Skeleton
 
 Array = NDArray[np.float64]
@@ -411,8 +411,13 @@ def build_animation(source: Source, fps: int, conditions: Sequence[Condition],
                                n_frames, cfg.playback, cfg.in_place, speed, source_info, source.character,
                                pose.rotations, pose.root_translation,
                                *source.character.skeleton.forward_kinematics(*pose)))
-    return _measure(_place_on_floor(built), keyframe.velocity if cfg.in_place else np.zeros(3), cfg.kind,
-                    source_skate)
+    measured = _measure(_place_on_floor(built), keyframe.velocity if cfg.in_place else np.zeros(3), cfg.kind,
+                        source_skate)
+    for condition, c in zip(ordered, measured, strict=True):
+        stored = condition.stored_bytes(c.clip)
+        if stored is not None:
+            c.metrics["bytes"] = stored
+    return measured
 
 
 def _feet(clip: BuiltClip) -> tuple[NDArray[np.intp], Array]:
@@ -458,6 +463,10 @@ def _measure(clips: list[BuiltClip], ground_velocity: Array, kind: Kind, source_
                          else metrics.mpjpe_mm(c.world_positions, keyframe.world_positions))
         m["key_velocity_jump_rad_s"] = metrics.angular_velocity_jumps(lambda t, c=c: c.clip.sample(t).rotations,
                                                                       c.key_times)
+        m["key_accel_jump_rad_s2"] = metrics.angular_acceleration_jumps(
+            lambda t, c=c: c.clip.sample(t).rotations, c.key_times)
+        m["max_global_error_deg"] = (None if c is keyframe else float(np.degrees(
+            np.max(quat_angle(c.world_rotations, keyframe.world_rotations)))))
         m["jerk_mean"] = metrics.jerk_mean(c.world_positions, c.fps, periodic=True)
         m["bytes"] = metrics.storage_bytes(c.key_times.size, c.character.skeleton.n_joints)
         steps = metrics.frame_steps_mm(c.world_positions)
