@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 
 from . import contacts, metrics
 from .conditions import REFERENCE, Kind
+from .quat import quat_angle
 
 if TYPE_CHECKING:
     from .clipset import BuiltClip
@@ -55,6 +56,10 @@ def measure(clips: list[BuiltClip], ground_velocity: Array, kind: Kind, source_s
                          else metrics.mpjpe_mm(c.world_positions, keyframe.world_positions))
         m["key_velocity_jump_rad_s"] = metrics.angular_velocity_jumps(lambda t, c=c: c.clip.sample(t).rotations,
                                                                       c.key_times)
+        m["key_accel_jump_rad_s2"] = metrics.angular_acceleration_jumps(
+            lambda t, c=c: c.clip.sample(t).rotations, c.key_times)
+        m["max_global_error_deg"] = (None if c is keyframe else float(np.degrees(
+            np.max(quat_angle(c.world_rotations, keyframe.world_rotations)))))
         m["jerk_mean"] = metrics.jerk_mean(c.world_positions, c.fps, periodic=True)
         m["bytes"] = metrics.storage_bytes(c.key_times.size, c.character.skeleton.n_joints)
         steps = metrics.frame_steps_mm(c.world_positions)

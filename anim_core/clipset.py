@@ -409,8 +409,13 @@ def build_animation(source: Source, fps: int, conditions: Sequence[Condition],
                                n_frames, cfg.playback, cfg.in_place, speed, source_info, source.character,
                                pose.rotations, pose.root_translation,
                                *source.character.skeleton.forward_kinematics(*pose)))
-    return measure(_place_on_floor(built), keyframe.velocity if cfg.in_place else np.zeros(3), cfg.kind,
-                    source_skate)
+    measured = measure(_place_on_floor(built), keyframe.velocity if cfg.in_place else np.zeros(3), cfg.kind,
+                       source_skate)
+    for condition, c in zip(ordered, measured, strict=True):
+        stored = condition.stored_bytes(c.clip)
+        if stored is not None:
+            c.metrics["bytes"] = stored
+    return measured
 
 
 def _place_on_floor(clips: list[BuiltClip]) -> list[BuiltClip]:

@@ -5,7 +5,9 @@ a *method* and the method's parameters; a *method* is registered here once, by n
 
 * a parameter model: a pydantic model, frozen, extra fields forbidden, strict types (``int`` stays ``int``,
   ``true`` is no number); validation errors name the field;
-* a builder ``build(animation: Animation, params) -> AnimClip``.
+* a builder ``build(animation: Animation, params) -> AnimClip``;
+* optionally ``stored_bytes(clip, params) -> int``, when the method stores its clip otherwise than as float32 keys
+  (quaternion, root translation and time per key: the default of the ``bytes`` metric).
 
 A builder gets one typed description of the animation (:class:`Animation`: its name and kind, the reference
 keyframe clip on the frame grid, the base key times on that grid, the period, ``in_place``, the sample rate) and
@@ -15,6 +17,8 @@ returns a clip (:data:`AnimClip`); whoever uses a clip reads it through the clip
 Today's methods: ``keyframe`` (the reference: the dense keys themselves, no parameters) and ``hybrid`` (the
 thesis method: 2 base keys plus ``increment`` extra keys per interval, mirroring, SQUAD or the spring; ``increment``
 0..4).
+``hybrid_ik``, ``hybrid_c2``, ``reduced`` and ``quantized`` (issue 16) are registered in
+:mod:`anim_core.extra_conditions`.
 
 Adding a method (worked example: hold every pose for ``hold`` frames, a "stepped" look)::
 
@@ -102,21 +106,23 @@ class Method(Generic[P]):
     name: str
     params: type[P]
     build: Callable[[Animation, P], AnimClip]
+    stored_bytes: Callable[[Any, P], int] | None = None
 
 
 _METHODS: dict[str, Method[Any]] = {}
 
 
-def register(name: str, params: type[P]) -> Callable[[Callable[[Animation, P], AnimClip]],
-                                                     Callable[[Animation, P], AnimClip]]:
-    """Decorator: register ``build`` as method ``name`` with parameter model ``params`` (names are unique)."""
+def register(name: str, params: type[P], stored_bytes: Callable[[Any, P], int] | None = None
+             ) -> Callable[[Callable[[Animation, P], AnimClip]], Callable[[Animation, P], AnimClip]]:
+    """Decorator: register ``build`` as method ``name`` with parameter model ``params`` (names are unique), and
+    ``stored_bytes(clip, params)`` if its clips are not stored as float32 keys."""
     if not (isinstance(params, type) and issubclass(params, Params)):
         raise TypeError(f"the parameters of method {name!r} must be a subclass of anim_core.conditions.Params")
 
     def decorator(build: Callable[[Animation, P], AnimClip]) -> Callable[[Animation, P], AnimClip]:
         if name in _METHODS:
             raise ValueError(f"method {name!r} is registered already")
-        _METHODS[name] = Method(name, params, build)
+        _METHODS[name] = Method(name, params, build, stored_bytes)
         return build
 
     return decorator
@@ -167,6 +173,11 @@ class Condition:
     def build(self, animation: Animation) -> AnimClip:
         return get_method(self.method).build(animation, self.params)
 
+    def stored_bytes(self, clip: AnimClip) -> int | None:
+        """Bytes the method stores ``clip`` in, if it registered how; None: float32 keys."""
+        count = get_method(self.method).stored_bytes
+        return None if count is None else count(clip, self.params)
+
 
 # --- the built-in methods ---------------------------------------------------------------------------------------
 
@@ -202,3 +213,5 @@ def build_hybrid(animation: Animation, params: HybridParams) -> SquadClip | Spri
 
 
 # --- methods defined in other modules (imported last: they import ``register`` from here) -----------------------
+
+from . import extra_conditions  # noqa: E402, F401  (hybrid_ik, hybrid_c2, reduced, quantized: issue 16)

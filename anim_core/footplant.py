@@ -50,22 +50,13 @@ def _held_offsets(points: Array, k: int, max_step: float, horizontal: list[int])
     return out
 
 
-def plant_feet(skeleton: Skeleton, local_rotations: ArrayLike, root_translation: ArrayLike,
+def foot_targets(skeleton: Skeleton, local_rotations: ArrayLike, root_translation: ArrayLike,
                legs: Sequence[tuple[int, int, int]], down: ArrayLike, fps: float,
                feet: Sequence[Sequence[int]] | None = None, periodic: bool = False,
                ground_velocity: ArrayLike | None = None, up_axis: int = 1, blend_frames: int = 5,
-               max_speed: float = 0.4, rest_speed: float = 0.5) -> Array:
-    """Local rotations ``(T, J, 4)`` with each leg's ankle held in place while its foot is down.
-
-    ``legs``: per foot the chain ``(hip, knee, ankle)`` (joint indices); ``down``: ``(T, F)`` contact per frame
-    and foot; ``feet``: per foot the joints that touch the ground (default: the ankle), e.g. ankle and toe;
-    ``periodic``: the ``T`` frames are one loop (phases may wrap); ``ground_velocity (3,)`` m/s: for
-    clips played in place, the ground moves at minus this under the character, so a pinned ankle follows it.
-    ``max_speed`` m/s: inside a phase the foot follows its animated ground path, shifted so that its slowest
-    joint never moves faster than this (by default 0.4 m/s, below the skate threshold of
-    :mod:`anim_core.contacts`); the foot keeps its world orientation, so heel and toe still roll.
-    ``rest_speed`` m/s: a phase in which the foot's slowest joint never gets slower than this is a swing that
-    skims the floor, not a step, and is left alone (holding it would drag the swinging foot back).
+               max_speed: float = 0.4, rest_speed: float = 0.5) -> tuple[Array, Array]:
+    """Where :func:`plant_feet` puts each ankle: targets ``(T, F, 3)`` (model space, the root as given) and IK
+    weights ``(T, F)`` in 0..1 (0: the leg as animated).  Parameters as for :func:`plant_feet`.
     """
     rot = np.array(local_rotations, dtype=np.float64)
     root = np.asarray(root_translation, dtype=np.float64)
@@ -76,10 +67,11 @@ def plant_feet(skeleton: Skeleton, local_rotations: ArrayLike, root_translation:
                          f"{rot.shape}, {root.shape}, {contact.shape}")
     g = np.zeros(3) if ground_velocity is None else np.asarray(ground_velocity, dtype=np.float64)
     horizontal = [a for a in range(3) if a != up_axis]
-    frames = np.arange(n)
-    for f, chain in enumerate(legs):  # one solve per leg over all frames
+    _, pos = skeleton.forward_kinematics(rot, root)  # legs are separate chains: one pass serves every leg
+    targets = np.zeros((n, len(legs), 3))
+    weights = np.zeros((n, len(legs)))
+    for f, chain in enumerate(legs):  # one target track per leg over all frames
         points = [chain[2]] if feet is None else [int(j) for j in feet[f]]
-        _, pos = skeleton.forward_kinematics(rot, root)
         ankle = pos[:, chain[2]]
         foot = pos[:, points]
         speed = np.linalg.norm(np.gradient(foot, axis=0)[..., horizontal] * fps + g[horizontal], axis=-1).min(axis=1)
@@ -104,8 +96,34 @@ def plant_feet(skeleton: Skeleton, local_rotations: ArrayLike, root_translation:
             better = w > weight[idx]
             target[idx[better]] = ankle[idx[better]] + offset[better]
             weight[idx[better]] = w[better]
-        active = frames[weight > 0]
+        targets[:, f], weights[:, f] = target, weight
+    return targets, weights
+
+
+def plant_feet(skeleton: Skeleton, local_rotations: ArrayLike, root_translation: ArrayLike,
+               legs: Sequence[tuple[int, int, int]], down: ArrayLike, fps: float,
+               feet: Sequence[Sequence[int]] | None = None, periodic: bool = False,
+               ground_velocity: ArrayLike | None = None, up_axis: int = 1, blend_frames: int = 5,
+               max_speed: float = 0.4, rest_speed: float = 0.5) -> Array:
+    """Local rotations ``(T, J, 4)`` with each leg's ankle held in place while its foot is down.
+
+    ``legs``: per foot the chain ``(hip, knee, ankle)`` (joint indices); ``down``: ``(T, F)`` contact per frame
+    and foot; ``feet``: per foot the joints that touch the ground (default: the ankle), e.g. ankle and toe;
+    ``periodic``: the ``T`` frames are one loop (phases may wrap); ``ground_velocity (3,)`` m/s: for
+    clips played in place, the ground moves at minus this under the character, so a pinned ankle follows it.
+    ``max_speed`` m/s: inside a phase the foot follows its animated ground path, shifted so that its slowest
+    joint never moves faster than this (by default 0.4 m/s, below the skate threshold of
+    :mod:`anim_core.contacts`); the foot keeps its world orientation, so heel and toe still roll.
+    ``rest_speed`` m/s: a phase in which the foot's slowest joint never gets slower than this is a swing that
+    skims the floor, not a step, and is left alone (holding it would drag the swinging foot back).
+    """
+    rot = np.array(local_rotations, dtype=np.float64)
+    targets, weights = foot_targets(skeleton, rot, root_translation, legs, down, fps, feet, periodic,
+                                    ground_velocity, up_axis, blend_frames, max_speed, rest_speed)
+    frames = np.arange(rot.shape[0])
+    for f, chain in enumerate(legs):  # one solve per leg over all frames
+        active = frames[weights[:, f] > 0]
         if active.size:
-            rot[active] = two_bone_ik(skeleton, rot[active], root[active], chain, target[active],
-                                      weight=weight[active])
+            rot[active] = two_bone_ik(skeleton, rot[active], np.asarray(root_translation, np.float64)[active],
+                                      chain, targets[active, f], weight=weights[active, f])
     return rot

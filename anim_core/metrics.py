@@ -144,6 +144,33 @@ def angular_velocity_jumps(
     return float(np.mean(np.linalg.norm(w_after - w_before, axis=-1)))
 
 
+def angular_acceleration_jumps(
+    sample_rotations: Callable[[Array], ArrayLike], key_times: ArrayLike, delta: float = 1e-3
+) -> float:
+    """Mean jump in rad/s² of each joint's angular acceleration across the key times (a C2 check).
+
+    Like :func:`angular_velocity_jumps`, with the five times ``t - 2 delta .. t + 2 delta`` per key (one call of
+    ``sample_rotations`` with ``5K`` times): the acceleration before the key is the difference of the angular
+    velocities over ``[t - 2 delta, t - delta]`` and ``[t - delta, t]`` divided by ``delta``, after it likewise on
+    the other side; the jump is the norm of (after - before).  For a C2 curve it tends to 0 with ``delta`` (as
+    ``delta`` times the jerk), for a C1 curve to the true jump.
+    """
+    t = np.asarray(key_times, dtype=np.float64)
+    if t.ndim != 1 or t.shape[0] < 1:
+        raise ValueError(f"expected key times of shape (K >= 1,), got {t.shape}")
+    if delta <= 0:
+        raise ValueError(f"delta must be positive, got {delta}")
+    k = t.shape[0]
+    q = np.asarray(sample_rotations(np.concatenate([t + i * delta for i in (-2, -1, 0, 1, 2)])), dtype=np.float64)
+    if q.ndim != 3 or q.shape[0] != 5 * k or q.shape[-1] != 4:
+        raise ValueError(f"sample_rotations must return ({5 * k}, J, 4) for {5 * k} times, got {q.shape}")
+    q = q.reshape(5, k, *q.shape[1:])
+    w = 2.0 * quat_log(canonicalize(quat_mul(q[1:], quat_conj(q[:-1])))) / delta  # (4, K, J, 3)
+    before = (w[1] - w[0]) / delta
+    after = (w[3] - w[2]) / delta
+    return float(np.mean(np.linalg.norm(after - before, axis=-1)))
+
+
 def storage_bytes(n_keys: int, n_joints: int) -> int:
     """Bytes to store ``n_keys`` keys as float32: ``n_joints`` quaternions, a root translation and the key time."""
     return int(n_keys) * (int(n_joints) * 4 + 3 + 1) * 4

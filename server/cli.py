@@ -118,13 +118,16 @@ def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
     except OSError as exc:
         return _fail(f"cannot write the clip set to {out}: {exc}")
     print(f"\n{len(clips)} clips in {time.perf_counter() - started:.1f} s -> {manifest}\n")
-    print(f"{'clip':16} {'keys':>4} {'s':>5} {'skate':>6} {'slide mm':>8} {'pen mm':>6} {'float mm':>8} "
-          f"{'MPJPE mm':>8} {'key jump rad/s':>14} {'jerk m/s3':>9} {'bytes':>6}")
+    width = max(16, *(len(c.id) for c in clips))
+    print(f"{'clip':{width}} {'keys':>4} {'s':>5} {'skate':>6} {'slide mm':>8} {'pen mm':>6} {'float mm':>8} "
+          f"{'MPJPE mm':>8} {'key jump rad/s':>14} {'accel jump rad/s2':>17} {'max err deg':>11} {'jerk m/s3':>9} "
+          f"{'bytes':>6}")
     for c in clips:
         m = c.metrics
-        print(f"{c.id:16} {c.key_times.size:4d} {c.duration_s:5.2f} {m['foot_skate_ratio']:6.3f} "
+        print(f"{c.id:{width}} {c.key_times.size:4d} {c.duration_s:5.2f} {m['foot_skate_ratio']:6.3f} "
               f"{m['foot_slide_mm']:8.2f} {m['penetration_mm']:6.1f} {m['floating_mm']:8.1f} "
-              f"{_fmt(m['mpjpe_mm'], 1):>8} {m['key_velocity_jump_rad_s']:14.3f} {m['jerk_mean']:9.1f} "
+              f"{_fmt(m['mpjpe_mm'], 1):>8} {m['key_velocity_jump_rad_s']:14.3f} "
+              f"{m['key_accel_jump_rad_s2']:17.3f} {_fmt(m['max_global_error_deg'], 3):>11} {m['jerk_mean']:9.1f} "
               f"{m['bytes']:6d}")
     _print_comparison(clips, clip_warnings(clips))
     return 0

@@ -89,11 +89,13 @@ def test_keyframe_walk_keeps_its_feet_planted(by_id):
 
 def test_metrics_are_complete_and_plausible(clips, by_id):
     names = {"foot_skate_ratio", "foot_slide_mm", "penetration_mm", "floating_mm", "mpjpe_mm",
-             "key_velocity_jump_rad_s", "jerk_mean", "bytes", "source_foot_skate_ratio", "seam_jump_mm",
+             "key_velocity_jump_rad_s", "key_accel_jump_rad_s2", "max_global_error_deg", "jerk_mean", "bytes",
+             "source_foot_skate_ratio", "seam_jump_mm",
              "median_step_mm", "phase_hips_r", "phase_hips_lag", "phase_knee_r", "phase_knee_lag"}
     for c in clips:
         assert set(c.metrics) == names
         assert (c.metrics["mpjpe_mm"] is None) == (c.method == "keyframe")
+        assert (c.metrics["max_global_error_deg"] is None) == (c.method == "keyframe")
         assert c.metrics["bytes"] == c.key_times.size * (31 * 4 + 4) * 4
     for animation in ANIMATIONS:
         keyframe = by_id[f"{animation}-keyframe"]

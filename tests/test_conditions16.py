@@ -1,0 +1,278 @@
+"""Issue 16 conditions: C2 spline, key reduction, quantization, foot locking (unit tests and the real clip set)."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from anim_core import metrics
+from anim_core.c2spline import PeriodicC2Spline, c2_from_squad
+from anim_core.clip import KeyframeClip
+from anim_core.compression import quantization_bound_deg, quantize_rotations, quantized_clip, reduce_keys
+from anim_core.hybrid import SquadClip
+from anim_core.ik import two_bone_ik
+from anim_core.quat import quat_angle, quat_from_rotvec, quat_mul
+from anim_core.skeleton import Skeleton
+
+
+def _random_walk_keys(rng, k, j, step=0.35):
+    q = quat_from_rotvec(rng.normal(size=(j, 3)) * 0.5)[None].repeat(k, 0)
+    for i in range(1, k):
+        q[i] = quat_mul(q[i - 1], quat_from_rotvec(rng.normal(size=(j, 3)) * step))
+    return q
+
+
+def _chain(n=4):
+    return Skeleton(tuple(f"j{i}" for i in range(n)), np.arange(-1, n - 1),
+                    np.array([[0, 0, 0]] + [[0.1, -0.3, 0.05]] * (n - 1)))
+
+
+# --- C2 spline ------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("seed", range(4))
+def test_c2_spline_interpolates_keys_and_is_c2(seed):
+    rng = np.random.default_rng(seed)
+    k = 6 + seed
+    times = np.cumsum(rng.uniform(0.6, 1.4, k)) - 0.6
+    times -= times[0]
+    keys = _random_walk_keys(rng, k, 5)
+    period = times[-1] + 1.0
+    s = PeriodicC2Spline(times, keys, period)
+    assert np.degrees(quat_angle(s(times), keys)).max() <= 0.01
+    assert np.degrees(quat_angle(s(times + period), keys)).max() <= 0.01  # periodic
+    squad = SquadClip(_chain(5), times, keys, np.zeros((k, 3)), period, "loop")
+    c2_jump = metrics.angular_acceleration_jumps(s, times)
+    squad_jump = metrics.angular_acceleration_jumps(lambda t: squad.sample(t).rotations, times)
+    assert c2_jump <= squad_jump / 10
+    # Angular velocity is continuous too (finite differences across the keys).
+    assert metrics.angular_velocity_jumps(s, times) < 1e-2
+
+
+def test_acceleration_jump_metric_sees_a_c1_kink():
+    # A rotation about one axis by t^2 for t > 0 and 0 before: C1 at 0 with an acceleration jump of 2 rad/s^2.
+    def sample(t):
+        ang = np.where(t > 0, t * t, 0.0)
+        return quat_from_rotvec(np.stack([ang, 0 * ang, 0 * ang], -1))[:, None]
+    assert metrics.angular_acceleration_jumps(sample, np.array([0.0])) == pytest.approx(2.0, rel=1e-3)
+
+
+def test_c2_spline_rejects_bad_times():
+    with pytest.raises(ValueError, match="strictly increasing"):
+        PeriodicC2Spline(np.array([0.0, 0.0, 1.0]), np.tile([1.0, 0, 0, 0], (3, 1)), 2.0)
+
+
+# --- key reduction --------------------------------------------------------------------------------------------
+
+def _global_error_deg(a: KeyframeClip, b: KeyframeClip, times):
+    pa, pb = a.sample(times), b.sample(times)
+    ga = a.skeleton.forward_kinematics(*pa)[0]
+    gb = b.skeleton.forward_kinematics(*pb)[0]
+    return float(np.degrees(quat_angle(ga, gb)).max())
+
+
+@pytest.mark.parametrize("eps", [0.5, 2.0, 5.0])
+def test_reduction_error_within_tolerance_on_random_clip(eps):
+    rng = np.random.default_rng(7)
+    k, sk = 60, _chain(5)
+    t = np.arange(k)[:, None, None] / 30
+    rot = quat_from_rotvec(rng.uniform(0.2, 0.8, (1, 5, 3)) * np.sin(rng.uniform(2, 6, (1, 5, 3)) * t
+                                                                  + rng.uniform(0, 6, (1, 5, 3))))
+    clip = KeyframeClip(sk, np.arange(k) / 30, rot, np.cumsum(rng.normal(size=(k, 3)) * 0.002, 0), "clamp")
+    red = reduce_keys(clip, eps)
+    assert red.n_keys < k
+    assert _global_error_deg(red, clip, clip.times) <= eps + 1e-9
+    pos = red.sample(clip.times).root_translation
+    assert np.abs(pos - clip.root_translation).max() <= 0.01 + 1e-12
+
+
+def test_reduction_rejects_bad_tolerance():
+    sk = _chain(2)
+    clip = KeyframeClip(sk, np.arange(3.0), np.tile([1.0, 0, 0, 0], (3, 2, 1)), np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="positive"):
+        reduce_keys(clip, 0.0)
+
+
+# --- quantization ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("bits", [8, 10, 12, 16])
+def test_quantization_error_within_bound(bits):
+    rng = np.random.default_rng(bits)
+    rot = _random_walk_keys(rng, 50, 8, step=0.1)
+    tracks = quantize_rotations(rot, bits)
+    err = np.degrees(quat_angle(tracks.dequantize(), rot)).max(axis=0)
+    bound = quantization_bound_deg(tracks)
+    assert np.all(err <= bound + 1e-9)
+    # The general bound (component ranges at most 2): 2 asin(1 / (2^b - 1)).
+    assert bound.max() <= np.degrees(2 * np.arcsin(1.0 / (2**bits - 1))) + 1e-12
+    if bits == 12:
+        assert err.max() <= 0.05
+
+
+def test_quantization_rejects_bad_bits():
+    with pytest.raises(ValueError, match="bits"):
+        quantize_rotations(np.tile([1.0, 0, 0, 0], (2, 1, 1)), 1)
+
+
+# --- IK -------------------------------------------------------------------------------------------------------
+
+def test_ik_reachable_exact_unreachable_clamped_knee_kept():
+    sk = Skeleton(("hip", "knee", "ankle"), [-1, 0, 1], [[0, 1, 0], [0, -0.45, 0.0], [0, -0.45, 0]])
+    bent = np.array([[1.0, 0, 0, 0], quat_from_rotvec([0.4, 0, 0]), [1.0, 0, 0, 0]])
+    rng = np.random.default_rng(3)
+    targets = np.array([0, 1, 0]) + rng.normal(size=(200, 3)) * 0.4
+    rot = two_bone_ik(sk, np.broadcast_to(bent, (200, 3, 4)), None, (0, 1, 2), targets)
+    assert np.isfinite(rot).all()
+    _, pos = sk.forward_kinematics(rot)
+    d = np.linalg.norm(targets - pos[:, 0], axis=-1)
+    reach = (d < 0.9 - 1e-6) & (d > 1e-3)
+    assert np.abs(pos[reach, 2] - targets[reach]).max() < 1e-6
+    far = d > 0.9
+    assert np.allclose(np.linalg.norm(pos[far, 2] - pos[far, 0], axis=-1), 0.9, atol=1e-6)
+    # Bone lengths exact, and the knee bends the way the animation bends it (never flips through the leg).
+    assert np.allclose(np.linalg.norm(pos[:, 1] - pos[:, 0], axis=-1), 0.45)
+    # The knee stays on the side of the hip -> target line where the animated knee is (it never flips).
+    _, p0 = sk.forward_kinematics(bent)
+    axis = (pos[:, 2] - pos[:, 0]) / np.linalg.norm(pos[:, 2] - pos[:, 0], axis=-1, keepdims=True)
+
+    def side(p):
+        v = p - pos[:, 0]
+        return v - np.sum(v * axis, axis=-1, keepdims=True) * axis
+
+    knee, animated = side(pos[:, 1]), side(np.broadcast_to(p0[1], pos[:, 1].shape))
+    bent_enough = (np.linalg.norm(knee, axis=-1) > 1e-3) & (np.linalg.norm(animated, axis=-1) > 1e-3)
+    assert bent_enough.sum() > 100
+    assert np.all(np.sum(knee[bent_enough] * animated[bent_enough], axis=-1) > 0)
+
+
+# --- the real clip set ----------------------------------------------------------------------------------------
+
+CONDITIONS16 = Path(__file__).resolve().parents[1] / "server" / "clipset" / "conditions16.toml"
+
+
+@pytest.fixture(scope="module")
+def full_set(data):
+    """The clip set of server/clipset/conditions16.toml: the thesis's conditions and those of issue 16."""
+    from server.clipset.build import build_clip_set
+    from server.clipset.config import load_config
+    return build_clip_set(data, load_config(CONDITIONS16))
+
+
+@pytest.fixture(scope="module")
+def clip_set(full_set):
+    return [c for c in full_set if c.method in ("keyframe", "hybrid")]
+
+
+@pytest.fixture(scope="module")
+def extra(full_set):
+    return {c.id: c for c in full_set if c.method not in ("keyframe", "hybrid")}
+
+
+def test_conditions_are_registered_with_typed_params():
+    from anim_core.conditions import Condition, ConditionError, methods
+    assert {"hybrid_ik", "hybrid_c2", "reduced", "quantized"} <= set(methods())
+    ik = Condition.parse("ik", "hybrid_ik", {"increment": 1})
+    assert ik.params_dict() == {"increment": 1, "blend_frames": 3, "clearance_m": 0.05, "contact_source": "union"}
+    assert Condition.parse("q", "quantized", {"bits": 12, "reduced_epsilon_deg": 2.0}).params_dict() == {
+        "bits": 12, "reduced_epsilon_deg": 2.0}
+    for method, params, field in [("hybrid_ik", {"increment": 0, "contact_source": "both"}, "contact_source"),
+                                  ("hybrid_ik", {"increment": 0, "blend_frames": -1}, "blend_frames"),
+                                  ("hybrid_c2", {}, "increment"), ("reduced", {"epsilon_deg": 0.0}, "epsilon_deg"),
+                                  ("quantized", {"bits": 1}, "bits"), ("quantized", {"bits": 8, "eps": 1.0}, "eps")]:
+        with pytest.raises(ConditionError, match=field):
+            Condition.parse("x", method, params)
+
+
+def test_clip_set_files_and_studies():
+    """The default clip set keeps the thesis's 4 conditions (16 clips); conditions16.toml holds every condition the
+    two example studies name."""
+    import tomllib
+
+    from server.clipset.config import load_config
+    thesis = load_config()
+    assert [c.id for c in thesis.conditions] == ["keyframe", "hybrid0", "hybrid1", "hybrid2"]
+    assert len(thesis.animations) * len(thesis.conditions) == 16
+    full = load_config(CONDITIONS16)
+    assert full.animations == thesis.animations
+    ids = {c.id for c in full.conditions}
+    for name in ("future-work", "compression"):
+        design = tomllib.loads((CONDITIONS16.parents[2] / "studies" / f"{name}.toml").read_text())["design"]
+        assert {design["reference"], *design["conditions"]} <= ids, name
+        assert set(design["animations"]) <= set(full.animations), name
+
+
+def test_crouch_has_no_c2_clip_with_more_keys(data):
+    from anim_core.clipset import ConfigError, build_animation
+    from anim_core.conditions import Condition
+    from server.assets import character
+    from server.clipset.build import load_source
+    from server.clipset.config import load_config
+    cfg = load_config()
+    source = load_source(data, character(data), cfg.animations["crouch"], cfg.relocate)
+    with pytest.raises(ConfigError, match=r"hybrid_c2_1.*increment 0 only"):
+        build_animation(source, cfg.fps, [Condition.parse("keyframe", "keyframe"),
+                                          Condition.parse("hybrid_c2_1", "hybrid_c2", {"increment": 1})])
+
+
+def test_c2_on_the_clip_set(clip_set):
+    for c in clip_set:
+        if c.method != "hybrid" or not isinstance(c.clip, SquadClip):
+            continue
+        c2 = c2_from_squad(c.clip)
+        kt = np.asarray(c.clip.key_times)
+        assert np.degrees(quat_angle(c2.sample(kt).rotations, c.clip.key_rotations)).max() <= 0.01, c.id
+        jump_c2 = metrics.angular_acceleration_jumps(lambda t, c2=c2: c2.sample(t).rotations, kt)
+        jump_squad = metrics.angular_acceleration_jumps(lambda t, c=c: c.clip.sample(t).rotations, kt)
+        # (idle increment 0 is one segment with zero velocity at both turns: both jumps are rounding, ~1e-10.)
+        assert jump_c2 <= max(jump_squad / 10, 1e-6), (c.id, jump_c2, jump_squad)
+
+
+def test_reduction_and_quantization_on_the_clip_set(clip_set):
+    for c in clip_set:
+        if c.method != "keyframe":
+            continue
+        for eps in (0.5, 2.0, 5.0):
+            red = reduce_keys(c.clip, eps)
+            assert red.n_keys <= c.clip.n_keys
+            assert _global_error_deg(red, c.clip, c.clip.times) <= eps + 1e-9, (c.id, eps)
+        q, tracks = quantized_clip(c.clip, 12)
+        local = np.degrees(quat_angle(q.rotations, c.clip.rotations)).max()
+        assert local <= 0.05 and local <= quantization_bound_deg(tracks).max() + 1e-9, c.id
+
+
+def test_extra_condition_ids_and_metrics(extra):
+    assert "walk-hybrid_ik0" in extra and extra["walk-hybrid_ik0"].condition == "hybrid_ik0"
+    assert {"crouch-hybrid_c2_0", "walk-reduced0_5", "run-quantized12", "walk-quantized12_reduced2"} <= set(extra)
+    assert extra["walk-hybrid_ik0"].params == {"increment": 0, "blend_frames": 3, "clearance_m": 0.05,
+                                               "contact_source": "union"}
+    for c in extra.values():
+        assert c.metrics["bytes"] > 0 and np.isfinite(c.metrics["key_accel_jump_rad_s2"]), c.id
+    for a in ("walk", "run"):
+        # Stored bytes from what each stores: fewer keys, or the same keys at 8/12 bits instead of 32.
+        keys = extra[f"{a}-quantized12"].key_times.size
+        assert extra[f"{a}-quantized12"].metrics["bytes"] < keys * (31 * 4 + 4) * 4 / 2
+        assert extra[f"{a}-quantized8"].metrics["bytes"] < extra[f"{a}-quantized12"].metrics["bytes"]
+        assert extra[f"{a}-reduced5"].metrics["bytes"] == extra[f"{a}-reduced5"].key_times.size * (31 * 4 + 4) * 4
+        assert extra[f"{a}-reduced5"].key_times.size < keys
+    for a in ("walk", "run"):
+        assert extra[f"{a}-quantized12"].metrics["max_global_error_deg"] <= 0.05
+        for eps in ("0_5", "2", "5"):
+            assert extra[f"{a}-reduced{eps}"].metrics["max_global_error_deg"] <= float(eps.replace("_", ".")) + 1e-9
+
+
+def test_foot_locking_on_the_clip_set(clip_set, extra):
+    by_id = {c.id: c for c in clip_set}
+    for a in ("walk", "run", "crouch"):
+        reference = by_id[f"{a}-keyframe"].metrics["foot_skate_ratio"]
+        ik0 = extra[f"{a}-hybrid_ik0"]
+        # Increment 0 (the thesis's hybrid): no more skate than the keyframe clip, and less than the plain hybrid.
+        assert ik0.metrics["foot_skate_ratio"] <= reference, a
+        assert ik0.metrics["foot_skate_ratio"] < by_id[f"{a}-hybrid0"].metrics["foot_skate_ratio"], a
+        for i in (0, 1, 2):
+            c = extra[f"{a}-hybrid_ik{i}"]
+            sk = c.character.skeleton  # retargeted per source file
+            bones = np.linalg.norm(sk.offsets[1:], axis=-1)
+            p = c.world_positions
+            lengths = np.linalg.norm(p[:, 1:] - p[:, sk.parents[1:]], axis=-1)
+            assert np.allclose(lengths, bones, atol=1e-9), c.id  # bone lengths exact
+            assert c.metrics["seam_jump_mm"] <= 2 * c.metrics["median_step_mm"] + 5.0, c.id
+            assert np.all(np.isfinite(c.local_rotations)), c.id
