@@ -277,7 +277,8 @@ def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTE
 def _ratios(results: Sequence[dict[str, Any]], variant: str) -> list[dict[str, Any]]:
     base = [r for r in results if r["stage"] == "pose" and r["variant"] == variant and r["threads"] == 1]
     keyframe = {(r["animation"], r["characters"]): r["median_ms"] for r in base if r["method"] == "keyframe"}
-    return [{"animation": r["animation"], "increment": r["increment"], "characters": r["characters"],
+    return [{"animation": r["animation"], "condition": r["condition"], "increment": r["increment"],
+             "characters": r["characters"],
              "ratio": r["median_ms"] / keyframe[(r["animation"], r["characters"])]}
             for r in base if r["method"] == "hybrid" and (r["animation"], r["characters"]) in keyframe]
 

@@ -146,16 +146,24 @@ def _print_comparison(clips: list, warnings: list[str]) -> None:
         print(f"warning: {w}", flush=True)
 
 
-def render(settings: Settings, out: Path, clips_dir: Path, workers: int, increments: list[int],
+def render(settings: Settings, out: Path, clips_dir: Path, workers: int, study: Path | None,
            width: int, height: int, shadows: bool) -> int:
-    """Render the clip set's videos into ``out`` (building the clip set first if it is missing)."""
+    """Render the clip set's videos into ``out`` (building the clip set first if it is missing): every clip, the
+    pairs ``study`` (default: the thesis study file) shows, and the pairs of every study in the database."""
     from anim_core.clipset import ConfigError
     from server.assets import AssetError
     from server.clipset.build import build_clip_set
     from server.clipset.manifest import MANIFEST, write_clip_set
-    from server.media.build import MediaError, default_pairs, read_clip_set, render_media
+    from server.errors import Unprocessable
+    from server.media.build import MediaError, render_media
     from server.media.scene import RenderSettings
+    from server.studies.service import clip_set_index, required_pairs
+    from server.studies.studyfile import THESIS_FILE, StudyFileError, load_study_file
 
+    try:
+        design = load_study_file(study or THESIS_FILE).design
+    except StudyFileError as exc:
+        return _fail(f"{exc.source} is not a valid study file: {'; '.join(exc.errors)}")
     try:
         if not (clips_dir / MANIFEST).is_file():
             print(f"no clip set in {clips_dir}: building it", flush=True)
@@ -163,8 +171,12 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, increme
                 write_clip_set(build_clip_set(settings.data, progress=lambda m: print(m, flush=True)), clips_dir)
             except ConfigError as exc:
                 return _fail(str(exc))
+        try:
+            needed = required_pairs(design, clip_set_index(clips_dir))
+        except Unprocessable as exc:
+            return _fail(f"{study or THESIS_FILE}: {exc.detail}")
         # The studies' own pairs too: rendering removes every video it was not asked for.
-        pairs = list(dict.fromkeys([*default_pairs(read_clip_set(clips_dir), increments), *_pairs_in_use(settings)]))
+        pairs = list(dict.fromkeys([*needed, *_pairs_in_use(settings)]))
         render_media(settings.data, clips_dir, out, settings.secret,
                      RenderSettings(width=width, height=height, shadows=shadows), pairs=pairs,
                      workers=workers, progress=lambda m: print(m, flush=True))
@@ -520,8 +532,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     rend.add_argument("--out", type=Path, default=None, help="video folder (default: <var dir>/media)")
     rend.add_argument("--clips", type=Path, default=None, help="clip set folder (default: <var dir>/clips)")
     rend.add_argument("--workers", type=int, default=2, help="worker processes (default: 2)")
-    rend.add_argument("--increments", type=_int_list(0, "0,1"), default=[0, 1],
-                      help="hybrid increments compared with the keyframe clip (default: 0,1)")
+    rend.add_argument("--study", type=Path, default=None,
+                      help="study file whose pairs to render (default: studies/thesis.toml); the pairs of the "
+                           "studies in the database are kept too")
     rend.add_argument("--width", type=_even, default=640)
     rend.add_argument("--height", type=_even, default=480)
     rend.add_argument("--no-shadows", action="store_true")
@@ -578,7 +591,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return inspect(settings.data)
     if args.command == "render":
         return render(settings, args.out or settings.var / "media", args.clips or settings.var / "clips",
-                      max(1, args.workers), args.increments, args.width, args.height, not args.no_shadows)
+                      max(1, args.workers), args.study, args.width, args.height, not args.no_shadows)
     if args.clips_command == "inspect":
         return clips_inspect(args.file, args.mapping, args.units, args.up)
     if args.clips_command == "convert":

@@ -218,7 +218,7 @@
                     ...variants.map((v, i) => ({ key: v, label: v, color: colors[i + 1] }))];
     const bytes = (clip, v) => memory.find((m) => m.clip === clip && m.variant === v);
     $("chart-memory").replaceChildren(Charts.columns(
-      clips.map((c) => ({ label: c.replace(/-(keyframe|hybrid)/, " $1").replace("keyframe", "kf").replace("hybrid", "h"),
+      clips.map((c) => ({ label: ((m) => `${m.animation} ${m.condition}`)(memory.find((x) => x.clip === c)),
                           values: Object.fromEntries([["stored", memory.find((m) => m.clip === c).stored_bytes],
                                                       ...variants.map((v) => [v, bytes(c, v)?.runtime_bytes])]) })),
       series, "Runtime bytes per clip and variant", (v) => `${(v / 1000).toFixed(1)} kB`));
@@ -229,7 +229,7 @@
                                  "runtime bytes (baked)", "largest error ° (keys)"],
           clips.map((c) => {
             const m = memory.find((x) => x.clip === c && x.variant === "keys") || {};
-            const mine = ratios.filter((r) => `${r.animation}-hybrid${r.increment}` === c).map((r) => r.ratio);
+            const mine = ratios.filter((r) => r.animation === m.animation && r.condition === m.condition).map((r) => r.ratio);
             return [c, mine.length ? fmt(Math.max(...mine), 2) : "–", m.runtime_bytes ?? "–",
                     bytes(c, "baked")?.runtime_bytes ?? "–", fmt(error(c)?.max_error_deg, 3)];
           }));

@@ -23,6 +23,8 @@ from server.media.manifest import MANIFEST
 from server.media.renderer import ClipRenderer
 from server.media.scene import RenderSettings, frame_motion
 from server.media.video import FILE_TIME, decode, probe
+from server.studies.service import clip_set_index, required_pairs
+from server.studies.studyfile import thesis_study
 
 SMALL = RenderSettings(width=160, height=120)
 SECRET = b"test secret"
@@ -39,10 +41,16 @@ def clips_dir(data, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def media(data, clips_dir, tmp_path_factory):
+def pairs(clips_dir):
+    """The pairs the default (thesis) study shows: what `animstudy render` renders by default."""
+    return required_pairs(thesis_study().design, clip_set_index(clips_dir))
+
+
+@pytest.fixture(scope="module")
+def media(data, clips_dir, pairs, tmp_path_factory):
     out = tmp_path_factory.mktemp("media")
     messages = []
-    render_media(data, clips_dir, out, SECRET, SMALL, workers=2, progress=messages.append)
+    render_media(data, clips_dir, out, SECRET, SMALL, pairs=pairs, workers=2, progress=messages.append)
     manifest = json.loads((out / MANIFEST).read_text())
     return out, manifest, messages
 
@@ -169,12 +177,12 @@ def test_nothing_names_the_content(media):
     assert len(set(names)) == len(names)
 
 
-def test_second_run_renders_nothing_and_settings_change_names(media, data, clips_dir):
+def test_second_run_renders_nothing_and_settings_change_names(media, data, clips_dir, pairs):
     out, manifest, messages = media
     assert any("0 up to date, 32 to render" in m for m in messages)
     before = {f.name: f.stat().st_mtime_ns for f in out.iterdir()}
     again: list[str] = []
-    render_media(data, clips_dir, out, SECRET, SMALL, workers=2, progress=again.append)
+    render_media(data, clips_dir, out, SECRET, SMALL, pairs=pairs, workers=2, progress=again.append)
     assert any("32 up to date, 0 to render" in m for m in again)
     assert {f.name: f.stat().st_mtime_ns for f in out.iterdir() if f.name != MANIFEST} == {
         k: v for k, v in before.items() if k != MANIFEST}
@@ -183,11 +191,11 @@ def test_second_run_renders_nothing_and_settings_change_names(media, data, clips
     other = out.parent / "other-secret"
     shutil.copytree(out, other)
     from server.media.build import plan
-    p = plan(data, clips_dir, other, SMALL, b"another secret")
+    p = plan(data, clips_dir, other, SMALL, b"another secret", pairs)
     assert {o.name for o in p.outputs}.isdisjoint({Path(c["video"]).stem for c in manifest["clips"].values()})
 
 
-def test_rendering_is_deterministic(renderers, clips_dir, data, tmp_path):
+def test_rendering_is_deterministic(renderers, clips_dir, pairs, data, tmp_path):
     clip = np.load(next(c.path for c in read_clip_set(clips_dir) if c.id == "run-hybrid0"))
     a = list(renderers["run"].render(clip["world_rotations"][:5], clip["world_positions"][:5]))
     b = list(renderers["run"].render(clip["world_rotations"][:5], clip["world_positions"][:5]))
@@ -195,7 +203,7 @@ def test_rendering_is_deterministic(renderers, clips_dir, data, tmp_path):
     # Whole files too: the same inputs give byte-identical videos.
     first, second = tmp_path / "a", tmp_path / "b"
     for out in (first, second):
-        render_media(data, clips_dir, out, SECRET, SMALL, workers=1, animations=["run"])
+        render_media(data, clips_dir, out, SECRET, SMALL, pairs=pairs, workers=1, animations=["run"])
     files = sorted(f.name for f in first.iterdir())
     assert files == sorted(f.name for f in second.iterdir())
     assert all((first / f).read_bytes() == (second / f).read_bytes() for f in files)
@@ -226,3 +234,24 @@ def test_memory_stays_flat_over_300_frames(renderers, clips_dir):
             usage.append(rss_mib())
     print(f"RSS after 50 frames {usage[0]:.0f} MiB, after 300 {usage[1]:.0f} MiB")
     assert usage[1] - usage[0] < 20  # the unpatched pyrender/PyOpenGL leak is ~4 MB per frame
+
+
+def test_render_takes_its_pairs_from_a_study_file(clips_dir, pairs, tmp_path, monkeypatch, capsys):
+    """`animstudy render` renders the pairs of the study file it is given (default: the thesis study's 16); a bad
+    study file or one naming what the clip set lacks is one error line, and nothing is rendered."""
+    from server.cli import main
+
+    assert len(pairs) == 16 and all({left, right} & {f"{a}-keyframe" for a in ("walk", "run", "crouch", "idle")}
+                                    for left, right in pairs)
+    monkeypatch.setenv("ANIMSTUDY_VAR_DIR", str(tmp_path / "var"))
+    out = tmp_path / "media"
+    bad = tmp_path / "bad.toml"
+    bad.write_text('slug = "x"\n', encoding="utf-8")
+    assert main(["render", "--clips", str(clips_dir), "--out", str(out), "--study", str(bad)]) == 2
+    assert "bad.toml is not a valid study file" in capsys.readouterr().err
+    unknown = tmp_path / "unknown.toml"
+    text = (Path(__file__).resolve().parents[1] / "studies" / "example.toml").read_text(encoding="utf-8")
+    unknown.write_text(text.replace('animations = ["walk", "run"]', 'animations = ["walk", "swim"]'), encoding="utf-8")
+    assert main(["render", "--clips", str(clips_dir), "--out", str(out), "--study", str(unknown)]) == 2
+    assert "unknown animation(s) swim" in capsys.readouterr().err
+    assert not out.exists() or not any(out.iterdir())

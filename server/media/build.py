@@ -123,16 +123,6 @@ def read_clip_set(clips_dir: Path) -> list[ClipFile]:
         raise MediaError(f"the clip set in {clips_dir} is unreadable ({exc!r}); rebuild it") from None
 
 
-def default_pairs(clips: Sequence[ClipFile], increments: Sequence[int]) -> list[tuple[str, str]]:
-    """Keyframe against each compared hybrid increment, in both side orders (the thesis design)."""
-    pairs = []
-    for c in clips:
-        if c.method == "hybrid" and c.params["increment"] in increments:
-            keyframe = f"{c.animation}-keyframe"
-            pairs += [(keyframe, c.id), (c.id, keyframe)]
-    return pairs
-
-
 def _name(secret: bytes, key: str) -> str:
     return hmac.new(secret, key.encode(), hashlib.sha256).hexdigest()[:24]
 
@@ -168,14 +158,16 @@ class Plan:
 
 
 def plan(data_dir: Path, clips_dir: Path, out_dir: Path, settings: RenderSettings, secret: bytes,
-         pairs: Sequence[tuple[str, str]] | None = None, increments: Sequence[int] = (0, 1),
-         animations: Sequence[str] | None = None) -> Plan:
-    """Work out every output's name and which ones are missing, grouped into one job per animation.
+         pairs: Sequence[tuple[str, str]] = (), animations: Sequence[str] | None = None) -> Plan:
+    """Work out every output's name and which ones are missing, grouped into one job per animation: a video of
+    every clip, and of every pair in ``pairs`` (left clip, right clip; the studies decide which pairs they show).
 
-    ``animations`` limits the plan to those animations' clips (default: all).
+    ``animations`` limits the plan to those animations' clips and pairs (default: all).
     """
-    clips = {c.id: c for c in read_clip_set(clips_dir) if animations is None or c.animation in animations}
-    pairs = list(pairs) if pairs is not None else default_pairs(list(clips.values()), increments)
+    every = read_clip_set(clips_dir)
+    clips = {c.id: c for c in every if animations is None or c.animation in animations}
+    animation_of = {c.id: c.animation for c in every}
+    pairs = [pair for pair in pairs if animations is None or animation_of.get(pair[0]) in animations]
     for left, right in pairs:
         if left not in clips or right not in clips:
             raise MediaError(f"pair ({left}, {right}) names a clip that is not in the clip set")
@@ -372,15 +364,15 @@ class PeakMemory:
 
 
 def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
-                 settings: RenderSettings | None = None, pairs: Sequence[tuple[str, str]] | None = None,
-                 increments: Sequence[int] = (0, 1), workers: int = 2, animations: Sequence[str] | None = None,
+                 settings: RenderSettings | None = None, pairs: Sequence[tuple[str, str]] = (),
+                 workers: int = 2, animations: Sequence[str] | None = None,
                  progress: Callable[[str], None] = lambda _m: None) -> Path:
     """Render what is missing, write the manifest, remove stale media; returns the manifest path."""
     settings = settings or RenderSettings()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    p = plan(data_dir, clips_dir, out_dir, settings, secret, pairs, increments, animations)
+    p = plan(data_dir, clips_dir, out_dir, settings, secret, pairs, animations)
     todo = sum(len(j.outputs) for j in p.jobs)
     progress(f"{len(p.outputs)} videos, {len(p.outputs) - todo} up to date, {todo} to render "
              f"({sum(j.n_frames for j in p.jobs)} frames, {min(workers, max(1, len(p.jobs)))} workers)")
