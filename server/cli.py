@@ -16,8 +16,6 @@ from .config import Settings
 if TYPE_CHECKING:
     from .media.manifest import RenderManifest
 
-CMU_METRES_PER_UNIT = 0.056444
-
 
 def _fail(message: str) -> int:
     print(f"error: {message}", file=sys.stderr)
@@ -74,6 +72,7 @@ def inspect(data_dir: Path) -> int:
 
     from anim_core.bvh import BvhError, read_bvh
     from anim_core.clip import clip_from_bvh
+    from anim_core.clipset import METRES_PER_CMU_UNIT
 
     paths = sorted(data_dir.glob("mocap/**/*.bvh*"))
     if not paths:
@@ -89,7 +88,7 @@ def inspect(data_dir: Path) -> int:
             status = 1
             continue
         clip = clip_from_bvh(bvh)
-        travel = np.linalg.norm(clip.velocity) * clip.duration * CMU_METRES_PER_UNIT
+        travel = np.linalg.norm(clip.velocity) * clip.duration * METRES_PER_CMU_UNIT
         print(f"{path.name:34} {bvh.n_frames:6d} {bvh.fps:5.0f} {clip.duration:7.2f} "
               f"{clip.skeleton.n_joints:6d} {travel:8.2f} {travel / clip.duration:9.2f}")
     return status
