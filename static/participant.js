@@ -232,9 +232,25 @@
     else if (r.status === 401) { clearCreds(); await start(); }
   });
 
+  // The study may ask for full screen; the request must come from this click (a user gesture). Leaving full
+  // screen is reported, and every vote says whether it was cast in full screen.
+  function requestFullscreen() {
+    if (!study.page.fullscreen || document.fullscreenElement) return;
+    const refused = (error) => persist(() => api("POST", `/sessions/${creds.session_id}/events`,
+                                                 { kind: "fullscreen_refused", detail: { error: String(error) } }));
+    if (!document.fullscreenEnabled) { refused("not supported"); return; }
+    document.documentElement.requestFullscreen().catch(refused);
+  }
+  document.addEventListener("fullscreenchange", () => {
+    if (document.fullscreenElement || !study || !study.page.fullscreen || !creds.session_id) return;
+    persist(() => api("POST", `/sessions/${creds.session_id}/events`,
+                      { kind: "fullscreen_exit", trial_id: current ? current.trial_id : null }));
+  });
+
   $("instructions-next").addEventListener("click", async () => {
     creds.instructed = true;
     saveCreds();
+    requestFullscreen();
     await nextTrial();
   });
 
@@ -331,6 +347,7 @@
       dropped_frames: q ? q.droppedVideoFrames : null, total_frames: q ? q.totalVideoFrames : null,
       watched_ms: m.started_ms ? Math.round(performance.now() - m.started_ms) : 0,
       autoplay_refused: Boolean(m.autoplay_refused), play_wait_ms: m.play_wait_ms ?? null,
+      fullscreen: study.page.fullscreen ? Boolean(document.fullscreenElement) : null,
     };
   }
 

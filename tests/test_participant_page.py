@@ -17,7 +17,7 @@ from server.db import migrate, session_factory
 from server.media.build import render_media
 from server.media.manifest import read_render_manifest
 from server.media.scene import RenderSettings
-from server.participants.models import ParticipantSession, Vote
+from server.participants.models import ParticipantSession, PlaybackEvent, Vote
 from server.studies.models import StudyState
 from server.studies.page import Chrome
 from server.studies.service import clip_set_index, create_study, export_rows, required_pairs, set_state
@@ -505,6 +505,40 @@ def test_autoplay_refusal_shows_play_and_is_recorded(site, playwright):
     with factory() as db:
         playback = db.scalars(select(Vote).where(Vote.session_id == sid)).one().extra["playback"]
     assert playback["autoplay_refused"] is True and playback["play_wait_ms"] > 0 and playback["loops"] >= 1
+
+
+def test_fullscreen_is_asked_for_at_the_first_trial_and_leaving_it_is_recorded(site, browser):
+    """A study with ``[page] fullscreen = true`` (the API answer rewritten, as for the gate): the start of the
+    first trial asks for full screen; leaving it stores a ``fullscreen_exit`` event; each vote says whether it was
+    cast in full screen."""
+    base, factory = site
+    pg = browser.new_page(viewport={"width": 1920, "height": 1080})
+
+    def patch(route):
+        response = route.fetch()
+        study = response.json()
+        route.fulfill(response=response, json={**study, "page": {**study["page"], "fullscreen": True}})
+    pg.route(f"{base}/api/v1/studies/thesis", patch)
+    begin(pg, base, query="")
+    wait_until(pg, "document.fullscreenElement !== null")
+    wait_trial(pg, 1)
+    vote_by_keyboard(pg, "3")
+    wait_trial(pg, 2)
+    pg.evaluate("document.exitFullscreen()")
+    wait_until(pg, "document.fullscreenElement === null")
+    vote_by_keyboard(pg, "3")
+    wait_until(pg, "document.getElementById('trial-progress').textContent.startsWith('Trial 3 of')")
+    sid = credentials(pg)["session_id"]
+    pg.close()
+    with factory() as db:
+        votes = db.scalars(select(Vote).where(Vote.session_id == sid).order_by(Vote.id)).all()
+        events = db.scalars(select(PlaybackEvent).where(PlaybackEvent.session_id == sid)).all()
+    assert [v.extra["playback"]["fullscreen"] for v in votes] == [True, False]
+    assert [e.kind for e in events] == ["fullscreen_exit"] and events[0].trial_id == votes[1].trial_id
+
+
+def test_the_thesis_study_does_not_ask_for_fullscreen():
+    assert thesis_study().page.fullscreen is False
 
 
 def english_strings() -> set[str]:

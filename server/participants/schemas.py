@@ -122,7 +122,7 @@ class WithdrawRead(BaseModel):
 class EventCreate(BaseModel):
     model_config = STRICT
 
-    kind: Literal["load_failure", "playback_stall", "error"]
+    kind: Literal["load_failure", "playback_stall", "error", "fullscreen_exit", "fullscreen_refused"]
     trial_id: RowId | None = None
     detail: dict[str, Any] | None = None
 

@@ -81,6 +81,9 @@ class Page(_Strict):
                        "laid out right to left")
     chrome: Chrome = Field(default_factory=Chrome)
     device_gate: DeviceGate = Field(default_factory=DeviceGate)
+    fullscreen: bool = Field(False, description="ask for full screen when the first trial starts (the participant "
+                             "may refuse); each time full screen is left, a `fullscreen_exit` event is stored and "
+                             "every vote records whether it was cast in full screen")
 
     @property
     def dir(self) -> str:
@@ -89,4 +92,4 @@ class Page(_Strict):
     def public(self) -> dict[str, object]:
         """What the participant page reads (every string filled, defaults included)."""
         return {"lang": self.lang, "dir": self.dir, "chrome": self.chrome.model_dump(),
-                "device_gate": self.device_gate.model_dump()}
+                "device_gate": self.device_gate.model_dump(), "fullscreen": self.fullscreen}
