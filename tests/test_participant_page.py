@@ -537,6 +537,28 @@ def test_fullscreen_is_asked_for_at_the_first_trial_and_leaving_it_is_recorded(s
     assert [e.kind for e in events] == ["fullscreen_exit"] and events[0].trial_id == votes[1].trial_id
 
 
+def test_focus_order_and_visible_focus_on_the_trial_page(site, page):
+    """Tab from the top reaches the withdrawal button, the answer group and Submit, in that order, each with a
+    visible focus outline."""
+    base, _ = site
+    begin(page, base, query="")
+    wait_trial(page, 1)
+    page.keyboard.press("3")
+    page.wait_for_selector("#vote-submit:not([disabled])", timeout=15000)
+    order = []
+    for _ in range(8):  # twice round the page (the browser's own UI takes one stop: nothing focused there)
+        page.keyboard.press("Tab")
+        order.append(page.evaluate("(() => { const e = document.activeElement, s = getComputedStyle(e);"
+                                   " return e === document.body ? null :"
+                                   " [e.id || e.name, s.outlineStyle, parseFloat(s.outlineWidth)]; })()"))
+    stops = [o for o in order if o is not None]
+    names = [name for name, _, _ in stops]
+    start = names.index("withdraw")
+    assert names[start:start + 3] == ["withdraw", "choice", "vote-submit"], order
+    assert set(names) == {"withdraw", "choice", "vote-submit"}, order
+    assert all(style != "none" and width >= 2 for _, style, width in stops), order
+
+
 def test_the_thesis_study_does_not_ask_for_fullscreen():
     assert thesis_study().page.fullscreen is False
 
