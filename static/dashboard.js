@@ -5,7 +5,6 @@
   const $ = (id) => document.getElementById(id);
   const params = new URLSearchParams(location.search);
   let slug = params.get("study"); // none: the first study the researcher may see
-  const TOKEN = "animstudy:researcher-token";
   // Scores are from the test condition's point of view; the labels name the study's reference.
   const scoreLegend = (ref) => [
     { key: "-2", label: `${ref} significantly better`, color: "#b2182b" },
@@ -17,7 +16,6 @@
   // Enough distinct colours for any number of answers or conditions (cycled, then lightened).
   const PALETTE = ["#2166ac", "#ef8a62", "#4d9221", "#762a83", "#b2182b", "#67a9cf", "#e08214", "#9e9e9e"];
   const colour = (i) => PALETTE[i % PALETTE.length];
-  let token = sessionStorage.getItem(TOKEN);
   let results = null;
   let timer = null;
 
@@ -25,33 +23,7 @@
   const fmt = (v, digits = 3) => (v === null || v === undefined ? "–" : Number(v).toFixed(digits));
   const p = (v) => (v === null || v === undefined ? "–" : v < 0.001 ? "< 0.001" : v.toFixed(3));
 
-  async function api(path, options = {}) {
-    const headers = { ...(options.headers || {}), Authorization: `Bearer ${token}` };
-    const r = await fetch(`/api/v1${path}`, { ...options, headers, cache: "no-store" });
-    if (r.status === 401) { logout("Your login has expired; please log in again."); throw new Error("unauthorized"); }
-    return r;
-  }
-
-  function logout(message) {
-    token = null;
-    sessionStorage.removeItem(TOKEN);
-    clearInterval(timer);
-    $("dashboard").hidden = true;
-    $("actions").hidden = true;
-    $("login").hidden = false;
-    $("login-error").textContent = message || "";
-  }
-
-  $("login-form").addEventListener("submit", async (e) => {
-    e.preventDefault();
-    const body = new URLSearchParams(new FormData(e.target));
-    const r = await fetch("/api/v1/auth/token", { method: "POST", body });
-    if (!r.ok) { $("login-error").textContent = "Wrong e-mail or password."; return; }
-    token = (await r.json()).access_token;
-    sessionStorage.setItem(TOKEN, token);
-    await open();
-  });
-  $("logout").addEventListener("click", () => logout());
+  const api = Researcher.api;
 
   async function open() {
     $("login").hidden = true;
@@ -262,5 +234,5 @@
   $("export-csv").addEventListener("click", () => download("csv"));
   $("export-json").addEventListener("click", () => download("json"));
 
-  if (token) open().catch(() => {}); else $("login").hidden = false;
+  Researcher.start(open, () => { clearInterval(timer); $("dashboard").hidden = true; });
 })();

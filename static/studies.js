@@ -4,35 +4,9 @@
 
 (() => {
   const $ = (id) => document.getElementById(id);
-  const TOKEN = "animstudy:researcher-token"; // shared with the results dashboard
   const TEXTS = ["information", "consent", "consent_version", "contact", "instructions", "thanks"];
-  let token = sessionStorage.getItem(TOKEN);
 
-  async function api(path, options = {}) {
-    const headers = { ...(options.headers || {}), Authorization: `Bearer ${token}` };
-    const r = await fetch(`/api/v1${path}`, { ...options, headers, cache: "no-store" });
-    if (r.status === 401) { logout("Your login has expired; please log in again."); throw new Error("unauthorized"); }
-    return r;
-  }
-
-  function logout(message) {
-    token = null;
-    sessionStorage.removeItem(TOKEN);
-    $("studies").hidden = true;
-    $("actions").hidden = true;
-    $("login").hidden = false;
-    $("login-error").textContent = message || "";
-  }
-
-  $("login-form").addEventListener("submit", async (e) => {
-    e.preventDefault();
-    const r = await fetch("/api/v1/auth/token", { method: "POST", body: new URLSearchParams(new FormData(e.target)) });
-    if (!r.ok) { $("login-error").textContent = "Wrong e-mail or password."; return; }
-    token = (await r.json()).access_token;
-    sessionStorage.setItem(TOKEN, token);
-    await refresh();
-  });
-  $("logout").addEventListener("click", () => logout());
+  const api = Researcher.api;
 
   // The error details of a 4xx answer, one per line.
   async function problems(r) {
@@ -153,5 +127,5 @@
     if (r.ok) { e.target.reset(); await refresh(); }
   });
 
-  if (token) refresh().catch(() => {}); else $("login").hidden = false;
+  Researcher.start(refresh, () => { $("studies").hidden = true; });
 })();

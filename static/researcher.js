@@ -1,0 +1,44 @@
+// The researcher's login, shared by the dashboard pages (results and studies): the token kept in sessionStorage,
+// the page's login form (#login, #login-form, #login-error) and logout button (#logout, in #actions), and API
+// calls that carry the token (an expired login shows the form again).
+"use strict";
+
+window.Researcher = (() => {
+  const TOKEN = "animstudy:researcher-token";
+  const $ = (id) => document.getElementById(id);
+  let token = sessionStorage.getItem(TOKEN);
+  let closed = () => {};
+
+  function logout(message) {
+    token = null;
+    sessionStorage.removeItem(TOKEN);
+    closed();
+    $("actions").hidden = true;
+    $("login").hidden = false;
+    $("login-error").textContent = message || "";
+  }
+
+  async function api(path, options = {}) {
+    const headers = { ...(options.headers || {}), Authorization: `Bearer ${token}` };
+    const r = await fetch(`/api/v1${path}`, { ...options, headers, cache: "no-store" });
+    if (r.status === 401) { logout("Your login has expired; please log in again."); throw new Error("unauthorized"); }
+    return r;
+  }
+
+  // `opened`: shows the page's content after a login (at once when a login is stored); `onClosed`: hides it.
+  function start(opened, onClosed) {
+    closed = onClosed;
+    $("login-form").addEventListener("submit", async (e) => {
+      e.preventDefault();
+      const r = await fetch("/api/v1/auth/token", { method: "POST", body: new URLSearchParams(new FormData(e.target)) });
+      if (!r.ok) { $("login-error").textContent = "Wrong e-mail or password."; return; }
+      token = (await r.json()).access_token;
+      sessionStorage.setItem(TOKEN, token);
+      await opened();
+    });
+    $("logout").addEventListener("click", () => logout());
+    if (token) opened().catch(() => {}); else $("login").hidden = false;
+  }
+
+  return { api, start };
+})();
