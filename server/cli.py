@@ -134,13 +134,14 @@ def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
 
 def _print_comparison(clips: list, warnings: list[str]) -> None:
     """What else than the method the two sides of a pair differ in: feet, phase, seams (issue 14)."""
-    print(f"\n{'clip':16} {'skate':>6} {'source':>6} {'seam mm':>7} {'step mm':>7} {'hips r':>6} {'lag':>4} "
+    width = max(16, *(len(c.id) for c in clips))
+    print(f"\n{'clip':{width}} {'skate':>6} {'source':>6} {'seam mm':>7} {'step mm':>7} {'hips r':>6} {'lag':>4} "
           f"{'knee r':>6} {'lag':>4}")
     for c in clips:
         m = c.metrics
-        print(f"{c.id:16} {m['foot_skate_ratio']:6.3f} {m['source_foot_skate_ratio']:6.3f} {m['seam_jump_mm']:7.1f} "
-              f"{m['median_step_mm']:7.1f} {_fmt(m['phase_hips_r'], 2):>6} {_fmt(m['phase_hips_lag'], 0):>4} "
-              f"{_fmt(m['phase_knee_r'], 2):>6} {_fmt(m['phase_knee_lag'], 0):>4}")
+        print(f"{c.id:{width}} {m['foot_skate_ratio']:6.3f} {m['source_foot_skate_ratio']:6.3f} "
+              f"{m['seam_jump_mm']:7.1f} {m['median_step_mm']:7.1f} {_fmt(m['phase_hips_r'], 2):>6} "
+              f"{_fmt(m['phase_hips_lag'], 0):>4} {_fmt(m['phase_knee_r'], 2):>6} {_fmt(m['phase_knee_lag'], 0):>4}")
     for w in warnings:
         print(f"warning: {w}", flush=True)
 
@@ -503,7 +504,7 @@ def _even(text: str) -> int:
     return value
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def _main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["loadtest"]:  # its own options (see server/loadtest.py)
         from server import loadtest
@@ -596,6 +597,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.clips_command == "convert":
         return clips_convert(settings.data, args.file, args.out, args.mapping, args.units, args.up)
     return clips_build(settings.data, args.out or settings.var / "clips", args.config)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except BrokenPipeError:
+        # The reader went away (`animstudy inspect | head`): not an error of ours.  Python would otherwise report
+        # the broken pipe again when it flushes stdout at exit (the recipe of the signal module's docs).
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
 
 
 if __name__ == "__main__":
