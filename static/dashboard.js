@@ -79,6 +79,7 @@
     const n = res.participants;
     const minutes = o.median_completion_s === null ? "–" : `${(o.median_completion_s / 60).toFixed(1)} min`;
     $("overview").replaceChildren(card(n.started, "started"), card(n.completed, "completed"),
+                                  card(n.screened_out, "screened out (not analysed)"),
                                   card(n.withdrawn, "withdrawn"), card(n.active, "in progress"),
                                   card(o.votes, "votes"), card(minutes, "median completion time"));
     const comps = res.comparisons;

@@ -129,3 +129,39 @@ def test_results_match_an_independent_computation_from_the_csv(client, study, db
     idle = [c for c in results["comparisons"] if c["animation"] == "idle"]
     assert all(c["mean_score"] > 0.5 for c in idle)
     assert set(results["demographics"]["gamer"]) == {"yes", "no", "dont_know", "unanswered"}
+
+
+def test_participants_screened_out_by_catch_trials_are_exported_and_not_analysed(client, db, researcher_headers):
+    """Two catch trials, one failure allowed: a participant answering 'significantly better' everywhere fails both
+    and is screened out; their votes carry outcome screened_out in the export and stay out of the statistics."""
+    from server.studies.design import Design
+    from tests.server_fixtures import make_study
+
+    study = make_study(db, Design(catch_trials=2), recruitment={"catch_failures_allowed": 1})
+    for k in range(3):
+        ps = service.start_session(db, study, None).session
+        for trial in ps.trials:
+            careless = k == 2
+            choice = "left_much" if careless else ("right_slightly" if trial.reference_side == "left" else "equal")
+            service.cast_vote(db, ps, trial, choice, 900, f"s{k}-{trial.id}", {})
+    ps = service.start_session(db, study, None).session  # unfinished: no outcome yet
+    service.cast_vote(db, ps, ps.trials[0], "equal", 900, "unfinished", {})
+
+    rows = list(csv.DictReader(io.StringIO(
+        client.get("/api/v1/studies/thesis/export.csv", headers=researcher_headers).text)))
+    by_session = defaultdict(set)
+    for r in rows:
+        by_session[r["session_id"]].add(r["outcome"])
+    assert sorted(tuple(v) for v in by_session.values()) == [("",), ("completed",), ("completed",),
+                                                             ("screened_out",)]
+    careless = next(sid for sid, v in by_session.items() if v == {"screened_out"})
+    assert sum(r["catch"] == "true" and r["session_id"] == careless for r in rows) == 2
+
+    results = client.get("/api/v1/studies/thesis/results", headers=researcher_headers).json()
+    assert results["participants"]["completed"] == 3 and results["participants"]["screened_out"] == 1
+    # the two careful participants saw every comparison twice; the careless one is left out, the unfinished one's
+    # single vote counts as a vote (not as a participant: no pair of showings)
+    assert [c["n_participants"] for c in results["comparisons"]] == [2] * 8
+    unfinished = [r for r in rows if r["outcome"] == ""]
+    assert sum(c["votes"] for c in results["comparisons"]) == 2 * 16 + sum(r["catch"] == "false" for r in unfinished)
+    assert "screened out" in results["methods"]["exclusions"]

@@ -154,7 +154,10 @@ def test_second_study_runs_beside_the_thesis(client, db, media_dir, researcher_h
     assert [(c["animation"], c["condition"], c["reference"]) for c in gait["comparisons"]] == [
         ("run", "hybrid1", "keyframe"), ("run", "hybrid2", "keyframe"), ("walk", "hybrid1", "keyframe"),
         ("walk", "hybrid2", "keyframe")]
-    assert all(c["votes"] == 4 for c in gait["comparisons"]) and set(gait["demographics"]) == {"animator"}
+    # "right_much" on the catch trials failed them: that participant is screened out and not analysed
+    assert {r["outcome"] for r in rows if r["choice"] == "right_much"} == {"screened_out"}
+    assert gait["participants"]["screened_out"] == 1
+    assert all(c["votes"] == 2 for c in gait["comparisons"]) and set(gait["demographics"]) == {"animator"}
     assert thesis.id != db.query(Study).filter_by(slug="gait").one().id
 
 
@@ -379,6 +382,6 @@ def test_study_cli(tmp_path, monkeypatch, capsys):
     assert cli.main(["study", "export", "thesis", "--format", "csv", "--out", str(out)]) == 0
     assert out.read_text().splitlines()[0].startswith("session_id,trial_index,practice,catch,animation")
     assert cli.main(["study", "export", "thesis", "--format", "json"]) == 0
-    assert json.loads(capsys.readouterr().out)["columns"][-11:] == [
-        "answered_at", "consent_version", "session_state", "viewport_width", "viewport_height",
+    assert json.loads(capsys.readouterr().out)["columns"][-12:] == [
+        "answered_at", "consent_version", "session_state", "outcome", "viewport_width", "viewport_height",
         "device_pixel_ratio", "video_scale", "video_scaled", "PROLIFIC_PID", "STUDY_ID", "SESSION_ID"]

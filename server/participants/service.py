@@ -17,9 +17,9 @@ from sqlalchemy.orm import Session, joinedload
 from server.db import utcnow
 from server.errors import Conflict, Forbidden, NotFound, Unauthorized
 from server.studies.design import Design, trial_order
-from server.studies.models import Comparison, ComparisonKind, Study, StudyState
+from server.studies.models import Study, StudyState
 from server.studies.scale import score
-from server.studies.service import comparison_ids, recruitment
+from server.studies.service import comparison_ids, failed_catch_trials, recruitment, session_outcome
 
 from .models import ParticipantSession, PlaybackEvent, SessionState, Trial, Vote
 
@@ -130,13 +130,9 @@ def questions_answered(ps: ParticipantSession) -> bool:
 
 
 def outcome(session: Session, ps: ParticipantSession) -> str:
-    """``completed``, or ``screened_out`` when more catch trials were failed (a 'significantly better' answer
-    with the same clip on both sides) than the study allows."""
-    failed = session.scalar(
-        select(func.count(Vote.id)).join(Trial, Vote.trial_id == Trial.id)
-        .join(Comparison, Trial.comparison_id == Comparison.id)
-        .where(Vote.session_id == ps.id, Comparison.kind == ComparisonKind.catch, func.abs(Vote.score) == 2)) or 0
-    return "screened_out" if failed > recruitment(ps.study).catch_failures_allowed else "completed"
+    """``completed`` or ``screened_out`` (:func:`server.studies.service.session_outcome`) of a finished session."""
+    failed = failed_catch_trials(session, ps.study, ps.id).get(ps.id, 0)
+    return session_outcome(ps.study, SessionState.completed, failed) or "completed"
 
 
 def answered(session: Session, ps: ParticipantSession) -> int:

@@ -9,14 +9,14 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session, aliased, object_session
 
 from server.db import utcnow
 from server.errors import Conflict, Forbidden, NotFound, Unprocessable
 from server.media.build import read_clip_set
 from server.media.manifest import RenderManifest
-from server.participants.models import ParticipantSession, Trial, Vote
+from server.participants.models import ParticipantSession, SessionState, Trial, Vote
 from server.researchers.models import Researcher
 
 from .design import ComparisonIds, Design
@@ -222,10 +222,30 @@ def texts(study: Study) -> Texts:
     return Texts.model_validate({**study.texts, "consent_version": study.consent_version})
 
 
+def failed_catch_trials(session: Session, study: Study, session_id: str | None = None) -> dict[str, int]:
+    """Failed catch trials per participant session of ``study`` (or of the one session ``session_id``): a
+    'significantly better' answer when both sides show the same clip.  Sessions without a failure are absent."""
+    query = (select(Trial.session_id, func.count(Vote.id)).join(Vote, Vote.trial_id == Trial.id)
+             .join(Comparison, Trial.comparison_id == Comparison.id)
+             .where(Comparison.study_id == study.id, Comparison.kind == ComparisonKind.catch,
+                    func.abs(Vote.score) == 2).group_by(Trial.session_id))
+    if session_id is not None:
+        query = query.where(Trial.session_id == session_id)
+    return {sid: n for sid, n in session.execute(query).all()}
+
+
+def session_outcome(study: Study, state: str, failed_catch: int) -> str | None:
+    """``completed``, or ``screened_out`` when more catch trials were failed than the study allows; None for a
+    session that has not finished."""
+    if state != SessionState.completed:
+        return None
+    return "screened_out" if failed_catch > recruitment(study).catch_failures_allowed else "completed"
+
+
 EXPORT_COLUMNS = ("session_id", "trial_index", "practice", "catch", "animation", "reference_condition",
                   "test_condition", "reference_side", "test_side", "choice", "score", "rt_ms", "answered_at",
-                  "consent_version", "session_state", "viewport_width", "viewport_height", "device_pixel_ratio",
-                  "video_scale", "video_scaled")
+                  "consent_version", "session_state", "outcome", "viewport_width", "viewport_height",
+                  "device_pixel_ratio", "video_scale", "video_scaled")
 
 
 def export_columns(study: Study) -> list[str]:
@@ -297,6 +317,7 @@ def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
         .where(ParticipantSession.study_id == study.id)
         .order_by(ParticipantSession.created_at, ParticipantSession.id, Trial.index)
     )
+    failed = failed_catch_trials(session, study)
     for vote, trial, ps, kind, animation, ref_condition, test_condition in rows:
         answers, external, device = ps.answers or {}, ps.external or {}, ps.device or {}
         yield {
@@ -306,7 +327,8 @@ def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
             "test_side": other_side(trial.reference_side), "choice": vote.choice, "score": vote.score,
             "rt_ms": vote.rt_ms, **{q: answers.get(q) for q in questions},
             "answered_at": vote.answered_at.isoformat(), "consent_version": ps.consent_version,
-            "session_state": ps.state, "viewport_width": device.get("viewport_width"),
+            "session_state": ps.state, "outcome": session_outcome(study, ps.state, failed.get(ps.id, 0)),
+            "viewport_width": device.get("viewport_width"),
             "viewport_height": device.get("viewport_height"), "device_pixel_ratio": device.get("device_pixel_ratio"),
             "video_scale": device.get("scale"), "video_scaled": device.get("scaled"),
             **{p: external.get(p) for p in parameters},

@@ -1,7 +1,8 @@
 """Statistics of a study's votes, with participants as the unit of analysis.
 
 Input is one record per vote (the export rows).  For every analysed comparison each participant contributes one
-number, the mean of their two side-swapped showings (practice and catch trials excluded); tests run on those
+number, the mean of their two side-swapped showings (practice and catch trials excluded, and every vote of a
+participant screened out by the catch trials: export ``outcome`` ``screened_out``); tests run on those
 participant means, never on raw votes (which are not independent).  A comparison is one test condition of one
 animation against the study's reference condition; scores are from the test condition's point of view (see
 ``scale``): +2 test significantly better ... -2 reference significantly better.  An undefined statistic is
@@ -150,7 +151,7 @@ def _summary(x: Sequence[float]) -> dict[str, Any]:
 def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
             questions: Sequence[str] = ()) -> dict[str, Any]:
     """The results document of a study from its votes (export rows), participant counts and question ids."""
-    analysed = [v for v in votes if not v["practice"] and not v["catch"]]
+    analysed = [v for v in votes if not v["practice"] and not v["catch"] and v["outcome"] != "screened_out"]
     by_comparison: dict[tuple[str, str, str], dict[str, list[tuple[int, int, str]]]] = defaultdict(
         lambda: defaultdict(list))
     for v in analysed:
@@ -229,6 +230,8 @@ def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
         "demographics": _demographics(analysed, questions),
         "methods": {
             "unit": "participant: mean of the two side-swapped showings of a comparison",
+            "exclusions": "practice and catch trials; every vote of a participant screened out by the catch trials "
+                          "(more failed than [recruitment] catch_failures_allowed)",
             "wilcoxon": "scipy.stats.wilcoxon(participant_means, zero_method='pratt'), two-sided, default method",
             "sign_test": "exact two-sided binomial test on the signs of participant means, zeros dropped",
             "ci95": "Student t interval of the mean of participant means",
