@@ -1,9 +1,10 @@
 """The condition registry, the clip-set file's [[conditions]], the clip manifest's schema and version check, and a
 clip set of two made-up animation names and a subset of conditions built and rendered."""
 
-import hashlib
 import json
+import os
 import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -196,34 +197,43 @@ def test_old_or_corrupt_clip_manifest_says_rebuild(small_set, tmp_path):
         read_clip_manifest(tmp_path / "nowhere")
 
 
-#: sha256 (first 32 hex digits) over every array (name, dtype, shape, bytes) of each .npz of the default clip set,
-#: as built by commit e28bb05, before the registry (conditions were increments then).  Bit-for-bit: a change of
-#: numpy/BLAS build may move the last bit of a float and fail this on purpose; rebuild the reference then.
-BEFORE_REGISTRY = {
-    "crouch-hybrid0": "0bd54a537bf87b2836826cc9a7390ed5", "crouch-hybrid1": "194cdf115289f6a005d0902166dd002f",
-    "crouch-hybrid2": "aee826fceb45e2250b7870bf33c290d3", "crouch-keyframe": "d2119db2fc0887cd58e4b6da366abced",
-    "idle-hybrid0": "3e89cd37915e685202b2a2f12837b1f6", "idle-hybrid1": "b1c1a60b2528b956f67cfb13204c59fa",
-    "idle-hybrid2": "3fdbbbd456e9c7b1bd950c77a5a85b7f", "idle-keyframe": "1ab5d8a34cf26c6d1746ffa1e2b2713d",
-    "run-hybrid0": "d005f06f416f57ad935903c674b25a3b", "run-hybrid1": "39c4ff9d9153c4cd38fbebba410f64d0",
-    "run-hybrid2": "09a73dccdbba0ce50a7c1c8ae2411b61", "run-keyframe": "932be55c598da986df16f3b0d763feb3",
-    "walk-hybrid0": "d68fbedead27da12bf3a2f1d75137d51", "walk-hybrid1": "a2270ae31c26423199e8ac080061a963",
-    "walk-hybrid2": "5c73019b87b4895329fa86d6cb7b526f", "walk-keyframe": "b4e0d26aee89ef46f66a899bd5e35169",
-}
+#: The default clip set as accepted (the thesis's 16 clips after the stimulus-validity work): per clip and array, the
+#: shape and, for float arrays, the sum and the sum of absolute values; other arrays (joint names, parents) in full.
+#: Sums rather than a hash of the bytes: a numpy/BLAS build or a CPU with other vector units moves the last bits of
+#: the floats (a byte hash failed on a fresh install with numpy 2.4.6), while any real change of a clip moves a sum
+#: far beyond the tolerance.  Rewrite it with `ANIMSTUDY_WRITE_REFERENCE=1 pytest -k accepted_clip_set` only when a
+#: change of the clips is intended, and say so in the commit.
+ACCEPTED_CLIPS = Path(__file__).parent / "reference" / "thesis_clips.json"
 
 
-def test_default_clip_set_arrays_are_bit_identical_to_before_the_registry(data, tmp_path):
-    write_clip_set(build_clip_set(data), tmp_path)
-    digests = {}
-    for path in sorted(tmp_path.glob("*.npz")):
-        h = hashlib.sha256()
+def _clip_fingerprints(folder: Path) -> dict[str, dict[str, dict[str, object]]]:
+    out: dict[str, dict[str, dict[str, object]]] = {}
+    for path in sorted(folder.glob("*.npz")):
         with np.load(path) as arrays:
-            for name in sorted(arrays.files):
-                a = arrays[name]
-                h.update(name.encode())
-                h.update(str(a.dtype).encode() + str(a.shape).encode())
-                h.update(np.ascontiguousarray(a).tobytes())
-        digests[path.stem] = h.hexdigest()[:32]
-    assert digests == BEFORE_REGISTRY
+            out[path.stem] = {
+                name: ({"shape": list(a.shape), "sum": float(a.sum()), "abs_sum": float(np.abs(a).sum())}
+                       if a.dtype.kind == "f" else {"shape": list(a.shape), "values": a.tolist()})
+                for name, a in ((n, arrays[n]) for n in sorted(arrays.files))}
+    return out
+
+
+def test_default_clip_set_equals_the_accepted_clip_set(data, tmp_path):
+    write_clip_set(build_clip_set(data), tmp_path)
+    got = _clip_fingerprints(tmp_path)
+    if os.environ.get("ANIMSTUDY_WRITE_REFERENCE") == "1":
+        ACCEPTED_CLIPS.write_text(json.dumps(got, indent=1) + "\n")
+    accepted = json.loads(ACCEPTED_CLIPS.read_text())
+    assert sorted(got) == sorted(accepted)
+    for clip, arrays in accepted.items():
+        assert sorted(got[clip]) == sorted(arrays), clip
+        for name, want in arrays.items():
+            have = got[clip][name]
+            assert have["shape"] == want["shape"], (clip, name)
+            if "values" in want:
+                assert have["values"] == want["values"], (clip, name)
+            else:  # float64 sums of up to ~10^4 values: last-bit noise is ~1e-12 relative
+                assert have["sum"] == pytest.approx(want["sum"], rel=1e-9, abs=1e-9), (clip, name)
+                assert have["abs_sum"] == pytest.approx(want["abs_sum"], rel=1e-9, abs=1e-9), (clip, name)
 
 
 def test_render_manifest_round_trip_and_version_check(tmp_path):
