@@ -259,6 +259,11 @@ def read_gltf(path: str | os.PathLike[str], fps: float = 30.0) -> GltfAsset:
         a = prim.attributes
         if a.POSITION is None or a.JOINTS_0 is None or a.WEIGHTS_0 is None:
             raise r.fail(f"mesh primitive {p} lacks POSITION, JOINTS_0 or WEIGHTS_0")
+        extra = sorted(k for k, v in vars(a).items() if v is not None and k.startswith(("JOINTS_", "WEIGHTS_"))
+                       and k.split("_")[-1].isdigit() and int(k.split("_")[-1]) >= 2)
+        if extra:
+            raise r.fail(f"mesh primitive {p} has more than {MAX_INFLUENCES} influences per vertex ({extra[0]}); "
+                         f"at most {MAX_INFLUENCES} (JOINTS_0/1, WEIGHTS_0/1) are supported")
         v = r.accessor(a.POSITION, f"primitive {p} positions")
         n_v = len(v)
         idx = r.accessor(prim.indices, f"primitive {p} indices").astype(np.intp).reshape(-1) \

@@ -520,6 +520,36 @@ def detect_units(height: float) -> str:
                       f"units; give the units explicitly")
 
 
+def canonical_frame(rest_positions: Array, source_index: NDArray[np.intp], up_axis: str | None = None,
+                    units: str | None = None) -> tuple[Array, str, str, float]:
+    """The turn that brings a source skeleton into the canonical world (Y up, its left at +X), and its units.
+
+    ``rest_positions``: ``(J, 3)`` source joint positions at rest; ``source_index``: a :class:`RigMapping`'s
+    ``source_index``; ``up_axis``/``units`` override the detection.  Returns ``(world, up_axis, units, facing)``:
+    ``world`` the quaternion (w, x, y, z) to apply to source positions, ``facing`` the turn about up (radians).
+    """
+    idx = source_index
+    hips, head = idx[0], idx[CANONICAL_NAMES.index("Head")]
+    if up_axis is None:
+        up_axis = detect_up_axis(rest_positions, head, hips)
+    if up_axis not in ("y", "z"):
+        raise RigMapError(f"up axis must be 'y' or 'z', got {up_axis!r}")
+    # World change to Y up: Z up (x, y, z) -> (x, z, -y) is a -90 degree turn about x.
+    to_y = identity() if up_axis == "y" else quat_from_axis_angle(np.array([1.0, 0.0, 0.0]), -np.pi / 2)
+    p = rotate(to_y, rest_positions)
+    left = p[idx[CANONICAL_NAMES.index("LeftUpLeg")]] - p[idx[CANONICAL_NAMES.index("RightUpLeg")]]
+    # Rigs are authored facing along an axis: the turn is snapped to quarter turns so that a subject's slight
+    # asymmetry does not turn the motion.
+    facing = float(np.round(np.arctan2(left[2], left[0]) / (np.pi / 2)) * (np.pi / 2))
+    world = quat_mul(quat_from_axis_angle(np.array([0.0, 1.0, 0.0]), facing), to_y)
+    height = float(np.ptp(rotate(world, rest_positions)[:, 1]))
+    if units is None:
+        units = detect_units(height)
+    if units not in UNITS:
+        raise RigMapError(f"units must be one of {', '.join(UNITS)}, got {units!r}")
+    return world, up_axis, units, facing
+
+
 @dataclass(frozen=True, eq=False)
 class Normalized:
     """A source motion brought into the canonical form: ``bvh`` (CMU joints and channels, Y up, facing +Z), the
@@ -561,25 +591,9 @@ def normalize_motion(skeleton: Skeleton, rotations: Array, root_translation: Arr
         raise RigMapError(f"{source}: {exc}") from None
     idx = mapping.source_index
     rest_rot, rest_pos = skeleton.rest_global()
-    hips, head = idx[0], idx[CANONICAL_NAMES.index("Head")]
-    if up_axis is None:
-        up_axis = detect_up_axis(rest_pos, head, hips)
-    if up_axis not in ("y", "z"):
-        raise RigMapError(f"up axis must be 'y' or 'z', got {up_axis!r}")
-    # World change to Y up: Z up (x, y, z) -> (x, z, -y) is a -90 degree turn about x.
-    to_y = identity() if up_axis == "y" else quat_from_axis_angle(np.array([1.0, 0.0, 0.0]), -np.pi / 2)
-    p = rotate(to_y, rest_pos)
-    left = p[idx[CANONICAL_NAMES.index("LeftUpLeg")]] - p[idx[CANONICAL_NAMES.index("RightUpLeg")]]
-    # Rigs are authored facing along an axis: the turn is snapped to quarter turns so that a subject's slight
-    # asymmetry does not turn the motion.
-    facing = float(np.round(np.arctan2(left[2], left[0]) / (np.pi / 2)) * (np.pi / 2))
-    world = quat_mul(quat_from_axis_angle(np.array([0.0, 1.0, 0.0]), facing), to_y)
+    world, up_axis, units, facing = canonical_frame(rest_pos, idx, up_axis, units)
     p = rotate(world, rest_pos)
-    height = float(np.ptp(p[:, 1]))
-    if units is None:
-        units = detect_units(height)
-    if units not in UNITS:
-        raise RigMapError(f"units must be one of {', '.join(UNITS)}, got {units!r}")
+    hips = idx[0]
 
     g_rot, g_pos = skeleton.forward_kinematics(rotations, root_translation)
     # Source global rotation with its rest removed, in the new world: W G G0^-1 W^-1.

@@ -18,6 +18,9 @@ from pathlib import Path
 
 from anim_core.bvh import Bvh, BvhError, read_bvh
 from anim_core.character import Character, CharacterError, load_character
+from anim_core.gltf import GltfError, read_gltf
+from anim_core.gltf_character import MappedCharacter, character_from_gltf
+from anim_core.rigmap import RigMapError, read_mapping_file
 
 #: path in the data directory (as mirrored, gzip-compressed where marked) -> sha256 of the uncompressed content
 CHECKSUMS: dict[str, str] = {
@@ -70,12 +73,17 @@ def read_bytes(path: Path) -> bytes:
         raise AssetError(f"cannot read {path}: {exc} (corrupt file?)") from None
 
 
+def sha256_content(path: Path) -> str:
+    """Checksum of a data file's uncompressed content (what :data:`CHECKSUMS` lists)."""
+    return hashlib.sha256(read_bytes(path)).hexdigest()
+
+
 def verify(data_dir: Path, name: str) -> Path:
     """Resolve ``name`` and check its content against :data:`CHECKSUMS` (names not listed are not checked)."""
     path = resolve(data_dir, name)
     expected = CHECKSUMS.get(name) or CHECKSUMS.get(f"{name}.gz")
     if expected is not None:
-        actual = hashlib.sha256(read_bytes(path)).hexdigest()
+        actual = sha256_content(path)
         if actual != expected:
             raise AssetError(f"{path} is corrupt or a different version: sha256 of its content is {actual}, "
                              f"expected {expected}")
@@ -88,6 +96,41 @@ def character(data_dir: Path) -> Character:
         return load_character(*(verify(data_dir, name) for name in CHARACTER_FILES))
     except CharacterError as exc:
         raise AssetError(str(exc)) from None
+
+
+def sha256(path: Path) -> str:
+    """Checksum of a file's content as stored (a glTF or mapping file is hashed as is)."""
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError as exc:
+        raise AssetError(f"cannot read {path}: {exc}") from None
+
+
+def user_file(data_dir: Path, name: str, what: str) -> Path:
+    """A file the clip-set file names: ``name`` under the data directory, or an absolute path."""
+    path = check_data_dir(data_dir) / name  # an absolute name stays itself
+    if not path.is_file():
+        raise AssetError(f"{what} file {path} does not exist (a path under the data directory {data_dir} or an "
+                         f"absolute path)")
+    return path
+
+
+def gltf_character(data_dir: Path, gltf: str, mapping: str | None = None, units: str | None = None,
+                   up_axis: str | None = None) -> MappedCharacter:
+    """A skinned glTF character (README: "A glTF character"); every error names the file."""
+    path = user_file(data_dir, gltf, "glTF character")
+    explicit = None
+    if mapping is not None:
+        mapping_path = user_file(data_dir, mapping, "joint mapping")
+        try:
+            explicit = read_mapping_file(mapping_path)
+        except RigMapError as exc:
+            raise AssetError(str(exc)) from None
+    try:
+        return character_from_gltf(read_gltf(path), explicit, units, up_axis)
+    except (GltfError, CharacterError) as exc:
+        # The message starts with the file's name; give its folder too.
+        raise AssetError(f"glTF character {path.parent}/{exc}") from None
 
 
 def motion(data_dir: Path, name: str) -> Bvh:

@@ -3,8 +3,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from anim_core.bvh import BvhError
 from anim_core.character import Character
@@ -12,7 +14,42 @@ from anim_core.clipset import AnimationConfig, BuiltClip, Source, build_animatio
 from server import assets
 from server.assets import AssetError
 
-from .config import ClipSetConfig, load_config
+from .config import CharacterConfig, ClipSetConfig, load_config
+
+
+def character_files(data_dir: Path, config: CharacterConfig) -> dict[str, str]:
+    """``{file name: sha256}`` of the files the character is made from (MakeHuman: verified content checksums)."""
+    if config.gltf is None:
+        return {name: assets.sha256_content(assets.verify(data_dir, name)) for name in assets.CHARACTER_FILES}
+    names = [config.gltf] + ([config.mapping] if config.mapping else [])
+    return {name: assets.sha256(assets.user_file(data_dir, name, "character")) for name in names}
+
+
+def load_character(data_dir: Path, config: CharacterConfig,
+                   progress: Callable[[str], None] = lambda _msg: None) -> tuple[Character, dict[str, Any]]:
+    """The clip set's character and its record for the clip manifest (``character`` there: which files, with
+    their checksums, the clips were built for; :func:`character_of_record` loads it again)."""
+    files = character_files(data_dir, config)
+    if config.gltf is None:
+        return assets.character(data_dir), {"files": files}
+    mapped = assets.gltf_character(data_dir, config.gltf, config.mapping, config.units, config.up_axis)
+    folded = sorted(set(mapped.folded.values()))
+    progress(f"character {config.gltf}: {mapped.mapping.convention} names, {mapped.units}, {mapped.up_axis} up; "
+             f"{len(mapped.mapping.unmapped)} joints unmapped" + (f", their weights folded into {', '.join(folded)}"
+                                                                 if folded else ""))
+    return mapped.character, {**dataclasses.asdict(config), "files": files}
+
+
+def record_config(data_dir: Path, record: dict[str, Any]) -> CharacterConfig:
+    """The character configuration of a clip manifest's ``character`` record, its files checked against the
+    recorded checksums (a file changed since the clips were built is an error saying to rebuild them)."""
+    config = CharacterConfig(**{k: v for k, v in record.items() if k != "files"})
+    current = character_files(data_dir, config)
+    changed = [name for name, digest in record["files"].items() if current.get(name) != digest]
+    if changed:
+        raise AssetError(f"the character file {changed[0]} changed since the clip set was built; rebuild it "
+                         f"(`animstudy clips build`)")
+    return config
 
 
 def load_source(data_dir: Path, character: Character, config: AnimationConfig, relocate: tuple[str, ...]) -> Source:
@@ -31,10 +68,11 @@ def build_clip_set(data_dir: Path, config: ClipSetConfig | None = None,
     config = config or load_config()
     assets.check_data_dir(data_dir)
     progress("loading the character")
-    character = assets.character(data_dir)
+    character, record = load_character(data_dir, config.character, progress)
     clips: list[BuiltClip] = []
     for k, (name, cfg) in enumerate(config.animations.items(), 1):
         progress(f"[{k}/{len(config.animations)}] {name}: {cfg.source}")
         source = load_source(data_dir, character, cfg, config.relocate)
         clips.extend(build_animation(source, config.fps, config.conditions, progress))
-    return clips
+    # Every clip records the character it was built for; the manifest keeps it once (``character``).
+    return [dataclasses.replace(c, source={**c.source, "character": record}) for c in clips]

@@ -12,6 +12,7 @@ from typing import Any
 from anim_core.clip import PLAYBACK_MODES
 from anim_core.clipset import AnimationConfig, ConfigError
 from anim_core.conditions import REFERENCE, Condition, ConditionError
+from anim_core.rigmap import UNITS
 
 DEFAULT_CONFIG = Path(__file__).with_name("thesis.toml")
 KINDS = ("gait", "crouch", "idle")
@@ -20,11 +21,24 @@ NAME = re.compile(r"^[a-z0-9][a-z0-9_]{0,31}$")
 
 
 @dataclass(frozen=True)
+class CharacterConfig:
+    """``[character]``'s choice of body: ``gltf`` None is the MakeHuman character of the data directory, else a
+    skinned glTF file (path under the data directory or absolute) with an optional explicit joint ``mapping``
+    file and ``units``/``up_axis`` overrides (README: "A glTF character")."""
+
+    gltf: str | None = None
+    mapping: str | None = None
+    units: str | None = None
+    up_axis: str | None = None
+
+
+@dataclass(frozen=True)
 class ClipSetConfig:
     fps: int
     relocate: tuple[str, ...]
     animations: dict[str, AnimationConfig]
     conditions: tuple[Condition, ...]
+    character: CharacterConfig = CharacterConfig()
 
 
 def _frames(value: Any, where: str, count: int | None = None) -> tuple[int, ...]:
@@ -65,6 +79,33 @@ def _animation(name: str, entry: Any, where: str) -> AnimationConfig:
         name, kind, entry["source"], _frames(entry.get("frames"), f"{where} frames", 2), playback, in_place,
         None if keys is None else _frames(keys, f"{where} keys", 2),
         None if cycle is None else _frames(cycle, f"{where} cycle", 2))  # type: ignore[arg-type]
+
+
+def _character(raw: Any, path: Path) -> tuple[tuple[str, ...], CharacterConfig]:
+    where = f"{path} [character]"
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{where} must be a table")
+    known = {"relocate", "gltf", "mapping", "units", "up_axis"}
+    if unknown := sorted(set(raw) - known):
+        raise ConfigError(f"{where}: unknown field {unknown[0]!r}; allowed: {', '.join(sorted(known))}")
+    relocate = raw.get("relocate", [])
+    if not isinstance(relocate, list) or not all(isinstance(r, str) for r in relocate):
+        raise ConfigError(f"{where}: relocate must be a list of joint names")
+    for field in ("gltf", "mapping"):
+        value = raw.get(field)
+        if value is not None and (not isinstance(value, str) or not value.strip()):
+            raise ConfigError(f"{where}: {field} must be a file path (under the data directory or absolute)")
+    gltf = raw.get("gltf")
+    if gltf is not None and not gltf.lower().endswith((".glb", ".gltf")):
+        raise ConfigError(f"{where}: gltf must name a .glb or .gltf file, got {gltf!r}")
+    units, up_axis = raw.get("units"), raw.get("up_axis")
+    if units is not None and units not in UNITS:
+        raise ConfigError(f"{where}: units must be one of {', '.join(UNITS)}, got {units!r}")
+    if up_axis is not None and up_axis not in ("y", "z"):
+        raise ConfigError(f"{where}: up_axis must be 'y' or 'z', got {up_axis!r}")
+    if gltf is None and any(raw.get(f) is not None for f in ("mapping", "units", "up_axis")):
+        raise ConfigError(f"{where}: mapping, units and up_axis describe a glTF character; give gltf too")
+    return tuple(relocate), CharacterConfig(gltf, raw.get("mapping"), units, up_axis)
 
 
 def _conditions(raw: Any, path: Path) -> tuple[Condition, ...]:
@@ -119,12 +160,9 @@ def load_config(path: Path = DEFAULT_CONFIG) -> ClipSetConfig:
     fps = raw.get("fps", 30)
     if not isinstance(fps, int) or isinstance(fps, bool) or not 1 <= fps <= 240:
         raise ConfigError(f"{path}: fps must be a whole number of frames per second (1..240), got {fps!r}")
-    character = raw.get("character", {})
-    relocate = character.get("relocate", []) if isinstance(character, dict) else None
-    if not isinstance(relocate, list) or not all(isinstance(r, str) for r in relocate):
-        raise ConfigError(f"{path} [character]: relocate must be a list of joint names")
+    relocate, character = _character(raw.get("character", {}), path)
     table = raw.get("animations")
     if not isinstance(table, dict) or not table:
         raise ConfigError(f"{path}: [animations.<name>] must describe at least one animation")
     animations = {name: _animation(name, entry, f"{path} [animations.{name}]") for name, entry in table.items()}
-    return ClipSetConfig(fps, tuple(relocate), animations, _conditions(raw.get("conditions"), path))
+    return ClipSetConfig(fps, relocate, animations, _conditions(raw.get("conditions"), path), character)

@@ -58,9 +58,23 @@ class ClipEntry(_Model):
     file: str
 
 
+class CharacterEntry(_Model):
+    """The character the clips were built for: ``gltf`` None is the MakeHuman character, else the glTF file (as the
+    clip-set file names it) with its ``mapping`` file and ``units``/``up_axis`` overrides; ``files``: sha256 of
+    each file it was made from (the renderer refuses files that changed since)."""
+
+    gltf: str | None = None
+    mapping: str | None = None
+    units: str | None = None
+    up_axis: str | None = None
+    files: dict[str, str]
+
+
 class ClipManifest(_Model):
     version: Literal[2] = VERSION
     units: Units = Units()
+    #: None in manifests written before it was recorded: those were all built for the MakeHuman character.
+    character: CharacterEntry | None = None
     clips: list[ClipEntry]
 
     def clip(self, animation: str, condition: str) -> ClipEntry | None:
@@ -71,14 +85,19 @@ def entry(c: BuiltClip) -> ClipEntry:
     return ClipEntry(id=c.id, animation=c.animation, kind=c.kind, condition=c.condition, method=c.method,
                      params=c.params, key_count=int(c.key_times.size), duration_s=c.duration_s, fps=c.fps,
                      frames=c.n_frames, playback=c.playback, in_place=c.in_place, root_speed_mps=c.root_speed_mps,
-                     metrics=c.metrics, source=c.source, file=f"{c.id}.npz")
+                     metrics=c.metrics, source={k: v for k, v in c.source.items() if k != "character"},
+                     file=f"{c.id}.npz")
 
 
 def write_clip_set(clips: list[BuiltClip], out: Path) -> Path:
     """Write ``<id>.npz`` per clip and ``manifest.json``; returns the manifest path."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    manifest = ClipManifest(clips=[entry(c) for c in clips])
+    records = [c.source.get("character") for c in clips]
+    if any(r != records[0] for r in records):
+        raise ValueError("the clips of one clip set were built for different characters")
+    character = CharacterEntry.model_validate(records[0]) if records and records[0] else None
+    manifest = ClipManifest(character=character, clips=[entry(c) for c in clips])
     for c in clips:
         np.savez_compressed(out / f"{c.id}.npz", **c.arrays())
     return write_json(out / MANIFEST, manifest)

@@ -27,7 +27,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from server import assets
-from server.assets import CHARACTER_FILES
+from server.assets import AssetError
+from server.clipset.build import record_config
+from server.clipset.config import CharacterConfig
 from server.clipset.manifest import ManifestError, read_clip_manifest
 
 from .manifest import RenderedClip, RenderedPair, RenderManifest, write_render_manifest
@@ -94,6 +96,7 @@ class AnimationJob:
     grid_spacing_m: float
     out_dir: Path
     n_frames: int = field(default=0)
+    character: CharacterConfig = field(default=CharacterConfig())
 
 
 def _digest_arrays(path: Path) -> str:
@@ -173,7 +176,14 @@ def plan(data_dir: Path, clips_dir: Path, out_dir: Path, settings: RenderSetting
             raise MediaError(f"pair ({left}, {right}) names a clip that is not in the clip set")
         if clips[left].animation != clips[right].animation or clips[left].frames != clips[right].frames:
             raise MediaError(f"pair ({left}, {right}) joins clips of different animations or lengths")
-    character = [hashlib.sha256(assets.read_bytes(assets.verify(data_dir, f))).hexdigest() for f in CHARACTER_FILES]
+    try:
+        record = read_clip_manifest(clips_dir).character
+        body = CharacterConfig() if record is None else record_config(data_dir, record.model_dump())
+        # MakeHuman keeps its old key (the files' checksums), so its videos stay valid.
+        character: Any = [assets.sha256_content(assets.verify(data_dir, f)) for f in assets.CHARACTER_FILES] \
+            if body.gltf is None else record.model_dump()  # type: ignore[union-attr]
+    except AssetError as exc:
+        raise MediaError(str(exc)) from None
     jobs, clip_outputs, pair_outputs = [], {}, {}
     for animation in dict.fromkeys(c.animation for c in clips.values()):
         group = {i: c for i, c in clips.items() if c.animation == animation}
@@ -196,7 +206,7 @@ def plan(data_dir: Path, clips_dir: Path, out_dir: Path, settings: RenderSetting
         if missing:
             n_frames = sum(_rendered_frames(clips[i]) for i in {i for o in missing for i in o.clips})
             jobs.append(AnimationJob(animation, data_dir, group, missing, settings, framing, spacing, out_dir,
-                                     n_frames))
+                                     n_frames, body))
     return Plan(sorted(jobs, key=lambda j: -j.n_frames), clip_outputs, pair_outputs, clips)
 
 
@@ -216,8 +226,11 @@ def _release_memory() -> None:
 
 
 @functools.cache
-def _character(data_dir: Path) -> Character:
-    return assets.character(data_dir)  # once per worker process, not per job
+def _character(data_dir: Path, config: CharacterConfig) -> Character:
+    """The clip set's character, once per worker process, not per job."""
+    if config.gltf is None:
+        return assets.character(data_dir)
+    return assets.gltf_character(data_dir, config.gltf, config.mapping, config.units, config.up_axis).character
 
 
 def run_job(job: AnimationJob) -> list[tuple[str, float]]:
@@ -230,7 +243,7 @@ def run_job(job: AnimationJob) -> list[tuple[str, float]]:
     started = time.perf_counter()
     arrays = {i: dict(np.load(c.path)) for i, c in job.clips.items()}
     first = next(iter(arrays.values()))
-    character = _character(job.data_dir)
+    character = _character(job.data_dir, job.character)
     mesh = bind_mesh(character, [str(n) for n in first["joint_names"]], first["bind_rotations"],
                      first["bind_positions"])
     everything = np.concatenate([a["world_positions"].reshape(-1, 3) for a in arrays.values()])
