@@ -144,7 +144,8 @@ _ROLE_STEMS: dict[str, tuple[str, ...]] = {
     "hand": ("hand", "wrist"),
     "thumb": ("thumb", "thumb1", "thumb01", "handthumb"),
     "fingerbase": ("fingerbase", "palm", "handpalm", "hand", "metacarpal"),  # looked for below the hand only
-    "index": ("handindex1", "index", "index1", "index01", "indexfinger1", "finger", "handindex", "findex"),
+    "index": ("handindex1", "index", "index1", "index01", "indexfinger1", "finger", "handindex", "findex",
+              "handfinger"),  # "handfinger": the MakeHuman cmu_mb rig's LeftHandFinger1
 }
 _CENTRAL_HIPS = ("hips", "hip", "pelvis")
 _CENTRAL_HEAD = ("head",)

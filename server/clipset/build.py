@@ -21,8 +21,8 @@ def character_files(data_dir: Path, config: CharacterConfig) -> dict[str, str]:
     """``{file name: sha256}`` of the files the character is made from (MakeHuman: verified content checksums)."""
     if config.gltf is None:
         return {name: assets.sha256_content(assets.verify(data_dir, name)) for name in assets.CHARACTER_FILES}
-    names = [config.gltf] + ([config.mapping] if config.mapping else [])
-    return {name: assets.sha256(assets.user_file(data_dir, name, "character")) for name in names}
+    names = {config.gltf: "glTF character"} | ({config.mapping: "joint mapping"} if config.mapping else {})
+    return {name: assets.sha256(assets.user_file(data_dir, name, what)) for name, what in names.items()}
 
 
 def load_character(data_dir: Path, config: CharacterConfig,
