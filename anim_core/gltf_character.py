@@ -12,7 +12,8 @@ Nothing here opens a file (``server.assets`` finds and reads it); every failure 
 - **Units and up axis**: detected from the skeleton's stature and the head-over-hips axis
   (:func:`~anim_core.rigmap.canonical_frame`), or given; the character is turned (quarter turns) so its left is +X.
 - **Joints the canonical skeleton has and the rig lacks** (``LHipJoint``, ``LowerBack``, finger bases, ...) are
-  placed evenly on the segment between their mapped neighbours (a missing leaf: towards the parent's tail, see
+  placed where the CMU skeleton has them: on their parent for those with a zero offset there (:data:`ON_PARENT`),
+  else evenly on the segment between their mapped neighbours (a missing leaf: towards the parent's tail, see
   below); nothing is weighted to them.
 - **Leaf joints' tails** (their bone direction, which the mocap's End Sites give): the farthest child joint of the
   mapped source joint (``HeadTop_End``, ``LeftToe_End``, the next finger joint); for a joint without children,
@@ -43,6 +44,10 @@ Array = NDArray[np.float64]
 #: The character's joint names: the canonical ones, spelt as the MakeHuman rig spells them (what
 #: :func:`~anim_core.character.retarget` and :func:`~anim_core.character.bind_mesh` look up by default).
 RIG_NAMES: tuple[str, ...] = tuple(CMU_TO_RIG.get(n, n) for n in CANONICAL_NAMES)
+#: Joints that sit on their parent in the CMU skeleton (zero offset; the bone below them carries the length): a rig
+#: without them gets them there, as the motion has them.
+ON_PARENT = frozenset(("LHipJoint", "RHipJoint", "LowerBack", "Neck", "LeftShoulder", "RightShoulder",
+                       "LeftFingerBase", "RightFingerBase", "LThumb", "RThumb"))
 LEAF_EXTENSION = 0.5  # a childless leaf's bone: this share of its parent bone's length, continuing it
 
 
@@ -75,9 +80,10 @@ def _bind_positions(asset: GltfAsset) -> Array:
 
 
 def _fill_missing(heads: Array, tails: Array, mapped: NDArray[np.bool_]) -> None:
-    """Place canonical joints with no source joint (in place): evenly between the mapped ancestor and the mapped
-    joint below them along the canonical chain, or, for a chain ending in a missing leaf, towards the ancestor's
-    tail."""
+    """Place canonical joints with no source joint (in place), down each chain of missing joints from its mapped
+    ancestor: joints that sit on their parent in the CMU skeleton (:data:`ON_PARENT`) on the joint above, the
+    others evenly on the segment to the mapped joint below them, or, for a chain ending in a leaf, to the
+    ancestor's tail."""
     children = [np.flatnonzero(CANONICAL_PARENTS == c) for c in range(len(CANONICAL_NAMES))]
     for c in range(len(CANONICAL_NAMES)):  # 31 joints, once per character
         if mapped[c] or not mapped[CANONICAL_PARENTS[c]]:
@@ -88,10 +94,12 @@ def _fill_missing(heads: Array, tails: Array, mapped: NDArray[np.bool_]) -> None
             chain.append(int(children[chain[-1]][0]))
         below = children[chain[-1]]
         end = heads[below[0]] if len(below) else tails[a]
-        steps = len(chain) + 1
-        for k, j in enumerate(chain, 1):
-            heads[j] = heads[a] + (end - heads[a]) * k / steps
-            tails[j] = heads[a] + (end - heads[a]) * (k + 1) / steps
+        on_parent = np.array([CANONICAL_NAMES[j] in ON_PARENT for j in chain])
+        steps = np.cumsum(~on_parent)
+        for j, k in zip(chain, steps, strict=True):
+            heads[j] = heads[a] + (end - heads[a]) * k / (steps[-1] + 1)
+        for j in chain:
+            tails[j] = end if not len(children[j]) else heads[children[j][0]]
         mapped[chain] = True
 
 
