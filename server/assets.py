@@ -1,8 +1,9 @@
 """The source data files: where they are in the data directory, what their content must be, and loading them.
 
 anim_core opens no data directory: its loaders take file paths (:func:`anim_core.character.load_character`,
-:func:`anim_core.bvh.read_bvh`); this module finds and verifies those files and turns the loaders' errors into
-:class:`AssetError` naming the file.
+:func:`anim_core.bvh.read_bvh`, :func:`anim_core.gltf.read_gltf`); this module finds and verifies those files
+and turns the loaders' errors into :class:`AssetError` naming the file.  A glTF character (and its mapping file)
+is a user's file named by the clip-set file: under the data directory or absolute, not checksum-listed.
 
 The repository ships them in ``data/`` (see its README for origins and licenses); the server reads them from the
 data directory of its settings (``ANIMSTUDY_DATA_DIR``, default that folder).  Each file may be stored

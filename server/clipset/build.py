@@ -1,5 +1,6 @@
-"""Building a clip set from the data directory: the character and each animation's motion file, verified
-(:mod:`server.assets`), turned into clips by anim_core (:func:`anim_core.clipset.build_animation`)."""
+"""Building a clip set from the data directory: the character (MakeHuman, or the clip-set file's glTF) and each
+animation's motion file, verified (:mod:`server.assets`), turned into clips by anim_core
+(:func:`anim_core.clipset.build_animation`); each clip's ``source`` records the character it was built for."""
 
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ def character_files(data_dir: Path, config: CharacterConfig) -> dict[str, str]:
 def load_character(data_dir: Path, config: CharacterConfig,
                    progress: Callable[[str], None] = lambda _msg: None) -> tuple[Character, dict[str, Any]]:
     """The clip set's character and its record for the clip manifest (``character`` there: which files, with
-    their checksums, the clips were built for; :func:`character_of_record` loads it again)."""
+    their checksums, the clips were built for; :func:`record_config` reads it back)."""
     files = character_files(data_dir, config)
     if config.gltf is None:
         return assets.character(data_dir), {"files": files}
@@ -40,16 +41,19 @@ def load_character(data_dir: Path, config: CharacterConfig,
     return mapped.character, {**dataclasses.asdict(config), "files": files}
 
 
-def record_config(data_dir: Path, record: dict[str, Any]) -> CharacterConfig:
-    """The character configuration of a clip manifest's ``character`` record, its files checked against the
-    recorded checksums (a file changed since the clips were built is an error saying to rebuild them)."""
+def record_config(data_dir: Path, record: dict[str, Any] | None) -> tuple[CharacterConfig, dict[str, str]]:
+    """The character configuration of a clip manifest's ``character`` record (None: the MakeHuman character,
+    as in manifests from before it was recorded) and its files' checksums, checked against the recorded ones (a
+    file changed since the clips were built is an error saying to rebuild them)."""
+    if record is None:
+        return CharacterConfig(), character_files(data_dir, CharacterConfig())
     config = CharacterConfig(**{k: v for k, v in record.items() if k != "files"})
     current = character_files(data_dir, config)
     changed = [name for name, digest in record["files"].items() if current.get(name) != digest]
     if changed:
         raise AssetError(f"the character file {changed[0]} changed since the clip set was built; rebuild it "
                          f"(`animstudy clips build`)")
-    return config
+    return config, current
 
 
 def load_source(data_dir: Path, character: Character, config: AnimationConfig, relocate: tuple[str, ...]) -> Source:

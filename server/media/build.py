@@ -178,12 +178,11 @@ def plan(data_dir: Path, clips_dir: Path, out_dir: Path, settings: RenderSetting
             raise MediaError(f"pair ({left}, {right}) joins clips of different animations or lengths")
     try:
         record = read_clip_manifest(clips_dir).character
-        body = CharacterConfig() if record is None else record_config(data_dir, record.model_dump())
-        # MakeHuman keeps its old key (the files' checksums), so its videos stay valid.
-        character: Any = [assets.sha256_content(assets.verify(data_dir, f)) for f in assets.CHARACTER_FILES] \
-            if body.gltf is None else record.model_dump()  # type: ignore[union-attr]
+        body, files = record_config(data_dir, None if record is None else record.model_dump())
     except AssetError as exc:
         raise MediaError(str(exc)) from None
+    # MakeHuman keeps its old key (its files' checksums), so its videos stay valid.
+    character: Any = list(files.values()) if body.gltf is None else {**asdict(body), "files": files}
     jobs, clip_outputs, pair_outputs = [], {}, {}
     for animation in dict.fromkeys(c.animation for c in clips.values()):
         group = {i: c for i, c in clips.items() if c.animation == animation}
