@@ -25,14 +25,15 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import CubicSpline
 
 from .clip import KeyframeClip, PlaybackMode, Pose, playback_time
-from .contacts import CONTACT_CLEARANCE_M, foot_down
-from .footplant import foot_targets
+from .contacts import CONTACT_CLEARANCE_M, SKATE_SPEED_MPS, contact_intervals, foot_down, foot_speed, interval_mask
+from .footplant import _smoothstep, foot_targets
 from .hybrid import HybridClip
-from .ik import two_bone_ik
+from .ik import hinge_axis, two_bone_ik
 from .skeleton import Skeleton
 
 Array = NDArray[np.float64]
 ContactSource = Literal["reference", "union"]
+SOFT_REACH = 0.005  # the legs' soft IK starts this fraction of their reach short of full extension
 
 
 def _travel(clip: HybridClip, t: Array) -> Array:
@@ -48,13 +49,18 @@ def _travel(clip: HybridClip, t: Array) -> Array:
 class FootLockedClip:
     """``base`` (a hybrid clip) with the legs ``legs`` ((hip, knee, ankle) per foot) solved each frame towards
     ``targets (T, F, 3)`` with ``weights (T, F)``, one period of ``T`` frames at ``fps`` (a loop's frames wrap, a
-    ping-pong clip's span ``0..duration``); targets are relative to the root without its travel."""
+    ping-pong clip's span ``0..duration``); targets are relative to the root without its travel.  ``hinges
+    (F, 3)``: each knee's hinge in its local frame (:func:`anim_core.ik.hinge_axis`), so a knee near straight
+    never flips; ``soft``: the IK's soft reach (:func:`anim_core.ik.two_bone_ik`), so a leg passing full
+    extension does not kink."""
 
     base: HybridClip
     legs: tuple[tuple[int, int, int], ...]
     fps: float
     targets: Array
     weights: Array
+    hinges: Array
+    soft: float = 0.0
 
     @property
     def skeleton(self) -> Skeleton:
@@ -108,13 +114,101 @@ class FootLockedClip:
         root = pose.root_translation - _travel(self.base, t)
         rot = pose.rotations
         for leg, chain in enumerate(self.legs):  # two legs
-            rot = two_bone_ik(self.skeleton, rot, root, chain, target_t[..., leg, :], weight=weight_t[..., leg])
+            rot = two_bone_ik(self.skeleton, rot, root, chain, target_t[..., leg, :], weight=weight_t[..., leg],
+                              hinge=self.hinges[leg], soft=self.soft)
         return Pose(rot, pose.root_translation)
+
+
+def steps(down: ArrayLike, speed: ArrayLike, periodic: bool, rest_speed: float = SKATE_SPEED_MPS) -> NDArray[np.bool_]:
+    """``(T, F)`` the contact frames ``down (T, F)`` that belong to a step: a contact phase in which the foot's
+    slowest joint gets down to ``rest_speed`` m/s (``speed (T, F)``, :func:`anim_core.contacts.foot_speed`) at
+    least once.  A phase in which the foot never slows so far is a swing passing low over the floor (a skim),
+    and holding it would drag the swinging foot back."""
+    d = np.asarray(down, dtype=bool)
+    v = np.asarray(speed, dtype=np.float64)
+    out = np.zeros_like(d)
+    n = d.shape[0]
+    for f in range(d.shape[1]):  # one column per foot
+        for start, stop in contact_intervals(d[:, f], periodic):  # one per contact phase
+            frames = np.arange(start, stop) % n
+            if v[frames, f].min() <= rest_speed:
+                out[frames, f] = True
+    return out
+
+
+def joined(seeds: ArrayLike, down: ArrayLike, periodic: bool) -> NDArray[np.bool_]:
+    """``(T, F)`` ``seeds`` (the steps) grown by every run of ``down`` that overlaps one: frames where the foot is
+    down next to a step are part of it, runs of ``down`` away from every step are not."""
+    s = np.asarray(seeds, dtype=bool)
+    both = s | np.asarray(down, dtype=bool)
+    out = np.zeros_like(s)
+    n = s.shape[0]
+    for f in range(s.shape[1]):  # one column per foot
+        for start, stop in contact_intervals(both[:, f], periodic):  # one per run
+            frames = np.arange(start, stop) % n
+            if s[frames, f].any():
+                out[frames, f] = True
+    return out
+
+
+def held_frames(down: ArrayLike, periodic: bool, blend_frames: int) -> NDArray[np.bool_]:
+    """``(T, F)`` the frames a foot is held in, from its contact frames ``down (T, F)``: each contact phase grown
+    by one frame on either side, then gaps of at most ``2 * blend_frames`` frames between two phases filled.
+
+    Why: the skate measure (:func:`anim_core.contacts.foot_speed`) takes central differences, so a contact frame
+    whose neighbour is a blend frame (the foot moving as animated) gets half the animated speed however well the
+    contact frame itself is held; and two phases closer than their blends would overlap, the target switching
+    from one phase's hold to the other's in mid-blend (a pop)."""
+    d = np.array(down, dtype=bool)
+    if periodic:
+        d = d | np.roll(d, 1, axis=0) | np.roll(d, -1, axis=0)
+    else:
+        d[1:] |= np.asarray(down, dtype=bool)[:-1]
+        d[:-1] |= np.asarray(down, dtype=bool)[1:]
+    n = d.shape[0]
+    for f in range(d.shape[1]):  # one column per foot
+        if not d[:, f].any():
+            continue
+        gaps = contact_intervals(~d[:, f], periodic)
+        if not periodic:  # a gap at either end lies beside one phase only
+            gaps = gaps[(gaps[:, 0] > 0) & (gaps[:, 1] < n)]
+        d[:, f] |= interval_mask(gaps[gaps[:, 1] - gaps[:, 0] <= 2 * blend_frames], n)
+    return d
+
+
+def swing_offsets(offsets: ArrayLike, held: ArrayLike, periodic: bool, blend_frames: int) -> tuple[Array, Array]:
+    """Each foot's ankle offsets ``(T, F, 3)`` from its animated place, and IK weights ``(T, F)``, between its holds:
+    ``offsets`` are given in the held frames ``held (T, F)`` (where the hold puts the ankle, minus where the
+    animation does).  In a gap between two holds (a swing) the offset eases (smoothstep) from the first hold's
+    last offset to the next hold's first over the whole gap, at weight 1: the swing makes up the difference
+    between the two footholds, so a foot held far from its animated place is not let go in a few frames (a pop).
+    Before the first and after the last hold of a non-periodic clip, the weight eases out over ``blend_frames``."""
+    off = np.array(offsets, dtype=np.float64)
+    h = np.asarray(held, dtype=bool)
+    n = h.shape[0]
+    weights = h.astype(np.float64)
+    for f in range(h.shape[1]):  # one column per foot
+        if not h[:, f].any():
+            continue
+        for start, stop in contact_intervals(~h[:, f], periodic):  # one per gap between holds
+            frames = np.arange(start, stop) % n
+            g = stop - start
+            if periodic or (start > 0 and stop < n):
+                ease = _smoothstep(np.arange(1, g + 1) / (g + 1))[:, None]
+                first, last = off[(start - 1) % n, f], off[stop % n, f]
+                off[frames, f] = first + ease * (last - first)
+                weights[frames, f] = 1.0
+            else:  # before the first hold or after the last: fade out from the hold beside it
+                edge = stop % n if start == 0 else start - 1
+                distance = np.abs(frames - edge)
+                weights[frames, f] = _smoothstep(1.0 - distance / (blend_frames + 1))
+                off[frames, f] = off[edge, f]
+    return off, weights
 
 
 def lock_feet(base: HybridClip, reference: KeyframeClip, legs: Sequence[tuple[int, int, int]],
               feet: Sequence[Sequence[int]], fps: float, blend_frames: int = 3,
-              clearance: float = CONTACT_CLEARANCE_M, max_speed: float = 0.4, rest_speed: float = np.inf,
+              clearance: float = CONTACT_CLEARANCE_M, max_speed: float = 0.3, rest_speed: float = SKATE_SPEED_MPS,
               up_axis: int = 1, contact_source: ContactSource = "union") -> FootLockedClip:
     """The ``hybrid_ik`` clip of ``base`` with contacts detected on ``reference`` (same duration and playback).
 
@@ -137,17 +231,29 @@ def lock_feet(base: HybridClip, reference: KeyframeClip, legs: Sequence[tuple[in
     times = np.arange(n) / fps
     sk = base.skeleton
     feet_idx = np.array([[int(j) for j in foot] for foot in feet])
-    ref = reference.sample(times)
-    down = foot_down(sk.forward_kinematics(ref.rotations, ref.root_translation)[1][:, feet_idx], up_axis,
-                     clearance)
-    pose = base.sample(times)
-    if contact_source == "union":
-        down = down | foot_down(sk.forward_kinematics(*pose)[1][:, feet_idx], up_axis, clearance)
-    elif contact_source != "reference":
+    if contact_source not in ("reference", "union"):
         raise ValueError(f"contact_source must be 'reference' or 'union', got {contact_source!r}")
     velocity = np.asarray(getattr(base, "velocity", np.zeros(3)), dtype=np.float64) if loop else np.zeros(3)
+    ref = reference.sample(times)
+    ref_root = ref.root_translation - (0.0 if reference.in_place or not loop else velocity * times[:, None])
+    ref_feet = sk.forward_kinematics(ref.rotations, ref_root)[1][:, feet_idx]
+    down = steps(foot_down(ref_feet, up_axis, clearance),
+                 foot_speed(ref_feet, fps, up_axis, periodic=loop, ground_velocity=velocity), loop, rest_speed)
+    pose = base.sample(times)
     root = pose.root_translation - _travel(base, times)
-    targets, weights = foot_targets(sk, pose.rotations, root, [tuple(c) for c in legs], down, fps,
-                                    feet_idx.tolist(), periodic=loop, ground_velocity=velocity, up_axis=up_axis,
-                                    blend_frames=blend_frames, max_speed=max_speed, rest_speed=rest_speed)
-    return FootLockedClip(base, tuple(tuple(int(j) for j in c) for c in legs), float(fps), targets, weights)
+    if contact_source == "union":
+        down = joined(down, foot_down(sk.forward_kinematics(pose.rotations, root)[1][:, feet_idx], up_axis,
+                                      clearance), loop)
+    # Every step is held, however fast the hybrid's foot slides through it (rest_speed=inf): that sliding is
+    # exactly what the condition corrects.
+    held = held_frames(down, loop, blend_frames)
+    chains = [tuple(int(j) for j in c) for c in legs]
+    targets, _ = foot_targets(sk, pose.rotations, root, chains, held, fps, feet_idx.tolist(), periodic=loop,
+                              ground_velocity=velocity, up_axis=up_axis, blend_frames=0, max_speed=max_speed,
+                              rest_speed=np.inf)
+    ankles = sk.forward_kinematics(pose.rotations, root)[1][:, [c[2] for c in chains]]
+    offsets, weights = swing_offsets(targets - ankles, held, loop, blend_frames)
+    # The knees' hinges from the reference: mocap, whose knees bend well in every cycle.
+    hinges = np.array([hinge_axis(sk, ref.rotations, ref.root_translation, c) for c in chains])
+    reach = min(float(np.linalg.norm(sk.offsets[m]) + np.linalg.norm(sk.offsets[e])) for _, m, e in chains)
+    return FootLockedClip(base, tuple(chains), float(fps), ankles + offsets, weights, hinges, SOFT_REACH * reach)
