@@ -2,8 +2,9 @@
 and ``hybrid``: usable in any clip-set file as ``[[conditions]] id/method/params``.
 
 * ``hybrid_ik`` (:class:`HybridIkParams`): the hybrid of ``increment`` with locked feet (:mod:`anim_core.footlock`):
-  contacts detected on the reference (``contact_source = "reference"``) or also where the hybrid's own feet are
-  down (``"union"``, default), below ``clearance_m``; held by two-bone leg IK, blended over ``blend_frames``.
+  the steps detected on the reference (``contact_source = "reference"``), or each also grown by the hybrid's own
+  contact frames next to it (``"union"``, default), below ``clearance_m``; held by two-bone leg IK, each swing
+  making up the difference between two holds over at least ``2 * blend_frames + 1`` frames.
 * ``hybrid_c2`` (:class:`HybridC2Params`): the hybrid of ``increment`` on the C2 spline (:mod:`anim_core.c2spline`)
   through the same keys.  A crouch follows its keys with the spring, not SQUAD: at increment 0 that is one geodesic
   driven by the closed-form spring, C2 already, so its ``hybrid_c2`` is the spring hybrid itself; a crouch has no C2
@@ -35,10 +36,11 @@ EPSILON = Field(gt=0, le=45, description="largest global-rotation error of any j
 
 class HybridIkParams(Params):
     increment: int = Field(ge=0, le=4, description="extra keys per interval, as for the hybrid")
-    blend_frames: int = Field(3, ge=0, le=30, description="frames of the blend in and out at contact boundaries")
+    blend_frames: int = Field(3, ge=0, le=30, description="frames of the blend in and out at contact boundaries: "
+                              "holds closer than twice this are joined")
     clearance_m: float = Field(0.05, gt=0, le=0.5, description="a foot is down below this height above the floor")
     contact_source: Literal["union", "reference"] = Field(
-        "union", description="contacts of the reference alone, or also where the hybrid's own feet are down")
+        "union", description="steps of the reference alone, or each grown by the hybrid's contact frames beside it")
 
 
 class HybridC2Params(Params):
@@ -56,8 +58,10 @@ class QuantizedParams(Params):
 
 
 def _hybrid_ik_bytes(clip: FootLockedClip, params: HybridIkParams) -> int:
-    # The hybrid's keys plus an ankle target (3 float32) and a weight (1 float32) per leg and frame.
-    return keyframe_bytes(clip.key_times.size, clip.skeleton.n_joints) + int(clip.weights.size * 4 * 4)
+    # The hybrid's keys plus an ankle target (3 float32) and a weight (1 float32) per leg and frame, and each
+    # knee's hinge (3 float32) and the soft reach (1 float32).
+    return (keyframe_bytes(clip.key_times.size, clip.skeleton.n_joints) + int(clip.weights.size * 4 * 4)
+            + int(clip.hinges.size * 4) + 4)
 
 
 def _quantized_bytes(clip: KeyframeClip, params: QuantizedParams) -> int:

@@ -2,16 +2,29 @@
 
 Conventions as in :mod:`anim_core.footplant` (frames at ``fps``, metres, Y up, quaternions ``(w, x, y, z)``).
 
-Built once (:func:`lock_feet`): the contacts are detected on the *reference* (keyframe) clip with
-:func:`anim_core.contacts.foot_down` (every foot joint within ``clearance`` m of its standing height) — by default
-joined with the frames where the hybrid's own feet are down, see ``contact_source`` — and
-:func:`anim_core.footplant.foot_targets` turns the hybrid's own feet over those phases into ankle targets: the foot
-held on the ground from its slowest frame on (its slowest joint moves at most ``max_speed``), blended in and out
-over ``blend_frames`` frames (smoothstep weights, so no pop at a contact boundary).  Stored: the hybrid's keys plus
-one ankle target ``(3,)`` and weight per leg and frame of one period.  At playback (:meth:`FootLockedClip.sample`)
-the hybrid is evaluated, the targets and weights are interpolated between frames by cubic splines and the analytic
-two-bone IK of :mod:`anim_core.ik` (hip-knee-ankle, knee kept in its animated plane, foot keeping its world
-orientation) moves each leg; bone lengths are the skeleton's, so they stay exact.
+Built once (:func:`lock_feet`), per foot and frame of one period:
+
+1. *steps*: the contact phases of the *reference* (keyframe) clip (:func:`anim_core.contacts.foot_down`, every
+   foot joint within ``clearance`` m of its standing height) in which its foot comes to rest at least once
+   (slowest joint at most ``rest_speed``, default the skate threshold): a phase in which the reference's foot never
+   slows is its swing passing low over the floor (a *skim*) and is not held (:func:`steps`);
+2. with ``contact_source="union"`` (default) each step grows by the run of the hybrid's own contact frames that
+   overlaps it (the hybrid's feet land earlier and lift later than the reference's, and those frames are where
+   it skates); the hybrid's contact runs away from every step are skims and stay as animated (:func:`joined`);
+3. *holds*: each grown by one frame on either side, because the skate measure takes central differences, and
+   gaps of at most ``2 * blend_frames`` frames filled (:func:`held_frames`);
+4. :func:`anim_core.footplant.foot_targets` turns the hybrid's own feet over each hold into ankle targets: the
+   foot on the ground from its slowest frame on, its slowest joint moving at most ``max_speed`` (by default
+   0.3 m/s: a margin under the 0.5 m/s skate threshold for what the IK cannot reach at a hold's edges);
+5. *swings*: between two holds the ankle's offset from its animated place eases (smoothstep) from one foothold to
+   the next over the whole gap (:func:`swing_offsets`), so the foot is never let go in a few frames.
+
+Stored: the hybrid's keys plus one ankle target ``(3,)`` and weight per leg and frame of one period, each knee's
+hinge and the soft reach.  At playback (:meth:`FootLockedClip.sample`) the hybrid is evaluated, the targets and
+weights are interpolated between frames by cubic splines and the analytic two-bone IK of :mod:`anim_core.ik`
+(hip-knee-ankle, knee kept in its animated plane and bending about its hinge, so it never flips; soft reach near
+full extension, so it does not kink; foot keeping its world orientation) moves each leg; bone lengths are the
+skeleton's, so they stay exact.
 """
 
 from __future__ import annotations
@@ -213,13 +226,13 @@ def lock_feet(base: HybridClip, reference: KeyframeClip, legs: Sequence[tuple[in
     """The ``hybrid_ik`` clip of ``base`` with contacts detected on ``reference`` (same duration and playback).
 
     ``legs``: (hip, knee, ankle) joint indices per foot; ``feet``: per foot the joints that touch the ground (ankle,
-    toe); ``fps``: frames per second of the period the targets are computed on; ``blend_frames``: frames of the
-    blend in and out at each contact boundary; ``clearance`` m: the contact threshold of
-    :func:`anim_core.contacts.foot_down`; ``max_speed``, ``rest_speed`` m/s as in
-    :func:`anim_core.footplant.plant_feet` (by default every contact phase is held: a hybrid's foot that slides
-    through a whole phase is exactly what the condition corrects); ``contact_source``: ``"reference"`` holds the
-    feet where the reference's are down, ``"union"`` also where the hybrid's own feet are down (the hybrid's
-    feet stay low for longer than the reference's, and those frames are where it skates).
+    toe); ``fps``: frames per second of the period the targets are computed on; ``blend_frames``: holds closer
+    than ``2 * blend_frames`` frames are joined, and a non-periodic clip's first and last holds fade in and out
+    over that many frames; ``clearance`` m: the contact threshold of :func:`anim_core.contacts.foot_down`;
+    ``max_speed`` m/s: the held foot's slowest joint moves at most this fast (it may roll, not slide);
+    ``rest_speed`` m/s: a reference contact phase whose foot never gets this slow is a skim, not a step;
+    ``contact_source``: ``"reference"`` holds the reference's steps, ``"union"`` grows each by the hybrid's own
+    contact frames next to it (steps 1-5 of the module docstring).
     """
     if not np.isclose(base.duration, reference.duration) or base.mode != reference.mode:
         raise ValueError(f"the hybrid ({base.duration:.4f} s, {base.mode}) and its reference "

@@ -14,9 +14,10 @@ The solve (position form of ozz-animation's ``IKTwoBoneJob``, research notes 8.3
    side, so the bend is always positive about it (a knee never bends backwards);
 3. the start joint swings the chain's end onto the target, then turns it about the start -> target axis so the
    mid joint lies in the plane through start, target and the *pole* (default: the mid joint's animated
-   position, which keeps the knee pointing where the animation points it) — the turn is computed from the
-   chain's plane normal, carried along by the swing, which stays defined when the chain is straight; where the
-   pole lies (nearly) on the start -> target line, the plane eases into the one the hinge spans;
+   position, which keeps the knee pointing where the animation points it); given the hinge and no pole, so
+   that the chain's plane normal stays as close as it gets to the animated one (the hinge's where the chain is
+   straight, and the animated knee, on the leg's line, points nowhere in particular).  The turn is computed
+   from the chain's plane normal, carried along by the swing, which stays defined when the chain is straight;
 4. the end joint keeps its animated world orientation (a planted foot stays flat), optionally re-aimed so its
    child points at a given position (toe levelling).
 
@@ -83,7 +84,9 @@ def two_bone_ik(skeleton: Skeleton, local_rotations: ArrayLike, root_translation
     ``position`` — e.g. the toe at its planted place; ``hinge (3,)`` or ``(..., 3)``: the mid joint's hinge in
     its local frame (:func:`hinge_axis`), which makes the solve safe near a straight chain: the mid joint always
     bends positively about it (a knee never bends backwards, even from a slightly hyper-extended or straight
-    animated pose) and the chain's plane turns towards it where the pole is (nearly) on the start -> target line.
+    animated pose), and without a pole the chain's plane keeps the animated plane's normal as far as the target
+    allows (the hinge's while the animated chain is straight); with a pole, the plane turns towards the
+    hinge's where the pole is (nearly) on the start -> target line.
     Without it the animated plane stands in for the hinge, which is only defined while the chain is bent.
     ``soft`` (units, >= 0): soft IK near full reach ``L = a + b`` — a target further than ``L - soft`` is reached
     only to ``L - soft exp(-(d - L + soft) / soft)`` (short of it by at most ``soft / e`` at ``d = L``), so the
@@ -143,16 +146,21 @@ def two_bone_ik(skeleton: Skeleton, local_rotations: ArrayLike, root_translation
     r_mid = quat_between(shin, shin_1)
     end_1 = M + shin_1
 
-    # 3. Swing the end onto the target, then twist about start -> target so the chain's plane (normal ``side``,
-    #    carried along) is the plane through start, target and pole; where the pole is on that line, the hinge's.
+    # 3. Swing the end onto the target, then twist about start -> target to put the chain's plane (normal ``side``,
+    #    carried along by the swing) where it is wanted: through start, target and pole; with the hinge and no
+    #    pole, as close as it gets to the animated plane (``side``, which is the hinge's where the chain is
+    #    straight and a pole on the leg's line would point nowhere in particular).
     r_swing = quat_between(end_1 - S, d_hat)
     plane = rotate(r_swing, side)
-    p = (M if pole is None else np.broadcast_to(np.asarray(pole, dtype=np.float64), (*batch, 3))) - S
-    wanted = np.cross(p, d_hat)
-    if hinge is not None:
+    if hinge is not None and pole is None:
+        wanted = side - np.sum(side * d_hat, axis=-1, keepdims=True) * d_hat
+    else:
+        p = (M if pole is None else np.broadcast_to(np.asarray(pole, dtype=np.float64), (*batch, 3))) - S
+        wanted = np.cross(p, d_hat)
+    if hinge is not None and pole is not None:
+        # The pole's plane while the pole is well off the line, easing into the hinge's as it reaches the line.
         h_d = h - np.sum(h * d_hat, axis=-1, keepdims=True) * d_hat
         wanted = wanted * np.where(np.sum(wanted * h, axis=-1, keepdims=True) < 0.0, -1.0, 1.0)
-        # The pole's plane while it is well off the line, easing into the hinge's as it reaches the line.
         reach = np.maximum(_STRAIGHT * np.linalg.norm(p, axis=-1, keepdims=True), 1e-300)
         ease = _smoothstep(np.linalg.norm(wanted, axis=-1, keepdims=True) / reach)
         wanted = ease * _unit(wanted, h_d) + (1.0 - ease) * _unit(h_d, plane)

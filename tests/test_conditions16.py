@@ -144,6 +144,150 @@ def test_ik_reachable_exact_unreachable_clamped_knee_kept():
     assert np.all(np.sum(knee[bent_enough] * animated[bent_enough], axis=-1) > 0)
 
 
+def _leg():
+    """Hip at 1 m, thigh and shin 0.45 m straight down at rest; the knee's hinge is its local x axis."""
+    return Skeleton(("hip", "knee", "ankle"), [-1, 0, 1], [[0, 1, 0], [0, -0.45, 0.0], [0, -0.45, 0]])
+
+
+def _near_straight_poses(rng, n):
+    """Animated legs around full extension: hip turned up to ~17 degrees, knee bent -3..+5 degrees about x (some
+    hyper-extended), with up to ~1 degree off the hinge (so the animated plane's normal is noise)."""
+    rot = np.zeros((n, 3, 4))
+    rot[:, 0] = quat_from_rotvec(rng.normal(size=(n, 3)) * 0.3)
+    bend = np.radians(rng.uniform(-3.0, 5.0, n))
+    rot[:, 1] = quat_mul(quat_from_rotvec(np.stack([bend, 0 * bend, 0 * bend], -1)),
+                         quat_from_rotvec(rng.normal(size=(n, 3)) * np.radians(0.5)))
+    rot[:, 2] = [1.0, 0, 0, 0]
+    return rot
+
+
+def _knee_side(sk, rot, hinge):
+    """Per pose: the solved bend's component along the knee's hinge in the world (> 0: bent forwards), and
+    the hinge in the world."""
+    g, p = sk.forward_kinematics(rot)
+    normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 1])
+    from anim_core.quat import rotate
+    h = rotate(g[:, 1], np.broadcast_to(hinge, (len(rot), 3)))
+    return np.sum(normal * h, axis=-1), h
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_ik_knee_never_flips_near_full_extension(seed):
+    """Seeded random targets at 0.85..1.1 of the leg's reach, from near-straight animated legs: with the knee's
+    hinge the knee always bends forwards about it and keeps facing the way the animated knee faces; the targets
+    within reach are met exactly.  Without the hinge (the animated plane, lost in noise) the same poses flip."""
+    rng = np.random.default_rng(seed)
+    sk, n, hinge = _leg(), 2000, np.array([1.0, 0.0, 0.0])
+    rot = _near_straight_poses(rng, n)
+    _, p = sk.forward_kinematics(rot)
+    direction = p[:, 2] - p[:, 0] + rng.normal(size=(n, 3)) * 0.15
+    direction /= np.linalg.norm(direction, axis=-1, keepdims=True)
+    distance = rng.uniform(0.85, 1.1, n) * 0.9
+    targets = p[:, 0] + direction * distance[:, None]
+    solved = two_bone_ik(sk, rot, None, (0, 1, 2), targets, hinge=hinge)
+    assert np.isfinite(solved).all()
+    forwards, h = _knee_side(sk, solved, hinge)
+    assert forwards.min() >= -1e-12
+    _, h_animated = _knee_side(sk, rot, hinge)
+    assert np.min(np.sum(h * h_animated, axis=-1)) > np.cos(np.radians(60))  # no half turn of the knee
+    _, q = sk.forward_kinematics(solved)
+    reach = distance < 0.9 * (1 - 1e-6)
+    assert np.abs(q[reach, 2] - targets[reach]).max() < 1e-9
+    assert np.allclose(np.linalg.norm(q[:, 2] - q[:, 1], axis=-1), 0.45)
+    # The test can fail: the same solve without the hinge bends some knees backwards.
+    plain, _ = _knee_side(sk, two_bone_ik(sk, rot, None, (0, 1, 2), targets), hinge)
+    assert plain.min() < -1e-3
+
+
+def test_ik_soft_reach_is_smooth_through_full_extension():
+    """A target moving straight away through full reach: with ``soft`` the ankle stops short by the documented
+    amount, L - soft exp(-(d - L + soft) / soft), and the knee's bend has no kink (its second differences stay
+    small), whereas the exact solve's bend drops like sqrt(L - d) and then stops."""
+    sk, hinge, soft = _leg(), np.array([1.0, 0.0, 0.0]), 0.005 * 0.9
+    n = 2001
+    bent = np.array([[1.0, 0, 0, 0], quat_from_rotvec([0.3, 0, 0]), [1.0, 0, 0, 0]])
+    rot = np.broadcast_to(bent, (n, 3, 4))
+    d = np.linspace(0.85, 0.95, n)
+    targets = np.array([0.0, 1.0, 0.0]) + d[:, None] * np.array([0.0, -1.0, 0.0])
+    _, q = sk.forward_kinematics(two_bone_ik(sk, rot, None, (0, 1, 2), targets, hinge=hinge, soft=soft))
+    reached = np.linalg.norm(q[:, 2] - q[:, 0], axis=-1)
+    far = d > 0.9 - soft
+    np.testing.assert_allclose(reached[far], 0.9 - soft * np.exp(-(d[far] - 0.9 + soft) / soft), atol=1e-9)
+    np.testing.assert_allclose(reached[~far], d[~far], atol=1e-9)
+
+    def bend(pos):
+        thigh, shin = pos[:, 1] - pos[:, 0], pos[:, 2] - pos[:, 1]
+        return np.arctan2(np.linalg.norm(np.cross(thigh, shin), axis=-1), np.sum(thigh * shin, axis=-1))
+
+    step = d[1] - d[0]
+    soft_curvature = np.abs(np.diff(bend(q), 2)).max() / step**2
+    _, exact = sk.forward_kinematics(two_bone_ik(sk, rot, None, (0, 1, 2), targets, hinge=hinge))
+    exact_curvature = np.abs(np.diff(bend(exact), 2)).max() / step**2
+    assert soft_curvature < exact_curvature / 10
+
+
+def _flip_bends(rot):
+    out = np.array(rot)
+    out[:, 1, 1:] *= -1  # the inverse knee rotation: bends the other way
+    return out
+
+
+def test_ik_hinge_axis_is_recovered_from_bent_poses():
+    rng = np.random.default_rng(5)
+    sk, n = _leg(), 50
+    axis = np.array([0.9, 0.0, 0.3]) / np.linalg.norm([0.9, 0.0, 0.3])  # perpendicular to the shin (y)
+    rot = np.zeros((n, 3, 4))
+    rot[:, 0] = quat_from_rotvec(rng.normal(size=(n, 3)) * 0.5)
+    rot[:, 1] = quat_from_rotvec(axis * rng.uniform(0.2, 1.2, (n, 1)))
+    rot[:, 2] = [1.0, 0, 0, 0]
+    from anim_core.ik import hinge_axis
+    np.testing.assert_allclose(hinge_axis(sk, rot, None, (0, 1, 2)), axis, atol=1e-9)
+    np.testing.assert_allclose(hinge_axis(sk, _flip_bends(rot), None, (0, 1, 2)), -axis, atol=1e-9)
+    straight = np.tile([1.0, 0, 0, 0], (4, 3, 1))
+    with pytest.raises(ValueError, match="straight"):
+        hinge_axis(sk, straight, None, (0, 1, 2))
+
+
+def test_holds_grow_by_a_frame_and_skims_are_not_steps():
+    from anim_core.footlock import held_frames, joined, steps
+    down = np.zeros((30, 1), dtype=bool)
+    down[5:12] = down[20:22] = True  # a step, then two fast low frames (a skim)
+    speed = np.full((30, 1), 3.0)
+    speed[8] = 0.1
+    step = steps(down, speed, periodic=True)
+    assert step[5:12, 0].all() and not step[20:22].any()
+    hybrid = np.zeros((30, 1), dtype=bool)
+    hybrid[10:16] = hybrid[25:27] = True  # lands with the step and lifts later; a low run away from any step
+    grown = joined(step, hybrid, periodic=True)
+    assert np.flatnonzero(grown[:, 0]).tolist() == list(range(5, 16))
+    held = held_frames(grown, periodic=True, blend_frames=3)
+    assert np.flatnonzero(held[:, 0]).tolist() == list(range(4, 17))
+    two = np.zeros((30, 1), dtype=bool)
+    two[2:6] = two[12:16] = True  # gap of 6 frames: grown by one each side, a gap of 4 <= 2 * 3 is filled
+    assert np.flatnonzero(held_frames(two, True, 3)[:, 0]).tolist() == list(range(1, 17))
+
+
+def test_swing_offsets_ease_from_one_foothold_to_the_next():
+    from anim_core.footlock import swing_offsets
+    held = np.zeros((20, 1), dtype=bool)
+    held[0:5] = held[12:18] = True
+    off = np.zeros((20, 1, 3))
+    off[0:5, 0, 0] = 0.3
+    off[12:18, 0, 0] = -0.1
+    eased, w = swing_offsets(off, held, periodic=True, blend_frames=3)
+    assert np.all(w == 1.0)
+    gap = eased[5:12, 0, 0]
+    assert np.all(np.diff(gap) < 0) and gap[0] < 0.3 and gap[-1] > -0.1  # monotone, strictly between the holds
+    assert np.abs(np.diff(eased[4:13, 0, 0])).max() < 0.4 * 1.5 / 8 + 1e-12  # the steepest smoothstep step
+    # Periodic: the gap across the wrap (18, 19) eases from -0.1 back to 0.3.
+    assert -0.1 < eased[18, 0, 0] < eased[19, 0, 0] < 0.3
+    # Not periodic: after the last hold the weight fades out over blend_frames and stays at 0.
+    _, w = swing_offsets(off, held, periodic=False, blend_frames=3)
+    np.testing.assert_allclose(w[18:, 0], [0.84375, 0.5])
+    _, w = swing_offsets(off[:16], held[:16], periodic=False, blend_frames=1)
+    assert w[15, 0] == 1.0
+
+
 # --- the real clip set ----------------------------------------------------------------------------------------
 
 CONDITIONS16 = Path(__file__).resolve().parents[1] / "server" / "clipset" / "conditions16.toml"
