@@ -403,20 +403,64 @@ def test_extra_condition_ids_and_metrics(extra):
             assert extra[f"{a}-reduced{eps}"].metrics["max_global_error_deg"] <= float(eps.replace("_", ".")) + 1e-9
 
 
-def test_foot_locking_on_the_clip_set(clip_set, extra):
-    by_id = {c.id: c for c in clip_set}
-    for a in ("walk", "run", "crouch"):
-        reference = by_id[f"{a}-keyframe"].metrics["foot_skate_ratio"]
-        ik0 = extra[f"{a}-hybrid_ik0"]
-        # Increment 0 (the thesis's hybrid): no more skate than the keyframe clip, and less than the plain hybrid.
-        assert ik0.metrics["foot_skate_ratio"] <= reference, a
-        assert ik0.metrics["foot_skate_ratio"] < by_id[f"{a}-hybrid0"].metrics["foot_skate_ratio"], a
-        for i in (0, 1, 2):
-            c = extra[f"{a}-hybrid_ik{i}"]
-            sk = c.character.skeleton  # retargeted per source file
-            bones = np.linalg.norm(sk.offsets[1:], axis=-1)
-            p = c.world_positions
-            lengths = np.linalg.norm(p[:, 1:] - p[:, sk.parents[1:]], axis=-1)
-            assert np.allclose(lengths, bones, atol=1e-9), c.id  # bone lengths exact
-            assert c.metrics["seam_jump_mm"] <= 2 * c.metrics["median_step_mm"] + 5.0, c.id
-            assert np.all(np.isfinite(c.local_rotations)), c.id
+# The goals of hybrid_ik (issue 16) on the real clip set, one test per clip.  A goal this implementation does not
+# meet is a strict xfail naming what was measured: it fails the suite as soon as it is met (remove the mark then).
+IK_INCREMENTS = (0, 1, 2)
+SKATE_UNMET = {
+    ("walk", 2): "skates in 4 of 40 frames (0.100) against the keyframe clip's 3 (0.075): all four are the plain "
+                 "hybrid2's swing passing within 5 cm of the floor at 2.7 m/s (skims, not steps: the reference "
+                 "skims in 3 of them too; holding them would drag the swinging foot back)",
+}
+JUMP_UNMET = {
+    ("walk", 0): "its swing moves up to 165 mm per frame (rule 74 mm; the plain hybrid0 38 mm there): hybrid0's "
+                 "feet are down in 31 of 40 frames, so holding them to meet the skate goal leaves 7 frames to "
+                 "swing each foot a whole stride",
+}
+
+
+def _goal(cases, unmet):
+    return [pytest.param(a, i, id=f"{a}-hybrid_ik{i}",
+                         marks=[pytest.mark.xfail(strict=True, reason=unmet[a, i])] if (a, i) in unmet else [])
+            for a, i in cases]
+
+
+@pytest.mark.parametrize(("animation", "increment"),
+                         _goal([(a, i) for a in ("walk", "run") for i in IK_INCREMENTS], SKATE_UNMET))
+def test_hybrid_ik_skates_no_more_than_the_keyframe_clip(full_set, animation, increment):
+    by_id = {c.id: c for c in full_set}
+    skate = by_id[f"{animation}-hybrid_ik{increment}"].metrics["foot_skate_ratio"]
+    assert skate <= by_id[f"{animation}-hybrid{increment}"].metrics["foot_skate_ratio"]  # never adds skate
+    assert skate <= by_id[f"{animation}-keyframe"].metrics["foot_skate_ratio"]
+
+
+@pytest.mark.parametrize(("animation", "increment"),
+                         _goal([(a, i) for a in ("walk", "run", "crouch", "idle") for i in IK_INCREMENTS],
+                               JUMP_UNMET))
+def test_hybrid_ik_adds_no_jump_and_keeps_bone_lengths(full_set, animation, increment):
+    """The seam rule of the stimulus-validity issue (a step of twice the median frame step + 5 mm is a pop) at the
+    seam and at every frame, where the locking holds, lets go of or swings a foot: each frame step of the clip
+    within the rule or no larger than the plain hybrid's own step there (+1 mm: the held foot's roll)."""
+    by_id = {c.id: c for c in full_set}
+    c, plain = by_id[f"{animation}-hybrid_ik{increment}"], by_id[f"{animation}-hybrid{increment}"]
+    sk = c.character.skeleton  # retargeted per source file
+    p = c.world_positions
+    lengths = np.linalg.norm(p[:, 1:] - p[:, sk.parents[1:]], axis=-1)
+    assert np.allclose(lengths, np.linalg.norm(sk.offsets[1:], axis=-1), atol=1e-9)  # bone lengths exact
+    assert np.all(np.isfinite(c.local_rotations))
+    assert c.metrics["seam_jump_mm"] <= metrics.seam_limit_mm(p)
+    steps = metrics.frame_steps_mm(p)
+    allowed = np.maximum(metrics.seam_limit_mm(p), metrics.frame_steps_mm(plain.world_positions) + 1.0)
+    assert np.all(steps <= allowed), {int(i): round(float(steps[i]), 1) for i in np.flatnonzero(steps > allowed)}
+
+
+@pytest.mark.parametrize("animation", ["walk", "run", "crouch", "idle"])
+@pytest.mark.parametrize("increment", IK_INCREMENTS)
+def test_hybrid_ik_adds_no_velocity_jump_at_keys(full_set, animation, increment):
+    """The locked legs are a smooth function of the hybrid's pose (the knee bends about its hinge, the reach is
+    soft near full extension), so they add no kink of their own at a key: the angular-velocity jump there stays
+    within twice the plain hybrid's + 0.02 rad/s.  (Before the hinge and soft reach, knees flipping or kinking
+    at full extension gave 0.55 rad/s on walk-hybrid_ik0 against 0.001, and 7.3 and 8.5 on increments 1 and 2.)"""
+    by_id = {c.id: c for c in full_set}
+    ik = by_id[f"{animation}-hybrid_ik{increment}"].metrics["key_velocity_jump_rad_s"]
+    plain = by_id[f"{animation}-hybrid{increment}"].metrics["key_velocity_jump_rad_s"]
+    assert ik <= 2.0 * plain + 0.02, (ik, plain)
