@@ -39,9 +39,9 @@ from scipy.interpolate import CubicSpline
 
 from .clip import KeyframeClip, PlaybackMode, Pose, playback_time
 from .contacts import CONTACT_CLEARANCE_M, SKATE_SPEED_MPS, contact_intervals, foot_down, foot_speed, interval_mask
-from .footplant import _smoothstep, foot_targets
+from .footplant import foot_targets
 from .hybrid import HybridClip
-from .ik import hinge_axis, two_bone_ik
+from .ik import hinge_axis, smoothstep, two_bone_ik
 from .skeleton import Skeleton
 
 Array = NDArray[np.float64]
@@ -207,14 +207,14 @@ def swing_offsets(offsets: ArrayLike, held: ArrayLike, periodic: bool, blend_fra
             frames = np.arange(start, stop) % n
             g = stop - start
             if periodic or (start > 0 and stop < n):
-                ease = _smoothstep(np.arange(1, g + 1) / (g + 1))[:, None]
+                ease = smoothstep(np.arange(1, g + 1) / (g + 1))[:, None]
                 first, last = off[(start - 1) % n, f], off[stop % n, f]
                 off[frames, f] = first + ease * (last - first)
                 weights[frames, f] = 1.0
             else:  # before the first hold or after the last: fade out from the hold beside it
                 edge = stop % n if start == 0 else start - 1
                 distance = np.abs(frames - edge)
-                weights[frames, f] = _smoothstep(1.0 - distance / (blend_frames + 1))
+                weights[frames, f] = smoothstep(1.0 - distance / (blend_frames + 1))
                 off[frames, f] = off[edge, f]
     return off, weights
 

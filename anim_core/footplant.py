@@ -18,15 +18,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .contacts import contact_intervals
-from .ik import two_bone_ik
+from .ik import smoothstep, two_bone_ik
 from .skeleton import Skeleton
 
 Array = NDArray[np.float64]
-
-
-def _smoothstep(x: Array) -> Array:
-    x = np.clip(x, 0.0, 1.0)
-    return x * x * (3.0 - 2.0 * x)
 
 
 def _held_offsets(points: Array, k: int, max_step: float, horizontal: list[int]) -> Array:
@@ -87,8 +82,8 @@ def foot_targets(skeleton: Skeleton, local_rotations: ArrayLike, root_translatio
             offset = np.concatenate([np.repeat(offset[:1], blend_frames, 0), offset,
                                      np.repeat(offset[-1:], blend_frames, 0)])
             span = np.arange(start - blend_frames, stop + blend_frames)
-            w = np.where(span < start, _smoothstep((span - start + blend_frames + 1) / (blend_frames + 1)),
-                         np.where(span >= stop, _smoothstep((stop + blend_frames - span) / (blend_frames + 1)), 1.0))
+            w = np.where(span < start, smoothstep((span - start + blend_frames + 1) / (blend_frames + 1)),
+                         np.where(span >= stop, smoothstep((stop + blend_frames - span) / (blend_frames + 1)), 1.0))
             if not periodic:
                 keep = (span >= 0) & (span < n)
                 span, w, offset = span[keep], w[keep], offset[keep]

@@ -42,8 +42,10 @@ def _unit(v: Array, fallback: Array) -> Array:
     return np.where(n > 1e-12, v / np.maximum(n, 1e-300), fallback)
 
 
-def _smoothstep(x: Array) -> Array:
-    x = np.clip(x, 0.0, 1.0)
+def smoothstep(x: ArrayLike) -> Array:
+    """``3x² - 2x³`` of ``x`` clipped to 0..1: an ease from 0 to 1 with zero slope at both ends (the blend weight of
+    this module's soft switches and of :mod:`anim_core.footplant` / :mod:`anim_core.footlock`)."""
+    x = np.clip(np.asarray(x, dtype=np.float64), 0.0, 1.0)
     return x * x * (3.0 - 2.0 * x)
 
 
@@ -138,7 +140,7 @@ def two_bone_ik(skeleton: Skeleton, local_rotations: ArrayLike, root_translation
         h = rotate(g_rot[..., m, :], np.broadcast_to(np.asarray(hinge, dtype=np.float64), (*batch, 3)))
         h_thigh = _unit(h - np.sum(h * t_hat, axis=-1, keepdims=True) * t_hat, _perpendicular(thigh))
         flip = np.where(np.sum(normal * h, axis=-1, keepdims=True) < 0.0, -1.0, 1.0)
-        ease = _smoothstep(np.linalg.norm(normal, axis=-1, keepdims=True) / (_STRAIGHT * a * b))
+        ease = smoothstep(np.linalg.norm(normal, axis=-1, keepdims=True) / (_STRAIGHT * a * b))
         side = _unit(ease * flip * _unit(normal, h_thigh) + (1.0 - ease) * h_thigh, h_thigh)
     cos_inner = np.clip((a * a + b * b - d * d) / (2.0 * a * b), -1.0, 1.0)
     bend = (np.pi - np.arccos(cos_inner))[..., None]  # 0 = straight
@@ -162,7 +164,7 @@ def two_bone_ik(skeleton: Skeleton, local_rotations: ArrayLike, root_translation
         h_d = h - np.sum(h * d_hat, axis=-1, keepdims=True) * d_hat
         wanted = wanted * np.where(np.sum(wanted * h, axis=-1, keepdims=True) < 0.0, -1.0, 1.0)
         reach = np.maximum(_STRAIGHT * np.linalg.norm(p, axis=-1, keepdims=True), 1e-300)
-        ease = _smoothstep(np.linalg.norm(wanted, axis=-1, keepdims=True) / reach)
+        ease = smoothstep(np.linalg.norm(wanted, axis=-1, keepdims=True) / reach)
         wanted = ease * _unit(wanted, h_d) + (1.0 - ease) * _unit(h_d, plane)
     ok = np.linalg.norm(wanted, axis=-1) > 1e-9 * a  # a pole on the line (no hinge given): no twist
     angle = np.where(ok, np.arctan2(np.sum(d_hat * np.cross(plane, wanted), axis=-1),
