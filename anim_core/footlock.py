@@ -254,9 +254,9 @@ def lock_feet(base: HybridClip, reference: KeyframeClip, legs: Sequence[tuple[in
                  foot_speed(ref_feet, fps, up_axis, periodic=loop, ground_velocity=velocity), loop, rest_speed)
     pose = base.sample(times)
     root = pose.root_translation - _travel(base, times)
+    positions = sk.forward_kinematics(pose.rotations, root)[1]
     if contact_source == "union":
-        down = joined(down, foot_down(sk.forward_kinematics(pose.rotations, root)[1][:, feet_idx], up_axis,
-                                      clearance), loop)
+        down = joined(down, foot_down(positions[:, feet_idx], up_axis, clearance), loop)
     # Every step is held, however fast the hybrid's foot slides through it (rest_speed=inf): that sliding is
     # exactly what the condition corrects.
     held = held_frames(down, loop, blend_frames)
@@ -264,7 +264,7 @@ def lock_feet(base: HybridClip, reference: KeyframeClip, legs: Sequence[tuple[in
     targets, _ = foot_targets(sk, pose.rotations, root, chains, held, fps, feet_idx.tolist(), periodic=loop,
                               ground_velocity=velocity, up_axis=up_axis, blend_frames=0, max_speed=max_speed,
                               rest_speed=np.inf)
-    ankles = sk.forward_kinematics(pose.rotations, root)[1][:, [c[2] for c in chains]]
+    ankles = positions[:, [c[2] for c in chains]]
     offsets, weights = swing_offsets(targets - ankles, held, loop, blend_frames)
     # The knees' hinges from the reference: mocap, whose knees bend well in every cycle.
     hinges = np.array([hinge_axis(sk, ref.rotations, ref.root_translation, c) for c in chains])
