@@ -23,7 +23,8 @@ Array = NDArray[np.float64]
 FEET = (("LeftFoot", "LeftToeBase"), ("RightFoot", "RightToeBase"))  # each foot: ankle and toe joints
 LEGS = (("LeftUpLeg", "LeftLeg", "LeftFoot"), ("RightUpLeg", "RightLeg", "RightFoot"))  # IK chains, as FEET
 UP = 1
-MAX_LAG_FRAMES = {"gait": 2, "crouch": 1, "idle": 1}  # a clip further out of phase with its reference: a warning
+#: A clip further out of phase with its reference than this: a warning.
+MAX_LAG_FRAMES = {"gait": 2, "crouch": 1, "idle": 1, "other": 1}
 
 
 def clip_feet(clip: BuiltClip) -> tuple[NDArray[np.intp], Array]:

@@ -3,10 +3,12 @@ from it (:mod:`anim_core.conditions`), the clips sampled, placed on the floor an
 
 For each animation (an :class:`AnimationConfig`, read from the clip-set file by ``server.clipset``) the builder
 
-1. takes the BVH motion and retargets it onto the character (metres, Y up), turned to face +Z
+1. takes the motion, already on the canonical CMU skeleton (any common rig is brought there first by
+   :func:`anim_core.rigmap.normalize_bvh`), and retargets it onto the character (metres, Y up), turned to face +Z
    (:func:`source_from_bvh`);
 2. picks what the description does not give: the gait cycle and keys from the feet, the crouch keys from the hip
-   height, the idle keys from the sway;
+   height, the idle keys from the sway; an ``other`` motion (any kind of movement) plays its whole frame range and
+   its hybrid keys are picked within its tolerance (:func:`anim_core.keypick.pick_keys`);
 3. makes the **reference** keyframe clip: the chosen stretch of mocap resampled to ``fps`` keys per second on a
    grid whose length is a whole number of frames (the stretch is time-scaled by under half a frame to fit; a gait
    cycle also gets an even number of frames so its mirrored half-cycle lands on the grid, and it fades in from the
@@ -25,7 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,13 +39,15 @@ from .clip import KeyframeClip, PlaybackMode, Pose, horizontal
 from .clipmetrics import FEET, LEGS, UP, clip_feet, measure
 from .conditions import REFERENCE, Animation, AnimClip, Condition, Kind
 from .footplant import plant_feet
+from .keypick import pick_keys
 from .quat import quat_from_axis_angle, quat_mul, rotate, slerp
+from .rigmap import UNITS
 from .skeleton import Skeleton
 
 Array = NDArray[np.float64]
 
 FLOOR_PERCENTILE = 10  # the floor goes under the feet in the lowest 10 % of frames: planted, not mid-stride
-METRES_PER_CMU_UNIT = 0.056444  # the source measured on its own skeleton
+METRES_PER_CMU_UNIT = UNITS["cmu"][0]  # CMU's BVH unit (1 / 0.45 inch)
 LOOP_BLEND_S = 0.2  # a gait loop fades in from the mocap's next cycle over this long (seam C1)
 TURN_EASE_S = 0.2  # a ping-pong keyframe clip slows to rest over this long at each turn (no bounce)
 CROUCH_START = 0.02  # the crouch starts where the hips have gone 2 % of its depth down
@@ -53,10 +57,20 @@ class ConfigError(ValueError):
     """The clip set configuration is invalid; the message names the file and the entry."""
 
 
+DEFAULT_TOLERANCE_MM = 20.0  # kind "other": the hybrid through the picked keys stays this close to the reference
+
+
 @dataclass(frozen=True)
 class AnimationConfig:
-    """One animation of a clip set: ``source`` names its BVH file (for the manifest; the caller reads it),
-    ``frames`` the source frames searched, ``keys``/``cycle`` source frames that override the automatic picks."""
+    """One animation of a clip set: ``source`` names its motion file (BVH of any common rig, or glTF; for the
+    manifest, the caller reads it), ``frames`` the source frames searched (kind ``other``: played), ``keys``/``cycle``
+    source frames that override the automatic picks.
+
+    How the caller reads the source: ``animation`` picks a glTF file's animation by name or index (default: the
+    first); ``mapping`` names an explicit joint-mapping file, ``units`` (a key of :data:`anim_core.rigmap.UNITS`) and
+    ``up`` (``"y"``/``"z"``) override the detection (:func:`anim_core.rigmap.normalize_bvh`).  ``tolerance_mm``
+    (kind ``other``): the largest joint position error, mm, of the hybrid through the picked keys against the
+    reference."""
 
     name: str
     kind: Kind
@@ -66,6 +80,11 @@ class AnimationConfig:
     in_place: bool
     keys: tuple[int, ...] | None = None
     cycle: tuple[int, int] | None = None
+    tolerance_mm: float = DEFAULT_TOLERANCE_MM
+    animation: str | int | None = None
+    mapping: str | None = None
+    units: str | None = None
+    up: Literal["y", "z"] | None = None
 
 
 # --- sources ---------------------------------------------------------------------------------------------------
@@ -78,8 +97,8 @@ class Source:
     character: RetargetedCharacter
     clip: KeyframeClip  # times from 0 at config.frames[0]; mode "clamp" (it is only sampled inside)
     frame_time: float
-    mocap: Skeleton  # the file's own skeleton (CMU units), on which the clip's rotations play unchanged
-
+    mocap: Skeleton  # the file's own (canonical) skeleton, on which the clip's rotations play unchanged
+    metres_per_unit: float = METRES_PER_CMU_UNIT  # of the mocap skeleton
     def time_of(self, frame: int) -> float:
         return (frame - self.config.frames[0]) * self.frame_time
 
@@ -91,7 +110,7 @@ class Source:
         """``(T, 2, 2, 3)`` ankle and toe positions in metres of the mocap on its own skeleton (not retargeted)."""
         rot, root = self.clip.sample(times, method="slerp")
         _, pos = self.mocap.forward_kinematics(rot, root / self.character.root_scale)
-        return pos[:, np.array([self.mocap.indices(f) for f in FEET])] * METRES_PER_CMU_UNIT
+        return pos[:, np.array([self.mocap.indices(f) for f in FEET])] * self.metres_per_unit
 
 
 def _turn(pose: Pose, yaw: float) -> Pose:
@@ -102,10 +121,10 @@ def _turn(pose: Pose, yaw: float) -> Pose:
     return Pose(rot, rotate(q, pose.root_translation))
 
 
-def source_from_bvh(bvh: Bvh, character: Character, config: AnimationConfig,
-                    relocate: tuple[str, ...]) -> Source:
-    """One animation's mocap (``bvh``, read from ``config.source``) retargeted onto ``character`` and turned to
-    face +Z (errors name the file and the entry)."""
+def source_from_bvh(bvh: Bvh, character: Character, config: AnimationConfig, relocate: tuple[str, ...],
+                    metres_per_unit: float = METRES_PER_CMU_UNIT) -> Source:
+    """One animation's mocap (``bvh`` on the canonical CMU skeleton, Y up, ``metres_per_unit``; read from
+    ``config.source``) retargeted onto ``character`` and turned to face +Z (errors name the file and the entry)."""
     rotations, root = bvh.pose_arrays()
     first, last = config.frames
     if last >= bvh.n_frames:
@@ -123,7 +142,7 @@ def source_from_bvh(bvh: Bvh, character: Character, config: AnimationConfig,
         forward = np.cross(left, [0.0, 1.0, 0.0]).mean(axis=0)
     pose = _turn(pose, -float(np.arctan2(forward[0], forward[2])))
     clip = KeyframeClip(rc.skeleton, times, pose.rotations, pose.root_translation, mode="clamp", name=config.name)
-    return Source(config, rc, clip, bvh.frame_time, bvh.posed_skeleton())
+    return Source(config, rc, clip, bvh.frame_time, bvh.posed_skeleton(), metres_per_unit)
 
 
 # --- key picking -----------------------------------------------------------------------------------------------
@@ -365,6 +384,8 @@ def reference_animation(source: Source, fps: int) -> tuple[Animation, dict[str, 
         keyframe = KeyframeClip(keyframe.skeleton, keyframe.times, keyframe.rotations, keyframe.root_translation,
                                 "loop", cfg.in_place, UP, cfg.name)
         source_info = {"file": cfg.source, "cycle_frames": list(cycle), "key_frames": list(keys)}
+    elif cfg.kind == "other":
+        keyframe, key_grid, source_info = _other_reference(source, fps)
     else:
         # crouch: one stand -> deepest segment played forward and back, so reference and hybrid are deepest at the
         # turn; idle: the sway between its two extremes.
@@ -376,6 +397,39 @@ def reference_animation(source: Source, fps: int) -> tuple[Animation, dict[str, 
         source_info = {"file": cfg.source, "frames": [int(keys[0]), int(keys[1])], "key_frames": list(keys)}
     animation = Animation(cfg.name, cfg.kind, keyframe, key_grid, keyframe.duration, cfg.in_place, fps)
     return animation, source_info
+
+
+def _other_reference(source: Source, fps: int) -> tuple[KeyframeClip, tuple[float, ...], dict[str, Any]]:
+    """Kind ``other``: the whole frame range on the grid (a loop closed, :meth:`KeyframeClip.closed_loop`; a
+    ping-pong clip easing to rest at its turns), planted; its base keys given (source frames, mapped to the grid)
+    or picked on it within ``tolerance_mm`` (:func:`anim_core.keypick.pick_keys`)."""
+    cfg = source.config
+    loop = cfg.playback == "loop"
+    start, stop = source.time_of(cfg.frames[0]), source.time_of(cfg.frames[1])
+    keyframe, src_t = _grid_clip(source, start, stop, fps, even=False, mode=cfg.playback,
+                                 ease=0.0 if loop else TURN_EASE_S)
+    if loop:
+        keyframe = keyframe.closed_loop()
+    keyframe = _planted(source, keyframe, src_t)
+    keyframe = KeyframeClip(keyframe.skeleton, keyframe.times, keyframe.rotations, keyframe.root_translation,
+                            cfg.playback, cfg.in_place, UP, cfg.name)
+    where = f"[animations.{cfg.name}]"
+    if cfg.keys is not None:
+        key_grid = tuple(_on_grid(source.time_of(k), start, stop, keyframe) for k in cfg.keys)
+        if len(set(key_grid)) < len(key_grid):
+            raise ConfigError(f"{where} keys: {list(cfg.keys)} fall on the same frames of the {fps} fps grid")
+        frames = list(cfg.keys)
+        picked: dict[str, Any] = {}
+    else:
+        try:
+            keys = pick_keys(keyframe, cfg.tolerance_mm / 1000.0, mode=cfg.playback)
+        except ValueError as exc:
+            raise ConfigError(f"{where} tolerance_mm: {exc}") from None
+        key_grid = keys.times
+        frames = [cfg.frames[0] + round(src_t[f] / source.frame_time) for f in keys.frames]
+        picked = {"tolerance_mm": cfg.tolerance_mm, "key_error_mm": round(keys.error * 1000.0, 3)}
+    source_info = {"file": cfg.source, "frames": list(cfg.frames), "key_frames": frames, **picked}
+    return keyframe, key_grid, source_info
 
 
 def build_animation(source: Source, fps: int, conditions: Sequence[Condition],

@@ -55,14 +55,15 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, Generic, Literal, TypeVar
+from typing import Any, Generic, Literal, TypeVar, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .clip import KeyframeClip
-from .hybrid import AnimClip, SpringClip, SquadClip, build_crouch, build_gait, build_idle
+from .hybrid import AnimClip, SpringClip, SquadClip, build_crouch, build_gait, build_idle, build_other
 
-Kind = Literal["gait", "crouch", "idle"]
+Kind = Literal["gait", "crouch", "idle", "other"]
+KINDS: tuple[Kind, ...] = get_args(Kind)
 REFERENCE = "keyframe"  # the method every other condition is compared with
 
 
@@ -83,8 +84,10 @@ class Animation:
     ``reference``: the keyframe clip on the frame grid (``fps`` keys per second; mode ``"loop"`` for a gait, its last
     key repeating the first, ``"pingpong"`` otherwise), already planted and placed as the reference plays;
     ``key_times``: the base keys' times (s) on that grid (gait: left foot forward, left foot passing; crouch:
-    standing, deepest; idle: the two extremes of the sway); ``period``: seconds of one gait cycle, or of the forward
-    half of a ping-pong clip (``reference.duration`` in both cases).
+    standing, deepest; idle: the two extremes of the sway; other: the keys picked within the animation's tolerance
+    (:mod:`anim_core.keypick`), or given, the first at 0 and, ping-pong, the last at the end); ``period``: seconds
+    of one gait cycle or ``other`` loop, or of the forward half of a ping-pong clip (``reference.duration`` in
+    every case).
     """
 
     name: str
@@ -198,7 +201,8 @@ def build_keyframe(animation: Animation, params: KeyframeParams) -> KeyframeClip
 @register("hybrid", HybridParams)
 def build_hybrid(animation: Animation, params: HybridParams) -> SquadClip | SpringClip:
     """The thesis's hybrid: a gait mirrors half a cycle of keys onto the other half (SQUAD), a crouch follows its
-    keys with the spring, an idle sways on SQUAD between its two extremes (:mod:`anim_core.hybrid`)."""
+    keys with the spring, an idle sways on SQUAD between its two extremes, any other motion goes through its picked
+    keys on SQUAD, loop or ping-pong as its reference plays (:mod:`anim_core.hybrid`)."""
     ref, keys = animation.reference, list(animation.key_times)
     if animation.kind == "gait":
         # build_gait measures the travel from its source, so it gets the reference travelling.
@@ -209,7 +213,9 @@ def build_hybrid(animation: Animation, params: HybridParams) -> SquadClip | Spri
     if animation.kind == "crouch":
         return build_crouch(ref, keys, increment=params.increment, duration=animation.period, time_scale=None,
                             name=animation.name)
-    return build_idle(ref, keys, increment=params.increment, name=animation.name)
+    if animation.kind == "idle":
+        return build_idle(ref, keys, increment=params.increment, name=animation.name)
+    return build_other(ref, keys, increment=params.increment, in_place=animation.in_place, name=animation.name)
 
 
 # --- methods defined in other modules (imported last: they import ``register`` from here) -----------------------

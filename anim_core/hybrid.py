@@ -6,6 +6,8 @@
   overshoots the crouch key; played ping-pong.  Timed by the mocap (:func:`build_crouch`), the ping-pong turns at
   the spring's first overshoot peak, where the source is deepest.
 * **Idle**: sway keys on a SQUAD spline, played ping-pong.
+* **Other** (any motion): keys picked by :mod:`anim_core.keypick` on a SQUAD spline, no mirroring, played loop or
+  ping-pong as configured (:func:`build_other`).
 * **Increments** add keys from the mocap midway between existing ones: gait 4 -> 8 -> 16, crouch/idle 2 -> 3 -> 5.
 
 Everything that depends only on the keys (SQUAD control points, root splines, mirror set-up) is computed when
@@ -313,6 +315,32 @@ def build_idle(source: KeyframeClip, key_times: Sequence[float], increment: int 
     keys = _keys(source, times)
     return SquadClip(source.skeleton, times - times[0], keys.rotations, keys.root_translation,
                      duration=float(times[-1] - times[0]), mode="pingpong", name=name)
+
+
+def build_other(source: KeyframeClip, key_times: Sequence[float], increment: int = 0, in_place: bool = False,
+                name: str = "") -> SquadClip:
+    """Hybrid of any motion (kind ``other``): SQUAD through keys taken from ``source``, no mirroring, played as the
+    source plays.
+
+    Ping-pong: :func:`build_idle` (the clip spans the first to the last key).  Loop: a cyclic spline over the
+    source's whole ``duration`` (its last key repeats the first, as a looping :class:`KeyframeClip`'s does); the key
+    times (s) lie in ``[0, duration)`` and start at 0, increments split the interval to ``duration`` too; the root
+    moves with the source's mean horizontal velocity plus a periodic spline of the keys' offsets from that line
+    (none of it with ``in_place``).  Picked keys may be neighbouring frames: an increment adds a key only where
+    the source has a frame between two keys.
+    """
+    loop = source.mode == "loop"
+    times = np.unique([source.nearest_key_time(t) for t in
+                       increment_key_times(key_times, increment, end=source.duration if loop else None)])
+    if not loop:
+        return build_idle(source, times, 0, name)
+    if times[0] != 0.0 or times[-1] >= source.duration:
+        raise ValueError(f"the keys of a loop lie in [0, {source.duration:.3f}) s and start at 0, got "
+                         f"{np.round(times, 4).tolist()} s")
+    keys = _keys(source, times)
+    offsets = keys.root_translation - source.velocity * times[:, None]
+    return SquadClip(source.skeleton, times, keys.rotations, offsets, duration=source.duration, mode="loop",
+                     velocity=source.velocity, in_place=in_place, name=name)
 
 
 def spring_peak_time(zeta: float = THESIS_ZETA, omega: float = THESIS_OMEGA,

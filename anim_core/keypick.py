@@ -1,13 +1,14 @@
 """Generic hybrid keys for an animation of kind ``other``: the fewest keys, spread by an error criterion.
 
 Conventions: a source is a :class:`~anim_core.clip.KeyframeClip` (one key per mocap frame); its hybrid is SQUAD
-through the picked keys played ping-pong (:func:`~anim_core.hybrid.build_idle`, no mirroring).  The error of a
-set of keys is the largest distance, over all source frames and joints, between the joint positions of the hybrid
-and of the source (forward kinematics, metres = source units x ``metres_per_unit``).
+through the picked keys, no mirroring (:func:`~anim_core.hybrid.build_other`), played ping-pong (default) or as a
+loop (``mode="loop"``: the source's last key repeats its first).  The error of a set of keys is the largest
+distance, over all source frames and joints, between the joint positions of the hybrid and of the source (forward
+kinematics, metres = source units x ``metres_per_unit``).
 
-:func:`pick_keys` is greedy (Douglas-Peucker-like refinement): it starts from the first and last frames and adds,
-one at a time, the frame where the error is largest, until the error is within ``tolerance`` metres.  The result
-is small but not proven minimal.
+:func:`pick_keys` is greedy (Douglas-Peucker-like refinement): it starts from the first and last frames (a loop:
+the first and the middle one) and adds, one at a time, the frame where the error is largest, until the error is
+within ``tolerance`` metres.  The result is small but not proven minimal.
 """
 
 from __future__ import annotations
@@ -17,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .clip import KeyframeClip
-from .hybrid import build_idle
+from .clip import KeyframeClip, PlaybackMode
+from .hybrid import build_other
 
 Array = NDArray[np.float64]
 
@@ -34,10 +35,12 @@ class PickedKeys:
     tolerance: float
 
 
-def hybrid_error(source: KeyframeClip, frames: NDArray[np.intp], metres_per_unit: float = 1.0) -> Array:
-    """``(F,)`` largest joint position error (m) per source frame of the SQUAD hybrid through ``frames``."""
+def hybrid_error(source: KeyframeClip, frames: NDArray[np.intp], metres_per_unit: float = 1.0,
+                 mode: PlaybackMode = "pingpong") -> Array:
+    """``(F,)`` largest joint position error (m) per source frame of the SQUAD hybrid through ``frames`` played
+    ``mode`` (the source's keys as they are, travel included)."""
     times = source.times[frames]
-    clip = build_idle(source, times.tolist())
+    clip = build_other(source.segment(0.0, source.duration, mode, in_place=False), times.tolist())
     pose = clip.sample(source.times - times[0])
     target = source.skeleton.forward_kinematics(source.rotations, source.root_translation)[1]
     got = source.skeleton.forward_kinematics(pose.rotations, pose.root_translation)[1]
@@ -45,17 +48,22 @@ def hybrid_error(source: KeyframeClip, frames: NDArray[np.intp], metres_per_unit
 
 
 def pick_keys(source: KeyframeClip, tolerance: float = 0.02, metres_per_unit: float = 1.0,
-              max_keys: int = 64) -> PickedKeys:
-    """Keys whose SQUAD hybrid reproduces ``source`` within ``tolerance`` metres at every frame (see module).
+              max_keys: int = 64, mode: PlaybackMode = "pingpong") -> PickedKeys:
+    """Keys whose SQUAD hybrid played ``mode`` reproduces ``source`` within ``tolerance`` metres at every frame
+    (see module).
 
     Raises ``ValueError`` if ``max_keys`` keys do not reach the tolerance (the error reached is in the message).
     """
     if not tolerance > 0:
         raise ValueError(f"tolerance must be positive, got {tolerance}")
     n = len(source.times)
-    frames = np.array([0, n - 1], dtype=np.intp)
+    if mode == "loop" and n < 3:
+        raise ValueError(f"a loop of {n} frames has no keys to pick")
+    frames = np.array([0, (n - 1) // 2 if mode == "loop" else n - 1], dtype=np.intp)
     while True:
-        err = hybrid_error(source, frames, metres_per_unit)
+        err = hybrid_error(source, frames, metres_per_unit, mode)
+        if mode == "loop":
+            err = err[:-1]  # the last frame is where the loop starts again: key 0, not a key of its own
         worst = int(np.argmax(err))
         if err[worst] <= tolerance:
             break

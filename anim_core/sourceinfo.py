@@ -127,22 +127,29 @@ def _report(name: str, out: Normalized) -> MotionReport:
                         reason)
 
 
-def inspect_source(path: str | os.PathLike[str], explicit: Mapping[str, str] | None = None,
-                   units: str | None = None, up_axis: str | None = None) -> list[MotionReport]:
-    """Reports of every motion in the file (one for a BVH, one per animation of a glTF)."""
+def read_motions(path: str | os.PathLike[str], explicit: Mapping[str, str] | None = None,
+                 units: str | None = None, up_axis: str | None = None) -> list[tuple[str, Normalized]]:
+    """Every motion of a BVH (one) or glTF file (one per animation), named and normalized
+    (:func:`~anim_core.rigmap.normalize_bvh`); errors are ``ValueError`` subclasses naming the file."""
     path = Path(path)
     name = path.name.lower()
     if name.endswith((".bvh", ".bvh.gz")):
         bvh: Bvh = read_bvh(path)
-        return [_report(path.name, normalize_bvh(bvh, explicit, units, up_axis))]
+        return [(path.name, normalize_bvh(bvh, explicit, units, up_axis))]
     if name.endswith((".glb", ".gltf")):
         asset = read_gltf(path)
         if not asset.animations:
             raise ValueError(f"{path.name}: the file holds a character but no animation")
-        return [_report(a.name, normalize_motion(asset.skeleton, a.rotations, a.root_translation, a.frame_time, {},
-                                                 f"{path.name} animation {a.name!r}", explicit, units, up_axis))
+        return [(a.name, normalize_motion(asset.skeleton, a.rotations, a.root_translation, a.frame_time, {},
+                                          f"{path.name} animation {a.name!r}", explicit, units, up_axis))
                 for a in asset.animations]
     raise ValueError(f"{path.name}: not a motion file; expected .bvh, .bvh.gz, .glb or .gltf")
+
+
+def inspect_source(path: str | os.PathLike[str], explicit: Mapping[str, str] | None = None,
+                   units: str | None = None, up_axis: str | None = None) -> list[MotionReport]:
+    """Reports of every motion in the file (one for a BVH, one per animation of a glTF)."""
+    return [_report(name, out) for name, out in read_motions(path, explicit, units, up_axis)]
 
 
 def format_report(path: str | os.PathLike[str], reports: list[MotionReport]) -> str:

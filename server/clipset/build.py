@@ -1,17 +1,20 @@
 """Building a clip set from the data directory: the character (MakeHuman, or the clip-set file's glTF) and each
-animation's motion file, verified (:mod:`server.assets`), turned into clips by anim_core
+animation's motion file, verified (:mod:`server.assets`), brought onto the canonical skeleton
+(:func:`anim_core.sourceinfo.read_motions`: any common rig, BVH or glTF) and turned into clips by anim_core
 (:func:`anim_core.clipset.build_animation`); each clip's ``source`` records the character it was built for."""
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from anim_core.bvh import BvhError
 from anim_core.character import Character
 from anim_core.clipset import AnimationConfig, BuiltClip, Source, build_animation, source_from_bvh
+from anim_core.conditions import Condition
+from anim_core.rigmap import Normalized, read_mapping_file
+from anim_core.sourceinfo import read_motions
 from server import assets
 from server.assets import AssetError
 
@@ -56,13 +59,49 @@ def record_config(data_dir: Path, record: dict[str, Any] | None) -> tuple[Charac
     return config, current
 
 
+def _pick(motions: list[tuple[str, Normalized]], config: AnimationConfig, where: str) -> Normalized:
+    """The glTF animation ``config.animation`` names (by name or index; default: the first)."""
+    wanted = config.animation
+    names = [name for name, _ in motions]
+    if wanted is None:
+        return motions[0][1]
+    if isinstance(wanted, int):
+        if wanted >= len(motions):
+            raise AssetError(f"{where} animation: index {wanted}, but {config.source} holds {len(motions)} "
+                             f"animation(s): {', '.join(repr(n) for n in names)}")
+        return motions[wanted][1]
+    if wanted not in names:
+        raise AssetError(f"{where} animation: {config.source} holds no animation {wanted!r}; it holds "
+                         f"{', '.join(repr(n) for n in names)}")
+    return motions[names.index(wanted)][1]
+
+
 def load_source(data_dir: Path, character: Character, config: AnimationConfig, relocate: tuple[str, ...]) -> Source:
-    """One animation's motion file, read, retargeted and turned (errors name the file)."""
-    bvh = assets.motion(data_dir, config.source)
+    """One animation's motion file (under the data directory, or an absolute path), read, mapped onto the
+    canonical skeleton with the entry's ``mapping``/``units``/``up``, retargeted and turned (errors name the
+    entry, the field and the file)."""
+    where = f"[animations.{config.name}]"
+    path = assets.verify(data_dir, config.source)
     try:
-        return source_from_bvh(bvh, character, config, relocate)
-    except BvhError as exc:
-        raise AssetError(f"corrupt motion file: {exc}") from None
+        explicit = read_mapping_file(assets.resolve(data_dir, config.mapping)) if config.mapping else None
+    except ValueError as exc:  # RigMapError names the mapping file
+        raise AssetError(f"{where} mapping: {exc}") from None
+    try:
+        normalized = _pick(read_motions(path, explicit, config.units, config.up), config, where)
+    except AssetError:
+        raise
+    except (ValueError, OSError) as exc:  # BvhError (with its line), GltfError and RigMapError name the file
+        raise AssetError(f"{where} source: {exc}") from None
+    return source_from_bvh(normalized.bvh, character, config, relocate, normalized.metres_per_unit)
+
+
+def animation_clips(data_dir: Path, character: Character, config: AnimationConfig, fps: int,
+                    conditions: Sequence[Condition], relocate: tuple[str, ...],
+                    progress: Callable[[str], None] = lambda _msg: None) -> list[BuiltClip]:
+    """The clips of one animation (its motion file read by :func:`load_source`), one per condition, the reference
+    first (:func:`anim_core.clipset.build_animation`).  Raises :class:`AssetError` (file) or
+    :class:`~anim_core.clipset.ConfigError` (entry, field or condition); nothing is written."""
+    return build_animation(load_source(data_dir, character, config, relocate), fps, conditions, progress)
 
 
 def build_clip_set(data_dir: Path, config: ClipSetConfig | None = None,
@@ -76,7 +115,7 @@ def build_clip_set(data_dir: Path, config: ClipSetConfig | None = None,
     clips: list[BuiltClip] = []
     for k, (name, cfg) in enumerate(config.animations.items(), 1):
         progress(f"[{k}/{len(config.animations)}] {name}: {cfg.source}")
-        source = load_source(data_dir, character, cfg, config.relocate)
-        clips.extend(build_animation(source, config.fps, config.conditions, progress))
+        clips.extend(animation_clips(data_dir, character, cfg, config.fps, config.conditions, config.relocate,
+                                     progress))
     # Every clip records the character it was built for; the manifest keeps it once (``character``).
     return [dataclasses.replace(c, source={**c.source, "character": record}) for c in clips]

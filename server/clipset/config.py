@@ -10,12 +10,11 @@ from pathlib import Path
 from typing import Any
 
 from anim_core.clip import PLAYBACK_MODES
-from anim_core.clipset import AnimationConfig, ConfigError
-from anim_core.conditions import REFERENCE, Condition, ConditionError
+from anim_core.clipset import DEFAULT_TOLERANCE_MM, AnimationConfig, ConfigError
+from anim_core.conditions import KINDS, REFERENCE, Condition, ConditionError
 from anim_core.rigmap import UNITS
 
 DEFAULT_CONFIG = Path(__file__).with_name("thesis.toml")
-KINDS = ("gait", "crouch", "idle")
 #: Animation names and condition ids: a clip's id is ``<animation>-<condition>``, so neither holds a "-".
 NAME = re.compile(r"^[a-z0-9][a-z0-9_]{0,31}$")
 
@@ -54,31 +53,86 @@ def _animation(name: str, entry: Any, where: str) -> AnimationConfig:
         raise ConfigError(f"{where}: an animation name is 1..32 lower-case letters, digits or '_' (no '-')")
     if not isinstance(entry, dict):
         raise ConfigError(f"{where} must be a table")
-    known = {"kind", "source", "frames", "playback", "in_place", "keys", "cycle"}
+    known = {"kind", "source", "frames", "playback", "in_place", "keys", "cycle", "tolerance_mm", "animation",
+             "mapping", "units", "up"}
     if unknown := sorted(set(entry) - known):
         raise ConfigError(f"{where}: unknown field {unknown[0]!r}; allowed: {', '.join(sorted(known))}")
     kind = entry.get("kind")
     if kind not in KINDS:
-        raise ConfigError(f"{where}: kind must be 'gait', 'crouch' or 'idle', got {kind!r}")
-    if not isinstance(entry.get("source"), str):
-        raise ConfigError(f"{where}: source must name a BVH file in the data directory")
+        raise ConfigError(f"{where}: kind must be {', '.join(repr(k) for k in KINDS)}, got {kind!r}")
+    source = entry.get("source")
+    if not isinstance(source, str) or not source.strip():
+        raise ConfigError(f"{where}: source must name a motion file (.bvh, .bvh.gz, .glb or .gltf) under the data "
+                          f"directory or by an absolute path")
+    gltf = source.lower().endswith((".glb", ".gltf"))
+    if not gltf and not source.lower().endswith((".bvh", ".bvh.gz")):
+        raise ConfigError(f"{where} source: {source!r} is not a motion file; expected .bvh, .bvh.gz, .glb or .gltf")
     playback = entry.get("playback", "loop" if kind == "gait" else "pingpong")
     if playback not in PLAYBACK_MODES[:2]:
         raise ConfigError(f"{where}: playback must be 'loop' or 'pingpong', got {playback!r}")
-    if (kind == "gait") != (playback == "loop"):
+    if kind != "other" and (kind == "gait") != (playback == "loop"):
         raise ConfigError(f"{where}: a {kind} plays {'loop' if kind == 'gait' else 'pingpong'} in the hybrid "
-                          f"method, so its keyframe clip must too")
+                          f"method, so its keyframe clip must too (kind 'other' plays either)")
     in_place = entry.get("in_place", kind == "gait")
     if not isinstance(in_place, bool):
         raise ConfigError(f"{where}: in_place must be true or false")
+    if kind == "other" and in_place and playback != "loop":
+        raise ConfigError(f"{where}: in_place takes out the travel of a loop; a ping-pong clip plays its keys "
+                          f"where they are (set playback = 'loop' or drop in_place)")
+    frames = _frames(entry.get("frames"), f"{where} frames", 2)
     keys = entry.get("keys")
     cycle = entry.get("cycle")
     if cycle is not None and kind != "gait":
         raise ConfigError(f"{where}: only a gait has a cycle")
+    if keys is not None:
+        keys = _frames(keys, f"{where} keys", None if kind == "other" else 2)
+        if kind == "other":
+            _other_keys(keys, frames, playback, where)
+    tolerance = entry.get("tolerance_mm", DEFAULT_TOLERANCE_MM)
+    if "tolerance_mm" in entry and kind != "other":
+        raise ConfigError(f"{where}: only an animation of kind 'other' has tolerance_mm (its keys are picked "
+                          f"within it)")
+    if isinstance(tolerance, bool) or not isinstance(tolerance, int | float) or not 0 < tolerance <= 1000:
+        raise ConfigError(f"{where} tolerance_mm: a distance in millimetres (0 < tolerance_mm <= 1000), got "
+                          f"{tolerance!r}")
+    animation = entry.get("animation")
+    if animation is not None:
+        if not gltf:
+            raise ConfigError(f"{where} animation: only a glTF source (.glb, .gltf) holds several animations")
+        named = isinstance(animation, str) and animation != ""
+        if isinstance(animation, bool) or not (named or (isinstance(animation, int) and animation >= 0)):
+            raise ConfigError(f"{where} animation: the name of one of the file's animations or its index (0 = the "
+                              f"first), got {animation!r}")
+    mapping = entry.get("mapping")
+    if mapping is not None and (not isinstance(mapping, str) or not mapping.lower().endswith((".toml", ".json"))):
+        raise ConfigError(f"{where} mapping: a .toml or .json mapping file (character joint = file joint) under "
+                          f"the data directory or by an absolute path, got {mapping!r}")
+    units = entry.get("units")
+    if units is not None and units not in UNITS:
+        raise ConfigError(f"{where} units: one of {', '.join(repr(u) for u in UNITS)}, got {units!r}")
+    up = entry.get("up")
+    if up is not None and up not in ("y", "z"):
+        raise ConfigError(f"{where} up: 'y' or 'z', got {up!r}")
     return AnimationConfig(
-        name, kind, entry["source"], _frames(entry.get("frames"), f"{where} frames", 2), playback, in_place,
-        None if keys is None else _frames(keys, f"{where} keys", 2),
-        None if cycle is None else _frames(cycle, f"{where} cycle", 2))  # type: ignore[arg-type]
+        name, kind, source, frames, playback, in_place, keys,  # type: ignore[arg-type]
+        None if cycle is None else _frames(cycle, f"{where} cycle", 2),  # type: ignore[arg-type]
+        float(tolerance), animation, mapping, units, up)
+
+
+def _other_keys(keys: tuple[int, ...], frames: tuple[int, ...], playback: str, where: str) -> None:
+    """Given keys of an ``other`` animation span its frames: the first at the first frame, and the last at the last
+    frame (ping-pong) or before it (a loop's last frame is its first again)."""
+    first, last = frames
+    if len(keys) < 2:
+        raise ConfigError(f"{where} keys: at least 2 keys, got {list(keys)}")
+    if keys[0] != first:
+        raise ConfigError(f"{where} keys: the first key is the first frame ({first}), got {keys[0]}")
+    if playback == "pingpong" and keys[-1] != last:
+        raise ConfigError(f"{where} keys: a ping-pong clip turns at its last key, the last frame ({last}); got "
+                          f"{keys[-1]}")
+    if playback == "loop" and keys[-1] >= last:
+        raise ConfigError(f"{where} keys: a loop's last frame ({last}) is its first again, so every key is before "
+                          f"it; got {keys[-1]}")
 
 
 def _character(raw: Any, path: Path) -> tuple[tuple[str, ...], CharacterConfig]:

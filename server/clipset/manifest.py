@@ -16,6 +16,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from anim_core.clipset import BuiltClip
+from anim_core.conditions import Kind
 
 MANIFEST = "manifest.json"
 VERSION = 2
@@ -42,7 +43,7 @@ class ClipEntry(_Model):
 
     id: str
     animation: str
-    kind: Literal["gait", "crouch", "idle"]
+    kind: Kind
     condition: str
     method: str
     params: dict[str, Any]
