@@ -1,5 +1,6 @@
 """What a motion file holds, for a user about to add it to a clip set (``animstudy clips inspect FILE``), and the
-motion on the character as glTF or BVH (``animstudy clips convert FILE OUT``).
+motion on the character as glTF or BVH (``animstudy clips convert FILE OUT``, :func:`write_motion`; a built clip:
+``animstudy clips export``).
 
 :func:`inspect_source` reads a BVH (``.bvh``, ``.bvh.gz``) or glTF (``.glb``, ``.gltf``) file, maps its skeleton
 (:mod:`anim_core.rigmap`) and reports, per motion: joints, convention and mapping with reasons, units, up axis,
@@ -24,6 +25,8 @@ from .character import Character, retarget
 from .contacts import contact_intervals, foot_down
 from .gltf import GltfAnimation, read_gltf, write_gltf
 from .rigmap import CANONICAL_NAMES, Normalized, normalize_bvh, normalize_motion
+from .skeleton import Skeleton
+from .skinning import SkinnedMesh
 
 Array = NDArray[np.float64]
 
@@ -178,22 +181,32 @@ def format_report(path: str | os.PathLike[str], reports: list[MotionReport]) -> 
     return "\n".join(lines)
 
 
+def write_motion(path: str | os.PathLike[str], skeleton: Skeleton, mesh: SkinnedMesh, faces: NDArray[np.intp],
+                 rotations: Array, root_translation: Array, frame_time: float, end_sites: Mapping[int, Array],
+                 name: str = "motion") -> None:
+    """Write a motion on the character: ``.glb``/``.gltf`` (character mesh + skin + animation) or ``.bvh``/
+    ``.bvh.gz`` (``skeleton`` with ``end_sites``), for a look in Blender or a web viewer.
+
+    ``skeleton``: the character's bones (metres, Y up, identity rest rotations); ``mesh`` bound to it;
+    ``rotations``: ``(F, J, 4)`` local (w, x, y, z); ``root_translation``: ``(F, 3)`` m; one frame per
+    ``frame_time`` seconds.  Nothing is left behind on failure (both writers write to a temporary name)."""
+    path = Path(path)
+    lower = path.name.lower()
+    if lower.endswith((".glb", ".gltf")):
+        times = np.arange(len(rotations)) * frame_time
+        write_gltf(path, skeleton, mesh.vertices, mesh.normals, faces, mesh.joints, mesh.weights, mesh.inverse_bind,
+                   (GltfAnimation(name, times, rotations, root_translation),))
+    elif lower.endswith((".bvh", ".bvh.gz")):
+        write_bvh(bvh_from_poses(skeleton, rotations, root_translation, frame_time, dict(end_sites), path.name), path)
+    else:
+        raise ValueError(f"{path.name}: export writes .glb, .gltf, .bvh or .bvh.gz")
+
+
 def export_on_character(normalized: Normalized, character: Character, path: str | os.PathLike[str],
                         name: str = "motion") -> None:
-    """Write a normalized motion retargeted onto ``character``: ``.glb``/``.gltf`` (character + animation) or
-    ``.bvh``/``.bvh.gz`` (the character's skeleton, metres), for a look in Blender or a web viewer."""
-    path = Path(path)
+    """Write a normalized motion retargeted onto ``character`` (:func:`write_motion`)."""
     bvh = normalized.bvh
     rt = retarget(character, bvh.posed_skeleton(), bvh.end_sites)
     rot, root = bvh.pose_arrays()
-    root = root * rt.root_scale
-    times = np.arange(bvh.n_frames) * bvh.frame_time
-    lower = path.name.lower()
-    if lower.endswith((".glb", ".gltf")):
-        write_gltf(path, rt.skeleton, rt.mesh.vertices, rt.mesh.normals, rt.faces, rt.mesh.joints, rt.mesh.weights,
-                   rt.mesh.inverse_bind, (GltfAnimation(name, times, rot, root),))
-    elif lower.endswith((".bvh", ".bvh.gz")):
-        ends = {j: np.asarray(e) * rt.root_scale for j, e in bvh.end_sites.items()}
-        write_bvh(bvh_from_poses(rt.skeleton, rot, root, bvh.frame_time, ends, path.name), path)
-    else:
-        raise ValueError(f"{path.name}: export writes .glb, .gltf, .bvh or .bvh.gz")
+    ends = {j: np.asarray(e) * rt.root_scale for j, e in bvh.end_sites.items()}
+    write_motion(path, rt.skeleton, rt.mesh, rt.faces, rot, root * rt.root_scale, bvh.frame_time, ends, name)

@@ -66,6 +66,34 @@ def clips_convert(data_dir: Path, path: Path, out: Path, mapping: Path | None, u
     return 0
 
 
+def clips_export(data_dir: Path, clips_dir: Path, clip_id: str, out: Path) -> int:
+    """Write one clip of a built clip set on the character as .glb/.gltf or .bvh (``animstudy clips export``)."""
+    import numpy as np
+
+    from anim_core.character import bind_mesh
+    from anim_core.skeleton import Skeleton
+    from anim_core.sourceinfo import write_motion
+    from server.assets import character as load_character
+    from server.clipset.manifest import read_clip
+
+    try:
+        entry, a = read_clip(clips_dir, clip_id)
+        names = [str(n) for n in a["joint_names"]]
+        skeleton = Skeleton(names, a["parents"], a["offsets"])
+        character = load_character(data_dir)
+        mesh = bind_mesh(character, names, a["bind_rotations"], a["bind_positions"])
+        # The clip stores no End Sites: each leaf's continues its last bone by half its length.
+        leaves = [j for j in range(len(names)) if j not in set(skeleton.parents.tolist())]
+        ends = {j: 0.5 * np.asarray(a["offsets"][j]) for j in leaves}
+        write_motion(out, skeleton, mesh, character.faces, a["local_rotations"], a["root_positions"],
+                     1.0 / entry.fps, ends, clip_id)
+    except (ValueError, OSError) as exc:  # ManifestError, AssetError, GltfError name the file
+        return _fail(str(exc))
+    print(f"wrote {out} ({entry.frames} frames at {entry.fps} fps, {entry.playback}: clip {clip_id} on the "
+          f"character)")
+    return 0
+
+
 def inspect(data_dir: Path) -> int:
     """Print what the motion-capture files in the data directory hold."""
     import numpy as np
@@ -528,6 +556,11 @@ def _main(argv: Sequence[str] | None = None) -> int:
     convert.add_argument("file", type=Path, help=".bvh, .bvh.gz, .glb or .gltf file (a glTF's first animation)")
     convert.add_argument("out", type=Path, help="output .glb, .gltf, .bvh or .bvh.gz")
     _source_options(convert)
+    export = clips_sub.add_parser("export", help="one clip of a built clip set on the character, written as "
+                                                 ".glb/.gltf (character + animation) or .bvh")
+    export.add_argument("clip", help="clip id, <animation>-<condition> (see the clip set's manifest.json)")
+    export.add_argument("--clips", type=Path, default=None, help="clip set folder (default: <var dir>/clips)")
+    export.add_argument("--out", type=Path, required=True, help="output .glb, .gltf, .bvh or .bvh.gz")
     rend = sub.add_parser("render", help="pre-render every clip and compared pair into blind videos")
     rend.add_argument("--out", type=Path, default=None, help="video folder (default: <var dir>/media)")
     rend.add_argument("--clips", type=Path, default=None, help="clip set folder (default: <var dir>/clips)")
@@ -594,6 +627,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
                       max(1, args.workers), args.study, args.width, args.height, not args.no_shadows)
     if args.clips_command == "inspect":
         return clips_inspect(args.file, args.mapping, args.units, args.up)
+    if args.clips_command == "export":
+        return clips_export(settings.data, args.clips or settings.var / "clips", args.clip, args.out)
     if args.clips_command == "convert":
         return clips_convert(settings.data, args.file, args.out, args.mapping, args.units, args.up)
     return clips_build(settings.data, args.out or settings.var / "clips", args.config)

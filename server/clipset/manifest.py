@@ -20,6 +20,9 @@ from anim_core.conditions import Kind
 
 MANIFEST = "manifest.json"
 VERSION = 2
+#: The arrays of each clip's ``.npz`` (README: "Clip manifest").
+CLIP_ARRAYS = ("joint_names", "parents", "offsets", "bind_rotations", "bind_positions", "times", "local_rotations",
+               "root_positions", "world_rotations", "world_positions", "key_times", "key_rotations")
 M = TypeVar("M", bound=BaseModel)
 
 
@@ -137,3 +140,34 @@ def read_json(path: Path, model: type[M], what: str, rebuild: str) -> M:
 def read_clip_manifest(clips_dir: Path) -> ClipManifest:
     """The manifest of the clip set in ``clips_dir``."""
     return read_json(Path(clips_dir) / MANIFEST, ClipManifest, "clip manifest", "animstudy clips build")
+
+
+def read_clip(clips_dir: Path, clip_id: str) -> tuple[ClipEntry, dict[str, np.ndarray]]:
+    """One clip of the set in ``clips_dir``: its manifest entry and its arrays (:data:`CLIP_ARRAYS`, shapes
+    checked against each other and the entry); every problem is a :class:`ManifestError`."""
+    manifest = read_clip_manifest(clips_dir)
+    entry = next((c for c in manifest.clips if c.id == clip_id), None)
+    if entry is None:
+        raise ManifestError(f"the clip set in {clips_dir} has no clip {clip_id!r}; it has "
+                            f"{', '.join(c.id for c in manifest.clips)}")
+    path = Path(clips_dir) / entry.file
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            missing = [name for name in CLIP_ARRAYS if name not in z.files]
+            arrays = {name: z[name] for name in CLIP_ARRAYS if name in z.files}
+    except FileNotFoundError:
+        raise ManifestError(f"{path} is missing; rebuild the clip set with `animstudy clips build`") from None
+    except (OSError, ValueError, EOFError) as exc:
+        raise ManifestError(f"{path} is unreadable ({exc}); rebuild the clip set with `animstudy clips build`"
+                            ) from None
+    if missing:
+        raise ManifestError(f"{path} lacks {', '.join(missing)}; rebuild the clip set with `animstudy clips build`")
+    j = arrays["joint_names"].shape[0]
+    shapes = {"parents": (j,), "offsets": (j, 3), "bind_rotations": (j, 4), "bind_positions": (j, 3),
+              "times": (entry.frames,), "local_rotations": (entry.frames, j, 4), "root_positions": (entry.frames, 3),
+              "world_rotations": (entry.frames, j, 4), "world_positions": (entry.frames, j, 3)}
+    for name, shape in shapes.items():
+        if arrays[name].shape != shape:
+            raise ManifestError(f"{path}: {name} has shape {arrays[name].shape}, expected {shape} for {j} joints "
+                                f"and {entry.frames} frames; rebuild the clip set with `animstudy clips build`")
+    return entry, arrays
