@@ -337,7 +337,8 @@ def _read_animation(r: _Reader, anim: pygltflib.Animation, k: int, node_to_joint
     step = float(np.median(steps))
     if np.allclose(steps, step, rtol=1e-3):
         fps = 1.0 / step
-    n = int(np.floor((end - start) * fps + 1e-6)) + 1
+    # Key times are float32: a whole number of frames may come out a few 1e-5 frames short.
+    n = int(np.floor((end - start) * fps + 1e-3)) + 1
     if n > MAX_KEYS:
         raise r.fail(f"animation {name!r} would have {n} frames; at most {MAX_KEYS} are supported")
     t = start + np.arange(n) / fps
