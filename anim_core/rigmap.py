@@ -652,6 +652,11 @@ def normalize_bvh(bvh: Bvh, explicit: Mapping[str, str] | None = None, units: st
         raise RigMapError(str(exc)) from None
     out = normalize_motion(skeleton, rotations, root, bvh.frame_time, bvh.end_sites, bvh.source, explicit, units,
                            up_axis)
+    s = bvh.skeleton
+    if (s.names == CANONICAL_NAMES and np.array_equal(s.parents, CANONICAL_PARENTS) and out.up_axis == "y"
+            and out.facing_angle == 0 and np.array_equal(out.mapping.source_index, np.arange(len(CANONICAL_NAMES)))):
+        # Already canonical (a CMU file): the file itself, bit for bit; the computation would only add rounding.
+        out = Normalized(bvh, out.mapping, out.units, out.up_axis, out.metres_per_unit, out.facing_angle, out.notes)
     if zero:
         return Normalized(out.bvh, out.mapping, out.units, out.up_axis, out.metres_per_unit, out.facing_angle,
                           (*out.notes, f"zero-length leaf bones ignored: {', '.join(zero)}"))
