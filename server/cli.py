@@ -84,8 +84,8 @@ def clips_export(data_dir: Path, clips_dir: Path, clip_id: str, out: Path) -> in
         character = load_character(data_dir)
         mesh = bind_mesh(character, names, a["bind_rotations"], a["bind_positions"])
         # The clip stores no End Sites: each leaf's continues its last bone by half its length.
-        leaves = [j for j in range(len(names)) if j not in set(skeleton.parents.tolist())]
-        ends = {j: 0.5 * np.asarray(a["offsets"][j]) for j in leaves}
+        leaves = np.setdiff1d(np.arange(len(names)), skeleton.parents)
+        ends = {int(j): 0.5 * np.asarray(a["offsets"][j]) for j in leaves}
         write_motion(out, skeleton, mesh, character.faces, a["local_rotations"], a["root_positions"],
                      1.0 / entry.fps, ends, clip_id)
     except (ValueError, OSError) as exc:  # ManifestError, AssetError, GltfError name the file
