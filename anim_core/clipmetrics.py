@@ -25,6 +25,9 @@ LEGS = (("LeftUpLeg", "LeftLeg", "LeftFoot"), ("RightUpLeg", "RightLeg", "RightF
 UP = 1
 #: A clip further out of phase with its reference than this: a warning.
 MAX_LAG_FRAMES = {"gait": 2, "crouch": 1, "idle": 1, "other": 1}
+#: A joint turning more than this (degrees) from one frame to the next flips: a warning (the thesis clips' largest
+#: step is 25 degrees).
+MAX_FRAME_TURN_DEG = 90.0
 
 
 def clip_feet(clip: BuiltClip) -> tuple[NDArray[np.intp], Array]:
@@ -81,11 +84,18 @@ def measure(clips: list[BuiltClip], ground_velocity: Array, kind: Kind, source_s
 
 def clip_warnings(clips: list[BuiltClip]) -> list[str]:
     """What makes a side-by-side comparison show more than the method: a clip out of phase with its animation's
-    reference (best lag beyond :data:`MAX_LAG_FRAMES`) or a seam that jumps (more than twice the median step +
-    5 mm)."""
+    reference (best lag beyond :data:`MAX_LAG_FRAMES`), a seam that jumps (more than twice the median step +
+    5 mm), or a joint that flips (turns more than :data:`MAX_FRAME_TURN_DEG` between two frames, the wrap
+    included)."""
     reference = {c.animation: c.id for c in clips if c.method == REFERENCE}
     out = []
     for c in clips:
+        turn = np.degrees(quat_angle(np.roll(c.local_rotations, -1, axis=0), c.local_rotations))  # (T, J)
+        frame, joint = np.unravel_index(int(np.argmax(turn)), turn.shape)
+        if turn[frame, joint] > MAX_FRAME_TURN_DEG:
+            out.append(f"{c.id}: joint {c.character.skeleton.names[joint]} turns {turn[frame, joint]:.0f} degrees "
+                       f"from frame {frame} to {(frame + 1) % c.n_frames} (more than {MAX_FRAME_TURN_DEG:.0f}: a "
+                       f"flip)")
         m = c.metrics
         limit = 2.0 * m["median_step_mm"] + 5.0
         if m["seam_jump_mm"] > limit:

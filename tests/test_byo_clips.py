@@ -7,6 +7,7 @@ tests/test_rigmap.py): after mapping they must give the very clips the CMU files
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -164,6 +165,19 @@ params = { bits = 12 }
         if c.condition != "c2" or c.animation != "sway":  # C2 through 3 keys of a crouch: the spline's own seam
             assert c.metrics["seam_jump_mm"] <= 2 * c.metrics["median_step_mm"] + 5, c.id
     assert clips["squat-c2"].key_times.size == clips["squat-hybrid0"].key_times.size > 2
+
+
+def test_a_loop_whose_legs_flip_is_warned_of(data, tmp_path):
+    """Known limit: the middle of the CMU crouch (frames 20-120, both feet down, legs nearly straight) as a loop gets
+    one-frame twists of thigh and foot from the foot planting; `clips build` must say so (the thesis clips'
+    largest frame-to-frame turn is 25 degrees, and they give no warning: tests/test_clipset.py)."""
+    from anim_core.clipmetrics import clip_warnings
+
+    text = (f'[animations.middle]\nkind = "other"\nsource = "{CMU}/{CROUCH}"\nframes = [20, 120]\n'
+            f'playback = "loop"\n')
+    warnings = clip_warnings(build_clip_set(data, load_config(clip_set_file(tmp_path / "m.toml", text))))
+    assert any(re.match(r"middle-keyframe: joint (Left|Right)(UpLeg|Foot) turns 1\d\d degrees from frame \d+ to "
+                        r"\d+ \(more than 90: a flip\)", w) for w in warnings), warnings
 
 
 def test_gltf_animation_by_name_and_index(data, tmp_path):
