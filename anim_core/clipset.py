@@ -68,7 +68,7 @@ class AnimationConfig:
 
     How the caller reads the source: ``animation`` picks a glTF file's animation by name or index (default: the
     first); ``mapping`` names an explicit joint-mapping file, ``units`` (a key of :data:`anim_core.rigmap.UNITS`) and
-    ``up`` (``"y"``/``"z"``) override the detection (:func:`anim_core.rigmap.normalize_bvh`).  ``tolerance_mm``
+    ``up_axis`` (``"y"``/``"z"``) override the detection (:func:`anim_core.rigmap.normalize_bvh`).  ``tolerance_mm``
     (kind ``other``): the largest joint position error, mm, of the hybrid through the picked keys against the
     reference."""
 
@@ -84,7 +84,7 @@ class AnimationConfig:
     animation: str | int | None = None
     mapping: str | None = None
     units: str | None = None
-    up: Literal["y", "z"] | None = None
+    up_axis: Literal["y", "z"] | None = None
 
 
 # --- sources ---------------------------------------------------------------------------------------------------

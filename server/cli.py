@@ -74,14 +74,17 @@ def clips_export(data_dir: Path, clips_dir: Path, clip_id: str, out: Path) -> in
     from anim_core.character import bind_mesh
     from anim_core.skeleton import Skeleton
     from anim_core.sourceinfo import write_motion
-    from server.assets import character as load_character
-    from server.clipset.manifest import read_clip
+    from server.clipset.build import load_character, record_config
+    from server.clipset.manifest import read_clip, read_clip_manifest
 
     try:
         entry, a = read_clip(clips_dir, clip_id)
         names = [str(n) for n in a["joint_names"]]
         skeleton = Skeleton(names, a["parents"], a["offsets"])
-        character = load_character(data_dir)
+        # The body the clip was built for (MakeHuman or the clip set's glTF), its files checked as for rendering.
+        record = read_clip_manifest(clips_dir).character
+        character = load_character(data_dir, record_config(data_dir, None if record is None else
+                                                           record.model_dump())[0])[0]
         mesh = bind_mesh(character, names, a["bind_rotations"], a["bind_positions"])
         # The clip stores no End Sites: each leaf's continues its last bone by half its length.
         leaves = np.setdiff1d(np.arange(len(names)), skeleton.parents)

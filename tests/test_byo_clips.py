@@ -213,7 +213,7 @@ def test_mapping_units_and_up_overrides(data, sources, tmp_path):
     _, walk, _ = sources
     mapping = tmp_path / "map.json"
     mapping.write_text(json.dumps({"LeftToeBase": "mixamorig:LeftToeBase"}))
-    text = (f'[animations.walk]\nkind = "gait"\nsource = "{walk}"\nframes = [0, 342]\nunits = "cm"\nup = "z"\n'
+    text = (f'[animations.walk]\nkind = "gait"\nsource = "{walk}"\nframes = [0, 342]\nunits = "cm"\nup_axis = "z"\n'
             f'mapping = "{mapping}"\n')
     clips = build_clip_set(data, load_config(clip_set_file(tmp_path / "o.toml", text)))
     assert [c.id for c in clips] == ["walk-keyframe", "walk-hybrid0"]
@@ -223,7 +223,8 @@ def test_mapping_units_and_up_overrides(data, sources, tmp_path):
     mm = load_config(clip_set_file(tmp_path / "o.toml", text.replace('"cm"', '"mm"'))).animations["walk"]
     assert load_source(data, load_character(data), mm, ()).metres_per_unit == 0.001
     with pytest.raises(ConfigError, match=r"on animation 'walk': the walking direction"):
-        build_clip_set(data, load_config(clip_set_file(tmp_path / "o.toml", text.replace('up = "z"', 'up = "y"'))))
+        y_up = text.replace('up_axis = "z"', 'up_axis = "y"')
+        build_clip_set(data, load_config(clip_set_file(tmp_path / "o.toml", y_up)))
     broken = tmp_path / "broken.json"
     broken.write_text("{")
     with pytest.raises(AssetError, match=r"\[animations.walk\] mapping: .*broken\.json"):
@@ -245,7 +246,7 @@ def test_mapping_units_and_up_overrides(data, sources, tmp_path):
     ('tolerance_mm = "5"', r"tolerance_mm: a distance in millimetres"),
     ('animation = "Walk"', r"animation: only a glTF source"),
     ('units = "feet"', r"units: one of 'm', 'inch', 'cm', 'mm', 'cmu', got 'feet'"),
-    ('up = "x"', r"up: 'y' or 'z', got 'x'"),
+    ('up_axis = "x"', r"up_axis: 'y' or 'z', got 'x'"),
     ('mapping = "map.yaml"', r"mapping: a .toml or .json mapping file"),
     ("keys = [3, 100]", r"keys: the first key is the first frame \(1\), got 3"),
     ("keys = [1, 100]", r"keys: a ping-pong clip turns at its last key, the last frame \(163\)"),

@@ -78,16 +78,19 @@ def _pick(motions: list[tuple[str, Normalized]], config: AnimationConfig, where:
 
 def load_source(data_dir: Path, character: Character, config: AnimationConfig, relocate: tuple[str, ...]) -> Source:
     """One animation's motion file (under the data directory, or an absolute path), read, mapped onto the
-    canonical skeleton with the entry's ``mapping``/``units``/``up``, retargeted and turned (errors name the
+    canonical skeleton with the entry's ``mapping``/``units``/``up_axis``, retargeted and turned (errors name the
     entry, the field and the file)."""
     where = f"[animations.{config.name}]"
     path = assets.verify(data_dir, config.source)
     try:
-        explicit = read_mapping_file(assets.resolve(data_dir, config.mapping)) if config.mapping else None
+        explicit = (read_mapping_file(assets.user_file(data_dir, config.mapping, f"{where} mapping"))
+                    if config.mapping else None)
+    except AssetError:
+        raise
     except ValueError as exc:  # RigMapError names the mapping file
         raise AssetError(f"{where} mapping: {exc}") from None
     try:
-        normalized = _pick(read_motions(path, explicit, config.units, config.up), config, where)
+        normalized = _pick(read_motions(path, explicit, config.units, config.up_axis), config, where)
     except AssetError:
         raise
     except (ValueError, OSError) as exc:  # BvhError (with its line), GltfError and RigMapError name the file

@@ -54,7 +54,7 @@ def _animation(name: str, entry: Any, where: str) -> AnimationConfig:
     if not isinstance(entry, dict):
         raise ConfigError(f"{where} must be a table")
     known = {"kind", "source", "frames", "playback", "in_place", "keys", "cycle", "tolerance_mm", "animation",
-             "mapping", "units", "up"}
+             "mapping", "units", "up_axis"}
     if unknown := sorted(set(entry) - known):
         raise ConfigError(f"{where}: unknown field {unknown[0]!r}; allowed: {', '.join(sorted(known))}")
     kind = entry.get("kind")
@@ -110,13 +110,13 @@ def _animation(name: str, entry: Any, where: str) -> AnimationConfig:
     units = entry.get("units")
     if units is not None and units not in UNITS:
         raise ConfigError(f"{where} units: one of {', '.join(repr(u) for u in UNITS)}, got {units!r}")
-    up = entry.get("up")
-    if up is not None and up not in ("y", "z"):
-        raise ConfigError(f"{where} up: 'y' or 'z', got {up!r}")
+    up_axis = entry.get("up_axis")
+    if up_axis is not None and up_axis not in ("y", "z"):
+        raise ConfigError(f"{where} up_axis: 'y' or 'z', got {up_axis!r}")
     return AnimationConfig(
         name, kind, source, frames, playback, in_place, keys,  # type: ignore[arg-type]
         None if cycle is None else _frames(cycle, f"{where} cycle", 2),  # type: ignore[arg-type]
-        float(tolerance), animation, mapping, units, up)
+        float(tolerance), animation, mapping, units, up_axis)
 
 
 def _other_keys(keys: tuple[int, ...], frames: tuple[int, ...], playback: str, where: str) -> None:
