@@ -331,6 +331,32 @@ def test_export_then_import_gives_the_clips_skeleton_and_poses(data, clips_dir, 
         assert err < tolerance, (suffix, err)
 
 
+def test_export_uses_the_clip_sets_gltf_character(data, tmp_path, capsys):
+    """Clips built for a glTF character (the MakeHuman body exported as Mixamo, cm, Z up, its mesh made 10 % wider
+    so that it differs) export with that body, not MakeHuman's."""
+    from anim_core.gltf_character import character_from_gltf
+    from tests.test_gltf_character import Z_UP as GLTF_Z_UP
+    from tests.test_gltf_character import export, mixamo_names
+
+    makehuman = load_character(data)
+    wide = makehuman.vertices * np.array([1.1, 1.0, 1.1])
+    glb = export(makehuman, tmp_path / "wide.glb", mixamo_names(makehuman), 100.0, GLTF_Z_UP, vertices=wide)
+    text = (f'[character]\ngltf = "{glb}"\n[animations.sway]\nkind = "idle"\nsource = "mocap/cmu/'
+            f'113_21_idle_30fps.bvh.gz"\nframes = [0, 59]\n')
+    clips = build_clip_set(data, load_config(clip_set_file(tmp_path / "c.toml", text)))
+    write_clip_set(clips, tmp_path / "clips")
+    out = tmp_path / "sway.glb"
+    assert main(["clips", "export", "sway-hybrid0", "--clips", str(tmp_path / "clips"), "--out", str(out)]) == 0
+    capsys.readouterr()
+    asset = read_gltf(out)
+    body = character_from_gltf(read_gltf(glb)).character
+    np.testing.assert_allclose(asset.vertices, body.vertices, atol=1e-6)
+    assert np.abs(asset.vertices - makehuman.vertices).max() > 0.01
+    (anim,) = asset.animations
+    positions = asset.skeleton.forward_kinematics(anim.rotations, anim.root_translation)[1]
+    assert np.abs(positions - clips[1].world_positions).max() < 1e-5
+
+
 def test_export_errors_are_one_line_and_write_nothing(clips_dir, tmp_path, capsys):
     out = tmp_path / "x.glb"
     assert main(["clips", "export", "swim-keyframe", "--clips", str(clips_dir), "--out", str(out)]) == 2
