@@ -39,6 +39,7 @@ from .clip import KeyframeClip, PlaybackMode, Pose, horizontal
 from .clipmetrics import FEET, LEGS, UP, clip_feet, measure
 from .conditions import REFERENCE, Animation, AnimClip, Condition, Kind
 from .footplant import plant_feet
+from .ik import smoothstep
 from .keypick import pick_keys
 from .quat import quat_from_axis_angle, quat_mul, rotate, slerp
 from .rigmap import UNITS
@@ -303,10 +304,10 @@ def _crossfaded_loop(source: Source, clip: KeyframeClip, src_t: Array, blend: fl
     grid = clip.times
     if src_t[0] + period + blend <= source.clip.duration + 1e-9:
         fade, shift = grid < blend, period  # the next cycle's poses come first
-        w = 1.0 - _smoothstep(grid[fade] / blend)
+        w = 1.0 - smoothstep(grid[fade] / blend)
     elif src_t[0] - period >= -1e-9:
         fade, shift = grid > clip.duration - blend, -period  # the last keys turn into the previous cycle's
-        w = _smoothstep((grid[fade] - (clip.duration - blend)) / blend)
+        w = smoothstep((grid[fade] - (clip.duration - blend)) / blend)
     else:
         return clip.closed_loop()
     other = source.clip.sample(src_t[fade] + shift, method="slerp")
@@ -321,11 +322,6 @@ def _crossfaded_loop(source: Source, clip: KeyframeClip, src_t: Array, blend: fl
     else:
         rot[-1], root[-1] = rot[0], root[0] - travel
     return KeyframeClip(clip.skeleton, grid, rot, root, clip.mode, clip.in_place, clip.up_axis, clip.name)
-
-
-def _smoothstep(x: Array) -> Array:
-    x = np.clip(x, 0.0, 1.0)
-    return x * x * (3.0 - 2.0 * x)
 
 
 def _planted(source: Source, clip: KeyframeClip, src_t: Array) -> KeyframeClip:
