@@ -1,11 +1,16 @@
-"""The thesis's performance test done properly: pose evaluation of crowds, keyframe against hybrid.
+"""The thesis's performance test done properly: pose evaluation of crowds, keyframe against every other condition.
 
 Stages: ``pose`` = every joint of every character sampled at the character's own random phase, plus forward
-kinematics to model space; ``skin`` = the same plus linear blend skinning of the MakeHuman body.  Variants:
+kinematics to model space; ``skin`` = the same plus linear blend skinning of the MakeHuman body.  Every clip of
+the clip set given is timed (the thesis's keyframe and hybrid, and any other condition, e.g. those of
+``server/clipset/conditions16.toml``), each against the keyframe clip of its animation in the same rounds.
+Variants:
 
-* ``keys``: the runtime that evaluates every clip from the keys it stores (:mod:`anim_core.runtime`): dense keys
+* ``keys``: the runtime that evaluates every clip from what it stores (:mod:`anim_core.runtime`): dense keys
   for a keyframe clip, fitted SQUAD segments for a gait or idle hybrid (half of them for a mirrored gait), the
-  closed-form spring and unclamped slerp for the crouch.  The headline figures.
+  closed-form spring and unclamped slerp for the crouch; a ``reduced`` clip's keys at their own times, a
+  ``quantized`` clip's integers dequantized in the kernel, a ``hybrid_c2`` clip's control points, a
+  ``hybrid_ik`` clip's exact SQUAD (or spring) keys plus its foot tracks and two-bone IK.  The headline figures.
 * ``baked``: every hybrid baked into a uniform table of keys (:func:`anim_core.crowd.bake`), posed like a
   keyframe clip: the speed of dense keys bought with their memory.
 * ``reference``: the numpy reference implementation (``clip.sample`` + ``Skeleton.forward_kinematics``), with
@@ -33,10 +38,12 @@ from typing import Any
 import numpy as np
 
 from . import metrics
+from .c2spline import C2Clip
 from .clip import KeyframeClip
 from .clipset import BuiltClip
 from .crowd import CrowdBuffers, bake, numba
-from .hybrid import SquadClip
+from .footlock import FootLockedClip
+from .hybrid import SpringClip, SquadClip
 from .runtime import (
     AnyRuntime,
     TableRuntime,
@@ -145,16 +152,23 @@ def _case(c: BuiltClip, variant: str, step: Callable[[np.ndarray, int], Any]) ->
 
 def reference_bytes(clip: Any, naive: bool = False) -> int:
     """Bytes of the arrays the numpy reference holds for a clip (float64): its keys, plus for a SQUAD clip the
-    precomputed control points (not for ``naive``, which recomputes them) and the root spline's coefficients."""
+    precomputed control points (not for ``naive``, which recomputes them) and the root spline's coefficients; a
+    C2 clip's control points and knots beside its SQUAD clip's; a foot-locked clip's targets and weights and
+    their splines beside its hybrid's; a quantized clip's dequantized keys (what it samples)."""
     if isinstance(clip, SquadClip):
         seg_times, q, a, b, root = clip.precomputed()
         arrays = [clip.key_times, clip.key_rotations, clip.key_root, clip.velocity, seg_times, root.x, root.c]
         if not naive:
             arrays += [q, a, b]
-    elif hasattr(clip, "resample"):  # keyframe
-        arrays = [clip.times, clip.rotations, clip.root_translation, clip.velocity]
-    else:  # spring
+    elif isinstance(clip, C2Clip):
+        return reference_bytes(clip.squad) + int(clip.spline.control.nbytes + clip.spline.knots.nbytes)
+    elif isinstance(clip, FootLockedClip):
+        tracks = [a for spline in clip.tracks() for a in (spline.x, spline.c)]
+        return reference_bytes(clip.base) + int(sum(a.nbytes for a in [clip.targets, clip.weights, *tracks]))
+    elif isinstance(clip, SpringClip):
         arrays = [clip.key_params, clip.key_rotations, clip.key_root]
+    else:  # keyframe
+        arrays = [clip.times, clip.rotations, clip.root_translation, clip.velocity]
     return int(sum(np.asarray(a).nbytes for a in arrays))
 
 
@@ -199,7 +213,7 @@ def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTE
     for c in clips:
         label = {"clip": c.id, "animation": c.animation, "condition": c.condition, "method": c.method,
                  "increment": c.params.get("increment")}
-        stored = metrics.storage_bytes(c.key_times.size, c.character.skeleton.n_joints)
+        stored = c.metrics.get("bytes") or metrics.storage_bytes(c.key_times.size, c.character.skeleton.n_joints)
         rate = ACCURACY_OVERSAMPLING * c.fps
         for v in timed_variants:
             if v == "naive" and not isinstance(c.clip, SquadClip):
@@ -275,20 +289,23 @@ def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTE
 
 
 def _ratios(results: Sequence[dict[str, Any]], variant: str) -> list[dict[str, Any]]:
+    """Every condition's median over its animation's keyframe clip's, from the same rounds (pose, one thread)."""
     base = [r for r in results if r["stage"] == "pose" and r["variant"] == variant and r["threads"] == 1]
     keyframe = {(r["animation"], r["characters"]): r["median_ms"] for r in base if r["method"] == "keyframe"}
-    return [{"animation": r["animation"], "condition": r["condition"], "increment": r["increment"],
-             "characters": r["characters"],
+    return [{"animation": r["animation"], "condition": r["condition"], "method": r["method"],
+             "increment": r["increment"], "characters": r["characters"], "median_ms": r["median_ms"],
              "ratio": r["median_ms"] / keyframe[(r["animation"], r["characters"])]}
-            for r in base if r["method"] == "hybrid" and (r["animation"], r["characters"]) in keyframe]
+            for r in base if r["method"] != "keyframe" and (r["animation"], r["characters"]) in keyframe]
 
 
 def summarize(results: Sequence[dict[str, Any]], memory: Sequence[dict[str, Any]] = (),
               accuracy: Sequence[dict[str, Any]] = ()) -> dict[str, Any]:
     """The goals' figures: hybrid / keyframe median ratios (stage pose, one thread; ``keys`` variant, and every
-    other compiled variant), the largest crowd's worst time, the multi-core speed-up, memory and accuracy."""
+    other compiled variant), the largest crowd's worst time, the multi-core speed-up, memory and accuracy.
+    ``ratios`` holds every condition's ratio (``method`` says which); the hybrid goals' figures are the
+    hybrids'."""
     ratios = _ratios(results, "keys")
-    at_10 = [x["ratio"] for x in ratios if x["characters"] >= 10]
+    at_10 = [x["ratio"] for x in ratios if x["characters"] >= 10 and x["method"] == "hybrid"]
     base = [r for r in results if r["stage"] == "pose" and r["variant"] == "keys"]
     biggest = max((r["characters"] for r in base), default=0)
     serial = {(r["animation"], r["method"], r["increment"]): r["median_ms"]
@@ -303,7 +320,8 @@ def summarize(results: Sequence[dict[str, Any]], memory: Sequence[dict[str, Any]
                      for m in memory if m["variant"] == "keys" and m["method"] == "hybrid"
                      and m["animation"] in keyframe_bytes]
     hybrid_errors = [a["max_error_deg"] for a in accuracy if a["variant"] == "keys" and a["method"] == "hybrid"]
-    other = {v: [x["ratio"] for x in _ratios(results, v) if x["characters"] >= 10] for v in ("baked",)}
+    other = {v: [x["ratio"] for x in _ratios(results, v) if x["characters"] >= 10 and x["method"] == "hybrid"]
+             for v in ("baked",)}
     return {
         "ratios": ratios,
         "max_ratio_at_10_or_more": max(at_10) if at_10 else None,
@@ -323,11 +341,14 @@ def summarize(results: Sequence[dict[str, Any]], memory: Sequence[dict[str, Any]
 
 
 def series(results: Sequence[dict[str, Any]], stage: str = "pose") -> list[dict[str, Any]]:
-    """Average over animations (and increments) of the median ms per frame, per method/variant, for plots."""
+    """Average over animations (and increments) of the median ms per frame, per method/variant, for plots; every
+    other method of the results from its keys too."""
     out = []
+    others = [m for m in dict.fromkeys(r["method"] for r in results) if m not in ("keyframe", "hybrid")]
     for name, keep in (
         ("keyframe", lambda r: r["method"] == "keyframe" and r["variant"] == "keys"),
         ("hybrid, from its keys", lambda r: r["method"] == "hybrid" and r["variant"] == "keys"),
+        *((f"{m}, from its keys", lambda r, m=m: r["method"] == m and r["variant"] == "keys") for m in others),
         ("hybrid, baked table", lambda r: r["method"] == "hybrid" and r["variant"] == "baked"),
         ("keyframe, numpy reference", lambda r: r["method"] == "keyframe" and r["variant"] == "reference"),
         ("hybrid, numpy reference", lambda r: r["method"] == "hybrid" and r["variant"] == "reference"),
@@ -458,9 +479,11 @@ def write_plots(doc: dict[str, Any], out_dir: Any) -> list[Any]:
     out.mkdir(parents=True, exist_ok=True)
     r = doc["results"]
     keys = lambda m: (lambda x: x["method"] == m and x["variant"] == "keys")  # noqa: E731
+    others = [m for m in dict.fromkeys(x["method"] for x in r) if m not in ("keyframe", "hybrid")]
     figures = {
         "fps_average.svg": ("Average keyframe against average hybrid (pose, one thread)", _fps_lines(r, [
             ("keyframe", keys("keyframe"), False), ("hybrid (from its keys)", keys("hybrid"), False),
+            *((f"{m} (from its keys)", keys(m), False) for m in others),
             ("hybrid, baked table", lambda x: x["method"] == "hybrid" and x["variant"] == "baked", True),
             ("keyframe, numpy reference", lambda x: x["method"] == "keyframe" and x["variant"] == "reference", True),
             ("hybrid, numpy reference", lambda x: x["method"] == "hybrid" and x["variant"] == "reference", True),

@@ -154,6 +154,12 @@ class PeriodicC2Spline:
         """Rotations ``(N..., ..., 4)`` at times ``t (N...)`` seconds (wrapped into the period)."""
         return self._eval(np.asarray(t, dtype=np.float64))
 
+    @property
+    def knots(self) -> Array:
+        """``(K + 7,)`` the knots ``k_-3 .. k_(K+3)`` in seconds (key times continued periodically), for runtimes
+        that evaluate the curve themselves (:class:`anim_core.runtime.C2Runtime`)."""
+        return self._knots
+
 
 @dataclass(frozen=True, eq=False)
 class C2Clip:
@@ -195,6 +201,15 @@ class C2Clip:
     @property
     def n_keys(self) -> int:
         return self.squad.n_keys
+
+    @property
+    def velocity(self) -> Array:
+        """``(3,)`` the SQUAD clip's travel per second (loop mode, unless in place)."""
+        return self.squad.velocity
+
+    @property
+    def in_place(self) -> bool:
+        return self.squad.in_place
 
     def sample(self, t: ArrayLike) -> Pose:
         """Poses at running times ``t (...)`` s: rotations ``(..., J, 4)`` from the C2 spline, root as the SQUAD

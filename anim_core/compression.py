@@ -19,12 +19,13 @@ track's own ``[min, max]``; playback dequantizes and normalizes.  The error of o
 :func:`quantization_bound_deg`: each component is off by at most half a step ``(max - min) / (2^bits - 1) / 2``, so the
 4-D error ``e`` is at most half the norm of the four steps, the normalized quaternion is at most ``asin(e)`` away
 on the unit sphere and the rotation at most ``2 asin(e)``.  A global rotation is off by at most the sum of the
-bounds of the joint and its ancestors (the angle of a product is at most the sum of the angles).
+bounds of the joint and its ancestors (the angle of a product is at most the sum of the angles).  The clip keeps its
+tracks (:class:`QuantizedClip`), so the crowd runtime can hold the integers rather than the float keys.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -111,12 +112,26 @@ def quantization_bound_deg(tracks: QuantizedTracks) -> Array:
     return np.degrees(2.0 * np.arcsin(np.minimum(e, 1.0)))
 
 
-def quantized_clip(clip: KeyframeClip, bits: int) -> tuple[KeyframeClip, QuantizedTracks]:
+@dataclass(frozen=True, eq=False)
+class QuantizedClip(KeyframeClip):
+    """A keyframe clip whose rotations are its ``tracks`` dequantized (what :meth:`sample` plays); the tracks are
+    kept so that a runtime can hold the integers and dequantize them itself (:mod:`anim_core.runtime`)."""
+
+    tracks: QuantizedTracks = field(kw_only=True)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.tracks.codes.shape != self.rotations.shape:
+            raise ValueError(f"quantized tracks {self.tracks.codes.shape} do not match the rotations "
+                             f"{self.rotations.shape}")
+
+
+def quantized_clip(clip: KeyframeClip, bits: int) -> tuple[QuantizedClip, QuantizedTracks]:
     """``clip`` with its rotations quantized at ``bits`` bits per component and dequantized (what playback sees),
     and the stored tracks."""
     tracks = quantize_rotations(clip.rotations, bits)
-    out = KeyframeClip(clip.skeleton, clip.times, tracks.dequantize(), clip.root_translation, clip.mode,
-                       clip.in_place, clip.up_axis, clip.name)
+    out = QuantizedClip(clip.skeleton, clip.times, tracks.dequantize(), clip.root_translation, clip.mode,
+                        clip.in_place, clip.up_axis, clip.name, tracks=tracks)
     return out, tracks
 
 

@@ -70,13 +70,26 @@ def table_from_keyframes(clip: KeyframeClip) -> PoseTable:
                   clip.velocity, travels=clip.mode == "loop" and not clip.in_place, in_place=clip.in_place)
 
 
+def root_offsets(root: Array, times: Array, velocity: Array, travels: bool, in_place: bool) -> tuple[Array, Array]:
+    """``(K, 3)`` the root at the key ``times (K,)`` without its travel, and ``(3,)`` the travel per second a
+    kernel adds back (zero unless ``travels``, a travelling loop); an in-place clip's keys lose it for good."""
+    if travels or in_place:
+        root = root - velocity * times[:, None]
+    return root, (velocity if travels else np.zeros(3))
+
+
+def keyframe_root(clip: KeyframeClip) -> tuple[Array, Array]:
+    """:func:`root_offsets` of a keyframe clip's keys (the root that :meth:`KeyframeClip.sample` interpolates)."""
+    return root_offsets(clip.root_translation, clip.times, clip.velocity,
+                        travels=clip.mode == "loop" and not clip.in_place, in_place=clip.in_place)
+
+
 def _table(skeleton: Skeleton, rotations: Array, root: Array, times: Array, dt: float, mode: str,
            velocity: Array, travels: bool, in_place: bool) -> PoseTable:
     # The table holds the root's offsets from its travel; the kernel adds the travel back for a travelling loop.
-    if travels or in_place:
-        root = root - velocity * times[:, None]
+    root, velocity = root_offsets(root, times, velocity, travels, in_place)
     return PoseTable(skeleton, np.asarray(rotations, np.float32), np.asarray(root, np.float32), dt, mode,
-                     np.asarray(velocity if travels else np.zeros(3), np.float32))
+                     np.asarray(velocity, np.float32))
 
 
 def bake(clip: AnimClip, rate: float = BAKE_RATE, tolerance_deg: float = BAKE_TOLERANCE_DEG) -> PoseTable:

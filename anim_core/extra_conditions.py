@@ -26,7 +26,7 @@ from pydantic import Field
 
 from .c2spline import C2Clip, c2_from_squad
 from .clip import KeyframeClip
-from .compression import keyframe_bytes, quantized_clip, reduce_keys
+from .compression import QuantizedClip, keyframe_bytes, quantized_clip, reduce_keys
 from .conditions import Animation, HybridParams, Params, build_hybrid, register
 from .footlock import FootLockedClip, lock_feet
 from .hybrid import SpringClip, SquadClip
@@ -97,7 +97,7 @@ def build_reduced(animation: Animation, params: ReducedParams) -> KeyframeClip:
 
 
 @register("quantized", QuantizedParams, stored_bytes=_quantized_bytes)
-def build_quantized(animation: Animation, params: QuantizedParams) -> KeyframeClip:
+def build_quantized(animation: Animation, params: QuantizedParams) -> QuantizedClip:
     ref = animation.reference
     src = ref if params.reduced_epsilon_deg is None else reduce_keys(ref, params.reduced_epsilon_deg)
     return quantized_clip(src, params.bits)[0]

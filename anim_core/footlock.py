@@ -99,6 +99,20 @@ class FootLockedClip:
     def key_rotations(self) -> Array:
         return np.asarray(self.base.key_rotations)
 
+    @property
+    def velocity(self) -> Array:
+        """``(3,)`` the hybrid's travel per second (zero for a crouch)."""
+        return np.asarray(self.base.velocity, dtype=np.float64)
+
+    @property
+    def in_place(self) -> bool:
+        return bool(self.base.in_place)
+
+    def tracks(self) -> tuple[CubicSpline, CubicSpline]:
+        """The splines :meth:`sample` interpolates the targets ``(..., F, 3)`` and weights ``(..., F)`` with over
+        clip time (read by :class:`anim_core.runtime.FootLockRuntime`)."""
+        return self._tracks()
+
     def _tracks(self) -> tuple[CubicSpline, CubicSpline]:
         """Cubic splines through the targets and weights over clip time (periodic for a loop), so the IK adds no
         kink between frames; built on first use."""

@@ -4,10 +4,14 @@ Conventions: quaternions ``(w, x, y, z)`` (see :mod:`anim_core.quat`), times in 
 unless a comment says otherwise; every output is the model-space (global) rotation ``(N, J, 4)`` and position
 ``(N, J, 3)`` of every joint of ``N`` characters, each at its own running time ``t (N,)``.
 
-Three runtimes, built once per clip at load time (:func:`runtime_for`), evaluated per frame by :meth:`pose`:
+The runtimes, built once per clip at load time (:func:`runtime_for`), evaluated per frame by :meth:`pose`:
 
 * :class:`TableRuntime`: keys on a uniform grid, nlerp between two of them (a keyframe clip's own keys, or a
-  hybrid baked by :func:`anim_core.crowd.bake`).
+  hybrid baked by :func:`anim_core.crowd.bake`); or keys at uneven times (a ``reduced`` clip: the reduction keeps
+  whole poses, so one binary search of the key times per character), nlerp the same way.
+* :class:`QuantizedRuntime`: a ``quantized`` clip's integers (uint8 up to 8 bits, uint16 up to 16) with each
+  track's ``low`` and ``step``; the kernel dequantizes the two keys it blends, normalizes each (as
+  :meth:`~anim_core.compression.QuantizedTracks.dequantize` does), then nlerps as the table does.
 * :class:`SplineRuntime`: a SQUAD hybrid (gait, idle).  Exact SQUAD costs three slerps per joint; instead each
   segment between two keys is a cubic Bezier curve in R^4, normalized, whose two inner control points per joint
   are fitted once to the exact SQUAD curve (minimax, Lawson's iteratively reweighted least squares).  The end
@@ -20,9 +24,23 @@ Three runtimes, built once per clip at load time (:func:`runtime_for`), evaluate
 * :class:`SpringRuntime`: the crouch.  Per character the closed-form spring gives the path parameter
   (:func:`crouch_path_parameter`), per joint an unclamped slerp between the two keys of its segment with the
   angle precomputed.
+* :class:`C2Runtime`: a ``hybrid_c2`` clip's cumulative B-spline (:mod:`anim_core.c2spline`) evaluated exactly
+  from its control points: per character the knot span and the cubic basis, per joint the first control point
+  times three exponentials of the steps between control points (their logarithms, as half angle and axis, are
+  computed at load time); the root is the SQUAD clip's root spline.  Checked at load against
+  :meth:`C2Clip.sample` (``error_deg`` <= :data:`C2_TOLERANCE_DEG`).
+* :class:`FootLockRuntime`: a ``hybrid_ik`` clip: its hybrid's keys pose the character (exact SQUAD,
+  :class:`SquadRuntime`, three slerps per joint, or the spring runtime; not the fitted curve, whose error the IK
+  would amplify near a straight knee), then per leg the ankle target and weight are evaluated from the clip's cubic tracks (stored as the values and
+  slopes at each frame: a cubic Hermite piece per frame interval is exactly the spline's piece) and the analytic
+  two-bone IK of :func:`anim_core.ik.two_bone_ik` (default pole, the ankle keeping its world orientation) turns
+  hip and knee; the leg's joints below the hip are re-posed from the new rotations.  A leg with weight 0 is
+  left alone.  Checked at load against :meth:`FootLockedClip.sample` (``error_deg`` <=
+  :data:`FOOT_LOCK_TOLERANCE_DEG`).
 
 Memory: every array a runtime holds for its clip is animation data and counts in :attr:`runtime_bytes` (the keys,
-control points, angles, segment times, the few scalars as a float64 array); the skeleton (parents, offsets) is
+control points, angles, segment times, the few scalars as a float64 array; a quantized clip's integers and
+ranges; a foot-locked clip's base runtime, legs, joint lists and tracks); the skeleton (parents, offsets) is
 shared by all clips of a character and the output buffers are per character, so neither counts.
 
 LOD: ``active`` (a per-joint mask, :func:`bone_lod_mask`) holds unselected joints at the clip's first key
@@ -40,11 +58,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .c2spline import C2Clip
 from .clip import PLAYBACK_MODES, KeyframeClip, Pose
-from .crowd import CrowdBuffers, PoseTable, numba, table_from_keyframes
-from .hybrid import AnimClip, SpringClip, SquadClip, spring
+from .compression import QuantizedClip
+from .crowd import CrowdBuffers, PoseTable, keyframe_root, numba, table_from_keyframes
+from .footlock import FootLockedClip
+from .hybrid import SpringClip, SquadClip, spring
 from .mirror import Mirror
-from .quat import quat_angle, squad_eval
+from .quat import quat_angle, quat_conj, quat_log, quat_mul, squad_eval
 from .skeleton import Skeleton
 
 Array = NDArray[np.float64]
@@ -54,6 +75,15 @@ _FIT_SAMPLES = 96  # samples per segment the control points are fitted on
 _FIT_ROUNDS = 30  # Lawson iterations: the weights converge towards the minimax fit
 _CHECK_RATE = 240.0  # samples per second of the fit check in global rotations
 _MIRROR_TOLERANCE = 1e-6  # quaternion components: the second half must be the mirrored first half to rounding
+# Largest angle between a joint's global rotation from the C2 kernel (the exact curve in float32) and
+# :meth:`C2Clip.sample`, measured when the runtime is built.
+C2_TOLERANCE_DEG = 0.01
+# The same for the foot-locked hybrid: exact SQUAD and the IK in the kernel (float64 on the float32 pose); a knee
+# near straight turns float32 rounding of the pose into a few hundredths of a degree of twist (0.17 at worst on
+# the conditions16 clip set).
+FOOT_LOCK_TOLERANCE_DEG = 0.25
+
+AnimClip = KeyframeClip | SquadClip | SpringClip | C2Clip | FootLockedClip
 
 # Bone LOD: joints whose names contain one of these hold their first key (level 0 evaluates every joint).
 BONE_LODS: dict[int, tuple[str, ...]] = {
@@ -154,20 +184,32 @@ def check_inputs(skeleton: Skeleton, t: ArrayLike, out: CrowdBuffers | None, act
 
 @dataclass(frozen=True, eq=False)
 class TableRuntime(_Runtime):
-    """Keys on a uniform grid (:class:`anim_core.crowd.PoseTable`): ``rotations (K, J, 4)``, ``root (K, 3)``,
-    ``velocity (3,)``, ``params (3,)`` float64 = (key step s, duration s, playback mode index)."""
+    """Keys on a uniform grid (:class:`anim_core.crowd.PoseTable`) or at uneven times: ``rotations (K, J, 4)``,
+    ``root (K, 3)`` (without travel), ``velocity (3,)``, ``params (3,)`` float64 = (key step s, or 0 for uneven
+    keys; duration s; playback mode index), ``key_times (K,)`` float64 s for uneven keys (empty on a grid)."""
 
     skeleton: Skeleton
     rotations: F32
     root: F32
     velocity: F32
     params: Array
+    key_times: Array
 
     @classmethod
     def from_table(cls, table: PoseTable) -> TableRuntime:
         return cls(table.skeleton, _frozen(table.rotations, np.float32), _frozen(table.root, np.float32),
                    _frozen(table.velocity, np.float32),
-                   _frozen([table.dt, table.duration, PLAYBACK_MODES.index(table.mode)], np.float64))
+                   _frozen([table.dt, table.duration, PLAYBACK_MODES.index(table.mode)], np.float64),
+                   _frozen(np.zeros(0), np.float64))
+
+    @classmethod
+    def from_uneven_keys(cls, clip: KeyframeClip) -> TableRuntime:
+        """A keyframe clip's own keys at their own times (a ``reduced`` clip), searched per character."""
+        root, velocity = keyframe_root(clip)
+        return cls(clip.skeleton, _frozen(clip.rotations, np.float32), _frozen(root, np.float32),
+                   _frozen(velocity, np.float32),
+                   _frozen([0.0, clip.duration, PLAYBACK_MODES.index(clip.mode)], np.float64),
+                   _frozen(clip.times, np.float64))
 
     def _kernels(self) -> tuple[Any, Any]:
         return _table_serial, _table_parallel
@@ -222,20 +264,234 @@ class SpringRuntime(_Runtime):
         return _spring_serial, _spring_parallel
 
 
-AnyRuntime = TableRuntime | SplineRuntime | SpringRuntime
+@dataclass(frozen=True, eq=False)
+class QuantizedRuntime(_Runtime):
+    """A quantized keyframe clip: ``codes (K, J, 4)`` uint8 or uint16, component ``c`` of joint ``j`` at key ``k``
+    is ``low[j, c] + codes[k, j, c] * step[j, c]`` (``low``, ``step (J, 4)`` float32); ``root (K, 3)``,
+    ``velocity (3,)``, ``params (3,)`` and ``key_times`` as :class:`TableRuntime`'s."""
+
+    skeleton: Skeleton
+    codes: NDArray[np.unsignedinteger]
+    low: F32
+    step: F32
+    root: F32
+    velocity: F32
+    params: Array
+    key_times: Array
+
+    def _kernels(self) -> tuple[Any, Any]:
+        return _quantized_serial, _quantized_parallel
+
+
+@dataclass(frozen=True, eq=False)
+class C2Runtime(_Runtime):
+    """A ``hybrid_c2`` clip: ``knots (K + 7,)`` float64 s (:attr:`PeriodicC2Spline.knots`), ``control (K, J, 4)``
+    the control points, ``steps (K, J, 4)`` = (half angle rad, unit axis) of ``w_i = log(c_(i-1)^-1 c_i)``;
+    ``root_times``, ``root_coef``, ``velocity`` as :class:`SplineRuntime`'s; ``params (4,)`` float64 = (duration
+    s, playback mode index, spline period s, first key time s).  ``error_deg``: the measured largest
+    global-rotation error against :meth:`C2Clip.sample` (not runtime data).  A joint held by bone LOD holds its
+    first control point."""
+
+    skeleton: Skeleton
+    knots: Array
+    control: F32
+    steps: F32
+    root_times: Array
+    root_coef: F32
+    velocity: F32
+    params: Array
+    error_deg: float
+
+    def _kernels(self) -> tuple[Any, Any]:
+        return _c2_serial, _c2_parallel
+
+
+@dataclass(frozen=True, eq=False)
+class SquadRuntime(_Runtime):
+    """Exact SQUAD (three slerps per joint), the base of a foot-locked gait or idle: the IK turns the legs by
+    angles that a near-straight knee's hinge makes very sensitive to the pose it starts from, so the fitted
+    curve's error (:class:`SplineRuntime`, up to 0.25 degrees) would come out as tens of degrees of twist.
+    ``seg_times (S + 1,)`` float64, ``q (S + 1, J, 4)``, ``a``, ``b (S, J, 4)`` (:meth:`SquadClip.precomputed`),
+    ``angles (S, J, 2)`` the 4-D angles q0-q1 and a-b of each segment; ``root_times``, ``root_coef``,
+    ``velocity`` as :class:`SplineRuntime`'s; ``params (2,)`` float64 = (duration s, playback mode index)."""
+
+    skeleton: Skeleton
+    seg_times: Array
+    q: F32
+    a: F32
+    b: F32
+    angles: F32
+    root_times: Array
+    root_coef: F32
+    velocity: F32
+    params: Array
+
+    def _kernels(self) -> tuple[Any, Any]:
+        return _squad_serial, _squad_parallel
+
+
+@dataclass(frozen=True, eq=False)
+class FootLockRuntime(_Runtime):
+    """A ``hybrid_ik`` clip: ``base``, its hybrid's runtime (exact SQUAD or spring), and per leg ``F``: ``chains (F, 3)`` int32 (hip,
+    knee, ankle), ``below (F, L)`` int32 the joints under the hip in topological order (-1 padded) with ``turns
+    (F, L)`` int32 what turns each (0: the hip's rotation, 1: the knee's, 2: nothing, under the ankle);
+    ``track_values``/``track_slopes (P, F, 4)`` float32 the ankle target (x, y, z, relative to the root without
+    travel) and weight at the ``P`` frames of the clip's tracks and their slopes per second; ``ik_params (7,)``
+    float64 = (frames per second, 1 for a loop's periodic tracks else 0, duration s, playback mode index, travel
+    per second x, y, z).  ``error_deg``: measured against :meth:`FootLockedClip.sample` (not runtime data)."""
+
+    skeleton: Skeleton
+    base: SquadRuntime | SpringRuntime
+    chains: NDArray[np.int32]
+    below: NDArray[np.int32]
+    turns: NDArray[np.int32]
+    track_values: F32
+    track_slopes: F32
+    ik_params: Array
+    error_deg: float
+
+    def arrays(self) -> dict[str, NDArray[Any]]:
+        """The base runtime's arrays, then the foot locking's: the order the kernel takes them."""
+        return {**{f"base.{k}": v for k, v in self.base.arrays().items()}, **super().arrays()}
+
+    def _kernels(self) -> tuple[Any, Any]:
+        if isinstance(self.base, SquadRuntime):
+            return _squad_ik_serial, _squad_ik_parallel
+        return _spring_ik_serial, _spring_ik_parallel
+
+
+AnyRuntime = (TableRuntime | SplineRuntime | SpringRuntime | QuantizedRuntime | C2Runtime | SquadRuntime
+              | FootLockRuntime)
 
 
 # --- building (offline, once per clip) ---------------------------------------------------------------------------
 
 def runtime_for(clip: AnimClip) -> AnyRuntime:
-    """The keys runtime of a clip: its dense keys, its SQUAD keys as fitted segments, or its spring keys."""
+    """The keys runtime of a clip, from what it stores: a keyframe clip's keys (on a grid, or at a reduced clip's
+    own times), a quantized clip's integers, SQUAD keys as fitted segments, spring keys, a C2 spline's control
+    points, or a foot-locked hybrid's base runtime plus its tracks."""
+    if isinstance(clip, QuantizedClip):
+        return quantized_runtime(clip)
     if isinstance(clip, KeyframeClip):
-        return TableRuntime.from_table(table_from_keyframes(clip))
+        if _uniform(clip.times):
+            return TableRuntime.from_table(table_from_keyframes(clip))
+        return TableRuntime.from_uneven_keys(clip)
     if isinstance(clip, SquadClip):
         return spline_runtime(clip)
     if isinstance(clip, SpringClip):
         return spring_runtime(clip)
+    if isinstance(clip, C2Clip):
+        return c2_runtime(clip)
+    if isinstance(clip, FootLockedClip):
+        return foot_lock_runtime(clip)
     raise ValueError(f"no runtime for clips of type {type(clip).__name__}")
+
+
+def _uniform(times: Array) -> bool:
+    dt = np.diff(times)
+    return bool(np.allclose(dt, dt[0], rtol=1e-9, atol=1e-12))
+
+
+def quantized_runtime(clip: QuantizedClip) -> QuantizedRuntime:
+    """The integers of a quantized clip as its smallest unsigned type, its tracks' ranges, its root and times."""
+    tracks = clip.tracks
+    if tracks.bits > 16:
+        raise ValueError(f"clip {clip.name!r}: the quantized runtime takes up to 16 bits, got {tracks.bits}")
+    codes = tracks.codes.astype(np.uint8 if tracks.bits <= 8 else np.uint16)
+    uniform = _uniform(clip.times)
+    root, velocity = keyframe_root(clip)
+    dt = float(clip.times[1] - clip.times[0]) if uniform else 0.0
+    return QuantizedRuntime(clip.skeleton, _frozen(codes, codes.dtype), _frozen(tracks.low, np.float32),
+                            _frozen(tracks.step, np.float32), _frozen(root, np.float32),
+                            _frozen(velocity, np.float32),
+                            _frozen([dt, clip.duration, PLAYBACK_MODES.index(clip.mode)], np.float64),
+                            _frozen(np.zeros(0) if uniform else clip.times, np.float64))
+
+
+def _root_arrays(clip: SquadClip) -> tuple[Array, F32, F32]:
+    """The SQUAD clip's root spline (breakpoints, coefficients) and travel per second, as the kernels take them."""
+    spline = clip.precomputed()[4]
+    return (_frozen(spline.x, np.float64), _frozen(np.moveaxis(spline.c, 0, 1), np.float32),
+            _frozen(clip.velocity if clip.mode == "loop" and not clip.in_place else np.zeros(3), np.float32))
+
+
+def c2_runtime(clip: C2Clip, tolerance_deg: float = C2_TOLERANCE_DEG) -> C2Runtime:
+    """The C2 clip's control points with the logarithms of their steps, its knots and the SQUAD root."""
+    spline = clip.spline
+    c = spline.control
+    w = quat_log(quat_mul(quat_conj(np.roll(c, 1, axis=0)), c))  # w_i = log(c_(i-1)^-1 c_i), as the spline has it
+    theta = np.linalg.norm(w, axis=-1)
+    axis = np.where(theta[..., None] > 0, w / np.where(theta > 0, theta, 1.0)[..., None], 0.0)
+    steps = np.concatenate([theta[..., None], axis], axis=-1)
+    runtime = C2Runtime(clip.skeleton, _frozen(spline.knots, np.float64), _frozen(c, np.float32),
+                        _frozen(steps, np.float32), *_root_arrays(clip.squad),
+                        _frozen([clip.duration, PLAYBACK_MODES.index(clip.mode), spline.period,
+                                 spline.times[0]], np.float64), 0.0)
+    error = max_error_deg(runtime, clip, _CHECK_RATE)
+    if error > tolerance_deg:
+        raise ValueError(f"clip {clip.name!r}: the C2 kernel is {error:.4f} degrees from the clip's curve, more "
+                         f"than {tolerance_deg} degrees")
+    object.__setattr__(runtime, "error_deg", error)
+    return runtime
+
+
+def foot_lock_runtime(clip: FootLockedClip, tolerance_deg: float = FOOT_LOCK_TOLERANCE_DEG) -> FootLockRuntime:
+    """The hybrid's runtime plus the legs, the joints they move and the targets' and weights' tracks."""
+    base = squad_runtime(clip.base) if isinstance(clip.base, SquadClip) else spring_runtime(clip.base)
+    sk = clip.skeleton
+    targets, weights = clip.tracks()
+    knots = np.asarray(targets.x, np.float64)
+    if not (np.array_equal(knots, weights.x) and np.allclose(knots, np.arange(knots.size) / clip.fps, atol=1e-9)):
+        raise ValueError(f"clip {clip.name!r}: the foot-lock tracks are not on the clip's frame grid")
+    values = np.concatenate([targets(knots), weights(knots)[..., None]], axis=-1)
+    slopes = np.concatenate([targets(knots, 1), weights(knots, 1)[..., None]], axis=-1)
+    chains = np.array(clip.legs, np.int32)
+    under = [_below(sk, chain) for chain in clip.legs]
+    width = max(len(u) for u in under)
+    below = np.full((len(under), width), -1, np.int32)
+    turns = np.full((len(under), width), 2, np.int32)
+    for leg, joints in enumerate(under):
+        below[leg, :len(joints)] = [j for j, _ in joints]
+        turns[leg, :len(joints)] = [k for _, k in joints]
+    loop = clip.mode == "loop"
+    travel = clip.velocity if loop and not clip.in_place else np.zeros(3)
+    runtime = FootLockRuntime(sk, base, _frozen(chains, np.int32), _frozen(below, np.int32),
+                              _frozen(turns, np.int32), _frozen(values, np.float32), _frozen(slopes, np.float32),
+                              _frozen([clip.fps, 1.0 if loop else 0.0, clip.duration,
+                                       PLAYBACK_MODES.index(clip.mode), *travel], np.float64), 0.0)
+    error = max_error_deg(runtime, clip, _CHECK_RATE)
+    if error > tolerance_deg:
+        raise ValueError(f"clip {clip.name!r}: the foot-lock kernel is {error:.4f} degrees from the clip's pose, "
+                         f"more than {tolerance_deg} degrees")
+    object.__setattr__(runtime, "error_deg", error)
+    return runtime
+
+
+def _angles(a: Array, b: Array) -> Array:
+    return 2.0 * np.arctan2(np.linalg.norm(a - b, axis=-1), np.linalg.norm(a + b, axis=-1))
+
+
+def squad_runtime(clip: SquadClip) -> SquadRuntime:
+    """Exact SQUAD from the clip's precomputed keys and control points, every segment (no mirror)."""
+    seg_times, q, a, b, _root = clip.precomputed()
+    angles = np.stack([_angles(q[:-1], q[1:]), _angles(a, b)], axis=-1)
+    return SquadRuntime(clip.skeleton, _frozen(seg_times, np.float64), _frozen(q, np.float32),
+                        _frozen(a, np.float32), _frozen(b, np.float32), _frozen(angles, np.float32),
+                        *_root_arrays(clip), _frozen([clip.duration, PLAYBACK_MODES.index(clip.mode)], np.float64))
+
+
+def _below(skeleton: Skeleton, chain: tuple[int, int, int]) -> list[tuple[int, int]]:
+    """Joints under a leg's hip in topological order, each with what turns it: 0 the hip's rotation, 1 the
+    knee's, 2 nothing (the ankle keeps its world orientation, so do the joints under it)."""
+    s, m, e = chain
+    out = []
+    for j in range(s + 1, skeleton.n_joints):  # parents come before their children
+        line = [j]
+        while line[-1] > s:
+            line.append(int(skeleton.parents[line[-1]]))
+        if line[-1] == s:
+            out.append((j, 2 if e in line else 1 if m in line else 0))
+    return out
 
 
 def _bernstein(h: Array) -> Array:
@@ -288,7 +544,7 @@ def _gait_mirror(clip: SquadClip) -> tuple[NDArray[np.int32], Array] | None:
 
 def spline_runtime(clip: SquadClip, tolerance_deg: float = FIT_TOLERANCE_DEG) -> SplineRuntime:
     """Fit the runtime of a SQUAD clip (its SQUAD control points are precomputed on the clip)."""
-    seg_times, q, a, b, spline = clip.precomputed()
+    seg_times, q, a, b, _root = clip.precomputed()
     n_seg = seg_times.size - 1
     mirrored = _gait_mirror(clip)
     stored = n_seg // 2 if mirrored is not None else n_seg
@@ -299,11 +555,10 @@ def spline_runtime(clip: SquadClip, tolerance_deg: float = FIT_TOLERANCE_DEG) ->
     src, sign = mirrored if mirrored is not None else (np.zeros(0, np.int32), np.zeros((0, 4)))
     if sign.size and np.all(sign == sign[:1]):
         sign = sign[:1]  # the same flips for every joint: one row
+    root_times, root_coef, velocity = _root_arrays(clip)
     runtime = SplineRuntime(
         clip.skeleton, _frozen(seg_times[: stored + 1], np.float64), _frozen(controls, np.float32),
-        _frozen(spline.x, np.float64), _frozen(np.moveaxis(spline.c, 0, 1), np.float32),
-        _frozen(src, np.int32), _frozen(sign, np.float32),
-        _frozen(clip.velocity if clip.mode == "loop" and not clip.in_place else np.zeros(3), np.float32),
+        root_times, root_coef, _frozen(src, np.int32), _frozen(sign, np.float32), velocity,
         _frozen([clip.duration, PLAYBACK_MODES.index(clip.mode),
                  clip.duration / 2 if mirrored is not None else 0.0], np.float64), 0.0)
     error = max_error_deg(runtime, clip, _CHECK_RATE)
@@ -436,12 +691,35 @@ if numba is not None:
         out_pos[c, j, 2] = out_pos[c, p, 2] + oz + pw * tz + (px * ty - py * tx)
 
     @_njit
-    def _table_one(c, keys, roots, velocity, params, times, parents, offsets, active, out_rot, out_pos):
+    def _last_at_or_below(values, x, lo, hi):
+        """The largest ``i`` in ``lo..hi`` with ``values[i] <= x`` (``lo`` if none): binary search, as
+        ``searchsorted(values, x, "right") - 1`` clipped to ``lo..hi``."""
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            if values[mid] <= x:
+                lo = mid
+            else:
+                hi = mid - 1
+        return lo
+
+    @_njit
+    def _key_segment(ct, dt, key_times, n):
+        """Key ``i`` before clip time ``ct`` and the fraction towards key ``i + 1``: on a grid of step ``dt``, or
+        (``dt == 0``) searched in ``key_times``, as :meth:`KeyframeClip.sample` finds it."""
+        if dt > 0.0:
+            f = ct / dt
+            i = min(max(int(np.floor(f)), 0), n - 2)
+            return i, f - i
+        i = _last_at_or_below(key_times, ct, 0, n - 2)
+        return i, (ct - key_times[i]) / (key_times[i + 1] - key_times[i])
+
+    @_njit
+    def _table_one(c, keys, roots, velocity, params, key_times, times, parents, offsets, active, out_rot,
+                   out_pos):
         dt, duration, mode = params[0], params[1], int(params[2])
         ct, cycles = _clip_time(times[c], duration, mode)
-        f = ct / dt
-        i = min(max(int(np.floor(f)), 0), keys.shape[0] - 2)
-        a = np.float32(f - i)
+        i, f = _key_segment(ct, dt, key_times, keys.shape[0])
+        a = np.float32(f)
         b = np.float32(1.0) - a
         travel = ct + cycles * duration
         rx = b * roots[i, 0] + a * roots[i + 1, 0] + velocity[0] * travel
@@ -460,19 +738,24 @@ if numba is not None:
             _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
 
     @_njit
-    def _spline_one(c, seg_times, ctrl, root_times, root_coef, src, sign, velocity, params, times, parents,
-                    offsets, active, out_rot, out_pos):
-        duration, mode, half = params[0], int(params[1]), params[2]
-        ct, cycles = _clip_time(times[c], duration, mode)
-        # Root: the spline of the whole period, Horner in seconds from its segment's start.
+    def _root_spline(ct, root_times, root_coef):
+        """The root spline of the whole period at clip time ``ct``, Horner in seconds from its segment's start."""
         r = 0
         while r < root_times.shape[0] - 2 and ct >= root_times[r + 1]:
             r += 1
         dx = np.float32(ct - root_times[r])
-        travel = ct + cycles * duration
         rx = ((root_coef[r, 0, 0] * dx + root_coef[r, 1, 0]) * dx + root_coef[r, 2, 0]) * dx + root_coef[r, 3, 0]
         ry = ((root_coef[r, 0, 1] * dx + root_coef[r, 1, 1]) * dx + root_coef[r, 2, 1]) * dx + root_coef[r, 3, 1]
         rz = ((root_coef[r, 0, 2] * dx + root_coef[r, 1, 2]) * dx + root_coef[r, 2, 2]) * dx + root_coef[r, 3, 2]
+        return rx, ry, rz
+
+    @_njit
+    def _spline_one(c, seg_times, ctrl, root_times, root_coef, src, sign, velocity, params, times, parents,
+                    offsets, active, out_rot, out_pos):
+        duration, mode, half = params[0], int(params[1]), params[2]
+        ct, cycles = _clip_time(times[c], duration, mode)
+        rx, ry, rz = _root_spline(ct, root_times, root_coef)
+        travel = ct + cycles * duration
         rx += velocity[0] * travel
         ry += velocity[1] * travel
         rz += velocity[2] * travel
@@ -544,18 +827,349 @@ if numba is not None:
                 w, x, y, z = keys[0, j, 0], keys[0, j, 1], keys[0, j, 2], keys[0, j, 3]
             _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
 
+    @_njit
+    def _dequantize(codes, low, step, k, j):
+        """Key ``k`` of joint ``j`` dequantized and normalized (float32)."""
+        w = low[j, 0] + np.float32(codes[k, j, 0]) * step[j, 0]
+        x = low[j, 1] + np.float32(codes[k, j, 1]) * step[j, 1]
+        y = low[j, 2] + np.float32(codes[k, j, 2]) * step[j, 2]
+        z = low[j, 3] + np.float32(codes[k, j, 3]) * step[j, 3]
+        inv = np.float32(1.0) / np.sqrt(w * w + x * x + y * y + z * z)
+        return w * inv, x * inv, y * inv, z * inv
+
+    @_njit
+    def _quantized_one(c, codes, low, step, roots, velocity, params, key_times, times, parents, offsets, active,
+                       out_rot, out_pos):
+        dt, duration, mode = params[0], params[1], int(params[2])
+        ct, cycles = _clip_time(times[c], duration, mode)
+        i, f = _key_segment(ct, dt, key_times, codes.shape[0])
+        a = np.float32(f)
+        b = np.float32(1.0) - a
+        travel = ct + cycles * duration
+        rx = b * roots[i, 0] + a * roots[i + 1, 0] + velocity[0] * travel
+        ry = b * roots[i, 1] + a * roots[i + 1, 1] + velocity[1] * travel
+        rz = b * roots[i, 2] + a * roots[i + 1, 2] + velocity[2] * travel
+        for j in range(codes.shape[1]):
+            if active[j]:
+                w0, x0, y0, z0 = _dequantize(codes, low, step, i, j)
+                w1, x1, y1, z1 = _dequantize(codes, low, step, i + 1, j)
+                w, x, y, z = b * w0 + a * w1, b * x0 + a * x1, b * y0 + a * y1, b * z0 + a * z1
+                inv = np.float32(1.0) / np.sqrt(w * w + x * x + y * y + z * z)
+                w, x, y, z = w * inv, x * inv, y * inv, z * inv
+            else:
+                w, x, y, z = _dequantize(codes, low, step, 0, j)
+            _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
+
+    @_njit
+    def _c2_one(c, knots, control, steps, root_times, root_coef, velocity, params, times, parents, offsets,
+                active, out_rot, out_pos):
+        duration, mode, period, t0 = params[0], int(params[1]), params[2], params[3]
+        ct, cycles = _clip_time(times[c], duration, mode)
+        rx, ry, rz = _root_spline(ct, root_times, root_coef)
+        travel = ct + cycles * duration
+        rx += velocity[0] * travel
+        ry += velocity[1] * travel
+        rz += velocity[2] * travel
+        k = control.shape[0]
+        tt = t0 + (ct - t0) - np.floor((ct - t0) / period) * period
+        span = _last_at_or_below(knots, tt, 3, k + 2)
+        # The four cubic B-spline basis functions on this span (The NURBS Book A2.2, unrolled for degree 3).
+        l1, l2, l3 = tt - knots[span], tt - knots[span - 1], tt - knots[span - 2]
+        r1, r2, r3 = knots[span + 1] - tt, knots[span + 2] - tt, knots[span + 3] - tt
+        n0 = 1.0
+        tmp = n0 / (r1 + l1)
+        n0, n1 = r1 * tmp, l1 * tmp
+        tmp0 = n0 / (r1 + l2)
+        tmp1 = n1 / (r2 + l1)
+        n0, n1, n2 = r1 * tmp0, l2 * tmp0 + r2 * tmp1, l1 * tmp1
+        tmp0 = n0 / (r1 + l3)
+        tmp1 = n1 / (r2 + l2)
+        tmp2 = n2 / (r3 + l1)
+        n1, n2, n3 = l3 * tmp0 + r2 * tmp1, l2 * tmp1 + r3 * tmp2, l1 * tmp2
+        b1, b2, b3 = np.float32(n1 + n2 + n3), np.float32(n2 + n3), np.float32(n3)  # cumulative basis
+        m = span - 3
+        i0, i1, i2, i3 = (m - 1 + k) % k, m, (m + 1) % k, (m + 2) % k
+        for j in range(control.shape[1]):
+            if active[j]:
+                w, x, y, z = control[i0, j, 0], control[i0, j, 1], control[i0, j, 2], control[i0, j, 3]
+                w, x, y, z = _times_exp(w, x, y, z, b1, steps, i1, j)
+                w, x, y, z = _times_exp(w, x, y, z, b2, steps, i2, j)
+                w, x, y, z = _times_exp(w, x, y, z, b3, steps, i3, j)
+            else:
+                w, x, y, z = control[0, j, 0], control[0, j, 1], control[0, j, 2], control[0, j, 3]
+            _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
+
+    @_njit
+    def _times_exp(w, x, y, z, weight, steps, i, j):
+        """``(w, x, y, z) exp(weight w_i)`` for joint ``j``, ``w_i`` stored as half angle and unit axis."""
+        angle = weight * steps[i, j, 0]
+        cs, sn = np.cos(angle), np.sin(angle)
+        return _qmul(w, x, y, z, cs, sn * steps[i, j, 1], sn * steps[i, j, 2], sn * steps[i, j, 3])
+
+    @_njit
+    def _qmul(aw, ax, ay, az, bw, bx, by, bz):
+        return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
+
+    @_njit
+    def _qrot(w, x, y, z, vx, vy, vz):
+        """``v`` rotated by the unit quaternion ``(w, x, y, z)``: v + 2w (u x v) + 2 u x (u x v)."""
+        tx, ty, tz = 2.0 * (y * vz - z * vy), 2.0 * (z * vx - x * vz), 2.0 * (x * vy - y * vx)
+        return vx + w * tx + (y * tz - z * ty), vy + w * ty + (z * tx - x * tz), vz + w * tz + (x * ty - y * tx)
+
+    @_njit
+    def _perpendicular(vx, vy, vz):
+        """A unit vector perpendicular to ``v`` (as :func:`anim_core.ik._perpendicular`)."""
+        hx, hy = (1.0, 0.0) if abs(vx) < 0.9 else (0.0, 1.0)
+        cx, cy, cz = -vz * hy, vz * hx, vx * hy - vy * hx
+        n = np.sqrt(cx * cx + cy * cy + cz * cz)
+        return cx / n, cy / n, cz / n
+
+    @_njit
+    def _axis_angle(ax, ay, az, angle):
+        s = np.sin(0.5 * angle) / np.sqrt(ax * ax + ay * ay + az * az)
+        return np.cos(0.5 * angle), ax * s, ay * s, az * s
+
+    @_njit
+    def _between(ax, ay, az, bx, by, bz):
+        """The smallest rotation turning ``a`` into ``b`` (as :func:`anim_core.quat.quat_between`)."""
+        aa = ax * ax + ay * ay + az * az
+        w = np.sqrt(aa) * np.sqrt(bx * bx + by * by + bz * bz) + ax * bx + ay * by + az * bz
+        x, y, z = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+        n = np.sqrt(w * w + x * x + y * y + z * z)
+        if n <= 1e-12 * max(aa, 1e-300):  # opposite: a half turn about an axis perpendicular to a
+            hx, hy = (1.0, 0.0) if abs(ax) < 0.9 else (0.0, 1.0)
+            w, x, y, z = 0.0, -az * hy, az * hx, ax * hy - ay * hx
+            n = np.sqrt(x * x + y * y + z * z)
+        return w / n, x / n, y / n, z / n
+
+    @_njit
+    def _slerp_weights(omega, h):
+        """Weights of the two ends of a slerp over the 4-D angle ``omega`` at ``h`` (linear where tiny)."""
+        if omega < 1e-4:
+            return np.float32(1.0) - h, h
+        inv = np.float32(1.0) / np.sin(omega)
+        return np.sin((np.float32(1.0) - h) * omega) * inv, np.sin(h * omega) * inv
+
+    @_njit
+    def _squad_one(c, seg_times, q, a, b, angles, root_times, root_coef, velocity, params, times, parents,
+                   offsets, active, out_rot, out_pos):
+        duration, mode = params[0], int(params[1])
+        ct, cycles = _clip_time(times[c], duration, mode)
+        rx, ry, rz = _root_spline(ct, root_times, root_coef)
+        travel = ct + cycles * duration
+        rx += velocity[0] * travel
+        ry += velocity[1] * travel
+        rz += velocity[2] * travel
+        s = _last_at_or_below(seg_times, ct, 0, seg_times.shape[0] - 2)
+        h = (ct - seg_times[s]) / (seg_times[s + 1] - seg_times[s])
+        hf = np.float32(h)
+        outer = np.float32(2.0 * h * (1.0 - h))
+        for j in range(q.shape[1]):
+            if active[j]:
+                w0, w1 = _slerp_weights(angles[s, j, 0], hf)
+                pw, px = w0 * q[s, j, 0] + w1 * q[s + 1, j, 0], w0 * q[s, j, 1] + w1 * q[s + 1, j, 1]
+                py, pz = w0 * q[s, j, 2] + w1 * q[s + 1, j, 2], w0 * q[s, j, 3] + w1 * q[s + 1, j, 3]
+                w0, w1 = _slerp_weights(angles[s, j, 1], hf)
+                aw, ax = w0 * a[s, j, 0] + w1 * b[s, j, 0], w0 * a[s, j, 1] + w1 * b[s, j, 1]
+                ay, az = w0 * a[s, j, 2] + w1 * b[s, j, 2], w0 * a[s, j, 3] + w1 * b[s, j, 3]
+                dw, dx, dy, dz = pw - aw, px - ax, py - ay, pz - az
+                sw, sx, sy, sz = pw + aw, px + ax, py + ay, pz + az
+                omega = np.float32(2.0) * np.arctan2(np.sqrt(dw * dw + dx * dx + dy * dy + dz * dz),
+                                                     np.sqrt(sw * sw + sx * sx + sy * sy + sz * sz))
+                w0, w1 = _slerp_weights(omega, outer)
+                w, x, y, z = w0 * pw + w1 * aw, w0 * px + w1 * ax, w0 * py + w1 * ay, w0 * pz + w1 * az
+            else:
+                w, x, y, z = q[0, j, 0], q[0, j, 1], q[0, j, 2], q[0, j, 3]
+            _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
+
+    @_njit
+    def _hermite(values, slopes, i, leg, q, h00, h10, h01, h11):
+        """Component ``q`` of leg ``leg``'s track on the piece from point ``i`` (basis weights given)."""
+        return (h00 * values[i, leg, q] + h10 * slopes[i, leg, q] + h01 * values[i + 1, leg, q]
+                + h11 * slopes[i + 1, leg, q])
+
+    @_njit
+    def _foot_lock(c, chains, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos):
+        """Both legs of character ``c`` (posed by the base kernel) solved towards their tracks' targets: the
+        steps of :func:`anim_core.ik.two_bone_ik` with the default pole and the ankle's world orientation kept,
+        in float64; the hip's and knee's global rotations turn, every joint under the hip is re-placed."""
+        fps, loop, duration, mode = ik[0], ik[1], ik[2], int(ik[3])
+        ct, cycles = _clip_time(times[c], duration, mode)
+        travel = ct + cycles * duration
+        n = values.shape[0]
+        f = ct * fps
+        if loop > 0.0:  # periodic tracks: the last point is the first one again
+            f -= np.floor(f / (n - 1)) * (n - 1)
+        i = min(max(int(np.floor(f)), 0), n - 2)
+        u = f - i  # past 1 at a ping-pong clip's end: the last piece extrapolated, as the spline does
+        h = 1.0 / fps
+        h00, h10 = (2.0 * u - 3.0) * u * u + 1.0, ((u - 2.0) * u + 1.0) * u * h
+        h01, h11 = (3.0 - 2.0 * u) * u * u, (u - 1.0) * u * u * h
+        for leg in range(chains.shape[0]):
+            weight = min(max(_hermite(values, slopes, i, leg, 3, h00, h10, h01, h11), 0.0), 1.0)
+            if weight <= 0.0:
+                continue
+            s, m, e = chains[leg, 0], chains[leg, 1], chains[leg, 2]
+            sx, sy, sz = np.float64(out_pos[c, s, 0]), np.float64(out_pos[c, s, 1]), np.float64(out_pos[c, s, 2])
+            mx, my, mz = np.float64(out_pos[c, m, 0]), np.float64(out_pos[c, m, 1]), np.float64(out_pos[c, m, 2])
+            ex, ey, ez = np.float64(out_pos[c, e, 0]), np.float64(out_pos[c, e, 1]), np.float64(out_pos[c, e, 2])
+            tx = ex + weight * (_hermite(values, slopes, i, leg, 0, h00, h10, h01, h11) + ik[4] * travel - ex)
+            ty = ey + weight * (_hermite(values, slopes, i, leg, 1, h00, h10, h01, h11) + ik[5] * travel - ey)
+            tz = ez + weight * (_hermite(values, slopes, i, leg, 2, h00, h10, h01, h11) + ik[6] * travel - ez)
+            a = np.sqrt(offsets[m, 0] ** 2 + offsets[m, 1] ** 2 + offsets[m, 2] ** 2)
+            b = np.sqrt(offsets[e, 0] ** 2 + offsets[e, 1] ** 2 + offsets[e, 2] ** 2)
+            # 1. clamped distance and direction to the target
+            dx, dy, dz = tx - sx, ty - sy, tz - sz
+            dn = np.sqrt(dx * dx + dy * dy + dz * dz)
+            if dn > 1e-12:
+                dx, dy, dz = dx / dn, dy / dn, dz / dn
+            else:
+                fx, fy, fz = ex - sx, ey - sy, ez - sz
+                fn = np.sqrt(fx * fx + fy * fy + fz * fz)
+                if fn > 1e-12:
+                    dx, dy, dz = fx / fn, fy / fn, fz / fn
+                else:
+                    dx, dy, dz = _perpendicular(mx - sx, my - sy, mz - sz)
+            dist = min(max(dn, abs(a - b) + 1e-9 * (a + b)), (a + b) * (1.0 - 1e-9))
+            # 2. bend the knee about its hinge
+            thx, thy, thz = mx - sx, my - sy, mz - sz
+            shx, shy, shz = ex - mx, ey - my, ez - mz
+            cx, cy, cz = thy * shz - thz * shy, thz * shx - thx * shz, thx * shy - thy * shx
+            cn = np.sqrt(cx * cx + cy * cy + cz * cz)
+            if cn > 1e-12:
+                hx, hy, hz = cx / cn, cy / cn, cz / cn
+            else:
+                hx, hy, hz = _perpendicular(thx, thy, thz)
+            bend = np.arctan2(cn, thx * shx + thy * shy + thz * shz)
+            cos_inner = min(max((a * a + b * b - dist * dist) / (2.0 * a * b), -1.0), 1.0)
+            mw, mqx, mqy, mqz = _axis_angle(hx, hy, hz, (np.pi - np.arccos(cos_inner)) - bend)
+            rx, ry, rz = _qrot(mw, mqx, mqy, mqz, shx, shy, shz)
+            # 3. swing the ankle onto the target, then twist about hip -> target towards the pole (the knee)
+            sw, swx, swy, swz = _between(mx + rx - sx, my + ry - sy, mz + rz - sz, dx, dy, dz)
+            kx, ky, kz = _qrot(sw, swx, swy, swz, thx, thy, thz)
+            kd, pd = kx * dx + ky * dy + kz * dz, thx * dx + thy * dy + thz * dz
+            kx, ky, kz = kx - kd * dx, ky - kd * dy, kz - kd * dz
+            px, py, pz = thx - pd * dx, thy - pd * dy, thz - pd * dz
+            angle = 0.0
+            if (np.sqrt(kx * kx + ky * ky + kz * kz) > 1e-9 * a) and (np.sqrt(px * px + py * py + pz * pz)
+                                                                      > 1e-9 * a):
+                angle = np.arctan2(dx * (ky * pz - kz * py) + dy * (kz * px - kx * pz) + dz * (kx * py - ky * px),
+                                   kx * px + ky * py + kz * pz)
+            tw, twx, twy, twz = _axis_angle(dx, dy, dz, angle)
+            hip = _qmul(tw, twx, twy, twz, sw, swx, swy, swz)
+            knee = _qmul(hip[0], hip[1], hip[2], hip[3], mw, mqx, mqy, mqz)
+            g = _qmul(hip[0], hip[1], hip[2], hip[3], out_rot[c, s, 0], out_rot[c, s, 1], out_rot[c, s, 2],
+                      out_rot[c, s, 3])
+            out_rot[c, s, 0], out_rot[c, s, 1], out_rot[c, s, 2], out_rot[c, s, 3] = g
+            for k in range(below.shape[1]):
+                j = below[leg, k]
+                if j < 0:
+                    break
+                turn = turns[leg, k]
+                if turn < 2:
+                    r = hip if turn == 0 else knee
+                    g = _qmul(r[0], r[1], r[2], r[3], out_rot[c, j, 0], out_rot[c, j, 1], out_rot[c, j, 2],
+                              out_rot[c, j, 3])
+                    out_rot[c, j, 0], out_rot[c, j, 1], out_rot[c, j, 2], out_rot[c, j, 3] = g
+                p = parents[j]
+                ox, oy, oz = _qrot(np.float64(out_rot[c, p, 0]), np.float64(out_rot[c, p, 1]),
+                                   np.float64(out_rot[c, p, 2]), np.float64(out_rot[c, p, 3]),
+                                   np.float64(offsets[j, 0]), np.float64(offsets[j, 1]), np.float64(offsets[j, 2]))
+                out_pos[c, j, 0] = out_pos[c, p, 0] + ox
+                out_pos[c, j, 1] = out_pos[c, p, 1] + oy
+                out_pos[c, j, 2] = out_pos[c, p, 2] + oz
+
     @numba.njit(cache=True)
-    def _table_serial(keys, roots, velocity, params, times, parents, offsets, active, first, stride,
+    def _table_serial(keys, roots, velocity, params, key_times, times, parents, offsets, active, first, stride,
                       out_rot, out_pos):
         for c in range(first, times.shape[0], stride):
-            _table_one(c, keys, roots, velocity, params, times, parents, offsets, active, out_rot, out_pos)
+            _table_one(c, keys, roots, velocity, params, key_times, times, parents, offsets, active, out_rot,
+                       out_pos)
 
     @numba.njit(cache=True, parallel=True)
-    def _table_parallel(keys, roots, velocity, params, times, parents, offsets, active, first, stride,
+    def _table_parallel(keys, roots, velocity, params, key_times, times, parents, offsets, active, first, stride,
                         out_rot, out_pos):
         for k in numba.prange((times.shape[0] - first + stride - 1) // stride):
-            _table_one(first + k * stride, keys, roots, velocity, params, times, parents, offsets, active,
-                       out_rot, out_pos)
+            _table_one(first + k * stride, keys, roots, velocity, params, key_times, times, parents, offsets,
+                       active, out_rot, out_pos)
+
+    @numba.njit(cache=True)
+    def _quantized_serial(codes, low, step, roots, velocity, params, key_times, times, parents, offsets, active,
+                          first, stride, out_rot, out_pos):
+        for c in range(first, times.shape[0], stride):
+            _quantized_one(c, codes, low, step, roots, velocity, params, key_times, times, parents, offsets, active,
+                           out_rot, out_pos)
+
+    @numba.njit(cache=True, parallel=True)
+    def _quantized_parallel(codes, low, step, roots, velocity, params, key_times, times, parents, offsets, active,
+                            first, stride, out_rot, out_pos):
+        for k in numba.prange((times.shape[0] - first + stride - 1) // stride):
+            _quantized_one(first + k * stride, codes, low, step, roots, velocity, params, key_times, times,
+                           parents, offsets, active, out_rot, out_pos)
+
+    @numba.njit(cache=True)
+    def _c2_serial(knots, control, steps, root_times, root_coef, velocity, params, times, parents, offsets, active,
+                   first, stride, out_rot, out_pos):
+        for c in range(first, times.shape[0], stride):
+            _c2_one(c, knots, control, steps, root_times, root_coef, velocity, params, times, parents, offsets,
+                    active, out_rot, out_pos)
+
+    @numba.njit(cache=True, parallel=True)
+    def _c2_parallel(knots, control, steps, root_times, root_coef, velocity, params, times, parents, offsets,
+                     active, first, stride, out_rot, out_pos):
+        for k in numba.prange((times.shape[0] - first + stride - 1) // stride):
+            _c2_one(first + k * stride, knots, control, steps, root_times, root_coef, velocity, params, times,
+                    parents, offsets, active, out_rot, out_pos)
+
+    @numba.njit(cache=True)
+    def _squad_serial(seg_times, q, a, b, angles, root_times, root_coef, velocity, params, times, parents,
+                      offsets, active, first, stride, out_rot, out_pos):
+        for c in range(first, times.shape[0], stride):
+            _squad_one(c, seg_times, q, a, b, angles, root_times, root_coef, velocity, params, times, parents,
+                       offsets, active, out_rot, out_pos)
+
+    @numba.njit(cache=True, parallel=True)
+    def _squad_parallel(seg_times, q, a, b, angles, root_times, root_coef, velocity, params, times, parents,
+                        offsets, active, first, stride, out_rot, out_pos):
+        for k in numba.prange((times.shape[0] - first + stride - 1) // stride):
+            _squad_one(first + k * stride, seg_times, q, a, b, angles, root_times, root_coef, velocity, params,
+                       times, parents, offsets, active, out_rot, out_pos)
+
+    @numba.njit(cache=True)
+    def _squad_ik_serial(seg_times, q, a, b, angles, root_times, root_coef, velocity, params, chains, below, turns,
+                         values, slopes, ik, times, parents, offsets, active, first, stride, out_rot, out_pos):
+        for c in range(first, times.shape[0], stride):
+            _squad_one(c, seg_times, q, a, b, angles, root_times, root_coef, velocity, params, times, parents,
+                       offsets, active, out_rot, out_pos)
+            _foot_lock(c, chains, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos)
+
+    @numba.njit(cache=True, parallel=True)
+    def _squad_ik_parallel(seg_times, q, a, b, angles, root_times, root_coef, velocity, params, chains, below,
+                           turns, values, slopes, ik, times, parents, offsets, active, first, stride, out_rot,
+                           out_pos):
+        for k in numba.prange((times.shape[0] - first + stride - 1) // stride):
+            c = first + k * stride
+            _squad_one(c, seg_times, q, a, b, angles, root_times, root_coef, velocity, params, times, parents,
+                       offsets, active, out_rot, out_pos)
+            _foot_lock(c, chains, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos)
+
+    @numba.njit(cache=True)
+    def _spring_ik_serial(key_params, keys, angles, inv_sin, key_root, params, chains, below, turns, values,
+                          slopes, ik, times, parents, offsets, active, first, stride, out_rot, out_pos):
+        for c in range(first, times.shape[0], stride):
+            _spring_one(c, key_params, keys, angles, inv_sin, key_root, params, times, parents, offsets,
+                        active, out_rot, out_pos)
+            _foot_lock(c, chains, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos)
+
+    @numba.njit(cache=True, parallel=True)
+    def _spring_ik_parallel(key_params, keys, angles, inv_sin, key_root, params, chains, below, turns, values,
+                            slopes, ik, times, parents, offsets, active, first, stride, out_rot, out_pos):
+        for k in numba.prange((times.shape[0] - first + stride - 1) // stride):
+            c = first + k * stride
+            _spring_one(c, key_params, keys, angles, inv_sin, key_root, params, times, parents, offsets,
+                        active, out_rot, out_pos)
+            _foot_lock(c, chains, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos)
 
     @numba.njit(cache=True)
     def _spline_serial(seg_times, ctrl, root_times, root_coef, src, sign, velocity, params, times, parents,

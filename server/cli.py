@@ -436,8 +436,9 @@ def researcher_create(settings: Settings, email: str, password: str, admin: bool
 
 
 def bench(settings: Settings, json_path: Path, characters: list[int], stages: list[str], frames: int,
-          variants: list[str]) -> int:
-    """Run the performance benchmark; write JSON (for the dashboard too) and the plots beside it."""
+          variants: list[str], config: Path | None = None) -> int:
+    """Run the performance benchmark on the clip set of ``config`` (default: the built-in one); write JSON (for
+    the dashboard too) and the plots beside it."""
     # One thread for numpy/BLAS in the main figures (the compiled kernel's threads are a separate figure).
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
@@ -445,11 +446,12 @@ def bench(settings: Settings, json_path: Path, characters: list[int], stages: li
     from anim_core.clipset import ConfigError
     from server.assets import AssetError
     from server.clipset.build import build_clip_set
+    from server.clipset.config import load_config
 
     started = time.perf_counter()
     try:
-        print("building the clip set", flush=True)
-        clips = build_clip_set(settings.data)
+        print(f"building the clip set{f' of {config}' if config else ''}", flush=True)
+        clips = build_clip_set(settings.data, load_config(config) if config else None)
     except (AssetError, ConfigError) as exc:
         return _fail(str(exc))
     print(f"building the runtimes and measuring memory and accuracy ({', '.join(variants)})", flush=True)
@@ -470,37 +472,39 @@ def bench(settings: Settings, json_path: Path, characters: list[int], stages: li
 
 
 def _print_bench(doc: dict[str, Any]) -> None:
-    """The ratios per clip and crowd size, then bytes and errors per clip, then the goals' figures."""
+    """Per clip (every condition) and crowd size the median ms per frame and its ratio to the keyframe clip of the
+    same animation, then bytes and errors per clip, then the goals' figures."""
     variant = "keys" if "keys" in doc["settings"]["variants"] else doc["settings"]["variants"][0]
     rows = [r for r in doc["results"] if r["stage"] == "pose" and r["variant"] == variant and r["threads"] == 1]
+    width = max([16, *(len(m["clip"]) + 1 for m in doc["memory"])])
     if rows:
         ns = sorted({r["characters"] for r in rows})
         keyframe = {(r["animation"], r["characters"]): r["median_ms"] for r in rows if r["method"] == "keyframe"}
-        print(f"\nhybrid / keyframe median ms per frame, variant {variant}, pose, one thread")
-        print(f"{'clip':16}" + "".join(f"{n:>10}" for n in ns))
-        for clip in dict.fromkeys((r["animation"], r["method"], r["increment"]) for r in rows):
-            by_n = {r["characters"]: r["median_ms"] for r in rows if (r["animation"], r["method"], r["increment"])
-                    == clip}
-            name = f"{clip[0]}-{clip[1]}{'' if clip[2] is None else clip[2]}"
-            cells = [(f"{by_n[n]:.3g}ms" if clip[1] == "keyframe" else f"{by_n[n] / keyframe[(clip[0], n)]:.3f}")
-                     if n in by_n else "" for n in ns]
-            print(f"{name:16}" + "".join(f"{c:>10}" for c in cells))
+        print(f"\nmedian ms per frame (÷ the keyframe clip's, same rounds), variant {variant}, pose, one thread")
+        print(f"{'clip':{width}}" + "".join(f"{n:>18}" for n in ns))
+        for clip in dict.fromkeys((r["animation"], r["condition"]) for r in rows):
+            by_n = {r["characters"]: r["median_ms"] for r in rows if (r["animation"], r["condition"]) == clip}
+            cells = [(f"{by_n[n]:.4g}" + ("" if (clip[0], n) not in keyframe else
+                                          f" ({by_n[n] / keyframe[(clip[0], n)]:.2f})")) if n in by_n else ""
+                     for n in ns]
+            print(f"{clip[0] + '-' + clip[1]:{width}}" + "".join(f"{c:>18}" for c in cells))
     variants = list(dict.fromkeys(m["variant"] for m in doc["memory"]))
     mem = {(m["clip"], m["variant"]): m["runtime_bytes"] for m in doc["memory"]}
     err = {(a["clip"], a["variant"]): a["max_error_deg"] for a in doc["accuracy"]}
     stored = {m["clip"]: m["stored_bytes"] for m in doc["memory"]}
     main = [v for v in variants if not v.startswith("keys-")]
     print("\nruntime bytes (stored keys first) and largest global-rotation error in degrees, per clip and variant")
-    print(f"{'clip':16}{'stored':>8}" + "".join(f"{v:>10}" for v in main) + "".join(f"{'err ' + v:>14}" for v in main))
+    print(f"{'clip':{width}}{'stored':>8}" + "".join(f"{v:>10}" for v in main)
+          + "".join(f"{'err ' + v:>14}" for v in main))
     for clip in stored:
-        print(f"{clip:16}{stored[clip]:>8}" + "".join(f"{mem.get((clip, v), ''):>10}" for v in main)
+        print(f"{clip:{width}}{stored[clip]:>8}" + "".join(f"{mem.get((clip, v), ''):>10}" for v in main)
               + "".join(f"{err[(clip, v)]:>14.4f}" if (clip, v) in err else f"{'':>14}" for v in main))
     lods = [v for v in variants if v.startswith("keys-")]
     if lods:
         print("\nLOD variants of keys: largest error in degrees per clip")
-        print(f"{'clip':16}" + "".join(f"{v:>18}" for v in lods))
+        print(f"{'clip':{width}}" + "".join(f"{v:>18}" for v in lods))
         for clip in stored:
-            print(f"{clip:16}" + "".join(f"{err.get((clip, v), float('nan')):>18.3f}" for v in lods))
+            print(f"{clip:{width}}" + "".join(f"{err.get((clip, v), float('nan')):>18.3f}" for v in lods))
     s = doc["summary"]
     print()
     for label, value, unit in (
@@ -515,6 +519,9 @@ def _print_bench(doc: dict[str, Any]) -> None:
     ):
         shown = "n/a" if value is None else (f"{value:.3f}" if isinstance(value, float) else value)
         print(f"{label}: {shown}{unit}")
+
+
+QUICK_BENCH = "--characters 10,1000 --stages pose --frames 50 --variants keys"
 
 
 def _variants(text: str) -> list[str]:
@@ -622,11 +629,16 @@ def _main(argv: Sequence[str] | None = None) -> int:
     se.add_argument("slug")
     se.add_argument("--format", choices=("csv", "json"), default="csv")
     se.add_argument("--out", type=Path, default=None, help="file to write (default: standard output)")
-    bn = sub.add_parser("bench", help="time pose evaluation of crowds, keyframe against hybrid")
+    bn = sub.add_parser("bench", help="time pose evaluation of crowds, keyframe against every other condition")
     bn.add_argument("--json", type=Path, default=None, help="results file (default: <var dir>/benchmark/results.json)")
+    bn.add_argument("--config", type=Path, default=None,
+                    help="clip-set TOML whose clips to time (default: the built-in one), e.g. "
+                         "server/clipset/conditions16.toml")
+    bn.add_argument("--quick", action="store_true",
+                    help=f"short run: {QUICK_BENCH} unless given")
     bn.add_argument("--characters", type=_int_list(1, "10,200"), default=None, help="crowd sizes, e.g. 10,200,10000")
-    bn.add_argument("--stages", type=_stages, default=["pose", "skin"], help="pose, skin or both (default)")
-    bn.add_argument("--frames", type=int, default=200, help="timed frames per measurement (default: 200)")
+    bn.add_argument("--stages", type=_stages, default=None, help="pose, skin or both (default)")
+    bn.add_argument("--frames", type=int, default=None, help="timed frames per measurement (default: 200)")
     bn.add_argument("--variants", type=_variants, default=None,
                     help="comma-separated: keys, baked, reference, naive (default: all)")
     args = parser.parse_args(argv)
@@ -634,8 +646,12 @@ def _main(argv: Sequence[str] | None = None) -> int:
     if args.command == "bench":
         from anim_core.benchmark import DEFAULT_CHARACTERS, VARIANTS
 
-        return bench(settings, args.json or settings.benchmark_path, args.characters or list(DEFAULT_CHARACTERS),
-                     args.stages, max(1, args.frames), args.variants or list(VARIANTS))
+        quick = args.quick
+        return bench(settings, args.json or settings.benchmark_path,
+                     args.characters or ([10, 1000] if quick else list(DEFAULT_CHARACTERS)),
+                     args.stages or (["pose"] if quick else ["pose", "skin"]),
+                     max(1, args.frames or (50 if quick else 200)),
+                     args.variants or (["keys"] if quick else list(VARIANTS)), args.config)
     if args.command == "serve":
         return serve(settings, args.host, args.port, max(1, args.workers))
     if args.command == "researcher":
