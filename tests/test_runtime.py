@@ -1,5 +1,7 @@
 """The keys runtime: every clip posed from its own keys, against the numpy reference; memory, validation, LOD."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -8,6 +10,7 @@ from anim_core import runtime as R
 from anim_core.crowd import CrowdBuffers
 from anim_core.hybrid import SpringClip, SquadClip
 from server.clipset.build import build_clip_set
+from server.clipset.config import load_config
 
 
 @pytest.fixture(scope="module")
@@ -145,3 +148,114 @@ def test_a_fit_outside_the_tolerance_is_refused(clips):
     run0 = next(c.clip for c in clips if c.id == "run-hybrid0")
     with pytest.raises(ValueError, match="from exact SQUAD"):
         R.spline_runtime(run0, tolerance_deg=0.01)
+
+
+# --- the conditions of issue 16, each from what it stores -------------------------------------------------------
+
+CONDITIONS16 = Path(__file__).resolve().parents[1] / "server" / "clipset" / "conditions16.toml"
+NEW_METHODS = ("hybrid_ik", "hybrid_c2", "reduced", "quantized")
+
+
+@pytest.fixture(scope="module")
+def clips16(data):
+    return [c for c in build_clip_set(data, load_config(CONDITIONS16)) if c.method in NEW_METHODS]
+
+
+@pytest.fixture(scope="module")
+def runtimes16(clips16):
+    return {c.id: R.runtime_for(c.clip) for c in clips16}
+
+
+def test_issue16_runtimes_match_their_clips(clips16, runtimes16, rng):
+    """Each condition's kernel against its own ``sample``: float32 rounding for the keyframe-type clips and the C2
+    spline (<= 0.002 degrees, 0.1 mm); foot locking within FOOT_LOCK_TOLERANCE_DEG (0.25 degrees) and 0.5 mm."""
+    assert len(clips16) == 4 * 10
+    t = rng.uniform(-5.0, 15.0, 600)
+    kinds = {"reduced": R.TableRuntime, "quantized": R.QuantizedRuntime, "hybrid_ik": R.FootLockRuntime}
+    for c in clips16:
+        rt = runtimes16[c.id]
+        if c.method == "hybrid_c2":  # the crouch's hybrid_c2 is its spring hybrid 0
+            assert isinstance(rt, R.SpringRuntime if c.animation == "crouch" else R.C2Runtime), c.id
+        else:
+            assert isinstance(rt, kinds[c.method]), c.id
+        ref_rot, ref_pos = R.exact_global(c.clip, t)
+        out = rt.pose(t)
+        angle = np.degrees(Q.quat_angle(out.rotations.astype(np.float64), ref_rot)).max()
+        distance = np.linalg.norm(out.positions - ref_pos, axis=-1).max()
+        if c.method == "hybrid_ik":
+            assert 0 <= rt.error_deg <= R.FOOT_LOCK_TOLERANCE_DEG
+            assert angle <= R.FOOT_LOCK_TOLERANCE_DEG, f"{c.id}: {angle:.4f} deg"
+            assert distance <= 5e-4, f"{c.id}: {distance * 1000:.3f} mm"
+        else:
+            assert angle <= 2e-3, f"{c.id}: {angle:.5f} deg"
+            assert distance <= 1e-4, f"{c.id}: {distance * 1000:.3f} mm"
+        parallel = rt.pose(t, parallel=True)
+        assert np.array_equal(parallel.rotations, out.rotations) and np.array_equal(parallel.positions,
+                                                                                    out.positions)
+
+
+def test_issue16_runtimes_hold_what_the_clips_store(clips16, runtimes16):
+    j = 31
+    by_id = {c.id: c for c in clips16}
+    for cid, rt in runtimes16.items():
+        held = [v for v in vars(rt).values() if isinstance(v, np.ndarray)]
+        if isinstance(rt, R.FootLockRuntime):
+            held += [v for v in vars(rt.base).values() if isinstance(v, np.ndarray)]
+        assert rt.runtime_bytes == sum(a.nbytes for a in held), cid
+        assert {id(a) for a in held} == {id(a) for a in rt.arrays().values()}, cid
+        assert all(not a.flags.writeable for a in held), cid
+    # reduced: its own uneven key times, searched per character; bytes by the layout (float32 keys and root,
+    # float64 times, 3 + 3 scalars)
+    walk5 = by_id["walk-reduced5"].clip
+    rt = runtimes16["walk-reduced5"]
+    k = walk5.n_keys
+    assert np.array_equal(rt.key_times, walk5.times) and np.ptp(np.diff(walk5.times)) > 0 and rt.params[0] == 0
+    assert rt.runtime_bytes == k * j * 4 * 4 + k * 3 * 4 + 3 * 4 + 3 * 8 + k * 8
+    # quantized: the integers (uint8 at 8 bits, uint16 at 12) and per-track low and step, no float keys
+    for cid, dtype, size in (("walk-quantized8", np.uint8, 1), ("walk-quantized12", np.uint16, 2)):
+        clip, rt = by_id[cid].clip, runtimes16[cid]
+        assert rt.codes.dtype == dtype and np.array_equal(rt.codes, clip.tracks.codes)
+        assert not any(a.dtype.kind == "f" and a.shape == clip.rotations.shape for a in rt.arrays().values())
+        k = clip.n_keys
+        assert rt.key_times.size == 0 and rt.params[0] > 0  # on the grid
+        assert rt.runtime_bytes == k * j * 4 * size + 2 * j * 4 * 4 + k * 3 * 4 + 3 * 4 + 3 * 8
+    reduced_quantized = runtimes16["walk-quantized12_reduced2"]
+    assert reduced_quantized.key_times.size == by_id["walk-quantized12_reduced2"].clip.n_keys
+    # hybrid_c2: the control points and their steps (4 floats each), the knots and the SQUAD root
+    c2 = runtimes16["walk-hybrid_c2_0"]
+    n = by_id["walk-hybrid_c2_0"].clip.spline.control.shape[0]
+    assert c2.control.shape == c2.steps.shape == (n, j, 4) and c2.knots.shape == (n + 7,)
+    # hybrid_ik: exact SQUAD (q, a, b, angles) plus legs, joint lists and the tracks at every frame
+    ik_clip, ik = by_id["walk-hybrid_ik0"].clip, runtimes16["walk-hybrid_ik0"]
+    assert isinstance(ik.base, R.SquadRuntime)
+    assert ik.track_values.shape == ik.track_slopes.shape == (ik_clip.weights.shape[0] + 1, 2, 4)
+    assert np.allclose(ik.track_values[:-1, :, :3], ik_clip.targets, atol=1e-6)
+    assert np.allclose(ik.track_values[:-1, :, 3], ik_clip.weights, atol=1e-6)
+    assert ik.chains.tolist() == [list(leg) for leg in ik_clip.legs]
+    names = ik_clip.skeleton.names
+    assert [[names[x] for x in row if x >= 0] for row in ik.below] == [
+        ["LeftLeg", "LeftFoot", "LeftToeBase"], ["RightLeg", "RightFoot", "RightToeBase"]]
+    assert ik.turns[:, :3].tolist() == [[1, 2, 2], [1, 2, 2]]
+    assert ik.runtime_bytes == ik.base.runtime_bytes + sum(a.nbytes for a in (
+        ik.chains, ik.below, ik.turns, ik.track_values, ik.track_slopes, ik.ik_params))
+
+
+def test_issue16_kernels_refuse_bad_inputs(runtimes16):
+    for cid in ("walk-reduced5", "walk-quantized8", "walk-hybrid_c2_0", "walk-hybrid_ik0", "crouch-hybrid_ik0"):
+        rt = runtimes16[cid]
+        j = rt.skeleton.n_joints
+        for kwargs, message in ((dict(t=np.array([0.0, np.inf])), "finite"),
+                                (dict(out=CrowdBuffers.for_crowd(3, j)), r"shape \(2, 31, 4\)"),
+                                (dict(active=np.ones(j + 1, np.uint8)), "active"), (dict(stride=-1), "stride")):
+            args = {"t": np.array([0.0, 0.5]), **kwargs}
+            with pytest.raises(ValueError, match=message):
+                rt.pose(args.pop("t"), **args)
+
+
+def test_a_foot_lock_or_c2_kernel_off_its_clip_is_refused(clips16):
+    ik = next(c.clip for c in clips16 if c.id == "walk-hybrid_ik0")
+    with pytest.raises(ValueError, match="foot-lock kernel"):
+        R.foot_lock_runtime(ik, tolerance_deg=1e-9)
+    c2 = next(c.clip for c in clips16 if c.id == "walk-hybrid_c2_0")
+    with pytest.raises(ValueError, match="C2 kernel"):
+        R.c2_runtime(c2, tolerance_deg=1e-9)
