@@ -31,8 +31,9 @@ The runtimes, built once per clip at load time (:func:`runtime_for`), evaluated 
   :meth:`C2Clip.sample` (``error_deg`` <= :data:`C2_TOLERANCE_DEG`).
 * :class:`FootLockRuntime`: a ``hybrid_ik`` clip: its hybrid's keys pose the character (exact SQUAD,
   :class:`SquadRuntime`, three slerps per joint, or the spring runtime; not the fitted curve, whose error the IK
-  would amplify near a straight knee), then per leg the ankle target and weight are evaluated from the clip's cubic tracks (stored as the values and
-  slopes at each frame: a cubic Hermite piece per frame interval is exactly the spline's piece) and the analytic
+  would amplify near a straight knee), then per leg the ankle target and weight are evaluated from the clip's
+  cubic tracks (stored as the values and slopes at each frame: a cubic Hermite piece per frame interval is
+  exactly the spline's piece) and the analytic
   two-bone IK of :func:`anim_core.ik.two_bone_ik` (default pole, the ankle keeping its world orientation) turns
   hip and knee; the leg's joints below the hip are re-posed from the new rotations.  A leg with weight 0 is
   left alone.  Checked at load against :meth:`FootLockedClip.sample` (``error_deg`` <=
@@ -332,9 +333,10 @@ class SquadRuntime(_Runtime):
 
 @dataclass(frozen=True, eq=False)
 class FootLockRuntime(_Runtime):
-    """A ``hybrid_ik`` clip: ``base``, its hybrid's runtime (exact SQUAD or spring), and per leg ``F``: ``chains (F, 3)`` int32 (hip,
-    knee, ankle), ``below (F, L)`` int32 the joints under the hip in topological order (-1 padded) with ``turns
-    (F, L)`` int32 what turns each (0: the hip's rotation, 1: the knee's, 2: nothing, under the ankle);
+    """A ``hybrid_ik`` clip: ``base``, its hybrid's runtime (exact SQUAD or spring), and per leg ``F``:
+    ``chains (F, 3)`` int32 (hip, knee, ankle), ``below (F, L)`` int32 the joints under the hip in topological
+    order (-1 padded) with ``turns (F, L)`` int32 what turns each (0: the hip's rotation, 1: the knee's, 2:
+    nothing, under the ankle);
     ``track_values``/``track_slopes (P, F, 4)`` float32 the ankle target (x, y, z, relative to the root without
     travel) and weight at the ``P`` frames of the clip's tracks and their slopes per second; ``ik_params (7,)``
     float64 = (frames per second, 1 for a loop's periodic tracks else 0, duration s, playback mode index, travel
