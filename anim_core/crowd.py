@@ -61,11 +61,17 @@ class PoseTable:
         return int(self.rotations.nbytes + self.root.nbytes)
 
 
+def uniform(times: Array) -> bool:
+    """Whether key ``times (K,)`` are evenly spaced (to rounding), so that a key is found by division."""
+    dt = np.diff(times)
+    return bool(np.allclose(dt, dt[0], rtol=1e-9, atol=1e-12))
+
+
 def table_from_keyframes(clip: KeyframeClip) -> PoseTable:
     """The keyframe clip's own keys (they must be uniformly spaced, as the clip set's are)."""
-    dt = np.diff(clip.times)
-    if not np.allclose(dt, dt[0], rtol=1e-9, atol=1e-12):
+    if not uniform(clip.times):
         raise ValueError("keyframe clip keys are not uniformly spaced; resample() it first")
+    dt = np.diff(clip.times)
     return _table(clip.skeleton, clip.rotations, clip.root_translation, clip.times, float(dt[0]), clip.mode,
                   clip.velocity, travels=clip.mode == "loop" and not clip.in_place, in_place=clip.in_place)
 

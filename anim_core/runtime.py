@@ -62,7 +62,7 @@ from numpy.typing import ArrayLike, NDArray
 from .c2spline import C2Clip
 from .clip import PLAYBACK_MODES, KeyframeClip, Pose
 from .compression import QuantizedClip
-from .crowd import CrowdBuffers, PoseTable, keyframe_root, numba, table_from_keyframes
+from .crowd import CrowdBuffers, PoseTable, keyframe_root, numba, table_from_keyframes, uniform
 from .footlock import FootLockedClip
 from .hybrid import SpringClip, SquadClip, spring
 from .mirror import Mirror
@@ -375,7 +375,7 @@ def runtime_for(clip: AnimClip) -> AnyRuntime:
     if isinstance(clip, QuantizedClip):
         return quantized_runtime(clip)
     if isinstance(clip, KeyframeClip):
-        if _uniform(clip.times):
+        if uniform(clip.times):
             return TableRuntime.from_table(table_from_keyframes(clip))
         return TableRuntime.from_uneven_keys(clip)
     if isinstance(clip, SquadClip):
@@ -389,25 +389,20 @@ def runtime_for(clip: AnimClip) -> AnyRuntime:
     raise ValueError(f"no runtime for clips of type {type(clip).__name__}")
 
 
-def _uniform(times: Array) -> bool:
-    dt = np.diff(times)
-    return bool(np.allclose(dt, dt[0], rtol=1e-9, atol=1e-12))
-
-
 def quantized_runtime(clip: QuantizedClip) -> QuantizedRuntime:
     """The integers of a quantized clip as its smallest unsigned type, its tracks' ranges, its root and times."""
     tracks = clip.tracks
     if tracks.bits > 16:
         raise ValueError(f"clip {clip.name!r}: the quantized runtime takes up to 16 bits, got {tracks.bits}")
     codes = tracks.codes.astype(np.uint8 if tracks.bits <= 8 else np.uint16)
-    uniform = _uniform(clip.times)
+    on_grid = uniform(clip.times)
     root, velocity = keyframe_root(clip)
-    dt = float(clip.times[1] - clip.times[0]) if uniform else 0.0
+    dt = float(clip.times[1] - clip.times[0]) if on_grid else 0.0
     return QuantizedRuntime(clip.skeleton, _frozen(codes, codes.dtype), _frozen(tracks.low, np.float32),
                             _frozen(tracks.step, np.float32), _frozen(root, np.float32),
                             _frozen(velocity, np.float32),
                             _frozen([dt, clip.duration, PLAYBACK_MODES.index(clip.mode)], np.float64),
-                            _frozen(np.zeros(0) if uniform else clip.times, np.float64))
+                            _frozen(np.zeros(0) if on_grid else clip.times, np.float64))
 
 
 def _root_arrays(clip: SquadClip) -> tuple[Array, F32, F32]:

@@ -481,13 +481,13 @@ def _print_bench(doc: dict[str, Any]) -> None:
         ns = sorted({r["characters"] for r in rows})
         keyframe = {(r["animation"], r["characters"]): r["median_ms"] for r in rows if r["method"] == "keyframe"}
         print(f"\nmedian ms per frame (÷ the keyframe clip's, same rounds), variant {variant}, pose, one thread")
-        print(f"{'clip':{width}}" + "".join(f"{n:>18}" for n in ns))
+        print(f"{'clip':{width}}" + "".join(f"{n:>15}" for n in ns))
         for clip in dict.fromkeys((r["animation"], r["condition"]) for r in rows):
             by_n = {r["characters"]: r["median_ms"] for r in rows if (r["animation"], r["condition"]) == clip}
             cells = [(f"{by_n[n]:.4g}" + ("" if (clip[0], n) not in keyframe else
                                           f" ({by_n[n] / keyframe[(clip[0], n)]:.2f})")) if n in by_n else ""
                      for n in ns]
-            print(f"{clip[0] + '-' + clip[1]:{width}}" + "".join(f"{c:>18}" for c in cells))
+            print(f"{clip[0] + '-' + clip[1]:{width}}" + "".join(f"{c:>15}" for c in cells))
     variants = list(dict.fromkeys(m["variant"] for m in doc["memory"]))
     mem = {(m["clip"], m["variant"]): m["runtime_bytes"] for m in doc["memory"]}
     err = {(a["clip"], a["variant"]): a["max_error_deg"] for a in doc["accuracy"]}
