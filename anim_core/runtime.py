@@ -65,6 +65,7 @@ from .compression import QuantizedClip
 from .crowd import CrowdBuffers, PoseTable, keyframe_root, numba, table_from_keyframes, uniform
 from .footlock import FootLockedClip
 from .hybrid import SpringClip, SquadClip, spring
+from .ik import _STRAIGHT
 from .mirror import Mirror
 from .quat import quat_angle, quat_conj, quat_log, quat_mul, squad_eval
 from .skeleton import Skeleton
@@ -334,17 +335,20 @@ class SquadRuntime(_Runtime):
 @dataclass(frozen=True, eq=False)
 class FootLockRuntime(_Runtime):
     """A ``hybrid_ik`` clip: ``base``, its hybrid's runtime (exact SQUAD or spring), and per leg ``F``:
-    ``chains (F, 3)`` int32 (hip, knee, ankle), ``below (F, L)`` int32 the joints under the hip in topological
+    ``chains (F, 3)`` int32 (hip, knee, ankle), ``hinges (F, 3)`` each knee's hinge in its local frame,
+    ``below (F, L)`` int32 the joints under the hip in topological
     order (-1 padded) with ``turns (F, L)`` int32 what turns each (0: the hip's rotation, 1: the knee's, 2:
     nothing, under the ankle);
     ``track_values``/``track_slopes (P, F, 4)`` float32 the ankle target (x, y, z, relative to the root without
-    travel) and weight at the ``P`` frames of the clip's tracks and their slopes per second; ``ik_params (7,)``
+    travel) and weight at the ``P`` frames of the clip's tracks and their slopes per second; ``ik_params (9,)``
     float64 = (frames per second, 1 for a loop's periodic tracks else 0, duration s, playback mode index, travel
-    per second x, y, z).  ``error_deg``: measured against :meth:`FootLockedClip.sample` (not runtime data)."""
+    per second x, y, z, the soft reach, the IK's straight-knee threshold).  ``error_deg``: measured against
+    :meth:`FootLockedClip.sample` (not runtime data)."""
 
     skeleton: Skeleton
     base: SquadRuntime | SpringRuntime
     chains: NDArray[np.int32]
+    hinges: F32
     below: NDArray[np.int32]
     turns: NDArray[np.int32]
     track_values: F32
@@ -452,10 +456,12 @@ def foot_lock_runtime(clip: FootLockedClip, tolerance_deg: float = FOOT_LOCK_TOL
         turns[leg, :len(joints)] = [k for _, k in joints]
     loop = clip.mode == "loop"
     travel = clip.velocity if loop and not clip.in_place else np.zeros(3)
-    runtime = FootLockRuntime(sk, base, _frozen(chains, np.int32), _frozen(below, np.int32),
+    runtime = FootLockRuntime(sk, base, _frozen(chains, np.int32), _frozen(clip.hinges, np.float32),
+                              _frozen(below, np.int32),
                               _frozen(turns, np.int32), _frozen(values, np.float32), _frozen(slopes, np.float32),
                               _frozen([clip.fps, 1.0 if loop else 0.0, clip.duration,
-                                       PLAYBACK_MODES.index(clip.mode), *travel], np.float64), 0.0)
+                                       PLAYBACK_MODES.index(clip.mode), *travel, clip.soft, _STRAIGHT],
+                                      np.float64), 0.0)
     error = max_error_deg(runtime, clip, _CHECK_RATE)
     if error > tolerance_deg:
         raise ValueError(f"clip {clip.name!r}: the foot-lock kernel is {error:.4f} degrees from the clip's pose, "
@@ -987,11 +993,12 @@ if numba is not None:
                 + h11 * slopes[i + 1, leg, q])
 
     @_njit
-    def _foot_lock(c, chains, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos):
+    def _foot_lock(c, chains, hinges, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos):
         """Both legs of character ``c`` (posed by the base kernel) solved towards their tracks' targets: the
-        steps of :func:`anim_core.ik.two_bone_ik` with the default pole and the ankle's world orientation kept,
+        steps of :func:`anim_core.ik.two_bone_ik` with the knee's hinge, no pole, the soft reach and the ankle's
+        world orientation kept,
         in float64; the hip's and knee's global rotations turn, every joint under the hip is re-placed."""
-        fps, loop, duration, mode = ik[0], ik[1], ik[2], int(ik[3])
+        fps, loop, duration, mode, soft, straight = ik[0], ik[1], ik[2], int(ik[3]), ik[7], ik[8]
         ct, cycles = _clip_time(times[c], duration, mode)
         travel = ct + cycles * duration
         n = values.shape[0]
@@ -1016,11 +1023,11 @@ if numba is not None:
             tz = ez + weight * (_hermite(values, slopes, i, leg, 2, h00, h10, h01, h11) + ik[6] * travel - ez)
             a = np.sqrt(offsets[m, 0] ** 2 + offsets[m, 1] ** 2 + offsets[m, 2] ** 2)
             b = np.sqrt(offsets[e, 0] ** 2 + offsets[e, 1] ** 2 + offsets[e, 2] ** 2)
-            # 1. clamped distance and direction to the target
+            # 1. clamped (and softened) distance and direction to the target
             dx, dy, dz = tx - sx, ty - sy, tz - sz
-            dn = np.sqrt(dx * dx + dy * dy + dz * dz)
-            if dn > 1e-12:
-                dx, dy, dz = dx / dn, dy / dn, dz / dn
+            dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+            if dist > 1e-12:
+                dx, dy, dz = dx / dist, dy / dist, dz / dist
             else:
                 fx, fy, fz = ex - sx, ey - sy, ez - sz
                 fn = np.sqrt(fx * fx + fy * fy + fz * fz)
@@ -1028,31 +1035,54 @@ if numba is not None:
                     dx, dy, dz = fx / fn, fy / fn, fz / fn
                 else:
                     dx, dy, dz = _perpendicular(mx - sx, my - sy, mz - sz)
-            dist = min(max(dn, abs(a - b) + 1e-9 * (a + b)), (a + b) * (1.0 - 1e-9))
-            # 2. bend the knee about its hinge
+            if soft > 0.0 and dist > a + b - soft:
+                dist = a + b - soft - soft * np.expm1(-(dist - (a + b - soft)) / soft)
+            dist = min(max(dist, abs(a - b) + 1e-9 * (a + b)), (a + b) * (1.0 - 1e-9))
+            # 2. the knee's plane (normal ``side``): the animated one turned to the hinge's side, easing into the
+            #    hinge's own as the animated leg straightens; the shin put at the solved angle in it
             thx, thy, thz = mx - sx, my - sy, mz - sz
             shx, shy, shz = ex - mx, ey - my, ez - mz
+            ux, uy, uz = thx / a, thy / a, thz / a
             cx, cy, cz = thy * shz - thz * shy, thz * shx - thx * shz, thx * shy - thy * shx
             cn = np.sqrt(cx * cx + cy * cy + cz * cz)
-            if cn > 1e-12:
-                hx, hy, hz = cx / cn, cy / cn, cz / cn
+            hx, hy, hz = _qrot(np.float64(out_rot[c, m, 0]), np.float64(out_rot[c, m, 1]),
+                               np.float64(out_rot[c, m, 2]), np.float64(out_rot[c, m, 3]),
+                               np.float64(hinges[leg, 0]), np.float64(hinges[leg, 1]), np.float64(hinges[leg, 2]))
+            hu = hx * ux + hy * uy + hz * uz
+            qx, qy, qz = hx - hu * ux, hy - hu * uy, hz - hu * uz
+            qn = np.sqrt(qx * qx + qy * qy + qz * qz)
+            if qn > 1e-12:
+                qx, qy, qz = qx / qn, qy / qn, qz / qn
             else:
-                hx, hy, hz = _perpendicular(thx, thy, thz)
-            bend = np.arctan2(cn, thx * shx + thy * shy + thz * shz)
+                qx, qy, qz = _perpendicular(thx, thy, thz)
+            flip = -1.0 if cx * hx + cy * hy + cz * hz < 0.0 else 1.0
+            ease = min(max(cn / (straight * a * b), 0.0), 1.0)
+            ease = ease * ease * (3.0 - 2.0 * ease)
+            nx, ny, nz = (cx / cn, cy / cn, cz / cn) if cn > 1e-12 else (qx, qy, qz)
+            vx = ease * flip * nx + (1.0 - ease) * qx
+            vy = ease * flip * ny + (1.0 - ease) * qy
+            vz = ease * flip * nz + (1.0 - ease) * qz
+            vn = np.sqrt(vx * vx + vy * vy + vz * vz)
+            if vn > 1e-12:
+                vx, vy, vz = vx / vn, vy / vn, vz / vn
+            else:
+                vx, vy, vz = qx, qy, qz
             cos_inner = min(max((a * a + b * b - dist * dist) / (2.0 * a * b), -1.0), 1.0)
-            mw, mqx, mqy, mqz = _axis_angle(hx, hy, hz, (np.pi - np.arccos(cos_inner)) - bend)
-            rx, ry, rz = _qrot(mw, mqx, mqy, mqz, shx, shy, shz)
-            # 3. swing the ankle onto the target, then twist about hip -> target towards the pole (the knee)
-            sw, swx, swy, swz = _between(mx + rx - sx, my + ry - sy, mz + rz - sz, dx, dy, dz)
-            kx, ky, kz = _qrot(sw, swx, swy, swz, thx, thy, thz)
-            kd, pd = kx * dx + ky * dy + kz * dz, thx * dx + thy * dy + thz * dz
-            kx, ky, kz = kx - kd * dx, ky - kd * dy, kz - kd * dz
-            px, py, pz = thx - pd * dx, thy - pd * dy, thz - pd * dz
+            bend = np.pi - np.arccos(cos_inner)  # 0 = straight
+            cb, sb = b * np.cos(bend), b * np.sin(bend)
+            wx, wy, wz = vy * uz - vz * uy, vz * ux - vx * uz, vx * uy - vy * ux  # side x thigh direction
+            nsx, nsy, nsz = cb * ux + sb * wx, cb * uy + sb * wy, cb * uz + sb * wz  # the new shin
+            mw, mqx, mqy, mqz = _between(shx, shy, shz, nsx, nsy, nsz)
+            # 3. swing the ankle onto the target, then twist about hip -> target so the plane (``side``, carried
+            #    by the swing) is as close as it gets to the animated one
+            sw, swx, swy, swz = _between(mx + nsx - sx, my + nsy - sy, mz + nsz - sz, dx, dy, dz)
+            px, py, pz = _qrot(sw, swx, swy, swz, vx, vy, vz)
+            vd = vx * dx + vy * dy + vz * dz
+            kx, ky, kz = vx - vd * dx, vy - vd * dy, vz - vd * dz  # wanted
             angle = 0.0
-            if (np.sqrt(kx * kx + ky * ky + kz * kz) > 1e-9 * a) and (np.sqrt(px * px + py * py + pz * pz)
-                                                                      > 1e-9 * a):
-                angle = np.arctan2(dx * (ky * pz - kz * py) + dy * (kz * px - kx * pz) + dz * (kx * py - ky * px),
-                                   kx * px + ky * py + kz * pz)
+            if np.sqrt(kx * kx + ky * ky + kz * kz) > 1e-9 * a:
+                angle = np.arctan2(dx * (py * kz - pz * ky) + dy * (pz * kx - px * kz) + dz * (px * ky - py * kx),
+                                   px * kx + py * ky + pz * kz)
             tw, twx, twy, twz = _axis_angle(dx, dy, dz, angle)
             hip = _qmul(tw, twx, twy, twz, sw, swx, swy, swz)
             knee = _qmul(hip[0], hip[1], hip[2], hip[3], mw, mqx, mqy, mqz)
@@ -1134,39 +1164,39 @@ if numba is not None:
                        times, parents, offsets, active, out_rot, out_pos)
 
     @numba.njit(cache=True)
-    def _squad_ik_serial(seg_times, q, a, b, angles, root_times, root_coef, velocity, params, chains, below, turns,
-                         values, slopes, ik, times, parents, offsets, active, first, stride, out_rot, out_pos):
+    def _squad_ik_serial(seg_times, q, a, b, angles, root_times, root_coef, velocity, params, chains, hinges, below,
+                         turns, values, slopes, ik, times, parents, offsets, active, first, stride, out_rot, out_pos):
         for c in range(first, times.shape[0], stride):
             _squad_one(c, seg_times, q, a, b, angles, root_times, root_coef, velocity, params, times, parents,
                        offsets, active, out_rot, out_pos)
-            _foot_lock(c, chains, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos)
+            _foot_lock(c, chains, hinges, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos)
 
     @numba.njit(cache=True, parallel=True)
-    def _squad_ik_parallel(seg_times, q, a, b, angles, root_times, root_coef, velocity, params, chains, below,
+    def _squad_ik_parallel(seg_times, q, a, b, angles, root_times, root_coef, velocity, params, chains, hinges, below,
                            turns, values, slopes, ik, times, parents, offsets, active, first, stride, out_rot,
                            out_pos):
         for k in numba.prange((times.shape[0] - first + stride - 1) // stride):
             c = first + k * stride
             _squad_one(c, seg_times, q, a, b, angles, root_times, root_coef, velocity, params, times, parents,
                        offsets, active, out_rot, out_pos)
-            _foot_lock(c, chains, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos)
+            _foot_lock(c, chains, hinges, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos)
 
     @numba.njit(cache=True)
-    def _spring_ik_serial(key_params, keys, angles, inv_sin, key_root, params, chains, below, turns, values,
+    def _spring_ik_serial(key_params, keys, angles, inv_sin, key_root, params, chains, hinges, below, turns, values,
                           slopes, ik, times, parents, offsets, active, first, stride, out_rot, out_pos):
         for c in range(first, times.shape[0], stride):
             _spring_one(c, key_params, keys, angles, inv_sin, key_root, params, times, parents, offsets,
                         active, out_rot, out_pos)
-            _foot_lock(c, chains, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos)
+            _foot_lock(c, chains, hinges, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos)
 
     @numba.njit(cache=True, parallel=True)
-    def _spring_ik_parallel(key_params, keys, angles, inv_sin, key_root, params, chains, below, turns, values,
+    def _spring_ik_parallel(key_params, keys, angles, inv_sin, key_root, params, chains, hinges, below, turns, values,
                             slopes, ik, times, parents, offsets, active, first, stride, out_rot, out_pos):
         for k in numba.prange((times.shape[0] - first + stride - 1) // stride):
             c = first + k * stride
             _spring_one(c, key_params, keys, angles, inv_sin, key_root, params, times, parents, offsets,
                         active, out_rot, out_pos)
-            _foot_lock(c, chains, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos)
+            _foot_lock(c, chains, hinges, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos)
 
     @numba.njit(cache=True)
     def _spline_serial(seg_times, ctrl, root_times, root_coef, src, sign, velocity, params, times, parents,
