@@ -10,7 +10,7 @@ Variants:
   for a keyframe clip, fitted SQUAD segments for a gait or idle hybrid (half of them for a mirrored gait), the
   closed-form spring and unclamped slerp for the crouch; a ``reduced`` clip's keys at their own times, a
   ``quantized`` clip's integers dequantized in the kernel, a ``hybrid_c2`` clip's control points, a
-  ``hybrid_ik`` clip's exact SQUAD (or spring) keys plus its foot tracks and two-bone IK.  The headline figures.
+  ``hybrid_ik`` clip's hybrid runtime plus its foot tracks and two-bone IK.  The headline figures.
 * ``baked``: every hybrid baked into a uniform table of keys (:func:`anim_core.crowd.bake`), posed like a
   keyframe clip: the speed of dense keys bought with their memory.
 * ``reference``: the numpy reference implementation (``clip.sample`` + ``Skeleton.forward_kinematics``), with

@@ -29,14 +29,13 @@ The runtimes, built once per clip at load time (:func:`runtime_for`), evaluated 
   times three exponentials of the steps between control points (their logarithms, as half angle and axis, are
   computed at load time); the root is the SQUAD clip's root spline.  Checked at load against
   :meth:`C2Clip.sample` (``error_deg`` <= :data:`C2_TOLERANCE_DEG`).
-* :class:`FootLockRuntime`: a ``hybrid_ik`` clip: its hybrid's keys pose the character (exact SQUAD,
-  :class:`SquadRuntime`, three slerps per joint, or the spring runtime; not the fitted curve, whose error the IK
-  would amplify near a straight knee), then per leg the ankle target and weight are evaluated from the clip's
+* :class:`FootLockRuntime`: a ``hybrid_ik`` clip: its hybrid's runtime (the fitted SQUAD segments or the spring)
+  poses the character, then per leg the ankle target and weight are evaluated from the clip's
   cubic tracks (stored as the values and slopes at each frame: a cubic Hermite piece per frame interval is
-  exactly the spline's piece) and the analytic
-  two-bone IK of :func:`anim_core.ik.two_bone_ik` (default pole, the ankle keeping its world orientation) turns
-  hip and knee; the leg's joints below the hip are re-posed from the new rotations.  A leg with weight 0 is
-  left alone.  Checked at load against :meth:`FootLockedClip.sample` (``error_deg`` <=
+  exactly the spline's piece) and the analytic two-bone IK of :func:`anim_core.ik.two_bone_ik` (the knee's
+  hinge, no pole, the soft reach, the ankle keeping its world orientation) turns hip and knee; the leg's joints
+  below the hip are re-posed from the new rotations.  A leg with weight 0 is left alone.  Checked at load
+  against :meth:`FootLockedClip.sample` (``error_deg`` <=
   :data:`FOOT_LOCK_TOLERANCE_DEG`).
 
 Memory: every array a runtime holds for its clip is animation data and counts in :attr:`runtime_bytes` (the keys,
@@ -80,10 +79,10 @@ _MIRROR_TOLERANCE = 1e-6  # quaternion components: the second half must be the m
 # Largest angle between a joint's global rotation from the C2 kernel (the exact curve in float32) and
 # :meth:`C2Clip.sample`, measured when the runtime is built.
 C2_TOLERANCE_DEG = 0.01
-# The same for the foot-locked hybrid: exact SQUAD and the IK in the kernel (float64 on the float32 pose); a knee
-# near straight turns float32 rounding of the pose into a few hundredths of a degree of twist (0.17 at worst on
-# the conditions16 clip set).
-FOOT_LOCK_TOLERANCE_DEG = 0.25
+# The same for the foot-locked hybrid: the IK in the kernel is that of anim_core.ik (float64 on the float32 pose)
+# and, with its hinge, well-conditioned at a straight knee, so what is left is its base's fit error
+# (<= FIT_TOLERANCE_DEG; the spring's is float32 rounding).
+FOOT_LOCK_TOLERANCE_DEG = FIT_TOLERANCE_DEG
 
 AnimClip = KeyframeClip | SquadClip | SpringClip | C2Clip | FootLockedClip
 
@@ -309,32 +308,8 @@ class C2Runtime(_Runtime):
 
 
 @dataclass(frozen=True, eq=False)
-class SquadRuntime(_Runtime):
-    """Exact SQUAD (three slerps per joint), the base of a foot-locked gait or idle: the IK turns the legs by
-    angles that a near-straight knee's hinge makes very sensitive to the pose it starts from, so the fitted
-    curve's error (:class:`SplineRuntime`, up to 0.25 degrees) would come out as tens of degrees of twist.
-    ``seg_times (S + 1,)`` float64, ``q (S + 1, J, 4)``, ``a``, ``b (S, J, 4)`` (:meth:`SquadClip.precomputed`),
-    ``angles (S, J, 2)`` the 4-D angles q0-q1 and a-b of each segment; ``root_times``, ``root_coef``,
-    ``velocity`` as :class:`SplineRuntime`'s; ``params (2,)`` float64 = (duration s, playback mode index)."""
-
-    skeleton: Skeleton
-    seg_times: Array
-    q: F32
-    a: F32
-    b: F32
-    angles: F32
-    root_times: Array
-    root_coef: F32
-    velocity: F32
-    params: Array
-
-    def _kernels(self) -> tuple[Any, Any]:
-        return _squad_serial, _squad_parallel
-
-
-@dataclass(frozen=True, eq=False)
 class FootLockRuntime(_Runtime):
-    """A ``hybrid_ik`` clip: ``base``, its hybrid's runtime (exact SQUAD or spring), and per leg ``F``:
+    """A ``hybrid_ik`` clip: ``base``, its hybrid's runtime (fitted SQUAD or spring), and per leg ``F``:
     ``chains (F, 3)`` int32 (hip, knee, ankle), ``hinges (F, 3)`` each knee's hinge in its local frame,
     ``below (F, L)`` int32 the joints under the hip in topological
     order (-1 padded) with ``turns (F, L)`` int32 what turns each (0: the hip's rotation, 1: the knee's, 2:
@@ -346,7 +321,7 @@ class FootLockRuntime(_Runtime):
     :meth:`FootLockedClip.sample` (not runtime data)."""
 
     skeleton: Skeleton
-    base: SquadRuntime | SpringRuntime
+    base: SplineRuntime | SpringRuntime
     chains: NDArray[np.int32]
     hinges: F32
     below: NDArray[np.int32]
@@ -361,13 +336,12 @@ class FootLockRuntime(_Runtime):
         return {**{f"base.{k}": v for k, v in self.base.arrays().items()}, **super().arrays()}
 
     def _kernels(self) -> tuple[Any, Any]:
-        if isinstance(self.base, SquadRuntime):
-            return _squad_ik_serial, _squad_ik_parallel
+        if isinstance(self.base, SplineRuntime):
+            return _spline_ik_serial, _spline_ik_parallel
         return _spring_ik_serial, _spring_ik_parallel
 
 
-AnyRuntime = (TableRuntime | SplineRuntime | SpringRuntime | QuantizedRuntime | C2Runtime | SquadRuntime
-              | FootLockRuntime)
+AnyRuntime = TableRuntime | SplineRuntime | SpringRuntime | QuantizedRuntime | C2Runtime | FootLockRuntime
 
 
 # --- building (offline, once per clip) ---------------------------------------------------------------------------
@@ -438,7 +412,7 @@ def c2_runtime(clip: C2Clip, tolerance_deg: float = C2_TOLERANCE_DEG) -> C2Runti
 
 def foot_lock_runtime(clip: FootLockedClip, tolerance_deg: float = FOOT_LOCK_TOLERANCE_DEG) -> FootLockRuntime:
     """The hybrid's runtime plus the legs, the joints they move and the targets' and weights' tracks."""
-    base = squad_runtime(clip.base) if isinstance(clip.base, SquadClip) else spring_runtime(clip.base)
+    base = spline_runtime(clip.base) if isinstance(clip.base, SquadClip) else spring_runtime(clip.base)
     sk = clip.skeleton
     targets, weights = clip.tracks()
     knots = np.asarray(targets.x, np.float64)
@@ -468,19 +442,6 @@ def foot_lock_runtime(clip: FootLockedClip, tolerance_deg: float = FOOT_LOCK_TOL
                          f"more than {tolerance_deg} degrees")
     object.__setattr__(runtime, "error_deg", error)
     return runtime
-
-
-def _angles(a: Array, b: Array) -> Array:
-    return 2.0 * np.arctan2(np.linalg.norm(a - b, axis=-1), np.linalg.norm(a + b, axis=-1))
-
-
-def squad_runtime(clip: SquadClip) -> SquadRuntime:
-    """Exact SQUAD from the clip's precomputed keys and control points, every segment (no mirror)."""
-    seg_times, q, a, b, _root = clip.precomputed()
-    angles = np.stack([_angles(q[:-1], q[1:]), _angles(a, b)], axis=-1)
-    return SquadRuntime(clip.skeleton, _frozen(seg_times, np.float64), _frozen(q, np.float32),
-                        _frozen(a, np.float32), _frozen(b, np.float32), _frozen(angles, np.float32),
-                        *_root_arrays(clip), _frozen([clip.duration, PLAYBACK_MODES.index(clip.mode)], np.float64))
 
 
 def _below(skeleton: Skeleton, chain: tuple[int, int, int]) -> list[tuple[int, int]]:
@@ -947,46 +908,6 @@ if numba is not None:
         return w / n, x / n, y / n, z / n
 
     @_njit
-    def _slerp_weights(omega, h):
-        """Weights of the two ends of a slerp over the 4-D angle ``omega`` at ``h`` (linear where tiny)."""
-        if omega < 1e-4:
-            return np.float32(1.0) - h, h
-        inv = np.float32(1.0) / np.sin(omega)
-        return np.sin((np.float32(1.0) - h) * omega) * inv, np.sin(h * omega) * inv
-
-    @_njit
-    def _squad_one(c, seg_times, q, a, b, angles, root_times, root_coef, velocity, params, times, parents,
-                   offsets, active, out_rot, out_pos):
-        duration, mode = params[0], int(params[1])
-        ct, cycles = _clip_time(times[c], duration, mode)
-        rx, ry, rz = _root_spline(ct, root_times, root_coef)
-        travel = ct + cycles * duration
-        rx += velocity[0] * travel
-        ry += velocity[1] * travel
-        rz += velocity[2] * travel
-        s = _last_at_or_below(seg_times, ct, 0, seg_times.shape[0] - 2)
-        h = (ct - seg_times[s]) / (seg_times[s + 1] - seg_times[s])
-        hf = np.float32(h)
-        outer = np.float32(2.0 * h * (1.0 - h))
-        for j in range(q.shape[1]):
-            if active[j]:
-                w0, w1 = _slerp_weights(angles[s, j, 0], hf)
-                pw, px = w0 * q[s, j, 0] + w1 * q[s + 1, j, 0], w0 * q[s, j, 1] + w1 * q[s + 1, j, 1]
-                py, pz = w0 * q[s, j, 2] + w1 * q[s + 1, j, 2], w0 * q[s, j, 3] + w1 * q[s + 1, j, 3]
-                w0, w1 = _slerp_weights(angles[s, j, 1], hf)
-                aw, ax = w0 * a[s, j, 0] + w1 * b[s, j, 0], w0 * a[s, j, 1] + w1 * b[s, j, 1]
-                ay, az = w0 * a[s, j, 2] + w1 * b[s, j, 2], w0 * a[s, j, 3] + w1 * b[s, j, 3]
-                dw, dx, dy, dz = pw - aw, px - ax, py - ay, pz - az
-                sw, sx, sy, sz = pw + aw, px + ax, py + ay, pz + az
-                omega = np.float32(2.0) * np.arctan2(np.sqrt(dw * dw + dx * dx + dy * dy + dz * dz),
-                                                     np.sqrt(sw * sw + sx * sx + sy * sy + sz * sz))
-                w0, w1 = _slerp_weights(omega, outer)
-                w, x, y, z = w0 * pw + w1 * aw, w0 * px + w1 * ax, w0 * py + w1 * ay, w0 * pz + w1 * az
-            else:
-                w, x, y, z = q[0, j, 0], q[0, j, 1], q[0, j, 2], q[0, j, 3]
-            _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
-
-    @_njit
     def _hermite(values, slopes, i, leg, q, h00, h10, h01, h11):
         """Component ``q`` of leg ``leg``'s track on the piece from point ``i`` (basis weights given)."""
         return (h00 * values[i, leg, q] + h10 * slopes[i, leg, q] + h01 * values[i + 1, leg, q]
@@ -1150,34 +1071,20 @@ if numba is not None:
                     parents, offsets, active, out_rot, out_pos)
 
     @numba.njit(cache=True)
-    def _squad_serial(seg_times, q, a, b, angles, root_times, root_coef, velocity, params, times, parents,
-                      offsets, active, first, stride, out_rot, out_pos):
-        for c in range(first, times.shape[0], stride):
-            _squad_one(c, seg_times, q, a, b, angles, root_times, root_coef, velocity, params, times, parents,
-                       offsets, active, out_rot, out_pos)
-
-    @numba.njit(cache=True, parallel=True)
-    def _squad_parallel(seg_times, q, a, b, angles, root_times, root_coef, velocity, params, times, parents,
-                        offsets, active, first, stride, out_rot, out_pos):
-        for k in numba.prange((times.shape[0] - first + stride - 1) // stride):
-            _squad_one(first + k * stride, seg_times, q, a, b, angles, root_times, root_coef, velocity, params,
-                       times, parents, offsets, active, out_rot, out_pos)
-
-    @numba.njit(cache=True)
-    def _squad_ik_serial(seg_times, q, a, b, angles, root_times, root_coef, velocity, params, chains, hinges, below,
+    def _spline_ik_serial(seg_times, ctrl, root_times, root_coef, src, sign, velocity, params, chains, hinges, below,
                          turns, values, slopes, ik, times, parents, offsets, active, first, stride, out_rot, out_pos):
         for c in range(first, times.shape[0], stride):
-            _squad_one(c, seg_times, q, a, b, angles, root_times, root_coef, velocity, params, times, parents,
+            _spline_one(c, seg_times, ctrl, root_times, root_coef, src, sign, velocity, params, times, parents,
                        offsets, active, out_rot, out_pos)
             _foot_lock(c, chains, hinges, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos)
 
     @numba.njit(cache=True, parallel=True)
-    def _squad_ik_parallel(seg_times, q, a, b, angles, root_times, root_coef, velocity, params, chains, hinges, below,
+    def _spline_ik_parallel(seg_times, ctrl, root_times, root_coef, src, sign, velocity, params, chains, hinges, below,
                            turns, values, slopes, ik, times, parents, offsets, active, first, stride, out_rot,
                            out_pos):
         for k in numba.prange((times.shape[0] - first + stride - 1) // stride):
             c = first + k * stride
-            _squad_one(c, seg_times, q, a, b, angles, root_times, root_coef, velocity, params, times, parents,
+            _spline_one(c, seg_times, ctrl, root_times, root_coef, src, sign, velocity, params, times, parents,
                        offsets, active, out_rot, out_pos)
             _foot_lock(c, chains, hinges, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos)
 
