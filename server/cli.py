@@ -178,10 +178,11 @@ def _print_comparison(clips: list, warnings: list[str]) -> None:
         print(f"warning: {w}", flush=True)
 
 
-def render(settings: Settings, out: Path, clips_dir: Path, workers: int, study: Path | None,
-           width: int, height: int, shadows: bool) -> int:
-    """Render the clip set's videos into ``out`` (building the clip set first if it is missing): every clip, the
-    pairs ``study`` (default: the thesis study file) shows, and the pairs of every study in the database."""
+def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies: list[Path],
+           width: int, height: int, shadows: bool, every_clip: bool = False) -> int:
+    """Render the clip set's videos into ``out`` (building the clip set first if it is missing): the pairs the
+    ``studies`` files (default: the thesis study file) show, the pairs of every study in the database, and the
+    clips of those pairs (``every_clip``: every clip)."""
     from anim_core.clipset import ConfigError
     from server.assets import AssetError
     from server.clipset.build import build_clip_set
@@ -192,8 +193,9 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, study: 
     from server.studies.service import clip_set_index, required_pairs
     from server.studies.studyfile import THESIS_FILE, StudyFileError, load_study_file
 
+    files = studies or [THESIS_FILE]
     try:
-        design = load_study_file(study or THESIS_FILE).design
+        designs = [load_study_file(f).design for f in files]
     except StudyFileError as exc:
         return _fail(f"{exc.source} is not a valid study file: {'; '.join(exc.errors)}")
     try:
@@ -203,15 +205,17 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, study: 
                 write_clip_set(build_clip_set(settings.data, progress=lambda m: print(m, flush=True)), clips_dir)
             except ConfigError as exc:
                 return _fail(str(exc))
-        try:
-            needed = required_pairs(design, clip_set_index(clips_dir))
-        except Unprocessable as exc:
-            return _fail(f"{study or THESIS_FILE}: {exc.detail}")
+        needed = []
+        for path, design in zip(files, designs, strict=True):
+            try:
+                needed += required_pairs(design, clip_set_index(clips_dir))
+            except Unprocessable as exc:
+                return _fail(f"{path}: {exc.detail}")
         # The studies' own pairs too: rendering removes every video it was not asked for.
         pairs = list(dict.fromkeys([*needed, *_pairs_in_use(settings)]))
         render_media(settings.data, clips_dir, out, settings.secret,
                      RenderSettings(width=width, height=height, shadows=shadows), pairs=pairs,
-                     workers=workers, progress=lambda m: print(m, flush=True))
+                     workers=workers, every_clip=every_clip, progress=lambda m: print(m, flush=True))
     except (AssetError, MediaError) as exc:
         return _fail(str(exc))
     except OSError as exc:
@@ -590,13 +594,15 @@ def _main(argv: Sequence[str] | None = None) -> int:
     export.add_argument("clip", help="clip id, <animation>-<condition> (see the clip set's manifest.json)")
     export.add_argument("--clips", type=Path, default=None, help="clip set folder (default: <var dir>/clips)")
     export.add_argument("--out", type=Path, required=True, help="output .glb, .gltf, .bvh or .bvh.gz")
-    rend = sub.add_parser("render", help="pre-render every clip and compared pair into blind videos")
+    rend = sub.add_parser("render", help="pre-render the compared pairs (and their clips) into blind videos")
     rend.add_argument("--out", type=Path, default=None, help="video folder (default: <var dir>/media)")
     rend.add_argument("--clips", type=Path, default=None, help="clip set folder (default: <var dir>/clips)")
     rend.add_argument("--workers", type=int, default=2, help="worker processes (default: 2)")
-    rend.add_argument("--study", type=Path, default=None,
-                      help="study file whose pairs to render (default: studies/thesis.toml); the pairs of the "
-                           "studies in the database are kept too")
+    rend.add_argument("--study", type=Path, action="append", default=None,
+                      help="study file whose pairs to render, may be repeated (default: studies/thesis.toml); the "
+                           "pairs of the studies in the database are kept too")
+    rend.add_argument("--every-clip", action="store_true",
+                      help="also a video of every clip of the clip set (default: of the clips the pairs show)")
     rend.add_argument("--width", type=_even, default=640)
     rend.add_argument("--height", type=_even, default=480)
     rend.add_argument("--no-shadows", action="store_true")
@@ -662,7 +668,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
         return inspect(settings.data)
     if args.command == "render":
         return render(settings, args.out or settings.var / "media", args.clips or settings.var / "clips",
-                      max(1, args.workers), args.study, args.width, args.height, not args.no_shadows)
+                      max(1, args.workers), args.study or [], args.width, args.height, not args.no_shadows,
+                      args.every_clip)
     if args.clips_command == "inspect":
         return clips_inspect(args.file, args.mapping, args.units, args.up)
     if args.clips_command == "export":

@@ -11,20 +11,36 @@ const Charts = (() => {
     return node;
   }
 
-  function svg(width, height, title) {
-    const root = el("svg", { viewBox: `0 0 ${width} ${height}`, role: "img" });
+  // The size is set once the legend's height is known (see legend).
+  function svg(title) {
+    const root = el("svg", { role: "img" });
     root.appendChild(el("title", {}, title));
     return root;
   }
 
-  function legend(root, items, x, y) {
-    let cx = x;
+  const size = (root, width, height) => root.setAttribute("viewBox", `0 0 ${width} ${height}`);
+
+  // Label widths measured with the font of `.chart text` (dashboard.css; SVG text is in viewBox units), not
+  // guessed from the number of characters, so that neighbouring labels never overlap.
+  const measure = (() => {
+    const ctx = document.createElement("canvas").getContext("2d");
+    ctx.font = "12px system-ui, sans-serif";
+    return (text) => ctx.measureText(text).width;
+  })();
+  const LEGEND_ROW = 18;
+
+  // Swatch and label per item from (x, 16), wrapped into as many rows as the width up to maxX needs; returns
+  // the height the rows beyond the first take, by which the chart below moves down.
+  function legend(root, items, x, maxX) {
+    let cx = x, y = 16;
     for (const item of items) {
+      const w = 16 + measure(item.label);
+      if (cx > x && cx + w > maxX) { cx = x; y += LEGEND_ROW; }
       root.appendChild(el("rect", { x: cx, y: y - 9, width: 12, height: 12, fill: item.color, rx: 2 }));
-      const label = el("text", { x: cx + 16, y: y + 1 }, item.label);
-      root.appendChild(label);
-      cx += 24 + item.label.length * 6.2;
+      root.appendChild(el("text", { x: cx + 16, y: y + 1 }, item.label));
+      cx += w + 12;
     }
+    return y - 16;
   }
 
   const pct = (x) => `${Math.round(100 * x)} %`;
@@ -32,12 +48,13 @@ const Charts = (() => {
   // Likert answers as diverging stacked bars: what favours the keyframe clip goes left of the centre line,
   // what favours the hybrid right, "equal" straddles it.
   function diverging(rows, categories, title) {
-    const W = 1100, left = 150, right = 20, rowH = 30, top = 30;
+    const W = 1100, left = 150, right = 20, rowH = 30;
+    const root = svg(title);
+    const top = 30 + legend(root, categories, left, W - right);
     const H = top + rows.length * rowH + 30;
-    const root = svg(W, H, title);
+    size(root, W, H);
     const mid = left + (W - left - right) / 2;
     const scale = (W - left - right) / 2; // 100 % on each side
-    legend(root, categories, left, 16);
     rows.forEach((row, i) => {
       const y = top + i * rowH + 6;
       const total = categories.reduce((s, c) => s + (row.counts[c.key] || 0), 0) || 1;
@@ -66,10 +83,11 @@ const Charts = (() => {
 
   // 100 % stacked horizontal bars.
   function stacked(rows, segments, title) {
-    const W = 560, left = 140, right = 10, rowH = 28, top = 30;
+    const W = 560, left = 140, right = 10, rowH = 28;
+    const root = svg(title);
+    const top = 30 + legend(root, segments, left, W - right);
     const H = top + rows.length * rowH + 10;
-    const root = svg(W, H, title);
-    legend(root, segments, left, 16);
+    size(root, W, H);
     const width = W - left - right;
     rows.forEach((row, i) => {
       const y = top + i * rowH + 4;
@@ -95,7 +113,8 @@ const Charts = (() => {
   function forest(rows, lo, hi, title) {
     const W = 1100, left = 150, right = 30, rowH = 26, top = 10;
     const H = top + rows.length * rowH + 30;
-    const root = svg(W, H, title);
+    const root = svg(title);
+    size(root, W, H);
     const x = (v) => left + ((v - lo) / (hi - lo)) * (W - left - right);
     for (let t = lo; t <= hi; t += 0.5) {
       root.appendChild(el("line", { x1: x(t), x2: x(t), y1: top, y2: H - 24, class: t === 0 ? "axis" : "grid" }));
@@ -121,11 +140,12 @@ const Charts = (() => {
 
   // Grouped horizontal bars of signed values (e.g. mean score per group), centred on 0.
   function groupedSigned(rows, groups, lo, hi, title) {
-    const W = 560, left = 140, right = 10, top = 30;
+    const W = 560, left = 140, right = 10;
     const barH = 8, rowH = Math.max(24, groups.length * (barH + 2) + 8);
+    const root = svg(title);
+    const top = 30 + legend(root, groups, left, W - right);
     const H = top + rows.length * rowH + 24;
-    const root = svg(W, H, title);
-    legend(root, groups, left, 16);
+    size(root, W, H);
     const x = (v) => left + ((v - lo) / (hi - lo)) * (W - left - right);
     root.appendChild(el("line", { x1: x(0), x2: x(0), y1: top, y2: H - 20, class: "axis" }));
     for (const t of [lo, hi]) root.appendChild(el("text", { x: x(t), y: H - 6, "text-anchor": t === lo ? "start" : "end", class: "muted" }, String(t)));
@@ -146,9 +166,11 @@ const Charts = (() => {
 
   // Vertical grouped bars of non-negative values (e.g. a metric per clip), groups along x.
   function columns(groups, series, title, format) {
-    const W = 1100, left = 50, right = 10, top = 30, bottom = 30, H = 220;
-    const root = svg(W, H, title);
-    legend(root, series, left, 16);
+    const W = 1100, left = 50, right = 10, bottom = 30;
+    const root = svg(title);
+    const top = 30 + legend(root, series, left, W - right);
+    const H = top + 190;
+    size(root, W, H);
     const max = Math.max(1e-9, ...groups.flatMap((g) => series.map((s) => g.values[s.key] || 0)));
     const groupW = (W - left - right) / groups.length;
     const barW = Math.min(40, (groupW - 20) / series.length);
@@ -171,9 +193,11 @@ const Charts = (() => {
 
   // Lines on log-log axes (e.g. milliseconds per frame against the number of characters).
   function lines(series, title, xLabel, yLabel) {
-    const W = 1100, left = 60, right = 20, top = 30, bottom = 40, H = 300;
-    const root = svg(W, H, title);
-    legend(root, series, left, 16);
+    const W = 1100, left = 60, right = 20, bottom = 40;
+    const root = svg(title);
+    const top = 30 + legend(root, series, left, W - right);
+    const H = top + 270;
+    size(root, W, H);
     const xs = series.flatMap((s) => s.points.map((p) => p[0]));
     const ys = series.flatMap((s) => s.points.map((p) => p[1])).filter((v) => v > 0);
     const x0 = Math.log10(Math.min(...xs)), x1 = Math.max(Math.log10(Math.max(...xs)), x0 + 1);

@@ -146,25 +146,39 @@
     }
   }
 
-  function renderMetrics(clips) {
-    if (!clips.length) { $("chart-metrics").textContent = "No clip set found."; $("table-metrics").replaceChildren(); return; }
-    const animations = [...new Set(clips.map((c) => c.animation))];
-    const conditions = [...new Set(clips.map((c) => c.condition))];
+  // The study's own clips (`shown`) in the chart and first in the table; the rest of the clip set below them.
+  function renderMetrics(all) {
+    if (!all.length) { $("chart-metrics").textContent = "No clip set found."; $("table-metrics").replaceChildren(); return; }
+    const mine = all.filter((c) => c.shown);
+    const clips = [...mine, ...all.filter((c) => !c.shown)];
+    const charted = mine.length ? mine : all;
+    const animations = [...new Set(charted.map((c) => c.animation))];
+    const conditions = [...new Set(charted.map((c) => c.condition))];
     const legend = conditions.map((k, i) => ({ key: k, label: k, color: i === 0 ? "#555555" : colour(i - 1) }));
     const groups = animations.map((a) => ({
       label: `${a}: foot skate`,
-      values: Object.fromEntries(clips.filter((c) => c.animation === a).map((c) => [c.condition, c.metrics.foot_skate_ratio])),
+      values: Object.fromEntries(charted.filter((c) => c.animation === a).map((c) => [c.condition, c.metrics.foot_skate_ratio])),
     }));
-    $("chart-metrics").replaceChildren(Charts.columns(groups, legend, "Foot skate ratio per clip", (v) => `${Math.round(v * 100)} %`));
-    table($("table-metrics"), ["clip", "keys", "foot skate", "source skate", "slide mm", "penetration mm", "floating mm", "MPJPE mm",
-                               "key velocity jump rad/s", "jerk m/s³", "bytes", "seam jump mm", "hips phase r (lag)",
-                               "knee phase r (lag)"],
-          clips.map((c) => [c.id.replace(/-/, " "), c.key_count, fmt(c.metrics.foot_skate_ratio, 3),
-                            fmt(c.metrics.source_foot_skate_ratio, 3),
-                            fmt(c.metrics.foot_slide_mm, 1), fmt(c.metrics.penetration_mm, 1), fmt(c.metrics.floating_mm, 1),
-                            fmt(c.metrics.mpjpe_mm, 1), fmt(c.metrics.key_velocity_jump_rad_s, 3), fmt(c.metrics.jerk_mean, 1),
-                            c.metrics.bytes, fmt(c.metrics.seam_jump_mm, 1), phase(c.metrics.phase_hips_r, c.metrics.phase_hips_lag),
-                            phase(c.metrics.phase_knee_r, c.metrics.phase_knee_lag)]));
+    $("chart-metrics").replaceChildren(Charts.columns(groups, legend, `Foot skate ratio per clip${mine.length ? " of this study" : ""}`,
+                                                      (v) => `${Math.round(v * 100)} %`));
+    const m = (c) => c.metrics;
+    table($("table-metrics"), ["clip", "in this study", "method", "keys", "foot skate", "source skate", "slide mm",
+                               "penetration mm", "floating mm", "MPJPE mm", "max rotation error °",
+                               "key velocity jump rad/s", "key acceleration jump rad/s²", "jerk m/s³", "bytes",
+                               "seam jump mm", "hips phase r (lag)", "knee phase r (lag)"],
+          clips.map((c) => [`${c.animation} ${c.condition}`, c.shown ? "yes" : "", method(c), c.key_count,
+                            fmt(m(c).foot_skate_ratio, 3), fmt(m(c).source_foot_skate_ratio, 3),
+                            fmt(m(c).foot_slide_mm, 1), fmt(m(c).penetration_mm, 1), fmt(m(c).floating_mm, 1),
+                            fmt(m(c).mpjpe_mm, 1), fmt(m(c).max_global_error_deg, 3),
+                            fmt(m(c).key_velocity_jump_rad_s, 3), fmt(m(c).key_accel_jump_rad_s2, 3),
+                            fmt(m(c).jerk_mean, 1), m(c).bytes, fmt(m(c).seam_jump_mm, 1),
+                            phase(m(c).phase_hips_r, m(c).phase_hips_lag), phase(m(c).phase_knee_r, m(c).phase_knee_lag)]));
+  }
+
+  // The registered method and its parameters, e.g. "quantized (bits 12, reduced_epsilon_deg 2)".
+  function method(c) {
+    const params = Object.entries(c.params || {}).map(([k, v]) => `${k} ${v}`).join(", ");
+    return params ? `${c.method} (${params})` : c.method;
   }
 
   // Hybrid against its keyframe clip: correlation at lag 0 and the best lag in frames; "–" for keyframe clips.

@@ -19,7 +19,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -32,7 +32,7 @@ from server.clipset.build import record_config
 from server.clipset.config import CharacterConfig
 from server.clipset.manifest import ManifestError, read_clip_manifest
 
-from .manifest import RenderedClip, RenderedPair, RenderManifest, write_render_manifest
+from .manifest import RenderedClip, RenderedPair, RenderManifest, read_render_manifest, write_render_manifest
 from .scene import Framing, RenderSettings, frame_motion
 
 if TYPE_CHECKING:
@@ -161,9 +161,15 @@ class Plan:
 
 
 def plan(data_dir: Path, clips_dir: Path, out_dir: Path, settings: RenderSettings, secret: bytes,
-         pairs: Sequence[tuple[str, str]] = (), animations: Sequence[str] | None = None) -> Plan:
+         pairs: Sequence[tuple[str, str]] = (), animations: Sequence[str] | None = None,
+         every_clip: bool = False) -> Plan:
     """Work out every output's name and which ones are missing, grouped into one job per animation: a video of
-    every clip, and of every pair in ``pairs`` (left clip, right clip; the studies decide which pairs they show).
+    every pair in ``pairs`` (left clip, right clip; the studies decide which pairs they show) and of every clip
+    those pairs show (``every_clip``: of every clip of the clip set).  Participants only ever see pairs, so the
+    video of a clip no pair shows is not rendered; where it exists and is up to date it is kept.
+
+    Clips with identical arrays (e.g. a key reduction that kept every key) share their outputs: a video is
+    planned, named and rendered once, from the first such clip of the clip set.
 
     ``animations`` limits the plan to those animations' clips and pairs (default: all).
     """
@@ -183,8 +189,17 @@ def plan(data_dir: Path, clips_dir: Path, out_dir: Path, settings: RenderSetting
         raise MediaError(str(exc)) from None
     # MakeHuman keeps its old key (its files' checksums), so its videos stay valid.
     character: Any = list(files.values()) if body.gltf is None else {**asdict(body), "files": files}
+    first_of = {}  # digest -> the first clip with those arrays
+    canonical = {i: first_of.setdefault(c.digest, i) for i, c in clips.items()}
+    paired = {i for pair in pairs for i in pair}
+
+    def exists(o: Output) -> bool:
+        return (out_dir / o.video).is_file() and (out_dir / o.poster).is_file()
+
     jobs, clip_outputs, pair_outputs = [], {}, {}
     for animation in dict.fromkeys(c.animation for c in clips.values()):
+        # The camera frames every clip of the animation, asked for or not, so that names do not depend on the
+        # request.
         group = {i: c for i, c in clips.items() if c.animation == animation}
         positions = np.concatenate([np.load(c.path)["world_positions"] for c in group.values()])
         framing = frame_motion(positions, settings, padding=BODY_PADDING_M)
@@ -194,14 +209,19 @@ def plan(data_dir: Path, clips_dir: Path, out_dir: Path, settings: RenderSetting
         outputs = []
         for c in group.values():
             key = _key(scene, "clip", [c])
-            clip_outputs[c.id] = Output(_name(secret, key), (c.id,), key)
-            outputs.append(clip_outputs[c.id])
+            output = Output(_name(secret, key), (canonical[c.id],), key)
+            if every_clip or c.id in paired:
+                outputs.append(output)
+            elif not exists(output):
+                continue
+            clip_outputs[c.id] = output
         for left, right in pairs:
             if clips[left].animation == animation:
                 key = _key(scene, "pair", [clips[left], clips[right]])
-                pair_outputs[(left, right)] = Output(_name(secret, key), (left, right), key)
+                pair_outputs[(left, right)] = Output(_name(secret, key), (canonical[left], canonical[right]), key)
                 outputs.append(pair_outputs[(left, right)])
-        missing = [o for o in outputs if not (out_dir / o.video).is_file() or not (out_dir / o.poster).is_file()]
+        distinct = {o.name: o for o in outputs}.values()
+        missing = [o for o in distinct if not exists(o)]
         if missing:
             n_frames = sum(_rendered_frames(clips[i]) for i in {i for o in missing for i in o.clips})
             jobs.append(AnimationJob(animation, data_dir, group, missing, settings, framing, spacing, out_dir,
@@ -377,16 +397,18 @@ class PeakMemory:
 
 def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
                  settings: RenderSettings | None = None, pairs: Sequence[tuple[str, str]] = (),
-                 workers: int = 2, animations: Sequence[str] | None = None,
+                 workers: int = 2, animations: Sequence[str] | None = None, every_clip: bool = False,
                  progress: Callable[[str], None] = lambda _m: None) -> Path:
-    """Render what is missing, write the manifest, remove stale media; returns the manifest path."""
+    """Render what is missing of :func:`plan`, write the manifest, remove stale media; returns the manifest
+    path."""
     settings = settings or RenderSettings()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    p = plan(data_dir, clips_dir, out_dir, settings, secret, pairs, animations)
+    p = plan(data_dir, clips_dir, out_dir, settings, secret, pairs, animations, every_clip)
     todo = sum(len(j.outputs) for j in p.jobs)
-    progress(f"{len(p.outputs)} videos, {len(p.outputs) - todo} up to date, {todo} to render "
+    videos = len({o.name for o in p.outputs})  # clips with identical arrays share theirs
+    progress(f"{videos} videos, {videos - todo} up to date, {todo} to render "
              f"({sum(j.n_frames for j in p.jobs)} frames, {min(workers, max(1, len(p.jobs)))} workers)")
     if p.jobs:
         with PeakMemory() as memory:
@@ -414,6 +436,20 @@ def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
             os.utime(out_dir / name, (FILE_TIME, FILE_TIME))
     progress(f"done in {time.perf_counter() - started:.1f} s ({len(stale)} stale files removed) -> {path}")
     return path
+
+
+def rendered_settings(out_dir: Path) -> RenderSettings | None:
+    """The render settings of the videos in ``out_dir`` (None without a readable manifest): rendering what a new
+    study needs keeps the size and shadows of the videos there instead of re-rendering them all at the default."""
+    try:
+        done = read_render_manifest(out_dir).settings
+    except ManifestError:
+        return None
+    known = {f.name for f in fields(RenderSettings)}
+    try:
+        return RenderSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in done.items() if k in known})
+    except TypeError:
+        return None
 
 
 def _manifest(p: Plan, settings: RenderSettings) -> RenderManifest:
