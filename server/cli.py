@@ -228,15 +228,20 @@ def _render_for(settings: Settings, session: object, study_file: object) -> Rend
     every other study's), and return the render manifest."""
     from server.clipset.build import build_clip_set
     from server.clipset.manifest import MANIFEST, write_clip_set
-    from server.media.build import render_media
+    from server.media.build import render_media, rendered_pairs
     from server.media.manifest import read_render_manifest
     from server.studies.service import clip_set_index, pairs_in_use, required_pairs
 
     if not (settings.clips_dir / MANIFEST).is_file():
         print(f"building the clip set in {settings.clips_dir}", flush=True)
         write_clip_set(build_clip_set(settings.data, progress=lambda m: print(m, flush=True)), settings.clips_dir)
-    needed = required_pairs(study_file.design, clip_set_index(settings.clips_dir))  # type: ignore[attr-defined]
-    pairs = list(dict.fromkeys([*pairs_in_use(session), *needed]))  # type: ignore[arg-type]
+    index = clip_set_index(settings.clips_dir)
+    needed = required_pairs(study_file.design, index)  # type: ignore[attr-defined]
+    # Adding a study removes nothing: the pairs rendered before (e.g. `animstudy render --study` of a study not
+    # created yet) stay, as far as the clip set still has their clips.
+    clip_ids = set(index.values())
+    before = [p for p in rendered_pairs(settings.media_dir) if set(p) <= clip_ids]
+    pairs = list(dict.fromkeys([*pairs_in_use(session), *before, *needed]))  # type: ignore[arg-type]
     render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret,
                  _rendered_settings(settings.media_dir), pairs=pairs, progress=lambda m: print(m, flush=True))
     return read_render_manifest(settings.media_dir)
@@ -346,6 +351,9 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                     service.set_state(session, study, StudyState.open)
                 print(f"created study {study.slug!r} ({study.state}, {service.trials_total(study)} trials per "
                       f"participant); participant link: /s/{study.slug}")
+                for test, ref in service.identical_comparisons(study_file.design, settings.clips_dir):
+                    print(f"note: {test} is identical to {ref} (same arrays): that comparison shows one clip on "
+                          "both sides, like a catch trial")
             elif command == "list":
                 rows = [summary(session, s) for s in session.scalars(select(Study).order_by(Study.id))]
                 print(f"{'slug':24} {'state':7} {'started':>7} {'completed':>9} {'votes':>6}  title")

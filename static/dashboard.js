@@ -162,11 +162,13 @@
     $("chart-metrics").replaceChildren(Charts.columns(groups, legend, `Foot skate ratio per clip${mine.length ? " of this study" : ""}`,
                                                       (v) => `${Math.round(v * 100)} %`));
     const m = (c) => c.metrics;
-    table($("table-metrics"), ["clip", "in this study", "method", "keys", "foot skate", "source skate", "slide mm",
+    const name = (id) => { const c = all.find((x) => x.id === id); return c ? `${c.animation} ${c.condition}` : id; };
+    table($("table-metrics"), ["clip", "in this study", "method", "same arrays as", "keys", "foot skate", "source skate", "slide mm",
                                "penetration mm", "floating mm", "MPJPE mm", "max rotation error °",
                                "key velocity jump rad/s", "key acceleration jump rad/s²", "jerk m/s³", "bytes",
                                "seam jump mm", "hips phase r (lag)", "knee phase r (lag)"],
-          clips.map((c) => [`${c.animation} ${c.condition}`, c.shown ? "yes" : "", method(c), c.key_count,
+          clips.map((c) => [`${c.animation} ${c.condition}`, c.shown ? "yes" : "", method(c),
+                            c.identical_to ? name(c.identical_to) : "", c.key_count,
                             fmt(m(c).foot_skate_ratio, 3), fmt(m(c).source_foot_skate_ratio, 3),
                             fmt(m(c).foot_slide_mm, 1), fmt(m(c).penetration_mm, 1), fmt(m(c).floating_mm, 1),
                             fmt(m(c).mpjpe_mm, 1), fmt(m(c).max_global_error_deg, 3),
@@ -177,7 +179,7 @@
 
   // The registered method and its parameters, e.g. "quantized (bits 12, reduced_epsilon_deg 2)".
   function method(c) {
-    const params = Object.entries(c.params || {}).map(([k, v]) => `${k} ${v}`).join(", ");
+    const params = Object.entries(c.params || {}).filter(([, v]) => v !== null).map(([k, v]) => `${k} ${v}`).join(", ");
     return params ? `${c.method} (${params})` : c.method;
   }
 

@@ -126,6 +126,13 @@ def read_clip_set(clips_dir: Path) -> list[ClipFile]:
         raise MediaError(f"the clip set in {clips_dir} is unreadable ({exc!r}); rebuild it") from None
 
 
+def identical_clips(clips: Sequence[ClipFile]) -> dict[str, str]:
+    """Clip id -> the first clip of ``clips`` with the same arrays (itself for the first), e.g. a key reduction
+    that kept every key of its reference."""
+    first: dict[str, str] = {}
+    return {c.id: first.setdefault(c.digest, c.id) for c in clips}
+
+
 def _name(secret: bytes, key: str) -> str:
     return hmac.new(secret, key.encode(), hashlib.sha256).hexdigest()[:24]
 
@@ -189,8 +196,7 @@ def plan(data_dir: Path, clips_dir: Path, out_dir: Path, settings: RenderSetting
         raise MediaError(str(exc)) from None
     # MakeHuman keeps its old key (its files' checksums), so its videos stay valid.
     character: Any = list(files.values()) if body.gltf is None else {**asdict(body), "files": files}
-    first_of = {}  # digest -> the first clip with those arrays
-    canonical = {i: first_of.setdefault(c.digest, i) for i, c in clips.items()}
+    canonical = identical_clips(list(clips.values()))
     paired = {i for pair in pairs for i in pair}
 
     def exists(o: Output) -> bool:
@@ -436,6 +442,14 @@ def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
             os.utime(out_dir / name, (FILE_TIME, FILE_TIME))
     progress(f"done in {time.perf_counter() - started:.1f} s ({len(stale)} stale files removed) -> {path}")
     return path
+
+
+def rendered_pairs(out_dir: Path) -> list[tuple[str, str]]:
+    """(left, right) of every pair video in ``out_dir`` (none without a readable manifest)."""
+    try:
+        return [(p.left, p.right) for p in read_render_manifest(out_dir).pairs]
+    except ManifestError:
+        return []
 
 
 def rendered_settings(out_dir: Path) -> RenderSettings | None:

@@ -12,7 +12,8 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from server.clipset.manifest import ManifestError, read_clip_manifest
+from server.clipset.manifest import MANIFEST, ManifestError, read_clip_manifest
+from server.media.build import MediaError, identical_clips, read_clip_set
 from server.participants.models import ParticipantSession, SessionState, Vote
 
 from .models import Study
@@ -49,6 +50,16 @@ def _analyse_cached(votes: tuple[tuple[tuple[str, Any], ...], ...], counts: tupl
     return analyse([dict(v) for v in votes], dict(counts), questions)
 
 
+@lru_cache(maxsize=4)
+def _identical(clips_dir: Path, stamp: tuple[int, int]) -> dict[str, str]:
+    """Clip id -> the first clip with the same arrays, for the clip set whose manifest has ``stamp`` (mtime, size):
+    hashing every clip's arrays on each poll of the dashboard would cost more than the rest of the document."""
+    try:
+        return identical_clips(read_clip_set(clips_dir))
+    except MediaError:
+        return {}
+
+
 def study_results(session: Session, study: Study, clips_dir: Path, benchmark_path: Path) -> dict[str, Any]:
     """Everything the dashboard shows.  The statistics are cached on their input: scipy's exact Wilcoxon for
     up to 13 participants with ties enumerates sign patterns and takes seconds, and a dashboard polls."""
@@ -72,8 +83,11 @@ def study_results(session: Session, study: Study, clips_dir: Path, benchmark_pat
     except ManifestError:
         clips = []  # the dashboard says there is no clip set
     shown = {s.clip_id for s in study.stimuli}
+    stat = (clips_dir / MANIFEST).stat() if clips else None
+    same = _identical(clips_dir, (stat.st_mtime_ns, stat.st_size)) if stat else {}
     results["clips"] = [{"id": c.id, "animation": c.animation, "condition": c.condition, "method": c.method,
-                         "params": c.params, "key_count": c.key_count, "metrics": c.metrics, "shown": c.id in shown}
+                         "params": c.params, "key_count": c.key_count, "metrics": c.metrics, "shown": c.id in shown,
+                         "identical_to": same.get(c.id) if same.get(c.id, c.id) != c.id else None}
                         for c in clips]
     results["benchmark"] = _read_json(benchmark_path)
     return results

@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session, aliased, object_session
 
 from server.db import utcnow
 from server.errors import Conflict, Forbidden, NotFound, Unprocessable
-from server.media.build import read_clip_set
+from server.media.build import identical_clips, read_clip_set
 from server.media.manifest import RenderManifest
 from server.participants.models import ParticipantSession, SessionState, Trial, Vote
 from server.researchers.models import Researcher
@@ -65,6 +65,15 @@ def required_pairs(design: Design, clips: Mapping[StimulusKey, str]) -> list[tup
     for _, ref, test in needed_stimuli(design):
         pairs += [(clips[ref], clips[test]), (clips[test], clips[ref])]
     return list(dict.fromkeys(pairs))
+
+
+def identical_comparisons(design: Design, clips_dir: Path) -> list[tuple[str, str]]:
+    """(test clip, reference clip) of every test comparison of ``design`` whose two clips have the same arrays:
+    participants see one clip on both sides, as in a catch trial (e.g. a key reduction that kept every key)."""
+    clips = read_clip_set(clips_dir)
+    same, index = identical_clips(clips), {(c.animation, c.condition): c.id for c in clips}
+    return [(index[test], index[ref]) for kind, ref, test in needed_stimuli(design)
+            if kind == ComparisonKind.test and same[index[test]] == same[index[ref]]]
 
 
 def _columns(definition: StudyFile) -> dict[str, Any]:
