@@ -243,7 +243,8 @@ def _render_for(settings: Settings, session: object, study_file: object) -> Rend
     before = [p for p in rendered_pairs(settings.media_dir) if set(p) <= clip_ids]
     pairs = list(dict.fromkeys([*pairs_in_use(session), *before, *needed]))  # type: ignore[arg-type]
     render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret,
-                 _rendered_settings(settings.media_dir), pairs=pairs, progress=lambda m: print(m, flush=True))
+                 _rendered_settings(settings.media_dir), pairs=pairs, every_clip=False,
+                 progress=lambda m: print(m, flush=True))
     return read_render_manifest(settings.media_dir)
 
 

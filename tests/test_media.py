@@ -50,8 +50,7 @@ def pairs(clips_dir):
 def media(data, clips_dir, pairs, tmp_path_factory):
     out = tmp_path_factory.mktemp("media")
     messages = []
-    render_media(data, clips_dir, out, SECRET, SMALL, pairs=pairs, workers=2, every_clip=True,
-                 progress=messages.append)
+    render_media(data, clips_dir, out, SECRET, SMALL, pairs=pairs, workers=2, progress=messages.append)
     manifest = json.loads((out / MANIFEST).read_text())
     return out, manifest, messages
 
@@ -183,8 +182,7 @@ def test_second_run_renders_nothing_and_settings_change_names(media, data, clips
     assert any("0 up to date, 32 to render" in m for m in messages)
     before = {f.name: f.stat().st_mtime_ns for f in out.iterdir()}
     again: list[str] = []
-    render_media(data, clips_dir, out, SECRET, SMALL, pairs=pairs, workers=2, every_clip=True,
-                 progress=again.append)
+    render_media(data, clips_dir, out, SECRET, SMALL, pairs=pairs, workers=2, progress=again.append)
     assert any("32 up to date, 0 to render" in m for m in again)
     assert {f.name: f.stat().st_mtime_ns for f in out.iterdir() if f.name != MANIFEST} == {
         k: v for k, v in before.items() if k != MANIFEST}
@@ -197,18 +195,20 @@ def test_second_run_renders_nothing_and_settings_change_names(media, data, clips
     assert {o.name for o in p.outputs}.isdisjoint({Path(c["video"]).stem for c in manifest["clips"].values()})
 
 
-def test_by_default_only_the_clips_of_the_pairs_get_a_video(media, data, clips_dir, tmp_path):
-    """The thesis study shows no hybrid2: by default its clips get no video (none is missing afterwards), an
-    existing up-to-date one is kept; a clip with the arrays of another shares its video and is not rendered."""
+def test_without_every_clip_only_the_clips_of_the_pairs_get_a_video(media, data, clips_dir, tmp_path):
+    """The thesis study shows no hybrid2: without every_clip (the commands' default) its clips get no video
+    (none is missing afterwards), an existing up-to-date one is kept; a clip with the arrays of another shares its
+    video and is not rendered."""
     from server.media.build import plan
 
     out, manifest, _ = media
     pairs = [("walk-keyframe", "walk-hybrid0"), ("walk-hybrid0", "walk-keyframe")]
-    empty = plan(data, clips_dir, tmp_path / "nothing", SMALL, SECRET, pairs)
+    empty = plan(data, clips_dir, tmp_path / "nothing", SMALL, SECRET, pairs, every_clip=False)
     assert set(empty.clip_outputs) == {"walk-keyframe", "walk-hybrid0"}
     assert sorted(o.clips for j in empty.jobs for o in j.outputs) == sorted([*pairs, ("walk-keyframe",),
                                                                              ("walk-hybrid0",)])
-    kept = plan(data, clips_dir, out, SMALL, SECRET, pairs)  # every clip's video exists there: all kept, none due
+    # Every clip's video exists in `out`: all are kept, none is due.
+    kept = plan(data, clips_dir, out, SMALL, SECRET, pairs, every_clip=False)
     assert set(kept.clip_outputs) == set(manifest["clips"]) and not kept.jobs
     # A second clip set in which walk-copy is walk-keyframe under another condition id.
     twin = tmp_path / "twin"
@@ -219,7 +219,7 @@ def test_by_default_only_the_clips_of_the_pairs_get_a_video(media, data, clips_d
     (twin / "manifest.json").write_text(json.dumps(doc))
     shutil.copy(twin / entry["file"], twin / "walk-copy.npz")
     p = plan(data, twin, tmp_path / "twin-media", SMALL, SECRET, [("walk-keyframe", "walk-copy"),
-                                                                   ("walk-copy", "walk-keyframe")])
+                                                                   ("walk-copy", "walk-keyframe")], every_clip=False)
     assert p.clip_outputs["walk-copy"].name == p.clip_outputs["walk-keyframe"].name
     names = {o.name for j in p.jobs for o in j.outputs}
     assert len(names) == 2 and sum(len(j.outputs) for j in p.jobs) == 2  # one clip video, one pair video

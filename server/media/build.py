@@ -169,11 +169,11 @@ class Plan:
 
 def plan(data_dir: Path, clips_dir: Path, out_dir: Path, settings: RenderSettings, secret: bytes,
          pairs: Sequence[tuple[str, str]] = (), animations: Sequence[str] | None = None,
-         every_clip: bool = False) -> Plan:
+         every_clip: bool = True) -> Plan:
     """Work out every output's name and which ones are missing, grouped into one job per animation: a video of
-    every pair in ``pairs`` (left clip, right clip; the studies decide which pairs they show) and of every clip
-    those pairs show (``every_clip``: of every clip of the clip set).  Participants only ever see pairs, so the
-    video of a clip no pair shows is not rendered; where it exists and is up to date it is kept.
+    every pair in ``pairs`` (left clip, right clip; the studies decide which pairs they show) and of every clip of
+    the clip set (``every_clip=False``: of the clips those pairs show; participants only ever see pairs, so the
+    commands render no video of a clip no pair shows, and keep it where it exists and is up to date).
 
     Clips with identical arrays (e.g. a key reduction that kept every key) share their outputs: a video is
     planned, named and rendered once, from the first such clip of the clip set.
@@ -403,7 +403,7 @@ class PeakMemory:
 
 def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
                  settings: RenderSettings | None = None, pairs: Sequence[tuple[str, str]] = (),
-                 workers: int = 2, animations: Sequence[str] | None = None, every_clip: bool = False,
+                 workers: int = 2, animations: Sequence[str] | None = None, every_clip: bool = True,
                  progress: Callable[[str], None] = lambda _m: None) -> Path:
     """Render what is missing of :func:`plan`, write the manifest, remove stale media; returns the manifest
     path."""
