@@ -19,7 +19,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -450,20 +450,6 @@ def rendered_pairs(out_dir: Path) -> list[tuple[str, str]]:
         return [(p.left, p.right) for p in read_render_manifest(out_dir).pairs]
     except ManifestError:
         return []
-
-
-def rendered_settings(out_dir: Path) -> RenderSettings | None:
-    """The render settings of the videos in ``out_dir`` (None without a readable manifest): rendering what a new
-    study needs keeps the size and shadows of the videos there instead of re-rendering them all at the default."""
-    try:
-        done = read_render_manifest(out_dir).settings
-    except ManifestError:
-        return None
-    known = {f.name for f in fields(RenderSettings)}
-    try:
-        return RenderSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in done.items() if k in known})
-    except TypeError:
-        return None
 
 
 def _manifest(p: Plan, settings: RenderSettings) -> RenderManifest:
