@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .contacts import contact_intervals
-from .ik import smoothstep, two_bone_ik
+from .ik import hinge_axis, smoothstep, two_bone_ik
 from .skeleton import Skeleton
 
 Array = NDArray[np.float64]
@@ -115,10 +115,13 @@ def plant_feet(skeleton: Skeleton, local_rotations: ArrayLike, root_translation:
     rot = np.array(local_rotations, dtype=np.float64)
     targets, weights = foot_targets(skeleton, rot, root_translation, legs, down, fps, feet, periodic,
                                     ground_velocity, up_axis, blend_frames, max_speed, rest_speed)
+    root = np.asarray(root_translation, dtype=np.float64)
     frames = np.arange(rot.shape[0])
+    _, pos = skeleton.forward_kinematics(rot, root)
     for f, chain in enumerate(legs):  # one solve per leg over all frames
         active = frames[weights[:, f] > 0]
         if active.size:
-            rot[active] = two_bone_ik(skeleton, rot[active], np.asarray(root_translation, np.float64)[active],
-                                      chain, targets[active, f], weight=weights[active, f])
+            rot[active] = two_bone_ik(skeleton, rot[active], root[active], chain, targets[active, f],
+                                      pole=pos[active, chain[1]], weight=weights[active, f],
+                                      hinge=hinge_axis(skeleton, rot, root, chain))
     return rot
