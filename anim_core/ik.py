@@ -16,7 +16,8 @@ The solve (position form of ozz-animation's ``IKTwoBoneJob``, research notes 8.3
    mid joint lies in the plane through start, target and the *pole* (default: the mid joint's animated
    position, which keeps the knee pointing where the animation points it); given the hinge and no pole, so
    that the chain's plane normal stays as close as it gets to the animated one (the hinge's where the chain is
-   straight, and the animated knee, on the leg's line, points nowhere in particular).  The turn is computed
+   straight, and the animated knee, on the leg's line, points nowhere in particular); given both, the pole's
+   plane where it is well defined and near the animated one, the animated one elsewhere.  The turn is computed
    from the chain's plane normal, carried along by the swing, which stays defined when the chain is straight;
 4. the end joint keeps its animated world orientation (a planted foot stays flat), optionally re-aimed so its
    child points at a given position (toe levelling).
@@ -89,7 +90,9 @@ def two_bone_ik(skeleton: Skeleton, local_rotations: ArrayLike, root_translation
     bends positively about it (a knee never bends backwards, even from a slightly hyper-extended or straight
     animated pose), and without a pole the chain's plane keeps the animated plane's normal as far as the target
     allows (the hinge's while the animated chain is straight); with a pole, the plane turns towards the
-    hinge's where the pole is (nearly) on the start -> target line.
+    hinge's where the pole is (nearly) on the start -> target line, and towards the animated plane (as without a
+    pole) where the pole's plane is more than 30 degrees from it (fully at 60): near a straight chain a target
+    moved off the animated end turns the plane through a pole at the animated mid joint anywhere.
     Without it the animated plane stands in for the hinge, which is only defined while the chain is bent.
     ``soft`` (units, >= 0): soft IK near full reach ``L = a + b`` — a target further than ``L - soft`` is reached
     only to ``L - soft exp(-(d - L + soft) / soft)`` (short of it by at most ``soft / e`` at ``d = L``), so the

@@ -223,6 +223,9 @@ def test_plant_feet_keeps_a_straight_knee_on_its_hinge():
     assert (np.sum(np.cross(p[:, 2] - p[:, 1], p[:, 3] - p[:, 2]) * hinge, axis=1) > 0).all()  # never backwards
     # The foot is held (creeping at max_speed, a little more where the leg is at full reach), the hips slide 0.2 m/s.
     assert np.linalg.norm(np.diff(p[16:, 3, [0, 2]], axis=0), axis=1).max() * FPS < 0.06
+    # A leg straight in every pose has no hinge to keep: it is solved without one, not refused.
+    straight = plant_feet(sk, Q.identity((n, 5)), root, [(1, 2, 3)], down, FPS, blend_frames=2, max_speed=0.05)
+    assert np.isfinite(straight).all() and not np.allclose(straight, Q.identity((n, 5)))
 
 
 def test_quat_between_turns_one_direction_into_the_other(rng):
