@@ -6,8 +6,10 @@ foot and each contact phase (an interval of frames in which the foot is down, ty
 motion before retargeting), the foot follows its animated path on the ground from the phase's slowest frame on,
 shifted horizontally by whatever its slowest joint (heel or toe) moves beyond ``max_speed``: it can roll, not
 slide.  Heights stay the animated ones, the foot keeps its animated world orientation, and two-bone IK on
-hip-knee-ankle moves the leg.  Over ``blend_frames`` frames on each side of a phase the IK weight eases in and
-out (smoothstep), so the leg never jumps.
+hip-knee-ankle moves the leg, the knee bending about its hinge estimated on the given poses
+(:func:`anim_core.ik.hinge_axis`): towards its animated position while the leg is well bent, in its animated
+plane where the leg is (nearly) straight and that position says nothing about where the knee points.  Over
+``blend_frames`` frames on each side of a phase the IK weight eases in and out (smoothstep), so the leg never jumps.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .contacts import contact_intervals
-from .ik import smoothstep, two_bone_ik
+from .ik import hinge_axis, smoothstep, two_bone_ik
 from .skeleton import Skeleton
 
 Array = NDArray[np.float64]
@@ -111,14 +113,29 @@ def plant_feet(skeleton: Skeleton, local_rotations: ArrayLike, root_translation:
     :mod:`anim_core.contacts`); the foot keeps its world orientation, so heel and toe still roll.
     ``rest_speed`` m/s: a phase in which the foot's slowest joint never gets slower than this is a swing that
     skims the floor, not a step, and is left alone (holding it would drag the swinging foot back).
+    Each knee bends about its hinge estimated on ``local_rotations`` (:func:`anim_core.ik.hinge_axis`; a leg
+    straight in every pose has none and is solved without), so it never flips or bends backwards near full reach.
     """
     rot = np.array(local_rotations, dtype=np.float64)
     targets, weights = foot_targets(skeleton, rot, root_translation, legs, down, fps, feet, periodic,
                                     ground_velocity, up_axis, blend_frames, max_speed, rest_speed)
+    root = np.asarray(root_translation, dtype=np.float64)
     frames = np.arange(rot.shape[0])
+    _, pos = skeleton.forward_kinematics(rot, root)
     for f, chain in enumerate(legs):  # one solve per leg over all frames
         active = frames[weights[:, f] > 0]
         if active.size:
-            rot[active] = two_bone_ik(skeleton, rot[active], np.asarray(root_translation, np.float64)[active],
-                                      chain, targets[active, f], weight=weights[active, f])
+            rot[active] = two_bone_ik(skeleton, rot[active], root[active], chain, targets[active, f],
+                                      pole=pos[active, chain[1]], weight=weights[active, f],
+                                      hinge=_hinge(skeleton, local_rotations, root, chain))
     return rot
+
+
+def _hinge(skeleton: Skeleton, local_rotations: ArrayLike, root: Array, chain: tuple[int, int, int]) -> Array | None:
+    """The knee's hinge (:func:`anim_core.ik.hinge_axis`) on the animated poses, or ``None`` for a leg straight in
+    every pose: its plane is nowhere defined, and the plain solve (knee towards its animated position) is all
+    there is — a motion file is not refused for it."""
+    try:
+        return hinge_axis(skeleton, local_rotations, root, chain)
+    except ValueError:
+        return None

@@ -16,7 +16,8 @@ The solve (position form of ozz-animation's ``IKTwoBoneJob``, research notes 8.3
    mid joint lies in the plane through start, target and the *pole* (default: the mid joint's animated
    position, which keeps the knee pointing where the animation points it); given the hinge and no pole, so
    that the chain's plane normal stays as close as it gets to the animated one (the hinge's where the chain is
-   straight, and the animated knee, on the leg's line, points nowhere in particular).  The turn is computed
+   straight, and the animated knee, on the leg's line, points nowhere in particular); given both, the pole's
+   plane where it is well defined and near the animated one, the animated one elsewhere.  The turn is computed
    from the chain's plane normal, carried along by the swing, which stays defined when the chain is straight;
 4. the end joint keeps its animated world orientation (a planted foot stays flat), optionally re-aimed so its
    child points at a given position (toe levelling).
@@ -56,6 +57,7 @@ def _perpendicular(v: Array) -> Array:
 
 
 _STRAIGHT = 0.05  # sin of the hip angle below which the pole gives way to the hinge (knee bent < ~6 degrees)
+_TRUSTED = np.radians(30.0)  # a pole's plane further than this from the animated plane gives way to it (fully at 2x)
 
 
 def hinge_axis(skeleton: Skeleton, local_rotations: ArrayLike, root_translation: ArrayLike | None,
@@ -88,7 +90,9 @@ def two_bone_ik(skeleton: Skeleton, local_rotations: ArrayLike, root_translation
     bends positively about it (a knee never bends backwards, even from a slightly hyper-extended or straight
     animated pose), and without a pole the chain's plane keeps the animated plane's normal as far as the target
     allows (the hinge's while the animated chain is straight); with a pole, the plane turns towards the
-    hinge's where the pole is (nearly) on the start -> target line.
+    hinge's where the pole is (nearly) on the start -> target line, and towards the animated plane (as without a
+    pole) where the pole's plane is more than 30 degrees from it (fully at 60): near a straight chain a target
+    moved off the animated end turns the plane through a pole at the animated mid joint anywhere.
     Without it the animated plane stands in for the hinge, which is only defined while the chain is bent.
     ``soft`` (units, >= 0): soft IK near full reach ``L = a + b`` — a target further than ``L - soft`` is reached
     only to ``L - soft exp(-(d - L + soft) / soft)`` (short of it by at most ``soft / e`` at ``d = L``), so the
@@ -154,18 +158,26 @@ def two_bone_ik(skeleton: Skeleton, local_rotations: ArrayLike, root_translation
     #    straight and a pole on the leg's line would point nowhere in particular).
     r_swing = quat_between(end_1 - S, d_hat)
     plane = rotate(r_swing, side)
+    if hinge is not None:
+        kept = side - np.sum(side * d_hat, axis=-1, keepdims=True) * d_hat  # the animated plane's normal, kept
     if hinge is not None and pole is None:
-        wanted = side - np.sum(side * d_hat, axis=-1, keepdims=True) * d_hat
+        wanted = kept
     else:
         p = (M if pole is None else np.broadcast_to(np.asarray(pole, dtype=np.float64), (*batch, 3))) - S
         wanted = np.cross(p, d_hat)
     if hinge is not None and pole is not None:
-        # The pole's plane while the pole is well off the line, easing into the hinge's as it reaches the line.
-        h_d = h - np.sum(h * d_hat, axis=-1, keepdims=True) * d_hat
-        wanted = wanted * np.where(np.sum(wanted * h, axis=-1, keepdims=True) < 0.0, -1.0, 1.0)
+        # The pole's plane while the pole is well off the line and that plane within _TRUSTED of the animated one,
+        # easing into the animated plane (the no-pole solve) otherwise: near a straight leg a pole at the
+        # animated knee lies almost on the line, and a target moved off the animated ankle turns its plane
+        # anywhere (a one-frame twist of the thigh by up to 180 degrees).
+        wanted = _unit(wanted * np.where(np.sum(wanted * h, axis=-1, keepdims=True) < 0.0, -1.0, 1.0), kept)
+        kept = _unit(kept, h_thigh)
         reach = np.maximum(_STRAIGHT * np.linalg.norm(p, axis=-1, keepdims=True), 1e-300)
-        ease = smoothstep(np.linalg.norm(wanted, axis=-1, keepdims=True) / reach)
-        wanted = ease * _unit(wanted, h_d) + (1.0 - ease) * _unit(h_d, plane)
+        off_line = smoothstep(np.linalg.norm(np.cross(p, d_hat), axis=-1, keepdims=True) / reach)
+        cos_lo, cos_hi = np.cos(2.0 * _TRUSTED), np.cos(_TRUSTED)
+        agrees = smoothstep((np.sum(wanted * kept, axis=-1, keepdims=True) - cos_lo) / (cos_hi - cos_lo))
+        trust = off_line * agrees
+        wanted = trust * wanted + (1.0 - trust) * kept
     ok = np.linalg.norm(wanted, axis=-1) > 1e-9 * a  # a pole on the line (no hinge given): no twist
     angle = np.where(ok, np.arctan2(np.sum(d_hat * np.cross(plane, wanted), axis=-1),
                                     np.sum(plane * wanted, axis=-1)), 0.0)

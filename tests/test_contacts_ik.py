@@ -202,6 +202,32 @@ def test_plant_feet_holds_a_sliding_foot_while_it_is_down():
     np.testing.assert_allclose(p[:, 3, 1], sk.forward_kinematics(rot, root)[1][:, 3, 1], atol=0.02)
 
 
+def test_plant_feet_keeps_a_straight_knee_on_its_hinge():
+    """A leg that straightens (knee bend 34 -> 0 degrees, then +-0.23 degrees of noise about straight) while its foot
+    is held and the hips slide sideways: the knee's direction is noise there, so the solve keeps the hinge seen
+    while it was bent. (Without it the hip twisted by 180 degrees from one frame to the next and the knee bent
+    backwards.)"""
+    sk = leg()
+    n = 40
+    frames = np.arange(n)
+    bend = np.where(frames < 12, 0.6 * (1 - frames / 12), 0.004 * np.sin(frames * 1.3))
+    rot = Q.identity((n, 5))
+    rot[:, 2] = Q.quat_from_axis_angle([1.0, 0, 0], bend)
+    root = np.stack([frames / FPS * 0.2, -0.002 * frames, np.zeros(n)], axis=1)
+    down = (frames >= 14)[:, None]
+    out = plant_feet(sk, rot, root, [(1, 2, 3)], down, FPS, blend_frames=2, max_speed=0.05)
+    step = np.degrees(Q.quat_angle(out[1:], out[:-1]))  # (n - 1, 5) per frame and joint
+    assert step.max() < 5.0, step.max(axis=0)  # the animation's own steps are 2.9 degrees at most
+    g, p = sk.forward_kinematics(out, root)
+    hinge = Q.rotate(g[:, 2], [1.0, 0.0, 0.0])  # the knee bends about its local x
+    assert (np.sum(np.cross(p[:, 2] - p[:, 1], p[:, 3] - p[:, 2]) * hinge, axis=1) > 0).all()  # never backwards
+    # The foot is held (creeping at max_speed, a little more where the leg is at full reach), the hips slide 0.2 m/s.
+    assert np.linalg.norm(np.diff(p[16:, 3, [0, 2]], axis=0), axis=1).max() * FPS < 0.06
+    # A leg straight in every pose has no hinge to keep: it is solved without one, not refused.
+    straight = plant_feet(sk, Q.identity((n, 5)), root, [(1, 2, 3)], down, FPS, blend_frames=2, max_speed=0.05)
+    assert np.isfinite(straight).all() and not np.allclose(straight, Q.identity((n, 5)))
+
+
 def test_quat_between_turns_one_direction_into_the_other(rng):
     a = rng.normal(size=(200, 3))
     b = rng.normal(size=(200, 3)) * rng.uniform(0.1, 5, (200, 1))
