@@ -1,0 +1,327 @@
+"""The build job of a study's assets, run as its own process (``python -m server.uploads.job JOB_ID``, started by
+:func:`server.uploads.service.start_build` with the server's settings in its environment).
+
+Stages (``build_jobs.stage``; ``done``/``total`` count each stage's steps):
+
+1. ``building``: one step per asset.  The job writes the clip-set file of the assets,
+   ``<assets dir>/<study id>/clipset.toml`` (each asset an ``[animations.<name>]`` entry with its kind, absolute
+   source path and frames; the ``fps``, ``[character]`` and ``[[conditions]]`` of the clip set in the var
+   directory, or of the default clip-set file when there is none), reads it with
+   :func:`server.clipset.config.load_config` and builds each animation with
+   :func:`server.clipset.build.build_clip_set`; the clips are merged into the clip set (an asset's clips replace
+   its earlier ones; the manifest is replaced last, in one step).
+2. ``rendering``: one step per video missing: every clip's and the pairs the study's design (with the new
+   animations) and every other study show, with the render settings the videos have already
+   (:func:`server.media.build.render_media`, one worker process so the server keeps a core).
+3. ``study``: the assets' animations are added to the study's design (its comparisons rebuilt over the videos).
+4. ``done`` (state ``done``), or state ``failed`` with ``error`` at the stage where it failed.
+
+One build runs at a time on a var directory (an ``flock`` on ``<assets dir>/.build.lock``): all share the clip
+set and the videos.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import math
+import os
+import sys
+import threading
+import traceback
+from collections.abc import Callable, Sequence
+from dataclasses import fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session, sessionmaker
+
+from server.config import Settings
+from server.db import make_engine, session_factory, utcnow
+from server.errors import ServiceError
+from server.studies.models import Study, StudyState
+
+from .models import BuildJob, BuildState, StudyAsset
+from .service import asset_path
+
+STAGES = ("queued", "building", "rendering", "study", "done")
+
+
+class BuildError(Exception):
+    """A step of the build cannot be done; the message is what the researcher reads."""
+
+
+class Progress:
+    """Writes the job's progress to its row (one short transaction per update)."""
+
+    def __init__(self, factory: sessionmaker[Session], job_id: int) -> None:
+        self.factory = factory
+        self.job_id = job_id
+        self._lock = threading.Lock()
+
+    def __call__(self, stage: str | None = None, done: int | None = None, total: int | None = None,
+                 message: str | None = None, **values: Any) -> None:
+        changes = {k: v for k, v in (("stage", stage), ("done", done), ("total", total), ("message", message))
+                   if v is not None}
+        changes.update(values)
+        if "message" in changes:
+            changes["message"] = str(changes["message"])[-2000:]
+        with self._lock, self.factory() as session:
+            session.execute(update(BuildJob).where(BuildJob.id == self.job_id).values(**changes,
+                                                                                     updated_at=utcnow()))
+            session.commit()
+
+
+# --- the clip-set file of the assets ---------------------------------------------------------------------------
+
+def _toml_value(value: Any) -> str:
+    """A TOML value for the few types a clip-set file holds (JSON strings are TOML basic strings)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise BuildError(f"a condition parameter is {value}, which a clip-set file cannot hold")
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{json.dumps(str(k))} = {_toml_value(v)}" for k, v in value.items()) + " }"
+    raise BuildError(f"cannot write {value!r} into a clip-set file")
+
+
+def base_clip_set(clips_dir: Path) -> tuple[int, tuple[str, ...], list[tuple[str, str, dict[str, Any]]]]:
+    """fps, ``[character] relocate`` and the conditions (id, method, params) the assets' clips are built with:
+    those of the clip set in ``clips_dir`` (so the new animations have every condition the others have), or of
+    the default clip-set file when there is none."""
+    from server.clipset.config import load_config
+    from server.clipset.manifest import ManifestError, read_clip_manifest
+
+    default = load_config()
+    try:
+        manifest = read_clip_manifest(clips_dir)
+    except ManifestError:
+        return default.fps, default.relocate, [(c.id, c.method, c.params_dict()) for c in default.conditions]
+    conditions = list({c.condition: (c.condition, c.method, c.params) for c in manifest.clips}.values())
+    fps = manifest.clips[0].fps if manifest.clips else default.fps
+    return fps, default.relocate, conditions
+
+
+def write_clip_set_file(path: Path, assets: Sequence[StudyAsset], asset_file: Callable[[StudyAsset], Path],
+                        fps: int, relocate: Sequence[str], conditions: Sequence[tuple[str, str, dict[str, Any]]]
+                        ) -> Path:
+    """The clip-set file (README "Clip-set file") of ``assets``, through a temporary file."""
+    lines = ["# written by the build job of the study's uploaded assets (server/uploads/job.py)",
+             f"fps = {fps}", "", "[character]", f"relocate = {_toml_value(list(relocate))}", ""]
+    for a in assets:
+        lines += [f"[animations.{a.name}]", f"kind = {_toml_value(a.kind)}",
+                  f"source = {_toml_value(str(asset_file(a)))}",
+                  f"frames = {_toml_value([a.first_frame, a.last_frame])}", ""]
+    for cid, method, params in conditions:
+        lines += ["[[conditions]]", f"id = {_toml_value(cid)}", f"method = {_toml_value(method)}"]
+        if params:
+            lines.append(f"params = {_toml_value(params)}")
+        lines.append("")
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text("\n".join(lines), encoding="utf-8")
+    tmp.replace(path)
+    return path
+
+
+# --- merging into the clip set -----------------------------------------------------------------------------------
+
+def check_names(clips_dir: Path, assets: Sequence[StudyAsset], asset_file: Callable[[StudyAsset], Path]) -> None:
+    """An asset may not take the name of an animation of the clip set that comes from another file."""
+    from server.clipset.manifest import ManifestError, read_clip_manifest
+
+    try:
+        manifest = read_clip_manifest(clips_dir)
+    except ManifestError:
+        return
+    sources = {c.animation: str(c.source.get("file")) for c in manifest.clips}
+    for a in assets:
+        if a.name in sources and sources[a.name] != str(asset_file(a)):
+            raise BuildError(f"asset {a.filename!r}: the clip set has an animation {a.name!r} already (from "
+                             f"{sources[a.name]}); delete the asset and upload it again with another name")
+
+
+def merge_clips(clips_dir: Path, built: list[Any]) -> Path:
+    """Add built clips (:class:`anim_core.clipset.BuiltClip`) to the clip set in ``clips_dir``, replacing the
+    clips of the same animations; each ``.npz`` is written under a temporary name and renamed, the manifest last,
+    so readers see the old clip set or the new one."""
+    from server.clipset.manifest import ClipManifest, ManifestError, entry, read_clip_manifest, write_json
+    from server.clipset.manifest import MANIFEST
+
+    clips_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        old = list(read_clip_manifest(clips_dir).clips)
+    except ManifestError:
+        old = []
+    for c in built:
+        tmp = clips_dir / f".{c.id}.tmp.npz"
+        np.savez_compressed(tmp, **c.arrays())
+        tmp.replace(clips_dir / f"{c.id}.npz")
+    replaced = {c.animation for c in built}
+    entries = [e for e in old if e.animation not in replaced] + [entry(c) for c in built]
+    return write_json(clips_dir / MANIFEST, ClipManifest(clips=entries))
+
+
+def check_cmu_rig(assets: Sequence[StudyAsset]) -> None:
+    """Until the clip set reads sources on other rigs (a non-CMU BVH or a glTF, normalized by
+    :func:`anim_core.rigmap.normalize_bvh`), only BVHs on the CMU skeleton can be built."""
+    for a in assets:
+        if not a.filename.lower().endswith(".bvh") or a.report.get("convention") != "CMU":
+            raise BuildError(f"asset {a.filename!r} ({a.report.get('convention')} rig): the clip set builds "
+                             f"BVH files on the CMU skeleton only so far; other rigs and glTF are inspected and "
+                             f"stored, but not yet built")
+
+
+# --- the job ---------------------------------------------------------------------------------------------------
+
+def render_settings(media_dir: Path) -> Any:
+    """The render settings of the videos there already (so they keep their names), else the defaults."""
+    from server.media.manifest import ManifestError, read_render_manifest
+    from server.media.scene import RenderSettings
+
+    try:
+        stored = read_render_manifest(media_dir).settings
+    except ManifestError:
+        return RenderSettings()
+    known = {f.name for f in fields(RenderSettings)}
+    return RenderSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in stored.items() if k in known})
+
+
+def run(settings: Settings, factory: sessionmaker[Session], job_id: int) -> None:
+    """Run the job ``job_id`` to its end; every failure is stored in the job (never raised)."""
+    progress = Progress(factory, job_id)
+    lock_path = settings.assets_dir / ".build.lock"
+    lock_path.parent.mkdir(parents=True, exist_ok=True)
+    with lock_path.open("w") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            progress(state=BuildState.failed, error="another build is running on this server; start again when it "
+                     "has finished", finished_at=utcnow())
+            return
+        progress(state=BuildState.running, stage="building", message="reading the assets", pid=os.getpid())
+        try:
+            _run(settings, factory, job_id, progress)
+        except Exception as exc:  # every failure ends the job with its message, none is a traceback to the user
+            if isinstance(exc, ServiceError):
+                message = exc.detail
+            elif isinstance(exc, BuildError | ValueError):
+                message = str(exc)
+            else:
+                message = f"{type(exc).__name__}: {exc}"
+                traceback.print_exc()  # into the job's log, beside the assets
+            progress(state=BuildState.failed, error=message, finished_at=utcnow())
+            return
+        progress(state=BuildState.done, stage="done", message="done", finished_at=utcnow())
+
+
+def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progress: Progress) -> None:
+    from server.clipset.build import build_clip_set
+    from server.clipset.config import load_config
+    from server.media.build import plan, render_media
+    from server.media.manifest import read_render_manifest
+    from server.studies.design import Design
+    from server.studies.service import clip_set_index, pairs_in_use, required_pairs, update_study
+
+    with factory() as session:
+        job = session.get(BuildJob, job_id)
+        if job is None:
+            raise BuildError(f"no build job {job_id}")
+        study = session.get(Study, job.study_id)
+        assets = list(session.scalars(select(StudyAsset).where(StudyAsset.study_id == job.study_id)
+                                      .order_by(StudyAsset.id)))
+        session.expunge_all()
+    if study is None or study.state != StudyState.draft:
+        raise BuildError("the study is no longer a draft; its assets cannot be built")
+    if not assets:
+        raise BuildError("the study has no assets")
+    files = {a.id: asset_path(settings, a) for a in assets}
+
+    def asset_file(a: StudyAsset) -> Path:
+        return files[a.id]
+
+    missing = [a.filename for a in assets if not asset_file(a).is_file()]
+    if missing:
+        raise BuildError(f"the asset files {', '.join(missing)} are missing from {settings.assets_dir}")
+    check_names(settings.clips_dir, assets, asset_file)
+    check_cmu_rig(assets)
+    fps, relocate, conditions = base_clip_set(settings.clips_dir)
+    config_path = write_clip_set_file(settings.assets_dir / str(study.id) / "clipset.toml", assets, asset_file,
+                                      fps, relocate, conditions)
+    config = load_config(config_path)
+
+    built = []
+    for k, (name, cfg) in enumerate(config.animations.items()):
+        progress(stage="building", done=k, total=len(assets), message=f"{name}: building its clips")
+        one = type(config)(config.fps, config.relocate, {name: cfg}, config.conditions)
+        try:
+            built += build_clip_set(settings.data, one,
+                                    progress=lambda m, name=name: progress(message=f"{name}: {m.strip()}"))
+        except ValueError as exc:  # ConfigError, AssetError: they name the entry and the file
+            raise BuildError(f"asset {name!r}: {exc}") from None
+    merge_clips(settings.clips_dir, built)
+    progress(stage="building", done=len(assets), total=len(assets), message=f"{len(built)} clips built")
+
+    with factory() as session:
+        study = session.get(Study, study.id)
+        design = Design.model_validate(study.design)
+        animations = list(dict.fromkeys([*design.animations, *(a.name for a in assets)]))
+        new_design = design.model_copy(update={"animations": animations})
+        Design.model_validate(new_design.model_dump())
+        needed = required_pairs(new_design, clip_set_index(settings.clips_dir))
+        pairs = list(dict.fromkeys([*pairs_in_use(session), *needed]))
+    render = render_settings(settings.media_dir)
+    todo = [o for j in plan(settings.data, settings.clips_dir, settings.media_dir, render, settings.secret,
+                            pairs).jobs for o in j.outputs]
+    progress(stage="rendering", done=0, total=len(todo), message=f"{len(todo)} videos to render")
+    stop = threading.Event()
+
+    def watch() -> None:  # a finished video is renamed into place: count them
+        while not stop.wait(1.0):
+            done = sum((settings.media_dir / o.video).is_file() for o in todo)
+            progress(done=done)
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    try:
+        render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret, render, pairs=pairs,
+                     workers=1, progress=lambda m: progress(message=m))
+    finally:
+        stop.set()
+        watcher.join()
+    progress(stage="rendering", done=len(todo), total=len(todo))
+
+    progress(stage="study", done=0, total=1, message="adding the animations to the study's design")
+    with factory() as session:
+        study = session.get(Study, study.id)
+        if study.state != StudyState.draft:
+            raise BuildError("the study was opened during the build; its design stays as it was")
+        update_study(session, study, {"design": new_design.model_dump()}, read_render_manifest(settings.media_dir))
+    progress(stage="study", done=1, total=1, message=f"the design shows {', '.join(animations)}")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if len(argv) != 1 or not argv[0].isdigit():
+        print("usage: python -m server.uploads.job JOB_ID", file=sys.stderr)
+        return 2
+    settings = Settings()
+    engine = make_engine(settings.sqlalchemy_url)
+    try:
+        run(settings, session_factory(engine), int(argv[0]))
+    finally:
+        engine.dispose()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
