@@ -154,8 +154,7 @@ def merge_clips(clips_dir: Path, built: list[Any]) -> Path:
     """Add built clips (:class:`anim_core.clipset.BuiltClip`) to the clip set in ``clips_dir``, replacing the
     clips of the same animations; each ``.npz`` is written under a temporary name and renamed, the manifest last,
     so readers see the old clip set or the new one."""
-    from server.clipset.manifest import ClipManifest, ManifestError, entry, read_clip_manifest, write_json
-    from server.clipset.manifest import MANIFEST
+    from server.clipset.manifest import MANIFEST, ClipManifest, ManifestError, entry, read_clip_manifest, write_json
 
     clips_dir.mkdir(parents=True, exist_ok=True)
     try:

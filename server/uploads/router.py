@@ -35,7 +35,8 @@ class AssetChange(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True)
 
     kind: str | None = Field(None, description="the clip-set kind its clips are built as (gait, crouch, idle)")
-    frames: tuple[int, int] | None = Field(None, description="first and last source frame (inclusive)")
+    frames: list[int] | None = Field(None, min_length=2, max_length=2,
+                                     description="first and last source frame (inclusive)")
 
 
 @router.post("/studies/{slug}/assets", status_code=status.HTTP_201_CREATED,
@@ -95,7 +96,8 @@ def change_asset(slug: str, name: str, session: SessionDep, researcher: Research
                  body: Annotated[AssetChange, Body()]) -> dict[str, Any]:
     """Change the kind or the frames its clips are built from (draft only)."""
     study = service.draft_study(session, slug, researcher)
-    asset = service.update_asset(session, study, service.get_asset(session, study, name), body.kind, body.frames)
+    asset = service.update_asset(session, study, service.get_asset(session, study, name), body.kind,
+                                   tuple(body.frames) if body.frames else None)  # type: ignore[arg-type]
     return service.asset_json(asset)
 
 
