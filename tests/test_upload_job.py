@@ -1,0 +1,111 @@
+"""The build job of a study's uploaded assets, end to end on a real (small) upload: a CMU excerpt uploaded into a
+draft study whose design shows one animation of a small clip set; the job (its own process) builds the clips,
+renders the videos and adds the animation to the design, and its progress is visible through the API."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy.orm import Session
+
+from server.app import create_app
+from server.clipset.build import build_clip_set
+from server.clipset.config import load_config
+from server.clipset.manifest import read_clip_manifest, write_clip_set
+from server.config import Settings
+from server.db import migrate
+from server.media.build import render_media
+from server.media.manifest import read_render_manifest
+from server.media.scene import RenderSettings
+from server.researchers.service import create_researcher
+from server.studies.design import Design
+from server.studies.service import clip_set_index, create_study, required_pairs
+from tests.conftest import DATABASES, _fresh_engine
+from tests.server_fixtures import RESEARCHER, study_file
+from tests.test_uploads import SECRET, excerpt, login
+
+TINY = RenderSettings(width=64, height=48, shadows=False)
+BASE_CLIPSET = """fps = 30
+[character]
+relocate = ["LHipJoint", "RHipJoint"]
+[animations.base]
+kind = "idle"
+source = "{source}"
+frames = [40, 100]
+[[conditions]]
+id = "keyframe"
+method = "keyframe"
+[[conditions]]
+id = "hybrid0"
+method = "hybrid"
+params = {{ increment = 0 }}
+"""
+
+
+@pytest.mark.parametrize("kind", DATABASES)
+def test_build_job_runs_to_completion(kind, tmp_path, tmp_path_factory, data):
+    engine = _fresh_engine(kind, tmp_path_factory, database="test_animstudy_upload_job")
+    settings = Settings(var_dir=tmp_path / "var", data_dir=data, secret_key=SECRET)
+    try:
+        migrate(engine)
+        # a small clip set (one animation, two conditions), rendered tiny, and a draft study over it
+        source = tmp_path / "base.bvh"
+        source.write_bytes(excerpt(data, frames=120))
+        config = tmp_path / "base.toml"
+        config.write_text(BASE_CLIPSET.format(source=source), encoding="utf-8")
+        write_clip_set(build_clip_set(data, load_config(config)), settings.clips_dir)
+        design = Design(reference="keyframe", conditions=["hybrid0"], animations=["base"], catch_trials=1)
+        render_media(data, settings.clips_dir, settings.media_dir, settings.secret, TINY,
+                     pairs=required_pairs(design, clip_set_index(settings.clips_dir)), workers=1)
+        with Session(engine, expire_on_commit=False) as db:
+            owner = create_researcher(db, *RESEARCHER)
+            create_study(db, read_render_manifest(settings.media_dir), study_file(design, slug="own"), owner=owner)
+
+        app = create_app(settings, engine, run_migrations=False)
+        with TestClient(app) as client:
+            headers = login(client, *RESEARCHER)
+            r = client.post("/api/v1/studies/own/assets", params={"filename": "Sway 45.bvh"},
+                            content=excerpt(data, frames=45), headers=headers)
+            assert r.status_code == 201, r.text
+            assert r.json()["name"] == "sway_45"
+            r = client.post("/api/v1/studies/own/assets/build", headers=headers)
+            assert r.status_code == 202, r.text
+            assert r.json()["state"] == "queued"
+            # one build at a time, and the assets are fixed while it runs
+            assert client.post("/api/v1/studies/own/assets/build", headers=headers).status_code == 409
+            assert client.delete("/api/v1/studies/own/assets/sway_45", headers=headers).status_code == 409
+            seen = []
+            deadline = time.monotonic() + 900
+            while True:
+                job = client.get("/api/v1/studies/own/assets/build", headers=headers).json()
+                seen.append((job["state"], job["stage"], job["done"], job["total"]))
+                if job["state"] in ("done", "failed") or time.monotonic() > deadline:
+                    break
+                time.sleep(0.5)
+            log = (settings.assets_dir / "1" / "build.log").read_text()
+            assert job["state"] == "done", (job, log)
+            assert job["error"] is None and job["finished_at"]
+            stages = [s for _, s, _, _ in seen]
+            assert "rendering" in stages or "building" in stages, seen  # progress was visible while it ran
+            assert client.get("/api/v1/studies/own/assets", headers=headers).json()["build"]["state"] == "done"
+
+            # the clips, with every condition of the clip set; the videos; the study's design
+            clips = read_clip_manifest(settings.clips_dir)
+            assert {(c.animation, c.condition) for c in clips.clips} == {
+                (a, c) for a in ("base", "sway_45") for c in ("keyframe", "hybrid0")}
+            mine = [c for c in clips.clips if c.animation == "sway_45"]
+            assert all(c.source["file"].endswith("Sway 45.bvh") and c.kind == "idle" for c in mine)
+            media = read_render_manifest(settings.media_dir)
+            assert {c.animation for c in media.clips.values()} == {"base", "sway_45"}
+            for clip in media.clips.values():
+                assert (settings.media_dir / clip.video).stat().st_size > 0
+            assert media.settings["width"] == 64  # the videos there already kept their settings
+            definition = client.get("/api/v1/studies/own/definition", headers=headers).json()
+            assert definition["design"]["animations"] == ["base", "sway_45"]
+            studies = client.get("/api/v1/studies", headers=headers).json()
+            assert studies[0]["trials_total"] == 2 * 2 + 1
+            assert (settings.assets_dir / "1" / "clipset.toml").is_file()
+    finally:
+        engine.dispose()
