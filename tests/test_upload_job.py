@@ -5,6 +5,7 @@ renders the videos and adds the animation to the design, and its progress is vis
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
@@ -44,24 +45,29 @@ params = {{ increment = 0 }}
 """
 
 
+def small_site(settings: Settings, engine: object, tmp_path: Path) -> None:
+    """A small clip set in the var directory (animation ``base``, conditions keyframe and hybrid0), rendered at
+    64x48 without shadows, and a draft study ``own`` over it owned by :data:`RESEARCHER` (not an admin)."""
+    source = tmp_path / "base.bvh"
+    source.write_bytes(excerpt(settings.data, frames=120))
+    config = tmp_path / "base.toml"
+    config.write_text(BASE_CLIPSET.format(source=source), encoding="utf-8")
+    write_clip_set(build_clip_set(settings.data, load_config(config)), settings.clips_dir)
+    design = Design(reference="keyframe", conditions=["hybrid0"], animations=["base"], catch_trials=1)
+    render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret, TINY,
+                 pairs=required_pairs(design, clip_set_index(settings.clips_dir)), workers=1)
+    with Session(engine, expire_on_commit=False) as db:  # type: ignore[call-overload]
+        owner = create_researcher(db, *RESEARCHER)
+        create_study(db, read_render_manifest(settings.media_dir), study_file(design, slug="own"), owner=owner)
+
+
 @pytest.mark.parametrize("kind", DATABASES)
 def test_build_job_runs_to_completion(kind, tmp_path, tmp_path_factory, data):
     engine = _fresh_engine(kind, tmp_path_factory, database="test_animstudy_upload_job")
     settings = Settings(var_dir=tmp_path / "var", data_dir=data, secret_key=SECRET)
     try:
         migrate(engine)
-        # a small clip set (one animation, two conditions), rendered tiny, and a draft study over it
-        source = tmp_path / "base.bvh"
-        source.write_bytes(excerpt(data, frames=120))
-        config = tmp_path / "base.toml"
-        config.write_text(BASE_CLIPSET.format(source=source), encoding="utf-8")
-        write_clip_set(build_clip_set(data, load_config(config)), settings.clips_dir)
-        design = Design(reference="keyframe", conditions=["hybrid0"], animations=["base"], catch_trials=1)
-        render_media(data, settings.clips_dir, settings.media_dir, settings.secret, TINY,
-                     pairs=required_pairs(design, clip_set_index(settings.clips_dir)), workers=1)
-        with Session(engine, expire_on_commit=False) as db:
-            owner = create_researcher(db, *RESEARCHER)
-            create_study(db, read_render_manifest(settings.media_dir), study_file(design, slug="own"), owner=owner)
+        small_site(settings, engine, tmp_path)
 
         app = create_app(settings, engine, run_migrations=False)
         with TestClient(app) as client:
