@@ -16,7 +16,8 @@ from server.config import Settings
 from server.deps import get_session
 from server.researchers.service import create_researcher
 from server.studies.models import StudyState
-from server.uploads.models import StudyAsset
+from server.uploads.models import BuildJob, BuildState, StudyAsset
+from server.uploads.service import active_jobs
 from tests.server_fixtures import RESEARCHER, make_study
 
 SECRET = "test-secret-0123456789abcdef0123456789"
@@ -211,3 +212,15 @@ def test_build_needs_assets(uclient, admin, draft):
     r = uclient.post("/api/v1/studies/mine/assets/build", headers=admin)
     assert r.status_code == 409 and "no assets" in r.json()["detail"]
     assert uclient.get("/api/v1/studies/mine/assets/build", headers=admin).json() is None
+
+
+def test_a_lost_build_process_reads_as_failed(db, uclient, admin):
+    """A job that says it runs while its process is gone (killed, server restarted) is failed, and a new build
+    may start."""
+    study = make_study(db, slug="mine", state=StudyState.draft)
+    db.add(BuildJob(study_id=study.id, state=BuildState.running, stage="rendering", pid=2**22 + 12345))
+    db.commit()
+    job = uclient.get("/api/v1/studies/mine/assets/build", headers=admin).json()
+    assert job["state"] == "failed" and "ended unexpectedly" in job["error"]
+    assert active_jobs(db) == []
+    assert db.scalar(select(BuildJob.state)) == "failed"

@@ -174,9 +174,11 @@ def check_cmu_rig(assets: Sequence[StudyAsset]) -> None:
     """Until the clip set reads sources on other rigs (a non-CMU BVH or a glTF, normalized by
     :func:`anim_core.rigmap.normalize_bvh`), only BVHs on the CMU skeleton can be built."""
     for a in assets:
-        if not a.filename.lower().endswith(".bvh") or a.report.get("convention") != "CMU":
-            raise BuildError(f"asset {a.filename!r} ({a.report.get('convention')} rig): the clip set builds "
-                             f"BVH files on the CMU skeleton only so far; other rigs and glTF are inspected and "
+        if (not a.filename.lower().endswith(".bvh") or a.report.get("convention") != "CMU"
+                or a.report.get("up_axis") != "y"):
+            raise BuildError(f"asset {a.filename!r} ({a.report.get('convention')} rig, "
+                             f"{str(a.report.get('up_axis')).upper()} up): the clip set builds BVH files on the "
+                             f"CMU skeleton, Y up, only so far; other rigs and glTF are inspected and "
                              f"stored, but not yet built")
 
 
@@ -223,6 +225,16 @@ def run(settings: Settings, factory: sessionmaker[Session], job_id: int) -> None
         progress(state=BuildState.done, stage="done", message="done", finished_at=utcnow())
 
 
+def draft(session: Session, study_id: int) -> Study:
+    """The job's study, still a draft (it may have been opened or deleted meanwhile)."""
+    study = session.get(Study, study_id)
+    if study is None:
+        raise BuildError("the study was deleted")
+    if study.state != StudyState.draft:
+        raise BuildError(f"the study is {study.state}, no longer a draft: its assets and design stay as they are")
+    return study
+
+
 def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progress: Progress) -> None:
     from server.clipset.build import build_clip_set
     from server.clipset.config import load_config
@@ -235,12 +247,10 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
         job = session.get(BuildJob, job_id)
         if job is None:
             raise BuildError(f"no build job {job_id}")
-        study = session.get(Study, job.study_id)
+        study = draft(session, job.study_id)
         assets = list(session.scalars(select(StudyAsset).where(StudyAsset.study_id == job.study_id)
                                       .order_by(StudyAsset.id)))
         session.expunge_all()
-    if study is None or study.state != StudyState.draft:
-        raise BuildError("the study is no longer a draft; its assets cannot be built")
     if not assets:
         raise BuildError("the study has no assets")
     files = {a.id: asset_path(settings, a) for a in assets}
@@ -271,7 +281,7 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
     progress(stage="building", done=len(assets), total=len(assets), message=f"{len(built)} clips built")
 
     with factory() as session:
-        study = session.get(Study, study.id)
+        study = draft(session, study.id)
         design = Design.model_validate(study.design)
         animations = list(dict.fromkeys([*design.animations, *(a.name for a in assets)]))
         new_design = design.model_copy(update={"animations": animations})
@@ -301,9 +311,7 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
 
     progress(stage="study", done=0, total=1, message="adding the animations to the study's design")
     with factory() as session:
-        study = session.get(Study, study.id)
-        if study.state != StudyState.draft:
-            raise BuildError("the study was opened during the build; its design stays as it was")
+        study = draft(session, study.id)
         update_study(session, study, {"design": new_design.model_dump()}, read_render_manifest(settings.media_dir))
     progress(stage="study", done=1, total=1, message=f"the design shows {', '.join(animations)}")
 

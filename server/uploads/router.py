@@ -59,6 +59,8 @@ async def upload_asset(slug: str, request: Request, session: SessionDep, setting
     def check() -> Any:
         study = service.draft_study(session, slug, researcher)
         service.check_free(session, study, filename, animation)
+        # No transaction stays open while the body arrives (on SQLite it would hold the write lock).
+        session.rollback()
         return study
 
     study = await run_in_threadpool(check)
@@ -66,7 +68,7 @@ async def upload_asset(slug: str, request: Request, session: SessionDep, setting
     incoming = await run_in_threadpool(service.incoming_path, settings, filename)
     try:
         size = 0
-        with incoming.open("wb") as f:
+        with incoming.open("wb") as f:  # chunks of at most 64 KiB into the page cache: written on the loop
             async for chunk in request.stream():
                 size += len(chunk)
                 if size > limit:  # stop reading here: the rest is never received

@@ -141,7 +141,8 @@ def _sha256(path: Path) -> str:
 
 def store_upload(session: Session, settings: Settings, study: Study, incoming: Path, name: str) -> StudyAsset:
     """Validate the streamed file ``incoming`` and, if it is good, put it in place and record it (both or
-    neither); the incoming folder is removed either way."""
+    neither); the incoming folder is removed either way.  The file is inspected before any query, so no
+    transaction is open meanwhile."""
     try:
         report = inspect_upload(incoming)
         check_free(session, study, incoming.name, name)
