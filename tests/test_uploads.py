@@ -224,3 +224,41 @@ def test_a_lost_build_process_reads_as_failed(db, uclient, admin):
     assert job["state"] == "failed" and "ended unexpectedly" in job["error"]
     assert active_jobs(db) == []
     assert db.scalar(select(BuildJob.state)) == "failed"
+
+
+def test_a_chunked_upload_is_refused_while_it_is_still_sending(tmp_path, tmp_path_factory, data):
+    """Over a real connection: the 413 arrives as soon as the limit is passed, while the client has more to send
+    (the rest is never read), and nothing is stored."""
+    import socket
+
+    from server.db import migrate, session_factory
+    from tests.conftest import _fresh_engine
+    from tests.server_fixtures import live_server
+
+    settings = Settings(var_dir=tmp_path / "var", data_dir=data, secret_key=SECRET, upload_max_bytes=100_000)
+    engine = _fresh_engine("sqlite", tmp_path_factory)
+    migrate(engine)
+    with session_factory(engine)() as db:
+        make_study(db, slug="mine", state=StudyState.draft)
+        create_researcher(db, *RESEARCHER, admin=True)
+    try:
+        with live_server(create_app(settings, engine, run_migrations=False)) as base:
+            with TestClient(create_app(settings, engine, run_migrations=False)) as client:
+                token = login(client, *RESEARCHER)["Authorization"]
+            host, port = base.removeprefix("http://").split(":")
+            with socket.create_connection((host, int(port)), timeout=30) as sock:
+                sock.sendall(f"POST /api/v1/studies/mine/assets?filename=big.bvh HTTP/1.1\r\nHost: {host}\r\n"
+                             f"Authorization: {token}\r\nContent-Type: application/octet-stream\r\n"
+                             f"Transfer-Encoding: chunked\r\n\r\n".encode())
+                chunk = b"x" * 10_000
+                for _ in range(11):  # 110 000 bytes: past the limit, and the body is not finished
+                    sock.sendall(b"%x\r\n%s\r\n" % (len(chunk), chunk))
+                answer = b""
+                while b"\r\n\r\n" not in answer:
+                    answer += sock.recv(4096)
+            assert answer.startswith(b"HTTP/1.1 413"), answer[:200]
+        assert stored_files(settings) == []
+        with session_factory(engine)() as db:
+            assert asset_rows(db) == 0
+    finally:
+        engine.dispose()
