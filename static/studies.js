@@ -137,7 +137,9 @@
     const slug = assetsSlug;
     const r = await api(assetsUrl(slug));
     if (!r.ok) { $("asset-errors").textContent = await problems(r); return; }
-    const { assets, build } = await r.json();
+    const { assets, build, kinds } = await r.json();
+    $("asset-kind").replaceChildren(...kinds.map((k) => new Option(k, k)));
+    $("asset-edit").hidden = true;
     const t = document.createElement("table");
     const head = t.createTHead().insertRow();
     for (const h of ["animation", "file", "size", "joints", "convention", "units", "fps", "frames", "suggested", "built as", ""]) {
@@ -150,9 +152,13 @@
       const tr = body.insertRow();
       tr.dataset.asset = a.name;
       for (const v of cellText(a)) tr.insertCell().textContent = v;
+      const change = button("Change", () => editAsset(a));
+      change.setAttribute("aria-label", `Change how ${a.filename} is built`);
       const del = button("Delete", () => removeAsset(slug, a.name));
       del.setAttribute("aria-label", `Delete ${a.filename}`);
-      tr.insertCell().append(del);
+      const cell = tr.insertCell();
+      cell.className = "actions";
+      cell.append(change, del);
     }
     $("table-assets").replaceChildren(assets.length ? t : document.createTextNode("No motion files yet."));
     $("build-button").disabled = !assets.length;
@@ -183,6 +189,28 @@
     showBuild(job);
     if (job && job.state === "done") await refresh();  // the design (and the trial count) changed
   }
+
+  function editAsset(a) {
+    const form = $("asset-edit");
+    form.dataset.asset = a.name;
+    $("asset-edit-name").textContent = a.filename;
+    $("asset-kind").value = a.kind;
+    $("asset-first").value = a.frames[0];
+    $("asset-last").value = a.frames[1];
+    $("asset-first").max = $("asset-last").max = a.report.frames - 1;
+    form.hidden = false;
+    $("asset-kind").focus();
+  }
+
+  $("asset-edit").addEventListener("submit", async (e) => {
+    e.preventDefault();
+    const body = { kind: $("asset-kind").value, frames: [Number($("asset-first").value), Number($("asset-last").value)] };
+    const r = await api(assetsUrl(assetsSlug, `/${encodeURIComponent(e.target.dataset.asset)}`), {
+      method: "PATCH", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) });
+    $("asset-errors").textContent = r.ok ? "" : await problems(r);
+    if (r.ok) await loadAssets();
+  });
+  $("asset-edit-cancel").addEventListener("click", () => { $("asset-edit").hidden = true; });
 
   async function removeAsset(slug, name) {
     if (!confirm(`Delete the motion file of ${name}?`)) return;

@@ -14,7 +14,7 @@ from server.config import Settings
 from server.db import migrate
 from tests.conftest import _fresh_engine
 from tests.server_fixtures import RESEARCHER, live_server
-from tests.test_participant_page import ARGS, ARTIFACTS, CHROMIUM, wait_until
+from tests.test_participant_page import ARGS, ARTIFACTS, AXE, CHROMIUM, check_page, wait_until
 from tests.test_upload_job import small_site
 from tests.test_uploads import SECRET, excerpt
 
@@ -40,7 +40,8 @@ def test_upload_inspect_and_build_from_the_studies_page(site, tmp_path, data):
     bad.write_bytes(excerpt(data, frames=45)[:300])
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-        page = browser.new_page(viewport={"width": 1280, "height": 900})
+        # the context bypasses the page's CSP only so that the test can inject axe-core
+        page = browser.new_context(viewport={"width": 1280, "height": 900}, bypass_csp=True).new_page()
         errors: list[str] = []
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto(f"{base}/dashboard/studies")
@@ -73,6 +74,20 @@ def test_upload_inspect_and_build_from_the_studies_page(site, tmp_path, data):
         for text in ("Sway 45.bvh", "31", "CMU", "cmu, Y up", "45", "idle, frames 0..44"):
             assert text in row, (text, row)
         assert page.inner_text("#asset-errors") == ""
+
+        # built from other frames: the form takes the focus, a bad range is refused with the reason
+        page.click("#table-assets tr[data-asset=sway_45] >> text=Change")
+        assert page.evaluate("document.activeElement.id") == "asset-kind"
+        assert page.eval_on_selector_all("#asset-kind option", "os => os.map(o => o.value)")[:3] == \
+            ["gait", "crouch", "idle"]
+        check_page(page, AXE.read_text(), "studies-motion-files")  # zero axe-core WCAG 2.1 A/AA violations
+        page.fill("#asset-first", "44")  # not before the last frame: the server says why
+        page.click("#asset-edit button[type=submit]")
+        wait_until(page, "document.getElementById('asset-errors').textContent.includes('frames')")
+        page.fill("#asset-first", "2")
+        page.click("#asset-edit button[type=submit]")
+        wait_until(page, "document.querySelector('#table-assets tr[data-asset=sway_45]').textContent"
+                         ".includes('idle, 2..44')")
 
         # the build, with its progress to the end; the study now has the new animation's trials
         page.click("#build-button")

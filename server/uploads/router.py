@@ -87,10 +87,13 @@ async def upload_asset(slug: str, request: Request, session: SessionDep, setting
 
 @router.get("/studies/{slug}/assets")
 def list_assets(slug: str, session: SessionDep, researcher: ResearcherDep) -> dict[str, Any]:
-    """The study's assets with their inspection reports, and its latest build job (``build``, or null)."""
+    """The study's assets with their inspection reports, its latest build job (``build``, or null) and the kinds
+    an asset may be built as (``kinds``)."""
+    from server.clipset.config import KINDS
+
     study = managed_study(session, slug, researcher)
     return {"assets": [service.asset_json(a) for a in service.list_assets(session, study)],
-            "build": service.job_json(service.latest_job(session, study))}
+            "build": service.job_json(service.latest_job(session, study)), "kinds": list(KINDS)}
 
 
 @router.patch("/studies/{slug}/assets/{name}")
