@@ -77,7 +77,8 @@ class Progress:
 # --- the clip-set file of the assets ---------------------------------------------------------------------------
 
 def _toml_value(value: Any) -> str:
-    """A TOML value for the few types a clip-set file holds (JSON strings are TOML basic strings)."""
+    """A TOML value for the few types a clip-set file holds (JSON strings are TOML basic strings; finite floats'
+    ``repr`` is TOML)."""
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, int):
@@ -90,9 +91,23 @@ def _toml_value(value: Any) -> str:
         return json.dumps(value)
     if isinstance(value, list | tuple):
         return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    if isinstance(value, dict):
-        return "{ " + ", ".join(f"{json.dumps(str(k))} = {_toml_value(v)}" for k, v in value.items()) + " }"
+    if isinstance(value, dict):  # TOML has no null: a parameter left unset (None) is left out
+        return "{ " + ", ".join(f"{json.dumps(str(k))} = {_toml_value(v)}" for k, v in value.items()
+                                if v is not None) + " }"
     raise BuildError(f"cannot write {value!r} into a clip-set file")
+
+
+def current_clip_set(clips_dir: Path) -> Any:
+    """The manifest of the clip set in ``clips_dir``, None if there is none; one that cannot be read stops the
+    build (merging into it would drop the clips every other study shows)."""
+    from server.clipset.manifest import MANIFEST, ManifestError, read_clip_manifest
+
+    if not (clips_dir / MANIFEST).exists():
+        return None
+    try:
+        return read_clip_manifest(clips_dir)
+    except ManifestError as exc:
+        raise BuildError(f"{exc}; the uploaded clips are added to it, so it must be readable first") from None
 
 
 def base_clip_set(clips_dir: Path) -> tuple[int, tuple[str, ...], list[tuple[str, str, dict[str, Any]]]]:
@@ -100,12 +115,10 @@ def base_clip_set(clips_dir: Path) -> tuple[int, tuple[str, ...], list[tuple[str
     those of the clip set in ``clips_dir`` (so the new animations have every condition the others have), or of
     the default clip-set file when there is none."""
     from server.clipset.config import load_config
-    from server.clipset.manifest import ManifestError, read_clip_manifest
 
     default = load_config()
-    try:
-        manifest = read_clip_manifest(clips_dir)
-    except ManifestError:
+    manifest = current_clip_set(clips_dir)
+    if manifest is None:
         return default.fps, default.relocate, [(c.id, c.method, c.params_dict()) for c in default.conditions]
     conditions = list({c.condition: (c.condition, c.method, c.params) for c in manifest.clips}.values())
     fps = manifest.clips[0].fps if manifest.clips else default.fps
@@ -137,11 +150,8 @@ def write_clip_set_file(path: Path, assets: Sequence[StudyAsset], asset_file: Ca
 
 def check_names(clips_dir: Path, assets: Sequence[StudyAsset], asset_file: Callable[[StudyAsset], Path]) -> None:
     """An asset may not take the name of an animation of the clip set that comes from another file."""
-    from server.clipset.manifest import ManifestError, read_clip_manifest
-
-    try:
-        manifest = read_clip_manifest(clips_dir)
-    except ManifestError:
+    manifest = current_clip_set(clips_dir)
+    if manifest is None:
         return
     sources = {c.animation: str(c.source.get("file")) for c in manifest.clips}
     for a in assets:
@@ -154,13 +164,11 @@ def merge_clips(clips_dir: Path, built: list[Any]) -> Path:
     """Add built clips (:class:`anim_core.clipset.BuiltClip`) to the clip set in ``clips_dir``, replacing the
     clips of the same animations; each ``.npz`` is written under a temporary name and renamed, the manifest last,
     so readers see the old clip set or the new one."""
-    from server.clipset.manifest import MANIFEST, ClipManifest, ManifestError, entry, read_clip_manifest, write_json
+    from server.clipset.manifest import MANIFEST, ClipManifest, entry, write_json
 
     clips_dir.mkdir(parents=True, exist_ok=True)
-    try:
-        old = list(read_clip_manifest(clips_dir).clips)
-    except ManifestError:
-        old = []
+    current = current_clip_set(clips_dir)
+    old = list(current.clips) if current is not None else []
     for c in built:
         tmp = clips_dir / f".{c.id}.tmp.npz"
         np.savez_compressed(tmp, **c.arrays())
