@@ -118,6 +118,15 @@ def test_build_job_runs_to_completion(kind, tmp_path, tmp_path_factory, data):
         engine.dispose()
 
 
+def wait_for(client: TestClient, headers: dict, timeout_s: float = 300) -> dict:
+    """The study ``own``'s latest build job once it has ended (or the timeout passed)."""
+    deadline = time.monotonic() + timeout_s
+    while (job := client.get("/api/v1/studies/own/assets/build", headers=headers).json())["state"] in (
+            "queued", "running") and time.monotonic() < deadline:
+        time.sleep(0.3)
+    return job
+
+
 def mixamo(bvh: bytes) -> bytes:
     """The same motion with Mixamo's joint names (``mixamorig:`` before every joint name)."""
     return re.sub(rb"^(\s*)(ROOT|JOINT) (\S+)", rb"\1\2 mixamorig:\3", bvh, flags=re.M)
@@ -142,15 +151,21 @@ def test_a_failed_build_says_why(kind, tmp_path, tmp_path_factory, data):
             assert r.status_code == 201, r.text
             assert "Mixamo" in r.json()["report"]["convention"]
             assert client.post("/api/v1/studies/own/assets/build", headers=headers).status_code == 202
-            deadline = time.monotonic() + 300
-            while (job := client.get("/api/v1/studies/own/assets/build", headers=headers).json())["state"] in (
-                    "queued", "running") and time.monotonic() < deadline:
-                time.sleep(0.3)
+            job = wait_for(client, headers)
             assert job["state"] == "failed", job
             assert "mixamo_walk.bvh" in job["error"] and "not yet built" in job["error"]
             assert job["stage"] == "building"
             assert not (settings.clips_dir / "manifest.json").exists()  # nothing was built
             assert client.delete("/api/v1/studies/own/assets/mixamo_walk", headers=headers).status_code == 204
+
+            # a file gone from the assets folder behind the server's back: the build names it
+            r = client.post("/api/v1/studies/own/assets", params={"filename": "idle.bvh"},
+                            content=excerpt(data, frames=45), headers=headers)
+            assert r.status_code == 201, r.text
+            (settings.assets_dir / "1" / "idle.bvh").unlink()
+            assert client.post("/api/v1/studies/own/assets/build", headers=headers).status_code == 202
+            job = wait_for(client, headers)
+            assert job["state"] == "failed" and "idle.bvh" in job["error"] and "missing" in job["error"], job
     finally:
         engine.dispose()
 
