@@ -292,3 +292,18 @@ def test_an_unreadable_clip_set_stops_the_build(tmp_path):
     with pytest.raises(BuildError, match="version 1"):
         merge_clips(tmp_path, [])
     assert (tmp_path / "manifest.json").read_text() == '{"version": 1, "clips": []}'
+
+
+def test_uploads_left_over_by_a_killed_server_are_cleaned_up(app_settings):
+    import os
+    import time
+
+    from server.uploads.service import STALE_INCOMING_S, incoming_path
+
+    old = incoming_path(app_settings, "a.bvh")
+    old.write_bytes(b"x")
+    recent = incoming_path(app_settings, "b.bvh")
+    long_ago = time.time() - STALE_INCOMING_S - 60
+    os.utime(old.parent, (long_ago, long_ago))
+    fresh = incoming_path(app_settings, "c.bvh")
+    assert not old.parent.exists() and recent.parent.is_dir() and fresh.parent.is_dir()

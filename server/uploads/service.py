@@ -16,6 +16,7 @@ import shutil
 import subprocess
 import sys
 import threading
+import time
 import uuid
 from pathlib import Path
 from typing import Any
@@ -39,6 +40,7 @@ EXTENSIONS = (".bvh", ".glb", ".gltf")
 FILENAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._ -]{0,99}$")
 ANIMATION_NAME = re.compile(r"^[a-z0-9][a-z0-9_]{0,31}$")  # as the clip-set file's animation names
 INCOMING = ".incoming"
+STALE_INCOMING_S = 24 * 3600
 ACTIVE = (BuildState.queued, BuildState.running)
 
 
@@ -89,9 +91,19 @@ def check_free(session: Session, study: Study, filename: str, name: str) -> None
 
 def incoming_path(settings: Settings, filename: str) -> Path:
     """A fresh folder for one upload under the assets dir, and the file's path in it (named as uploaded, so that
-    inspection errors name the user's file)."""
-    folder = settings.assets_dir / INCOMING / uuid.uuid4().hex
-    folder.mkdir(parents=True)
+    inspection errors name the user's file).  Folders left by uploads that never ended (the server was killed
+    meanwhile) are removed after :data:`STALE_INCOMING_S`."""
+    root = settings.assets_dir / INCOMING
+    root.mkdir(parents=True, exist_ok=True)
+    now = time.time()
+    for old in root.iterdir():
+        try:
+            if now - old.stat().st_mtime > STALE_INCOMING_S:
+                shutil.rmtree(old, ignore_errors=True)
+        except OSError:  # removed by another request meanwhile
+            pass
+    folder = root / uuid.uuid4().hex
+    folder.mkdir()
     return folder / filename
 
 
