@@ -4,7 +4,6 @@ renders the videos and adds the animation to the design, and its progress is vis
 
 from __future__ import annotations
 
-import re
 import time
 from pathlib import Path
 
@@ -12,6 +11,8 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session
 
+from anim_core.bvh import format_bvh, read_bvh
+from anim_core.clipset import METRES_PER_CMU_UNIT
 from server.app import create_app
 from server.clipset.build import build_clip_set
 from server.clipset.config import load_config
@@ -26,6 +27,7 @@ from server.studies.design import Design
 from server.studies.service import clip_set_index, create_study, required_pairs
 from tests.conftest import DATABASES, _fresh_engine
 from tests.server_fixtures import RESEARCHER, fake_media, study_file
+from tests.test_rigmap import Z_UP, convention_table, renamed, scaled, turned
 from tests.test_uploads import SECRET, excerpt, login
 
 TINY = RenderSettings(width=64, height=48, shadows=False)
@@ -127,9 +129,13 @@ def wait_for(client: TestClient, headers: dict, timeout_s: float = 300) -> dict:
     return job
 
 
-def mixamo(bvh: bytes) -> bytes:
-    """The same motion with Mixamo's joint names (``mixamorig:`` before every joint name)."""
-    return re.sub(rb"^(\s*)(ROOT|JOINT) (\S+)", rb"\1\2 mixamorig:\3", bvh, flags=re.M)
+def mixamo(bvh: bytes, folder: Path) -> bytes:
+    """The same motion as a Mixamo rig exports it: ``mixamorig:`` names (with a helper pelvis joint per side),
+    centimetres, Z up (the renamings of ``tests/test_rigmap.py``)."""
+    path = folder / "cmu.bvh"
+    path.write_bytes(bvh)
+    source = renamed(read_bvh(path), convention_table("mixamo", "mixamorig:"))
+    return format_bvh(turned(scaled(source, 100 * METRES_PER_CMU_UNIT), Z_UP)).encode()
 
 
 @pytest.mark.parametrize("kind", DATABASES)
@@ -146,10 +152,11 @@ def test_a_failed_build_says_why(kind, tmp_path, tmp_path_factory, data):
         with TestClient(create_app(settings, engine, run_migrations=False)) as client:
             headers = login(client, *RESEARCHER)
             r = client.post("/api/v1/studies/own/assets", params={"filename": "mixamo_walk.bvh"},
-                            content=mixamo(excerpt(data, "mocap/cmu/12_03_walk.bvh.gz", frames=60)),
+                            content=mixamo(excerpt(data, "mocap/cmu/12_03_walk.bvh.gz", frames=60), tmp_path),
                             headers=headers)
             assert r.status_code == 201, r.text
-            assert "Mixamo" in r.json()["report"]["convention"]
+            report = r.json()["report"]
+            assert ("Mixamo" in report["convention"], report["units"], report["up_axis"]) == (True, "cm", "z")
             assert client.post("/api/v1/studies/own/assets/build", headers=headers).status_code == 202
             job = wait_for(client, headers)
             assert job["state"] == "failed", job
