@@ -72,6 +72,8 @@ def test_build_job_runs_to_completion(kind, tmp_path, tmp_path_factory, data):
         migrate(engine)
         small_site(settings, engine, tmp_path)
 
+        body = read_clip_manifest(settings.clips_dir).character
+        assert body is not None and body.gltf is None  # the MakeHuman character, recorded
         app = create_app(settings, engine, run_migrations=False)
         with TestClient(app) as client:
             headers = login(client, *RESEARCHER)
@@ -104,6 +106,7 @@ def test_build_job_runs_to_completion(kind, tmp_path, tmp_path_factory, data):
             clips = read_clip_manifest(settings.clips_dir)
             assert {(c.animation, c.condition) for c in clips.clips} == {
                 (a, c) for a in ("base", "sway_45") for c in ("keyframe", "hybrid0")}
+            assert clips.character == body  # built for the clip set's character, which the manifest keeps
             mine = [c for c in clips.clips if c.animation == "sway_45"]
             assert all(c.source["file"].endswith("Sway 45.bvh") and c.kind == "idle" for c in mine)
             media = read_render_manifest(settings.media_dir)

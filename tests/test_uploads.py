@@ -267,18 +267,19 @@ def test_a_chunked_upload_is_refused_while_it_is_still_sending(tmp_path, tmp_pat
 def test_the_clip_set_file_of_the_assets_reads_back(tmp_path):
     """The job's clip-set file: every condition of the richest shipped clip set (ints, floats, strings in
     params), the assets' kinds, absolute sources with spaces and frames, as load_config reads them."""
-    from server.clipset.config import load_config
-    from server.uploads.job import write_clip_set_file
+    from server.clipset.config import CharacterConfig, load_config
+    from server.uploads.job import BaseClipSet, write_clip_set_file
 
     shipped = load_config(Path("server/clipset/conditions16.toml"))
     conditions = [(c.id, c.method, c.params_dict()) for c in shipped.conditions]
     assets = [StudyAsset(id=1, name="sway", filename="Sway 1.bvh", kind="idle", first_frame=3, last_frame=40),
               StudyAsset(id=2, name="walk2", filename='we"ird.bvh', kind="gait", first_frame=0, last_frame=99)]
     files = {1: tmp_path / "a b" / "Sway 1.bvh", 2: tmp_path / 'we"ird.bvh'}
-    path = write_clip_set_file(tmp_path / "clipset.toml", assets, lambda a: files[a.id], 24, ("LHipJoint",),
-                               conditions)
+    character = CharacterConfig(gltf="/data/bodies/Mine 2.glb", units="cm")
+    path = write_clip_set_file(tmp_path / "clipset.toml", assets, lambda a: files[a.id],
+                               BaseClipSet(24, ("LHipJoint",), character, conditions))
     config = load_config(path)
-    assert (config.fps, config.relocate) == (24, ("LHipJoint",))
+    assert (config.fps, config.relocate, config.character) == (24, ("LHipJoint",), character)
     assert [(c.id, c.method, c.params_dict()) for c in config.conditions] == conditions
     assert {n: (a.kind, a.source, a.frames) for n, a in config.animations.items()} == {
         "sway": ("idle", str(files[1]), (3, 40)), "walk2": ("gait", str(files[2]), (0, 99))}

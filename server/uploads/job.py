@@ -5,8 +5,8 @@ Stages (``build_jobs.stage``; ``done``/``total`` count each stage's steps):
 
 1. ``building``: one step per asset.  The job writes the clip-set file of the assets,
    ``<assets dir>/<study id>/clipset.toml`` (each asset an ``[animations.<name>]`` entry with its kind, absolute
-   source path and frames; the ``fps``, ``[character]`` and ``[[conditions]]`` of the clip set in the var
-   directory, or of the default clip-set file when there is none), reads it with
+   source path and frames; the ``fps``, character and ``[[conditions]]`` of the clip set in the var directory,
+   or of the default clip-set file when there is none), reads it with
    :func:`server.clipset.config.load_config` and builds each animation with
    :func:`server.clipset.build.build_clip_set`; the clips are merged into the clip set (an asset's clips replace
    its earlier ones; the manifest is replaced last, in one step).
@@ -30,7 +30,7 @@ import sys
 import threading
 import traceback
 from collections.abc import Callable, Sequence
-from dataclasses import fields
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -110,32 +110,47 @@ def current_clip_set(clips_dir: Path) -> Any:
         raise BuildError(f"{exc}; the uploaded clips are added to it, so it must be readable first") from None
 
 
-def base_clip_set(clips_dir: Path) -> tuple[int, tuple[str, ...], list[tuple[str, str, dict[str, Any]]]]:
-    """fps, ``[character] relocate`` and the conditions (id, method, params) the assets' clips are built with:
-    those of the clip set in ``clips_dir`` (so the new animations have every condition the others have), or of
-    the default clip-set file when there is none."""
+@dataclass(frozen=True)
+class BaseClipSet:
+    """What the assets' clips share with the clip set they join: ``fps``, ``[character]`` (``relocate`` and the
+    body, a :class:`server.clipset.config.CharacterConfig`) and the ``conditions`` (id, method, params)."""
+
+    fps: int
+    relocate: tuple[str, ...]
+    character: Any
+    conditions: list[tuple[str, str, dict[str, Any]]]
+
+
+def base_clip_set(data_dir: Path, clips_dir: Path) -> BaseClipSet:
+    """The clip set in ``clips_dir`` (so the new animations have every condition the others have, on the same
+    character, whose files must not have changed since), or the default clip-set file when there is none.  The
+    manifest does not record ``relocate``: the default file's is used."""
+    from server.clipset.build import record_config
     from server.clipset.config import load_config
 
     default = load_config()
     manifest = current_clip_set(clips_dir)
     if manifest is None:
-        return default.fps, default.relocate, [(c.id, c.method, c.params_dict()) for c in default.conditions]
+        return BaseClipSet(default.fps, default.relocate, default.character,
+                           [(c.id, c.method, c.params_dict()) for c in default.conditions])
+    character, _ = record_config(data_dir, manifest.character.model_dump() if manifest.character else None)
     conditions = list({c.condition: (c.condition, c.method, c.params) for c in manifest.clips}.values())
     fps = manifest.clips[0].fps if manifest.clips else default.fps
-    return fps, default.relocate, conditions
+    return BaseClipSet(fps, default.relocate, character, conditions)
 
 
 def write_clip_set_file(path: Path, assets: Sequence[StudyAsset], asset_file: Callable[[StudyAsset], Path],
-                        fps: int, relocate: Sequence[str], conditions: Sequence[tuple[str, str, dict[str, Any]]]
-                        ) -> Path:
+                        base: BaseClipSet) -> Path:
     """The clip-set file (README "Clip-set file") of ``assets``, through a temporary file."""
+    body = {k: v for k, v in asdict(base.character).items() if v is not None}
     lines = ["# written by the build job of the study's uploaded assets (server/uploads/job.py)",
-             f"fps = {fps}", "", "[character]", f"relocate = {_toml_value(list(relocate))}", ""]
+             f"fps = {base.fps}", "", "[character]", f"relocate = {_toml_value(list(base.relocate))}",
+             *(f"{k} = {_toml_value(v)}" for k, v in body.items()), ""]
     for a in assets:
         lines += [f"[animations.{a.name}]", f"kind = {_toml_value(a.kind)}",
                   f"source = {_toml_value(str(asset_file(a)))}",
                   f"frames = {_toml_value([a.first_frame, a.last_frame])}", ""]
-    for cid, method, params in conditions:
+    for cid, method, params in base.conditions:
         lines += ["[[conditions]]", f"id = {_toml_value(cid)}", f"method = {_toml_value(method)}"]
         if params:
             lines.append(f"params = {_toml_value(params)}")
@@ -164,18 +179,27 @@ def merge_clips(clips_dir: Path, built: list[Any]) -> Path:
     """Add built clips (:class:`anim_core.clipset.BuiltClip`) to the clip set in ``clips_dir``, replacing the
     clips of the same animations; each ``.npz`` is written under a temporary name and renamed, the manifest last,
     so readers see the old clip set or the new one."""
-    from server.clipset.manifest import MANIFEST, ClipManifest, entry, write_json
+    from server.clipset.manifest import MANIFEST, CharacterEntry, ClipManifest, entry, write_json
 
     clips_dir.mkdir(parents=True, exist_ok=True)
     current = current_clip_set(clips_dir)
     old = list(current.clips) if current is not None else []
+    records = [c.source.get("character") for c in built]
+    built_for = CharacterEntry.model_validate(records[0]) if records and records[0] else None
+    # A manifest from before the character was recorded (None) was built for the MakeHuman body, as base_clip_set
+    # builds the new clips then; any other difference mixes bodies.
+    recorded = current.character if current is not None else None
+    if any(r != records[0] for r in records) or (recorded is not None and built and recorded != built_for):
+        raise BuildError("the new clips were built for another character than the clip set's; rebuild the clip "
+                         "set (`animstudy clips build`)")
+    character = built_for if built else recorded
     for c in built:
         tmp = clips_dir / f".{c.id}.tmp.npz"
         np.savez_compressed(tmp, **c.arrays())
         tmp.replace(clips_dir / f"{c.id}.npz")
     replaced = {c.animation for c in built}
     entries = [e for e in old if e.animation not in replaced] + [entry(c) for c in built]
-    return write_json(clips_dir / MANIFEST, ClipManifest(clips=entries))
+    return write_json(clips_dir / MANIFEST, ClipManifest(character=character, clips=entries))
 
 
 def check_cmu_rig(assets: Sequence[StudyAsset]) -> None:
@@ -271,9 +295,8 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
         raise BuildError(f"the asset files {', '.join(missing)} are missing from {settings.assets_dir}")
     check_names(settings.clips_dir, assets, asset_file)
     check_cmu_rig(assets)
-    fps, relocate, conditions = base_clip_set(settings.clips_dir)
     config_path = write_clip_set_file(settings.assets_dir / str(study.id) / "clipset.toml", assets, asset_file,
-                                      fps, relocate, conditions)
+                                      base_clip_set(settings.data, settings.clips_dir))
     config = load_config(config_path)
 
     built = []
