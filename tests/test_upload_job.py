@@ -14,6 +14,7 @@ from sqlalchemy.orm import Session
 from anim_core.bvh import format_bvh, read_bvh
 from anim_core.clipset import METRES_PER_CMU_UNIT
 from server.app import create_app
+from server.assets import character as load_makehuman
 from server.clipset.build import build_clip_set
 from server.clipset.config import load_config
 from server.clipset.manifest import read_clip_manifest, write_clip_set
@@ -27,6 +28,7 @@ from server.studies.design import Design
 from server.studies.service import clip_set_index, create_study, required_pairs
 from tests.conftest import DATABASES, _fresh_engine
 from tests.server_fixtures import RESEARCHER, fake_media, study_file
+from tests.test_gltf_character import export
 from tests.test_rigmap import Z_UP, convention_table, renamed, scaled, turned
 from tests.test_uploads import SECRET, excerpt, login
 
@@ -34,6 +36,7 @@ TINY = RenderSettings(width=64, height=48, shadows=False)
 BASE_CLIPSET = """fps = 30
 [character]
 relocate = ["LHipJoint", "RHipJoint"]
+{character}
 [animations.base]
 kind = "idle"
 source = "{source}"
@@ -48,13 +51,17 @@ params = {{ increment = 0 }}
 """
 
 
-def small_site(settings: Settings, engine: object, tmp_path: Path) -> None:
-    """A small clip set in the var directory (animation ``base``, conditions keyframe and hybrid0), rendered at
-    64x48 without shadows, and a draft study ``own`` over it owned by :data:`RESEARCHER` (not an admin)."""
+def small_site(settings: Settings, engine: object, tmp_path: Path, gltf_character: bool = False) -> None:
+    """A small clip set in the var directory (animation ``base``, conditions keyframe and hybrid0; for the
+    MakeHuman character or, with ``gltf_character``, for it exported as a glTF body), rendered at 64x48 without
+    shadows, and a draft study ``own`` over it owned by :data:`RESEARCHER` (not an admin)."""
     source = tmp_path / "base.bvh"
     source.write_bytes(excerpt(settings.data, frames=120))
+    character = ""
+    if gltf_character:
+        character = f'gltf = "{export(load_makehuman(settings.data), tmp_path / "body.glb")}"'
     config = tmp_path / "base.toml"
-    config.write_text(BASE_CLIPSET.format(source=source), encoding="utf-8")
+    config.write_text(BASE_CLIPSET.format(source=source, character=character), encoding="utf-8")
     write_clip_set(build_clip_set(settings.data, load_config(config)), settings.clips_dir)
     design = Design(reference="keyframe", conditions=["hybrid0"], animations=["base"], catch_trials=1)
     render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret, TINY,
@@ -70,10 +77,10 @@ def test_build_job_runs_to_completion(kind, tmp_path, tmp_path_factory, data):
     settings = Settings(var_dir=tmp_path / "var", data_dir=data, secret_key=SECRET)
     try:
         migrate(engine)
-        small_site(settings, engine, tmp_path)
+        small_site(settings, engine, tmp_path, gltf_character=True)
 
         body = read_clip_manifest(settings.clips_dir).character
-        assert body is not None and body.gltf is None  # the MakeHuman character, recorded
+        assert body is not None and body.gltf == str(tmp_path / "body.glb")  # the clip set's glTF body
         app = create_app(settings, engine, run_migrations=False)
         with TestClient(app) as client:
             headers = login(client, *RESEARCHER)

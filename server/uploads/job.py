@@ -30,7 +30,7 @@ import sys
 import threading
 import traceback
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -302,7 +302,7 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
     built = []
     for k, (name, cfg) in enumerate(config.animations.items()):
         progress(stage="building", done=k, total=len(assets), message=f"{name}: building its clips")
-        one = type(config)(config.fps, config.relocate, {name: cfg}, config.conditions)
+        one = replace(config, animations={name: cfg})  # the same character, fps, conditions
         try:
             built += build_clip_set(settings.data, one,
                                     progress=lambda m, name=name: progress(message=f"{name}: {m.strip()}"))
