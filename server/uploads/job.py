@@ -8,11 +8,13 @@ Stages (``build_jobs.stage``; ``done``/``total`` count each stage's steps):
    source path and frames; the ``fps``, character and ``[[conditions]]`` of the clip set in the var directory,
    or of the default clip-set file when there is none), reads it with
    :func:`server.clipset.config.load_config` and builds each animation with
-   :func:`server.clipset.build.build_clip_set`; the clips are merged into the clip set (an asset's clips replace
-   its earlier ones; the manifest is replaced last, in one step).
+   :func:`server.clipset.build.build_clip_set` (any common rig, BVH or glTF, as ``clips build`` does); the
+   clips are merged into the clip set (an asset's clips replace its earlier ones; the manifest is replaced last,
+   in one step).
 2. ``rendering``: one step per video missing: every clip's and the pairs the study's design (with the new
-   animations) and every other study show, with the render settings the videos have already
-   (:func:`server.media.build.render_media`, one worker process so the server keeps a core).
+   animations) and every other study show, with the size and shadows the videos have already
+   (``server.cli._rendered_settings``, :func:`server.media.build.render_media`, one worker process
+   so the server keeps a core).
 3. ``study``: the assets' animations are added to the study's design (its comparisons rebuilt over the videos).
 4. ``done`` (state ``done``), or state ``failed`` with ``error`` at the stage where it failed.
 
@@ -30,7 +32,7 @@ import sys
 import threading
 import traceback
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -202,32 +204,7 @@ def merge_clips(clips_dir: Path, built: list[Any]) -> Path:
     return write_json(clips_dir / MANIFEST, ClipManifest(character=character, clips=entries))
 
 
-def check_cmu_rig(assets: Sequence[StudyAsset]) -> None:
-    """Until the clip set reads sources on other rigs (a non-CMU BVH or a glTF, normalized by
-    :func:`anim_core.rigmap.normalize_bvh`), only BVHs on the CMU skeleton can be built."""
-    for a in assets:
-        if (not a.filename.lower().endswith(".bvh") or a.report.get("convention") != "CMU"
-                or a.report.get("up_axis") != "y"):
-            raise BuildError(f"asset {a.filename!r} ({a.report.get('convention')} rig, "
-                             f"{str(a.report.get('up_axis')).upper()} up): the clip set builds BVH files on the "
-                             f"CMU skeleton, Y up, only so far; other rigs and glTF are inspected and "
-                             f"stored, but not yet built")
-
-
 # --- the job ---------------------------------------------------------------------------------------------------
-
-def render_settings(media_dir: Path) -> Any:
-    """The render settings of the videos there already (so they keep their names), else the defaults."""
-    from server.media.manifest import ManifestError, read_render_manifest
-    from server.media.scene import RenderSettings
-
-    try:
-        stored = read_render_manifest(media_dir).settings
-    except ManifestError:
-        return RenderSettings()
-    known = {f.name for f in fields(RenderSettings)}
-    return RenderSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in stored.items() if k in known})
-
 
 def run(settings: Settings, factory: sessionmaker[Session], job_id: int) -> None:
     """Run the job ``job_id`` to its end; every failure is stored in the job (never raised)."""
@@ -268,9 +245,10 @@ def draft(session: Session, study_id: int) -> Study:
 
 
 def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progress: Progress) -> None:
+    from server.cli import _rendered_settings as rendered_settings  # the one reading of a media folder's
     from server.clipset.build import build_clip_set
     from server.clipset.config import load_config
-    from server.media.build import plan, render_media
+    from server.media.build import plan, render_media, rendered_pairs
     from server.media.manifest import read_render_manifest
     from server.studies.design import Design
     from server.studies.service import clip_set_index, pairs_in_use, required_pairs, update_study
@@ -294,7 +272,6 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
     if missing:
         raise BuildError(f"the asset files {', '.join(missing)} are missing from {settings.assets_dir}")
     check_names(settings.clips_dir, assets, asset_file)
-    check_cmu_rig(assets)
     config_path = write_clip_set_file(settings.assets_dir / str(study.id) / "clipset.toml", assets, asset_file,
                                       base_clip_set(settings.data, settings.clips_dir))
     config = load_config(config_path)
@@ -317,9 +294,12 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
         animations = list(dict.fromkeys([*design.animations, *(a.name for a in assets)]))
         new_design = design.model_copy(update={"animations": animations})
         Design.model_validate(new_design.model_dump())
-        needed = required_pairs(new_design, clip_set_index(settings.clips_dir))
-        pairs = list(dict.fromkeys([*pairs_in_use(session), *needed]))
-    render = render_settings(settings.media_dir)
+        index = clip_set_index(settings.clips_dir)
+        needed = required_pairs(new_design, index)
+        # As `study create`: the pairs rendered before stay, as far as the clip set still has their clips.
+        before = [p for p in rendered_pairs(settings.media_dir) if set(p) <= set(index.values())]
+        pairs = list(dict.fromkeys([*pairs_in_use(session), *before, *needed]))
+    render = rendered_settings(settings.media_dir)
     todo = [o for j in plan(settings.data, settings.clips_dir, settings.media_dir, render, settings.secret,
                             pairs).jobs for o in j.outputs]
     progress(stage="rendering", done=0, total=len(todo), message=f"{len(todo)} videos to render")
