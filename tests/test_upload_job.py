@@ -94,6 +94,8 @@ def test_build_job_runs_to_completion(kind, tmp_path, tmp_path_factory, data):
             assert r.status_code == 201, r.text
             report = r.json()["report"]
             assert ("Mixamo" in report["convention"], report["units"], report["up_axis"]) == (True, "cm", "z")
+            r = client.patch("/api/v1/studies/own/assets/mixamo_sway", json={"kind": "other"}, headers=headers)
+            assert r.status_code == 200 and r.json()["kind"] == "other", r.text  # keys picked generically
             r = client.post("/api/v1/studies/own/assets/build", headers=headers)
             assert r.status_code == 202, r.text
             assert r.json()["state"] == "queued"
@@ -122,6 +124,7 @@ def test_build_job_runs_to_completion(kind, tmp_path, tmp_path_factory, data):
             assert clips.character == body  # built for the clip set's character, which the manifest keeps
             mine = [c for c in clips.clips if c.animation == "sway_45"]
             assert all(c.source["file"].endswith("Sway 45.bvh") and c.kind == "idle" for c in mine)
+            assert {c.kind for c in clips.clips if c.animation == "mixamo_sway"} == {"other"}
             media = read_render_manifest(settings.media_dir)
             assert {c.animation for c in media.clips.values()} == {"base", "sway_45", "mixamo_sway"}
             for clip in media.clips.values():
