@@ -53,7 +53,7 @@ def test_upload_inspect_and_build_from_the_studies_page(site, tmp_path, data):
         assert page.inner_text("#table-studies tr[data-slug=own] td:nth-child(7)") == "3"  # trials
         page.click("#table-studies tr[data-slug=own] >> text=Motion files")
         page.wait_for_selector("#assets-panel:not([hidden])")
-        assert page.evaluate("document.activeElement.id") == "assets-title"
+        wait_until(page, "document.activeElement.id === 'assets-title'")  # focus moves once the list is loaded
         assert "No motion files yet." in page.inner_text("#table-assets")
         assert page.is_disabled("#build-button")
 
