@@ -23,6 +23,8 @@ from .participants.router import router as participants_router
 from .researchers.router import router as researchers_router
 from .security import RETRY_AFTER_S, LoginLimiter, Protect, RateLimiter
 from .studies.router import router as studies_router
+from .uploads.router import router as uploads_router
+from .uploads.router import upload_route
 
 
 def create_app(settings: Settings | None = None, engine: Engine | None = None, run_migrations: bool = True
@@ -44,7 +46,8 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None, r
     app.state.session_limiter = RateLimiter(settings.sessions_per_minute, window_s=60.0)
     if "*" not in settings.allowed_hosts:
         app.add_middleware(TrustedHostMiddleware, allowed_hosts=settings.allowed_hosts, www_redirect=False)
-    app.add_middleware(Protect)  # added last: outermost, so even the host check's 400 has the security headers
+    # Added last: outermost, so even the host check's 400 has the security headers.  Uploads stream their body.
+    app.add_middleware(Protect, streamed=[upload_route(settings.upload_max_bytes)])
 
     @app.exception_handler(RequestValidationError)
     def invalid_request(_request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -74,7 +77,7 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None, r
     def health() -> dict[str, str]:
         return {"status": "ok"}
 
-    for router in (studies_router, participants_router, researchers_router, media_router, pages_router):
+    for router in (uploads_router, studies_router, participants_router, researchers_router, media_router, pages_router):
         app.include_router(router)
     app.mount("/static", ContentStaticFiles(directory=STATIC_DIR), name="static")
     return app

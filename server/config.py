@@ -21,7 +21,9 @@ class Settings(BaseSettings):
     videos; default a random key kept in ``<var>/secret.key``.  ``ANIMSTUDY_ALLOWED_HOSTS``: the host names the
     service answers to, comma-separated (``*.example.org`` matches subdomains); default ``*``, any; other
     ``Host`` headers get 400.  ``ANIMSTUDY_SESSIONS_PER_MINUTE``: new participant sessions allowed per client
-    address and minute (per worker process); default 60, 0 for no limit."""
+    address and minute (per worker process); default 60, 0 for no limit.  ``ANIMSTUDY_UPLOAD_MAX_BYTES``: the
+    largest motion file a researcher may upload into a study's assets (``POST /api/v1/studies/{slug}/assets``);
+    default 50 MB (50 * 2**20 bytes)."""
 
     model_config = SettingsConfigDict(env_prefix="ANIMSTUDY_", extra="ignore")
 
@@ -35,6 +37,7 @@ class Settings(BaseSettings):
     token_hours: float = 12.0
     allowed_hosts: Annotated[list[str], NoDecode] = ["*"]
     sessions_per_minute: int = Field(default=60, ge=0)
+    upload_max_bytes: int = Field(default=50 * 2**20, ge=1)
 
     @field_validator("allowed_hosts", mode="before")
     @classmethod
@@ -62,6 +65,11 @@ class Settings(BaseSettings):
     @property
     def media_dir(self) -> Path:
         return self.var / "media"
+
+    @property
+    def assets_dir(self) -> Path:
+        """Uploaded motion files, ``<study id>/<file name>``; uploads arrive in ``.incoming/`` beside them."""
+        return self.var / "assets"
 
     @property
     def benchmark_path(self) -> Path:

@@ -36,3 +36,9 @@ class Unprocessable(ServiceError):
     """Well-formed input that names something unknown (e.g. a condition the rendered clip set lacks)."""
 
     status_code = 422
+
+
+class PayloadTooLarge(ServiceError):
+    """A request body over its limit (an upload over ``ANIMSTUDY_UPLOAD_MAX_BYTES``)."""
+
+    status_code = 413

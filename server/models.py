@@ -4,6 +4,7 @@ from server.db import Base
 from server.participants.models import ParticipantSession, PlaybackEvent, Trial, Vote
 from server.researchers.models import Researcher
 from server.studies.models import Comparison, Stimulus, Study
+from server.uploads.models import BuildJob, StudyAsset
 
-__all__ = ["Base", "Comparison", "ParticipantSession", "PlaybackEvent", "Researcher", "Stimulus", "Study", "Trial",
-           "Vote"]
+__all__ = ["Base", "BuildJob", "Comparison", "ParticipantSession", "PlaybackEvent", "Researcher", "Stimulus", "Study",
+           "StudyAsset", "Trial", "Vote"]

@@ -10,7 +10,8 @@ import re
 import threading
 import time
 from collections import defaultdict, deque
-from collections.abc import Callable, Hashable
+from collections.abc import Callable, Hashable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -77,15 +78,32 @@ def hostile_json(body: bytes) -> dict[str, Any] | None:
     return None
 
 
+@dataclass(frozen=True)
+class StreamedRoute:
+    """A route whose endpoint reads its (large) body as a stream, e.g. an upload: :class:`Protect` refuses a
+    declared ``Content-Length`` over ``max_body`` and otherwise leaves the body to the endpoint, which must stop
+    reading at ``max_body`` itself (413) and never holds it in memory; no JSON check."""
+
+    method: str
+    path: re.Pattern[str]
+    max_body: int
+
+    def matches(self, scope: Scope) -> bool:
+        return scope["method"] == self.method and self.path.fullmatch(scope["path"]) is not None
+
+
 class Protect:
     """ASGI middleware, outermost: refuses bodies over :data:`MAX_BODY_BYTES` with 413 (declared or streamed, e.g.
-    chunked), refuses JSON bodies with non-finite numbers or lone surrogates with 422 (:func:`hostile_json`),
+    chunked; the ``streamed`` routes have their own limit and stream their body, see :class:`StreamedRoute`),
+    refuses JSON bodies with non-finite numbers or lone surrogates with 422 (:func:`hostile_json`),
     answers an unhandled exception with a JSON 500 (the connection stays usable), and adds the security headers to
     every response, errors included."""
 
-    def __init__(self, app: ASGIApp, max_body: int = MAX_BODY_BYTES) -> None:
+    def __init__(self, app: ASGIApp, max_body: int = MAX_BODY_BYTES,
+                 streamed: Sequence[StreamedRoute] = ()) -> None:
         self.app = app
         self.max_body = max_body
+        self.streamed = tuple(streamed)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -93,9 +111,14 @@ class Protect:
             return
         headers = dict(scope["headers"])
         declared = headers.get(b"content-length")
-        too_large = f"request body larger than {self.max_body} bytes"
-        if declared is not None and (not declared.isdigit() or int(declared) > self.max_body):
+        route = next((r for r in self.streamed if r.matches(scope)), None)
+        limit = route.max_body if route else self.max_body
+        too_large = f"request body larger than {limit} bytes"
+        if declared is not None and (not declared.isdigit() or int(declared) > limit):
             await _json(send, 413, too_large)
+            return
+        if route is not None:  # the endpoint streams the body itself and stops at the limit
+            await self._run(scope, receive, send)
             return
         # The whole body is read here (it is small), so a streamed one over the limit is a 413 before any endpoint
         # runs, and a JSON one can be checked once for everyone.
@@ -126,6 +149,10 @@ class Protect:
                 return {"type": "http.request", "body": body, "more_body": False}
             return await receive()
 
+        await self._run(scope, replay, send)
+
+    async def _run(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """The app, with the security headers added and an unhandled error answered with a JSON 500."""
         started = False
 
         async def with_headers(message: Message) -> None:
@@ -138,7 +165,7 @@ class Protect:
             await send(message)
 
         try:
-            await self.app(scope, replay, with_headers)
+            await self.app(scope, receive, with_headers)
         except Exception:
             if started:
                 raise

@@ -1,5 +1,6 @@
 // The studies page of the dashboard: every study the researcher may manage, with state and counts; create one
-// from a study file, edit its texts while allowed, open and close, links to its participant page and results.
+// from a study file, edit its texts while allowed, open and close, links to its participant page and results; a
+// draft's motion files (upload, inspection results, delete) and the build of their clips with its progress.
 "use strict";
 
 (() => {
@@ -63,6 +64,7 @@
       const action = s.state === "open" ? "close" : "open";
       actions.append(button(action === "open" ? "Open" : "Close", () => setState(s.slug, action)));
       if (s.editable.texts) actions.append(button("Edit texts", () => edit(s.slug)));
+      if (s.state === "draft") actions.append(button("Motion files", () => showAssets(s.slug)));
       if (s.editable.design) actions.append(button("Delete", () => remove(s.slug)));
     }
     $("table-studies").replaceChildren(t);
@@ -105,6 +107,139 @@
     }));
     $("edit-panel").hidden = false;
   }
+
+  // --- motion files and their build ---
+  const BUILD_POLL_MS = 1000;
+  const STAGES = { queued: "Waiting to start", building: "Building clips", rendering: "Rendering videos",
+                   study: "Updating the study", done: "Done" };
+  let assetsSlug = null;
+  let polling = null;
+  const assetsUrl = (slug, rest = "") => `/studies/${encodeURIComponent(slug)}/assets${rest}`;
+
+  function cellText(a) {
+    const r = a.report;
+    const suggested = `${r.suggested.kind}, frames ${r.suggested.frames[0]}..${r.suggested.frames[1]} (${r.suggested.reason})`;
+    return [a.name, a.filename, `${(a.size_bytes / 1024).toFixed(1)} KiB`, r.joints, r.convention,
+            `${r.units}, ${r.up_axis.toUpperCase()} up`, Number(r.fps).toFixed(2), r.frames, suggested,
+            `${a.kind}, ${a.frames[0]}..${a.frames[1]}`];
+  }
+
+  async function showAssets(slug) {
+    assetsSlug = slug;
+    $("assets-slug").textContent = slug;
+    $("asset-errors").textContent = "";
+    $("assets-panel").hidden = false;
+    await loadAssets();
+    $("assets-title").focus();
+  }
+
+  async function loadAssets() {
+    const slug = assetsSlug;
+    const r = await api(assetsUrl(slug));
+    if (!r.ok) { $("asset-errors").textContent = await problems(r); return; }
+    const { assets, build, kinds } = await r.json();
+    $("asset-kind").replaceChildren(...kinds.map((k) => new Option(k, k)));
+    $("asset-edit").hidden = true;
+    const t = document.createElement("table");
+    const head = t.createTHead().insertRow();
+    for (const h of ["animation", "file", "size", "joints", "convention", "units", "fps", "frames", "suggested", "built as", ""]) {
+      const th = document.createElement("th");
+      th.textContent = h;
+      head.appendChild(th);
+    }
+    const body = t.createTBody();
+    for (const a of assets) {
+      const tr = body.insertRow();
+      tr.dataset.asset = a.name;
+      for (const v of cellText(a)) tr.insertCell().textContent = v;
+      const change = button("Change", () => editAsset(a));
+      change.setAttribute("aria-label", `Change how ${a.filename} is built`);
+      const del = button("Delete", () => removeAsset(slug, a.name));
+      del.setAttribute("aria-label", `Delete ${a.filename}`);
+      const cell = tr.insertCell();
+      cell.className = "actions";
+      cell.append(change, del);
+    }
+    $("table-assets").replaceChildren(assets.length ? t : document.createTextNode("No motion files yet."));
+    $("build-button").disabled = !assets.length;
+    showBuild(build);
+  }
+
+  function showBuild(job) {
+    $("build").hidden = !job;
+    const active = job && (job.state === "queued" || job.state === "running");
+    $("build-button").disabled = active || !$("table-assets").querySelector("tbody tr");
+    if (!job) return;
+    const bar = $("build-progress");
+    bar.max = Math.max(1, job.total);
+    bar.value = job.state === "done" ? bar.max : job.done;
+    $("build-stage").textContent = `${STAGES[job.stage] || job.stage} (${job.done} of ${job.total})`;
+    $("build-status").textContent = job.state === "failed" ? "The build failed." : job.message;
+    $("build-error").textContent = job.error || "";
+    $("build").dataset.state = job.state;
+    if (active && !polling) polling = setTimeout(pollBuild, BUILD_POLL_MS);
+  }
+
+  async function pollBuild() {
+    polling = null;
+    if (!assetsSlug) return;
+    const r = await api(assetsUrl(assetsSlug, "/build"));
+    if (!r.ok) return;
+    const job = await r.json();
+    showBuild(job);
+    if (job && job.state === "done") await refresh();  // the design (and the trial count) changed
+  }
+
+  function editAsset(a) {
+    const form = $("asset-edit");
+    form.dataset.asset = a.name;
+    $("asset-edit-name").textContent = a.filename;
+    $("asset-kind").value = a.kind;
+    $("asset-first").value = a.frames[0];
+    $("asset-last").value = a.frames[1];
+    $("asset-first").max = $("asset-last").max = a.report.frames - 1;
+    form.hidden = false;
+    $("asset-kind").focus();
+  }
+
+  $("asset-edit").addEventListener("submit", async (e) => {
+    e.preventDefault();
+    const body = { kind: $("asset-kind").value, frames: [Number($("asset-first").value), Number($("asset-last").value)] };
+    const r = await api(assetsUrl(assetsSlug, `/${encodeURIComponent(e.target.dataset.asset)}`), {
+      method: "PATCH", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) });
+    $("asset-errors").textContent = r.ok ? "" : await problems(r);
+    if (r.ok) await loadAssets();
+  });
+  $("asset-edit-cancel").addEventListener("click", () => { $("asset-edit").hidden = true; });
+
+  async function removeAsset(slug, name) {
+    if (!confirm(`Delete the motion file of ${name}?`)) return;
+    const r = await api(assetsUrl(slug, `/${encodeURIComponent(name)}`), { method: "DELETE" });
+    $("asset-errors").textContent = r.ok ? "" : await problems(r);
+    await loadAssets();
+  }
+
+  $("asset-form").addEventListener("submit", async (e) => {
+    e.preventDefault();
+    const file = $("asset-file").files[0];
+    if (!file || !assetsSlug) return;
+    const params = new URLSearchParams({ filename: file.name });
+    if ($("asset-name").value) params.set("name", $("asset-name").value);
+    $("asset-errors").textContent = "";
+    $("status").textContent = `Uploading ${file.name}…`;
+    const r = await api(assetsUrl(assetsSlug, `?${params}`), {
+      method: "POST", headers: { "Content-Type": "application/octet-stream" }, body: file });
+    $("status").textContent = r.ok ? `${file.name} uploaded.` : `${file.name} was not stored.`;
+    if (!r.ok) { $("asset-errors").textContent = await problems(r); return; }
+    e.target.reset();
+    await loadAssets();
+  });
+
+  $("build-button").addEventListener("click", async () => {
+    const r = await api(assetsUrl(assetsSlug, "/build"), { method: "POST" });
+    if (!r.ok) { $("asset-errors").textContent = await problems(r); return; }
+    showBuild(await r.json());
+  });
 
   $("edit-form").addEventListener("submit", async (e) => {
     e.preventDefault();

@@ -14,6 +14,7 @@ from server.deps import ResearcherDep, SessionDep, SettingsDep
 from server.errors import Conflict, Unprocessable
 from server.media.manifest import ManifestError, RenderManifest, read_render_manifest
 from server.participants.models import ParticipantSession, Vote
+from server.uploads.service import remove_study_assets
 
 from . import service
 from .models import Study, StudyState
@@ -109,8 +110,11 @@ def patch_study(slug: str, session: SessionDep, settings: SettingsDep, researche
 
 
 @router.delete("/studies/{slug}", status_code=status.HTTP_204_NO_CONTENT)
-def delete_study(slug: str, session: SessionDep, researcher: ResearcherDep) -> Response:
-    service.delete_study(session, service.managed_study(session, slug, researcher))
+def delete_study(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep) -> Response:
+    study = service.managed_study(session, slug, researcher)
+    study_id = study.id
+    service.delete_study(session, study)
+    remove_study_assets(settings, study_id)  # its asset rows went with it
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 

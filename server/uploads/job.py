@@ -1,0 +1,345 @@
+"""The build job of a study's assets, run as its own process (``python -m server.uploads.job JOB_ID``, started by
+:func:`server.uploads.service.start_build` with the server's settings in its environment).
+
+Stages (``build_jobs.stage``; ``done``/``total`` count each stage's steps):
+
+1. ``building``: one step per asset.  The job writes the clip-set file of the assets,
+   ``<assets dir>/<study id>/clipset.toml`` (each asset an ``[animations.<name>]`` entry with its kind, absolute
+   source path and frames; the ``fps``, character and ``[[conditions]]`` of the clip set in the var directory,
+   or of the default clip-set file when there is none), reads it with
+   :func:`server.clipset.config.load_config` and builds each animation with
+   :func:`server.clipset.build.build_clip_set` (any common rig, BVH or glTF, as ``clips build`` does); the
+   clips are merged into the clip set (an asset's clips replace its earlier ones; the manifest is replaced last,
+   in one step).
+2. ``rendering``: one step per video missing: every clip's and the pairs the study's design (with the new
+   animations) and every other study show, with the size and shadows the videos have already
+   (``server.cli._rendered_settings``, :func:`server.media.build.render_media`, one worker process
+   so the server keeps a core).
+3. ``study``: the assets' animations are added to the study's design (its comparisons rebuilt over the videos).
+4. ``done`` (state ``done``), or state ``failed`` with ``error`` at the stage where it failed.
+
+One build runs at a time on a var directory (an ``flock`` on ``<assets dir>/.build.lock``): all share the clip
+set and the videos.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import math
+import os
+import sys
+import threading
+import traceback
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session, sessionmaker
+
+from server.config import Settings
+from server.db import make_engine, session_factory, utcnow
+from server.errors import ServiceError
+from server.studies.models import Study, StudyState
+
+from .models import BuildJob, BuildState, StudyAsset
+from .service import asset_path
+
+STAGES = ("queued", "building", "rendering", "study", "done")
+
+
+class BuildError(Exception):
+    """A step of the build cannot be done; the message is what the researcher reads."""
+
+
+class Progress:
+    """Writes the job's progress to its row (one short transaction per update)."""
+
+    def __init__(self, factory: sessionmaker[Session], job_id: int) -> None:
+        self.factory = factory
+        self.job_id = job_id
+        self._lock = threading.Lock()
+
+    def __call__(self, stage: str | None = None, done: int | None = None, total: int | None = None,
+                 message: str | None = None, **values: Any) -> None:
+        changes = {k: v for k, v in (("stage", stage), ("done", done), ("total", total), ("message", message))
+                   if v is not None}
+        changes.update(values)
+        if "message" in changes:
+            changes["message"] = str(changes["message"])[-2000:]
+        with self._lock, self.factory() as session:
+            session.execute(update(BuildJob).where(BuildJob.id == self.job_id).values(**changes,
+                                                                                     updated_at=utcnow()))
+            session.commit()
+
+
+# --- the clip-set file of the assets ---------------------------------------------------------------------------
+
+def _toml_value(value: Any) -> str:
+    """A TOML value for the few types a clip-set file holds (JSON strings are TOML basic strings; finite floats'
+    ``repr`` is TOML)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise BuildError(f"a condition parameter is {value}, which a clip-set file cannot hold")
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):  # TOML has no null: a parameter left unset (None) is left out
+        return "{ " + ", ".join(f"{json.dumps(str(k))} = {_toml_value(v)}" for k, v in value.items()
+                                if v is not None) + " }"
+    raise BuildError(f"cannot write {value!r} into a clip-set file")
+
+
+def current_clip_set(clips_dir: Path) -> Any:
+    """The manifest of the clip set in ``clips_dir``, None if there is none; one that cannot be read stops the
+    build (merging into it would drop the clips every other study shows)."""
+    from server.clipset.manifest import MANIFEST, ManifestError, read_clip_manifest
+
+    if not (clips_dir / MANIFEST).exists():
+        return None
+    try:
+        return read_clip_manifest(clips_dir)
+    except ManifestError as exc:
+        raise BuildError(f"{exc}; the uploaded clips are added to it, so it must be readable first") from None
+
+
+@dataclass(frozen=True)
+class BaseClipSet:
+    """What the assets' clips share with the clip set they join: ``fps``, ``[character]`` (``relocate`` and the
+    body, a :class:`server.clipset.config.CharacterConfig`) and the ``conditions`` (id, method, params)."""
+
+    fps: int
+    relocate: tuple[str, ...]
+    character: Any
+    conditions: list[tuple[str, str, dict[str, Any]]]
+
+
+def base_clip_set(data_dir: Path, clips_dir: Path) -> BaseClipSet:
+    """The clip set in ``clips_dir`` (so the new animations have every condition the others have, on the same
+    character, whose files must not have changed since), or the default clip-set file when there is none.  The
+    manifest does not record ``relocate``: the default file's is used."""
+    from server.clipset.build import record_config
+    from server.clipset.config import load_config
+
+    default = load_config()
+    manifest = current_clip_set(clips_dir)
+    if manifest is None:
+        return BaseClipSet(default.fps, default.relocate, default.character,
+                           [(c.id, c.method, c.params_dict()) for c in default.conditions])
+    character, _ = record_config(data_dir, manifest.character.model_dump() if manifest.character else None)
+    conditions = list({c.condition: (c.condition, c.method, c.params) for c in manifest.clips}.values())
+    fps = manifest.clips[0].fps if manifest.clips else default.fps
+    return BaseClipSet(fps, default.relocate, character, conditions)
+
+
+def write_clip_set_file(path: Path, assets: Sequence[StudyAsset], asset_file: Callable[[StudyAsset], Path],
+                        base: BaseClipSet) -> Path:
+    """The clip-set file (README "Clip-set file") of ``assets``, through a temporary file."""
+    body = {k: v for k, v in asdict(base.character).items() if v is not None}
+    lines = ["# written by the build job of the study's uploaded assets (server/uploads/job.py)",
+             f"fps = {base.fps}", "", "[character]", f"relocate = {_toml_value(list(base.relocate))}",
+             *(f"{k} = {_toml_value(v)}" for k, v in body.items()), ""]
+    for a in assets:
+        lines += [f"[animations.{a.name}]", f"kind = {_toml_value(a.kind)}",
+                  f"source = {_toml_value(str(asset_file(a)))}",
+                  f"frames = {_toml_value([a.first_frame, a.last_frame])}", ""]
+    for cid, method, params in base.conditions:
+        lines += ["[[conditions]]", f"id = {_toml_value(cid)}", f"method = {_toml_value(method)}"]
+        if params:
+            lines.append(f"params = {_toml_value(params)}")
+        lines.append("")
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text("\n".join(lines), encoding="utf-8")
+    tmp.replace(path)
+    return path
+
+
+# --- merging into the clip set -----------------------------------------------------------------------------------
+
+def check_names(clips_dir: Path, assets: Sequence[StudyAsset], asset_file: Callable[[StudyAsset], Path]) -> None:
+    """An asset may not take the name of an animation of the clip set that comes from another file."""
+    manifest = current_clip_set(clips_dir)
+    if manifest is None:
+        return
+    sources = {c.animation: str(c.source.get("file")) for c in manifest.clips}
+    for a in assets:
+        if a.name in sources and sources[a.name] != str(asset_file(a)):
+            raise BuildError(f"asset {a.filename!r}: the clip set has an animation {a.name!r} already (from "
+                             f"{sources[a.name]}); delete the asset and upload it again with another name")
+
+
+def merge_clips(clips_dir: Path, built: list[Any]) -> Path:
+    """Add built clips (:class:`anim_core.clipset.BuiltClip`) to the clip set in ``clips_dir``, replacing the
+    clips of the same animations; each ``.npz`` is written under a temporary name and renamed, the manifest last,
+    so readers see the old clip set or the new one."""
+    from server.clipset.manifest import MANIFEST, CharacterEntry, ClipManifest, entry, write_json
+
+    clips_dir.mkdir(parents=True, exist_ok=True)
+    current = current_clip_set(clips_dir)
+    old = list(current.clips) if current is not None else []
+    records = [c.source.get("character") for c in built]
+    built_for = CharacterEntry.model_validate(records[0]) if records and records[0] else None
+    # A manifest from before the character was recorded (None) was built for the MakeHuman body, as base_clip_set
+    # builds the new clips then; any other difference mixes bodies.
+    recorded = current.character if current is not None else None
+    if any(r != records[0] for r in records) or (recorded is not None and built and recorded != built_for):
+        raise BuildError("the new clips were built for another character than the clip set's; rebuild the clip "
+                         "set (`animstudy clips build`)")
+    character = built_for if built else recorded
+    for c in built:
+        tmp = clips_dir / f".{c.id}.tmp.npz"
+        np.savez_compressed(tmp, **c.arrays())
+        tmp.replace(clips_dir / f"{c.id}.npz")
+    replaced = {c.animation for c in built}
+    entries = [e for e in old if e.animation not in replaced] + [entry(c) for c in built]
+    return write_json(clips_dir / MANIFEST, ClipManifest(character=character, clips=entries))
+
+
+# --- the job ---------------------------------------------------------------------------------------------------
+
+def run(settings: Settings, factory: sessionmaker[Session], job_id: int) -> None:
+    """Run the job ``job_id`` to its end; every failure is stored in the job (never raised)."""
+    progress = Progress(factory, job_id)
+    lock_path = settings.assets_dir / ".build.lock"
+    lock_path.parent.mkdir(parents=True, exist_ok=True)
+    with lock_path.open("w") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            progress(state=BuildState.failed, error="another build is running on this server; start again when it "
+                     "has finished", finished_at=utcnow())
+            return
+        progress(state=BuildState.running, stage="building", message="reading the assets", pid=os.getpid())
+        try:
+            _run(settings, factory, job_id, progress)
+        except Exception as exc:  # every failure ends the job with its message, none is a traceback to the user
+            if isinstance(exc, ServiceError):
+                message = exc.detail
+            elif isinstance(exc, BuildError | ValueError):
+                message = str(exc)
+            else:
+                message = f"{type(exc).__name__}: {exc}"
+                traceback.print_exc()  # into the job's log, beside the assets
+            progress(state=BuildState.failed, error=message, finished_at=utcnow())
+            return
+        progress(state=BuildState.done, stage="done", message="done", finished_at=utcnow())
+
+
+def draft(session: Session, study_id: int) -> Study:
+    """The job's study, still a draft (it may have been opened or deleted meanwhile)."""
+    study = session.get(Study, study_id)
+    if study is None:
+        raise BuildError("the study was deleted")
+    if study.state != StudyState.draft:
+        raise BuildError(f"the study is {study.state}, no longer a draft: its assets and design stay as they are")
+    return study
+
+
+def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progress: Progress) -> None:
+    from server.cli import _rendered_settings as rendered_settings  # the one reading of a media folder's
+    from server.clipset.build import build_clip_set
+    from server.clipset.config import load_config
+    from server.media.build import plan, render_media, rendered_pairs
+    from server.media.manifest import read_render_manifest
+    from server.studies.design import Design
+    from server.studies.service import clip_set_index, pairs_in_use, required_pairs, update_study
+
+    with factory() as session:
+        job = session.get(BuildJob, job_id)
+        if job is None:
+            raise BuildError(f"no build job {job_id}")
+        study = draft(session, job.study_id)
+        assets = list(session.scalars(select(StudyAsset).where(StudyAsset.study_id == job.study_id)
+                                      .order_by(StudyAsset.id)))
+        session.expunge_all()
+    if not assets:
+        raise BuildError("the study has no assets")
+    files = {a.id: asset_path(settings, a) for a in assets}
+
+    def asset_file(a: StudyAsset) -> Path:
+        return files[a.id]
+
+    missing = [a.filename for a in assets if not asset_file(a).is_file()]
+    if missing:
+        raise BuildError(f"the asset files {', '.join(missing)} are missing from {settings.assets_dir}")
+    check_names(settings.clips_dir, assets, asset_file)
+    config_path = write_clip_set_file(settings.assets_dir / str(study.id) / "clipset.toml", assets, asset_file,
+                                      base_clip_set(settings.data, settings.clips_dir))
+    config = load_config(config_path)
+
+    built = []
+    for k, (name, cfg) in enumerate(config.animations.items()):
+        progress(stage="building", done=k, total=len(assets), message=f"{name}: building its clips")
+        one = replace(config, animations={name: cfg})  # the same character, fps, conditions
+        try:
+            built += build_clip_set(settings.data, one,
+                                    progress=lambda m, name=name: progress(message=f"{name}: {m.strip()}"))
+        except ValueError as exc:  # ConfigError, AssetError: they name the entry and the file
+            raise BuildError(f"asset {name!r}: {exc}") from None
+    merge_clips(settings.clips_dir, built)
+    progress(stage="building", done=len(assets), total=len(assets), message=f"{len(built)} clips built")
+
+    with factory() as session:
+        study = draft(session, study.id)
+        design = Design.model_validate(study.design)
+        animations = list(dict.fromkeys([*design.animations, *(a.name for a in assets)]))
+        new_design = design.model_copy(update={"animations": animations})
+        Design.model_validate(new_design.model_dump())
+        index = clip_set_index(settings.clips_dir)
+        needed = required_pairs(new_design, index)
+        # As `study create`: the pairs rendered before stay, as far as the clip set still has their clips.
+        before = [p for p in rendered_pairs(settings.media_dir) if set(p) <= set(index.values())]
+        pairs = list(dict.fromkeys([*pairs_in_use(session), *before, *needed]))
+    render = rendered_settings(settings.media_dir)
+    todo = [o for j in plan(settings.data, settings.clips_dir, settings.media_dir, render, settings.secret,
+                            pairs).jobs for o in j.outputs]
+    progress(stage="rendering", done=0, total=len(todo), message=f"{len(todo)} videos to render")
+    stop = threading.Event()
+
+    def watch() -> None:  # a finished video is renamed into place: count them
+        while not stop.wait(1.0):
+            done = sum((settings.media_dir / o.video).is_file() for o in todo)
+            progress(done=done)
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    try:
+        render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret, render, pairs=pairs,
+                     workers=1, progress=lambda m: progress(message=m))
+    finally:
+        stop.set()
+        watcher.join()
+    progress(stage="rendering", done=len(todo), total=len(todo))
+
+    progress(stage="study", done=0, total=1, message="adding the animations to the study's design")
+    with factory() as session:
+        study = draft(session, study.id)
+        update_study(session, study, {"design": new_design.model_dump()}, read_render_manifest(settings.media_dir))
+    progress(stage="study", done=1, total=1, message=f"the design shows {', '.join(animations)}")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if len(argv) != 1 or not argv[0].isdigit():
+        print("usage: python -m server.uploads.job JOB_ID", file=sys.stderr)
+        return 2
+    settings = Settings()
+    engine = make_engine(settings.sqlalchemy_url)
+    try:
+        run(settings, session_factory(engine), int(argv[0]))
+    finally:
+        engine.dispose()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

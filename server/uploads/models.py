@@ -1,0 +1,62 @@
+from __future__ import annotations
+
+from datetime import datetime
+from enum import StrEnum
+from typing import Any
+
+from sqlalchemy import JSON, BigInteger, ForeignKey, String, Text, UniqueConstraint
+from sqlalchemy.orm import Mapped, mapped_column
+
+from server.db import Base, UTCDateTime, utcnow
+
+
+class StudyAsset(Base):
+    """A motion file uploaded into a study: stored as ``<assets dir>/<study id>/<filename>``, validated when it
+    arrived; ``report`` is what inspecting it found (:func:`server.uploads.service.report_json`) and ``kind`` /
+    ``first_frame`` / ``last_frame`` what its clips are built from (the suggestion unless the researcher changed
+    it).  ``name`` is the animation it becomes in the clip set."""
+
+    __tablename__ = "study_assets"
+    __table_args__ = (UniqueConstraint("study_id", "filename", name="uq_study_assets_filename"),
+                      UniqueConstraint("study_id", "name", name="uq_study_assets_name"))
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    study_id: Mapped[int] = mapped_column(ForeignKey("studies.id", ondelete="CASCADE"), index=True)
+    name: Mapped[str] = mapped_column(String(32))
+    filename: Mapped[str] = mapped_column(String(100))
+    size_bytes: Mapped[int] = mapped_column(BigInteger)
+    sha256: Mapped[str] = mapped_column(String(64))
+    kind: Mapped[str] = mapped_column(String(16))
+    first_frame: Mapped[int]
+    last_frame: Mapped[int]
+    report: Mapped[dict[str, Any]] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class BuildState(StrEnum):
+    queued = "queued"
+    running = "running"
+    done = "done"
+    failed = "failed"
+
+
+class BuildJob(Base):
+    """One run of the build job of a study's assets (clips, videos, the study's design): its progress as the
+    dashboard polls it.  ``stage`` is one of :data:`server.uploads.job.STAGES`; ``done``/``total`` count the
+    stage's steps; ``error`` is set when it failed.  ``pid`` is the job's process (a job whose process is gone
+    while it says it runs is reported failed)."""
+
+    __tablename__ = "build_jobs"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    study_id: Mapped[int] = mapped_column(ForeignKey("studies.id", ondelete="CASCADE"), index=True)
+    state: Mapped[str] = mapped_column(String(16), default=BuildState.queued)
+    stage: Mapped[str] = mapped_column(String(32), default="queued")
+    done: Mapped[int] = mapped_column(default=0)
+    total: Mapped[int] = mapped_column(default=0)
+    message: Mapped[str] = mapped_column(Text, default="")
+    error: Mapped[str | None] = mapped_column(Text)
+    pid: Mapped[int | None]
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)

@@ -1,0 +1,330 @@
+"""A draft study's assets: motion files uploaded by its researcher, validated by inspecting them
+(:func:`anim_core.sourceinfo.inspect_source`) before anything is stored, listed, changed and deleted; and starting
+and reading the build job (:mod:`server.uploads.job`) that turns them into clips and videos.
+
+Files live in ``<assets dir>/<study id>/<filename>`` (``Settings.assets_dir``); an upload is streamed into its own
+folder under ``<assets dir>/.incoming/`` (the same file system), inspected there, and only then linked into place
+and recorded in one step, so a failed upload leaves nothing.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import shutil
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import Engine, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from server.config import Settings
+from server.db import utcnow
+from server.errors import Conflict, NotFound, Unprocessable
+from server.researchers.models import Researcher
+from server.studies.models import Study, StudyState
+from server.studies.service import managed_study
+
+from .models import BuildJob, BuildState, StudyAsset
+
+#: What an upload may be: a motion file :func:`~anim_core.sourceinfo.inspect_source` reads.  No ``.bvh.gz``: a
+#: compressed file could unpack to far more than the size limit allows.
+EXTENSIONS = (".bvh", ".glb", ".gltf")
+FILENAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._ -]{0,99}$")
+ANIMATION_NAME = re.compile(r"^[a-z0-9][a-z0-9_]{0,31}$")  # as the clip-set file's animation names
+INCOMING = ".incoming"
+STALE_INCOMING_S = 24 * 3600
+ACTIVE = (BuildState.queued, BuildState.running)
+
+
+def check_filename(filename: str) -> str:
+    """The file name of an upload, or 422 saying what is wrong with it (paths, NUL, extension, characters)."""
+    if "\x00" in filename:
+        raise Unprocessable("filename: must not contain a NUL character")
+    if "/" in filename or "\\" in filename:
+        raise Unprocessable(f"filename: {filename!r} is a path; give the file's name only (no / or \\)")
+    if filename in ("", ".", "..") or filename.startswith("."):
+        raise Unprocessable(f"filename: {filename!r} must not be empty or start with '.'")
+    if not filename.lower().endswith(EXTENSIONS):
+        raise Unprocessable(f"filename: {filename!r} is not a motion file; expected {', '.join(EXTENSIONS)}")
+    if not FILENAME.match(filename):
+        raise Unprocessable(f"filename: {filename!r} may hold only letters, digits, '.', '_', '-' and spaces "
+                            f"(at most 100, the first a letter or digit)")
+    return filename
+
+
+def animation_name(filename: str, name: str | None = None) -> str:
+    """The animation an asset becomes: ``name`` if given (checked), else made from the file name's stem
+    (lower case, other characters as ``_``, at most 32)."""
+    if name is not None:
+        if not ANIMATION_NAME.match(name):
+            raise Unprocessable(f"name: {name!r} must be 1..32 lower-case letters, digits or '_' (no '-'), "
+                                f"the first a letter or digit")
+        return name
+    stem = filename.rsplit(".", 1)[0].lower()
+    made = re.sub(r"[^a-z0-9]+", "_", stem).strip("_")[:32].rstrip("_")
+    return made or "motion"
+
+
+def draft_study(session: Session, slug: str, researcher: Researcher) -> Study:
+    """The study if ``researcher`` manages it (403) and it is a draft (409: its assets are fixed once it opens)."""
+    study = managed_study(session, slug, researcher)
+    if study.state != StudyState.draft:
+        raise Conflict(f"study {slug!r} is {study.state}; assets can change only while it is a draft")
+    return study
+
+
+def check_free(session: Session, study: Study, filename: str, name: str) -> None:
+    """409 if the study has an asset of that file name or animation name already."""
+    for column, value, what in ((StudyAsset.filename, filename, "file"), (StudyAsset.name, name, "animation")):
+        if session.scalar(select(StudyAsset.id).where(StudyAsset.study_id == study.id, column == value)):
+            raise Conflict(f"study {study.slug!r} has an asset with the {what} name {value!r} already; delete it "
+                           f"first or choose another name")
+
+
+def incoming_path(settings: Settings, filename: str) -> Path:
+    """A fresh folder for one upload under the assets dir, and the file's path in it (named as uploaded, so that
+    inspection errors name the user's file).  Folders left by uploads that never ended (the server was killed
+    meanwhile) are removed after :data:`STALE_INCOMING_S`."""
+    root = settings.assets_dir / INCOMING
+    root.mkdir(parents=True, exist_ok=True)
+    now = time.time()
+    for old in root.iterdir():
+        try:
+            if now - old.stat().st_mtime > STALE_INCOMING_S:
+                shutil.rmtree(old, ignore_errors=True)
+        except OSError:  # removed by another request meanwhile
+            pass
+    folder = root / uuid.uuid4().hex
+    folder.mkdir()
+    return folder / filename
+
+
+def discard(path: Path) -> None:
+    """Remove an incoming upload (its file and folder)."""
+    shutil.rmtree(path.parent, ignore_errors=True)
+
+
+def asset_path(settings: Settings, asset: StudyAsset) -> Path:
+    return settings.assets_dir / str(asset.study_id) / asset.filename
+
+
+def report_json(report: Any, motions: list[str]) -> dict[str, Any]:
+    """What inspecting a file found (:class:`anim_core.sourceinfo.MotionReport`), as stored and served."""
+    n = report.normalized
+    m = n.mapping
+    return {"motion": report.name, "motions": motions, "joints": len(m.source_names), "convention": m.convention,
+            "units": n.units, "metres_per_unit": n.metres_per_unit, "up_axis": n.up_axis, "notes": list(n.notes),
+            "fps": report.fps, "frames": report.n_frames, "duration_s": report.duration,
+            "contacts": {k: [list(p) for p in v] for k, v in report.contacts.items()},
+            "suggested": {"kind": report.kind, "frames": list(report.frames), "reason": report.reason},
+            "mapping": [{"joint": d.canonical, "source": d.source, "reason": d.reason} for d in m.decisions],
+            "unmapped": list(m.unmapped)}
+
+
+def inspect_upload(path: Path) -> dict[str, Any]:
+    """Inspect an uploaded file: its report, or 422 with the reader's message (file, line, what is wrong).  A glTF
+    with several animations gives its first one (the report names the others)."""
+    from anim_core.sourceinfo import inspect_source
+
+    try:
+        reports = inspect_source(path)
+    except (ValueError, OSError, RecursionError, MemoryError) as exc:  # BvhError, GltfError, RigMapError ...
+        raise Unprocessable(str(exc) or f"{path.name}: cannot be read ({type(exc).__name__})") from None
+    if not reports:
+        raise Unprocessable(f"{path.name}: holds no motion")
+    return report_json(reports[0], [r.name for r in reports])
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        while chunk := f.read(1 << 20):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def store_upload(session: Session, settings: Settings, study: Study, incoming: Path, name: str) -> StudyAsset:
+    """Validate the streamed file ``incoming`` and, if it is good, put it in place and record it (both or
+    neither); the incoming folder is removed either way.  The file is inspected before any query, so no
+    transaction is open meanwhile."""
+    try:
+        report = inspect_upload(incoming)
+        check_free(session, study, incoming.name, name)
+        asset = StudyAsset(study_id=study.id, name=name, filename=incoming.name,
+                           size_bytes=incoming.stat().st_size, sha256=_sha256(incoming),
+                           kind=report["suggested"]["kind"], first_frame=report["suggested"]["frames"][0],
+                           last_frame=report["suggested"]["frames"][1], report=report)
+        dest = asset_path(settings, asset)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(incoming, dest)  # never replaces: a file left there by anything else is a conflict
+        except FileExistsError:
+            raise Conflict(f"a file {incoming.name!r} exists in the study's assets already") from None
+        try:
+            session.add(asset)
+            session.commit()
+        except BaseException as exc:
+            session.rollback()
+            dest.unlink(missing_ok=True)
+            if isinstance(exc, IntegrityError):  # a concurrent upload of the same name won
+                raise Conflict(f"study {study.slug!r} has an asset named {name!r} or {incoming.name!r} "
+                               f"already") from None
+            raise
+        return asset
+    finally:
+        discard(incoming)
+
+
+def list_assets(session: Session, study: Study) -> list[StudyAsset]:
+    return list(session.scalars(select(StudyAsset).where(StudyAsset.study_id == study.id).order_by(StudyAsset.id)))
+
+
+def get_asset(session: Session, study: Study, name: str) -> StudyAsset:
+    asset = session.scalar(select(StudyAsset).where(StudyAsset.study_id == study.id, StudyAsset.name == name))
+    if asset is None:
+        raise NotFound(f"study {study.slug!r} has no asset {name!r}")
+    return asset
+
+
+def update_asset(session: Session, study: Study, asset: StudyAsset, kind: str | None,
+                 frames: tuple[int, int] | None) -> StudyAsset:
+    """Change what the asset's clips are built from: the clip-set ``kind`` and the source ``frames`` (inclusive)."""
+    from server.clipset.config import KINDS
+
+    check_not_building(session, study)
+    if kind is not None:
+        if kind not in KINDS:
+            raise Unprocessable(f"kind: {kind!r} is not a kind of the clip set; one of {', '.join(KINDS)}")
+        asset.kind = kind
+    if frames is not None:
+        first, last = frames
+        count = asset.report["frames"]
+        if not 0 <= first < last < count:
+            raise Unprocessable(f"frames: [{first}, {last}] must be increasing frames of the file's 0..{count - 1}")
+        asset.first_frame, asset.last_frame = first, last
+    session.commit()
+    return asset
+
+
+def delete_asset(session: Session, settings: Settings, study: Study, asset: StudyAsset) -> None:
+    """Remove the asset's row and file (its clips, once built, stay in the clip set until it is rebuilt)."""
+    check_not_building(session, study)
+    path = asset_path(settings, asset)
+    session.delete(asset)
+    session.commit()
+    path.unlink(missing_ok=True)
+
+
+def remove_study_assets(settings: Settings, study_id: int) -> None:
+    """The asset files of a deleted study (its rows went with it)."""
+    shutil.rmtree(settings.assets_dir / str(study_id), ignore_errors=True)
+
+
+# --- the build job --------------------------------------------------------------------------------------------
+
+def _alive(pid: int | None) -> bool:
+    if pid is None:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, another user's
+        return True
+    return True
+
+
+LOST = "the build process ended unexpectedly (killed, or the server restarted)"
+
+
+def lost(job: BuildJob) -> bool:
+    """Does the job say it is queued or running while its process is gone?  The process runs on this machine
+    (the job's ``pid``)."""
+    return job.state in ACTIVE and job.pid is not None and not _alive(job.pid)
+
+
+def active_jobs(session: Session) -> list[BuildJob]:
+    """The jobs queued or running (of any study); lost ones are marked failed on the way."""
+    active = []
+    for job in session.scalars(select(BuildJob).where(BuildJob.state.in_(list(ACTIVE)))).all():
+        if lost(job):
+            job.state, job.error, job.finished_at = BuildState.failed, LOST, utcnow()
+            session.commit()
+        else:
+            active.append(job)
+    return active
+
+
+def check_not_building(session: Session, study: Study) -> None:
+    if any(j.study_id == study.id for j in active_jobs(session)):
+        raise Conflict(f"the assets of study {study.slug!r} are being built; wait until the build has finished")
+
+
+def latest_job(session: Session, study: Study) -> BuildJob | None:
+    return session.scalar(select(BuildJob).where(BuildJob.study_id == study.id).order_by(BuildJob.id.desc())
+                          .limit(1))
+
+
+def job_environment(settings: Settings, engine: Engine) -> dict[str, str]:
+    """The environment of the job's process: the server's settings and its database (the engine's URL, which
+    is the settings' unless the app was given another engine)."""
+    env = {**os.environ, "ANIMSTUDY_DATA_DIR": str(settings.data), "ANIMSTUDY_VAR_DIR": str(settings.var),
+           "DATABASE_URL": engine.url.render_as_string(hide_password=False)}
+    env.pop("ANIMSTUDY_DATABASE_URL", None)
+    if settings.secret_key:
+        env["ANIMSTUDY_SECRET_KEY"] = settings.secret_key
+    return env
+
+
+def start_build(session: Session, settings: Settings, engine: Engine, study: Study) -> BuildJob:
+    """Queue the build of the study's assets and start its process (``python -m server.uploads.job ID``); 409 if
+    the study has no assets or a build (of any study: they share the clip set and the videos) is running."""
+    if not list_assets(session, study):
+        raise Conflict(f"study {study.slug!r} has no assets to build; upload a BVH or glTF file first")
+    running = active_jobs(session)
+    if running:
+        slug = session.get(Study, running[0].study_id)
+        raise Conflict(f"a build is running (study {slug.slug if slug else '?'!r}); wait until it has finished")
+    job = BuildJob(study_id=study.id, state=BuildState.queued, stage="queued", message="starting")
+    session.add(job)
+    session.commit()
+    log_path = settings.assets_dir / str(study.id) / "build.log"
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        with log_path.open("w", encoding="utf-8") as log:
+            proc = subprocess.Popen([sys.executable, "-m", "server.uploads.job", str(job.id)],
+                                    env=job_environment(settings, engine), stdout=log, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.DEVNULL, start_new_session=True)
+    except OSError as exc:
+        job.state, job.error, job.finished_at = BuildState.failed, f"cannot start the build: {exc}", utcnow()
+        session.commit()
+        return job
+    threading.Thread(target=proc.wait, daemon=True).start()  # reap it when it ends (no zombie)
+    job.pid = proc.pid
+    session.commit()
+    return job
+
+
+def job_json(job: BuildJob | None) -> dict[str, Any] | None:
+    """The job as the API serves it (a lost job as failed: reads do not write)."""
+    if job is None:
+        return None
+    gone = lost(job)
+    return {"id": job.id, "state": BuildState.failed if gone else job.state, "stage": job.stage, "done": job.done,
+            "total": job.total, "message": job.message, "error": LOST if gone else job.error,
+            "created_at": job.created_at.isoformat(),
+            "finished_at": job.finished_at.isoformat() if job.finished_at else None}
+
+
+def asset_json(asset: StudyAsset) -> dict[str, Any]:
+    return {"name": asset.name, "filename": asset.filename, "size_bytes": asset.size_bytes, "sha256": asset.sha256,
+            "kind": asset.kind, "frames": [asset.first_frame, asset.last_frame], "report": asset.report,
+            "created_at": asset.created_at.isoformat()}
