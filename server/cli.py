@@ -15,7 +15,6 @@ from .config import Settings
 
 if TYPE_CHECKING:
     from .media.manifest import RenderManifest
-    from .media.scene import RenderSettings
 
 
 def _fail(message: str) -> int:
@@ -228,7 +227,7 @@ def _render_for(settings: Settings, session: object, study_file: object) -> Rend
     every other study's), and return the render manifest."""
     from server.clipset.build import build_clip_set
     from server.clipset.manifest import MANIFEST, write_clip_set
-    from server.media.build import render_media, rendered_pairs
+    from server.media.build import render_media, rendered_pairs, rendered_settings
     from server.media.manifest import read_render_manifest
     from server.studies.service import clip_set_index, pairs_in_use, required_pairs
 
@@ -243,27 +242,9 @@ def _render_for(settings: Settings, session: object, study_file: object) -> Rend
     before = [p for p in rendered_pairs(settings.media_dir) if set(p) <= clip_ids]
     pairs = list(dict.fromkeys([*pairs_in_use(session), *before, *needed]))  # type: ignore[arg-type]
     render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret,
-                 _rendered_settings(settings.media_dir), pairs=pairs, every_clip=False,
+                 rendered_settings(settings.media_dir), pairs=pairs, every_clip=False,
                  progress=lambda m: print(m, flush=True))
     return read_render_manifest(settings.media_dir)
-
-
-def _rendered_settings(media_dir: Path) -> RenderSettings:
-    """The size and shadows the videos in ``media_dir`` were rendered at (``animstudy render --width --height
-    --no-shadows``), so that a study created over them renders only what it lacks, alike; the defaults if none."""
-    from server.clipset.manifest import ManifestError
-    from server.media.manifest import read_render_manifest
-    from server.media.scene import RenderSettings
-
-    default = RenderSettings()
-    try:
-        done = read_render_manifest(media_dir).settings
-    except ManifestError:
-        return default
-    width, height, shadows = done.get("width"), done.get("height"), done.get("shadows")
-    if not (isinstance(width, int) and isinstance(height, int) and isinstance(shadows, bool)):
-        return default
-    return RenderSettings(width=width, height=height, shadows=shadows)
 
 
 def _pairs_in_use(settings: Settings) -> list[tuple[str, str]]:

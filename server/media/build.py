@@ -110,6 +110,21 @@ def _digest_arrays(path: Path) -> str:
     return h.hexdigest()
 
 
+def rendered_settings(media_dir: Path) -> RenderSettings:
+    """The size and shadows the videos in ``media_dir`` were rendered at (``animstudy render --width --height
+    --no-shadows``), so that what is added to them later (a study created over them, an upload's build) renders
+    alike; the defaults if there are none."""
+    default = RenderSettings()
+    try:
+        done = read_render_manifest(media_dir).settings
+    except ManifestError:
+        return default
+    width, height, shadows = done.get("width"), done.get("height"), done.get("shadows")
+    if not (isinstance(width, int) and isinstance(height, int) and isinstance(shadows, bool)):
+        return default
+    return RenderSettings(width=width, height=height, shadows=shadows)
+
+
 def read_clip_set(clips_dir: Path) -> list[ClipFile]:
     """The clips listed in the clip manifest of ``clips_dir`` (:mod:`server.clipset.manifest`)."""
     try:

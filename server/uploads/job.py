@@ -13,7 +13,7 @@ Stages (``build_jobs.stage``; ``done``/``total`` count each stage's steps):
    in one step).
 2. ``rendering``: one step per video missing: every clip's and the pairs the study's design (with the new
    animations) and every other study show, with the size and shadows the videos have already
-   (``server.cli._rendered_settings``, :func:`server.media.build.render_media`, one worker process
+   (:func:`server.media.build.rendered_settings`, :func:`server.media.build.render_media`, one worker process
    so the server keeps a core).
 3. ``study``: the assets' animations are added to the study's design (its comparisons rebuilt over the videos).
 4. ``done`` (state ``done``), or state ``failed`` with ``error`` at the stage where it failed.
@@ -245,10 +245,9 @@ def draft(session: Session, study_id: int) -> Study:
 
 
 def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progress: Progress) -> None:
-    from server.cli import _rendered_settings as rendered_settings  # the one reading of a media folder's
     from server.clipset.build import build_clip_set
     from server.clipset.config import load_config
-    from server.media.build import plan, render_media, rendered_pairs
+    from server.media.build import plan, render_media, rendered_pairs, rendered_settings
     from server.media.manifest import read_render_manifest
     from server.studies.design import Design
     from server.studies.service import clip_set_index, pairs_in_use, required_pairs, update_study
