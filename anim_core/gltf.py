@@ -4,7 +4,8 @@ Conventions: glTF is Y up, metres, quaternions ``(x, y, z, w)`` in the file; her
 ``(w, x, y, z)``.  A skin's joints become a :class:`~anim_core.skeleton.Skeleton` in topological order (parents
 first; the skin's own order is kept in :attr:`GltfAsset.skin_order`): ``offsets`` are the joint nodes'
 translations, ``rest_rotations`` their rotations, and the root joint takes the whole transform of the nodes above
-it.  Joint scales other than 1 are rejected (the skeleton has no scale).  Vertex influences are read from
+it (a uniform scale there scales the skeleton, its motion and the inverse bind matrices).  Joint scales other than 1
+are rejected (the skeleton has no scale).  Vertex influences are read from
 ``JOINTS_0``/``WEIGHTS_0`` and ``JOINTS_1``/``WEIGHTS_1`` (up to 8) and renormalised.
 
 An animation becomes local rotations ``(F, J, 4)`` and a root translation ``(F, 3)`` (relative to the root's
@@ -225,17 +226,23 @@ def read_gltf(path: str | os.PathLike[str], fps: float = 30.0) -> GltfAsset:
             raise r.fail(f"joint {names[k]!r} has scale {s.tolist()}; only unscaled joints are supported")
     offsets = np.array([t for t, _, _ in trs])
     rest = np.array([q for _, q, _ in trs])
-    # The root takes the transform of the nodes above it.
-    above_rot, above_pos = identity(), np.zeros(3)
+    # The root takes the transform of the nodes above it.  A uniform scale there (Blender's "Armature" at 0.01 over
+    # a rig in centimetres, as Mixamo characters come) scales the whole skeleton: every offset, the root's motion,
+    # and the inverse bind matrices, which then carry the inverse scale.
+    above_rot, above_pos, above_scale = identity(), np.zeros(3), 1.0
     j = int(parent[order[0]])
     while j >= 0:
         t, q, s = _node_trs(nodes[j])
-        if np.abs(s - 1.0).max() > 1e-4:
-            raise r.fail(f"node {nodes[j].name!r} above the skeleton is scaled; only unscaled nodes are supported")
-        above_pos, above_rot = t + rotate(q, above_pos), quat_mul(q, above_rot)
+        if not (s.min() > 0 and np.ptp(s) <= 1e-4 * s.max()):
+            raise r.fail(f"node {nodes[j].name!r} above the skeleton has scale {s.tolist()}; only a uniform "
+                         f"positive scale is supported there")
+        above_pos, above_rot = t + s[0] * rotate(q, above_pos), quat_mul(q, above_rot)
+        above_scale *= float(s[0])
         j = int(parent[j])
+    offsets *= above_scale
     offsets[0] = above_pos + rotate(above_rot, offsets[0])
     rest[0] = quat_mul(above_rot, rest[0])
+    above = (above_pos, above_rot, above_scale)
     skeleton = Skeleton(names, [node_to_joint.get(int(parent[n]), -1) for n in order], offsets, rest)
     skin_order = np.array([node_to_joint[n] for n in skin_joints], dtype=np.intp)
 
@@ -246,6 +253,7 @@ def read_gltf(path: str | os.PathLike[str], fps: float = 30.0) -> GltfAsset:
         raise r.fail(f"its skin has {len(skin_joints)} joints but {ibm.shape[0]} inverse bind matrices")
     inverse_bind = np.empty((len(order), 4, 4))
     inverse_bind[skin_order] = ibm.reshape(-1, 4, 4).transpose(0, 2, 1)
+    inverse_bind[:, :3] *= above_scale  # diag(s, s, s, 1) @ IBM: the rigid skeleton's joint frames carry no scale
 
     mesh_index = next((n.mesh for n in nodes if n.skin == 0 and n.mesh is not None), None)
     if mesh_index is None:
@@ -291,7 +299,8 @@ def read_gltf(path: str | os.PathLike[str], fps: float = 30.0) -> GltfAsset:
         joints.append(jj)
         weights.append(ww)
         base += n_v
-    animations = tuple(_read_animation(r, a, k, node_to_joint, skeleton, fps) for k, a in enumerate(g.animations))
+    animations = tuple(_read_animation(r, a, k, node_to_joint, skeleton, above, fps)
+                       for k, a in enumerate(g.animations))
     return GltfAsset(r.name, skeleton, np.concatenate(vertices), np.concatenate(normals),
                      np.concatenate(faces), np.concatenate(joints), np.concatenate(weights), inverse_bind,
                      animations, skin_order)
@@ -312,7 +321,10 @@ def _sample(times: Array, values: Array, t: Array, interpolation: str, rotation:
 
 
 def _read_animation(r: _Reader, anim: pygltflib.Animation, k: int, node_to_joint: dict[int, int],
-                    skeleton: Skeleton, fps: float) -> GltfAnimation:
+                    skeleton: Skeleton, above: tuple[Array, Array, float], fps: float) -> GltfAnimation:
+    """One animation on ``skeleton``; ``above``: (translation, rotation, uniform scale) of the nodes above the root
+    joint, which the root's channels are in."""
+    above_pos, above_rot, above_scale = above
     name = anim.name or f"animation{k}"
     channels = []
     for c in anim.channels:
@@ -347,10 +359,13 @@ def _read_animation(r: _Reader, anim: pygltflib.Animation, k: int, node_to_joint
     for joint, path, times, values, interp in channels:
         if path == "rotation":
             rot[:, joint] = _wxyz(_sample(times, values, t, interp or "LINEAR", True))
+            if joint == 0:
+                rot[:, 0] = quat_mul(above_rot, rot[:, 0])
         elif joint == 0:
-            root = _sample(times, values, t, interp or "LINEAR", False) - skeleton.offsets[0]
+            local = _sample(times, values, t, interp or "LINEAR", False)
+            root = above_pos + above_scale * rotate(above_rot, local) - skeleton.offsets[0]
         else:
-            moved = _sample(times, values, t, interp or "LINEAR", False)
+            moved = above_scale * _sample(times, values, t, interp or "LINEAR", False)
             if np.abs(moved - skeleton.offsets[joint]).max() > 1e-4 * max(1.0, np.abs(skeleton.offsets).max()):
                 raise r.fail(f"animation {name!r} translates joint {skeleton.names[joint]!r}; only the root may "
                              f"translate")

@@ -9,7 +9,7 @@ import pytest
 from anim_core.bvh import bvh_from_poses, format_bvh, parse_bvh, read_bvh
 from anim_core.character import retarget
 from anim_core.gltf import GltfAnimation, GltfError, read_gltf, write_gltf
-from anim_core.quat import quat_from_axis_angle, quat_mul
+from anim_core.quat import quat_conj, quat_from_axis_angle, quat_mul, rotate
 from anim_core.rigmap import normalize_motion
 from anim_core.skeleton import Skeleton
 from anim_core.skinning import SkinnedMesh
@@ -200,3 +200,52 @@ def test_mixamo_gltf_with_turned_joint_frames_is_a_clip_source(exported, tmp_pat
     err = np.abs(character_positions(character, out.bvh) - character_positions(character, bvh)).max()
     print(f"Mixamo glTF -> character: max joint error {err:.2e} m")
     assert err < 1e-4
+
+
+def test_a_scaled_armature_above_the_rig_is_taken_in(exported, tmp_path):
+    """Blender's export of a Mixamo character: the rig in centimetres under an "Armature" node turned from Z up and
+    scaled by 0.01, inverse bind matrices carrying the factor 100.  Written so that the world is the same as the
+    plain file's, it must read back as the same skeleton, poses and skinned mesh."""
+    rt, rot, root, times, _, _ = exported
+    sk = rt.skeleton
+    q = quat_from_axis_angle(np.array([1.0, 0.0, 0.0]), -np.pi / 2)  # the Armature's turn
+    q_inv = quat_conj(q)
+    cm = 100.0
+    offsets = sk.offsets * cm
+    offsets[0] = rotate(q_inv, sk.offsets[0]) * cm
+    rest = sk.rest_rotations.copy()
+    rest[0] = quat_mul(q_inv, rest[0])
+    rig = Skeleton(sk.names, sk.parents, offsets, rest)
+    rot_cm = rot.copy()
+    rot_cm[:, 0] = quat_mul(q_inv, rot[:, 0])
+    root_cm = rotate(q_inv, root) * cm
+    ib = np.concatenate([rt.mesh.inverse_bind, np.broadcast_to([0.0, 0, 0, 1], (sk.n_joints, 1, 4))], axis=1)
+    ib[:, :3] *= cm
+    path = tmp_path / "cm.gltf"
+    write_gltf(path, rig, rt.mesh.vertices, rt.mesh.normals, rt.faces, rt.mesh.joints, rt.mesh.weights, ib,
+               (GltfAnimation("walk", times, rot_cm, root_cm),))
+    doc = json.loads(path.read_text())
+    n = len(doc["nodes"])
+    roots = doc["scenes"][0]["nodes"]
+    doc["nodes"].append({"name": "Armature", "children": roots, "rotation": [*q[1:].tolist(), float(q[0])],
+                         "scale": [1 / cm] * 3})
+    doc["scenes"][0]["nodes"] = [n]
+    path.write_text(json.dumps(doc))
+
+    asset = read_gltf(path)
+    np.testing.assert_allclose(asset.skeleton.offsets, sk.offsets, atol=1e-6)
+    np.testing.assert_allclose(asset.inverse_bind[:, :3], rt.mesh.inverse_bind, atol=1e-5)
+    (anim,) = asset.animations
+    p0 = sk.forward_kinematics(rot, root)[1]
+    g_rot, g_pos = asset.skeleton.forward_kinematics(anim.rotations, anim.root_translation)
+    assert np.abs(g_pos - p0).max() < 1e-5
+    mesh = SkinnedMesh(asset.vertices, asset.normals, asset.joints, asset.weights, asset.inverse_bind[:, :3])
+    v1 = mesh.skin(mesh.skinning_matrices(g_rot[0], g_pos[0]))[0]
+    g_rot0, g_pos0 = sk.forward_kinematics(rot[:1], root[:1])
+    v0 = rt.mesh.skin(rt.mesh.skinning_matrices(g_rot0[0], g_pos0[0]))[0]
+    assert np.abs(v1 - v0).max() < 1e-4
+
+    doc["nodes"][n]["scale"] = [0.01, 0.02, 0.01]
+    path.write_text(json.dumps(doc))
+    with pytest.raises(GltfError, match=r"Armature.*only a uniform positive scale"):
+        read_gltf(path)
