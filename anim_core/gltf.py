@@ -172,7 +172,8 @@ def _node_trs(node: pygltflib.Node) -> tuple[Array, Array, Array]:
 
 
 def read_gltf(path: str | os.PathLike[str], fps: float = 30.0) -> GltfAsset:
-    """Read the first skinned mesh of a ``.glb``/``.gltf`` file and all its animations (see module docstring)."""
+    """Read the first skin of a ``.glb``/``.gltf`` file with every mesh bound to it, and all its animations (see
+    module docstring)."""
     r = _Reader(Path(path))
     g = r.gltf
     nodes = g.nodes or []
@@ -255,12 +256,16 @@ def read_gltf(path: str | os.PathLike[str], fps: float = 30.0) -> GltfAsset:
     inverse_bind[skin_order] = ibm.reshape(-1, 4, 4).transpose(0, 2, 1)
     inverse_bind[:, :3] *= above_scale  # diag(s, s, s, 1) @ IBM: the rigid skeleton's joint frames carry no scale
 
-    mesh_index = next((n.mesh for n in nodes if n.skin == 0 and n.mesh is not None), None)
-    if mesh_index is None:
+    # Every mesh bound to the skin is part of the body (characters often come as body, eyes, teeth, hair).
+    mesh_indices = list(dict.fromkeys(n.mesh for n in nodes if n.skin == 0 and n.mesh is not None))
+    if not mesh_indices:
         raise r.fail("no node uses the skin with a mesh")
+    if any(not 0 <= m < len(g.meshes) for m in mesh_indices):
+        raise r.fail("a node uses a mesh that does not exist")
     vertices, normals, faces, joints, weights = [], [], [], [], []
     base = 0
-    for p, prim in enumerate(g.meshes[mesh_index].primitives):
+    primitives = [prim for m in mesh_indices for prim in g.meshes[m].primitives]
+    for p, prim in enumerate(primitives):
         mode = 4 if prim.mode is None else prim.mode
         if mode != 4:
             raise r.fail(f"mesh primitive {p} has mode {mode}; only triangles (mode 4) are supported")

@@ -249,3 +249,19 @@ def test_a_scaled_armature_above_the_rig_is_taken_in(exported, tmp_path):
     path.write_text(json.dumps(doc))
     with pytest.raises(GltfError, match=r"Armature.*only a uniform positive scale"):
         read_gltf(path)
+
+
+def test_every_mesh_bound_to_the_skin_is_part_of_the_body(exported, tmp_path):
+    """A character in two meshes (say body and eyes): both are read, the second's faces after the first's."""
+    rt, _, _, _, paths, _ = exported
+    doc = json.loads(paths[1].read_text())
+    doc["meshes"].append(json.loads(json.dumps(doc["meshes"][0])))
+    doc["nodes"].append({"name": "Eyes", "mesh": len(doc["meshes"]) - 1, "skin": 0})
+    doc["scenes"][0]["nodes"].append(len(doc["nodes"]) - 1)
+    path = tmp_path / "two_meshes.gltf"
+    path.write_text(json.dumps(doc))
+    asset = read_gltf(path)
+    n = len(rt.mesh.vertices)
+    assert asset.vertices.shape == (2 * n, 3) and len(asset.faces) == 2 * len(rt.faces)
+    np.testing.assert_allclose(asset.vertices[n:], rt.mesh.vertices, atol=1e-6)
+    assert np.array_equal(asset.faces[len(rt.faces):], rt.faces + n)
