@@ -2,9 +2,10 @@
 and ``hybrid``: usable in any clip-set file as ``[[conditions]] id/method/params``.
 
 * ``hybrid_ik`` (:class:`HybridIkParams`): the hybrid of ``increment`` with locked feet (:mod:`anim_core.footlock`):
-  the steps detected on the reference (``contact_source = "reference"``), or each also grown by the hybrid's own
-  contact frames next to it (``"union"``, default), below ``clearance_m``; held by two-bone leg IK, each swing
-  making up the difference between two holds over at least ``2 * blend_frames + 1`` frames.
+  the steps detected on the reference (``contact_source = "reference"``, default), or each also grown by the
+  hybrid's own contact frames next to it (``"union"``), below ``clearance_m``; held by two-bone leg IK, each swing
+  making up the difference between two holds over at least ``2 * blend_frames + 1`` frames, each foot raised to at
+  least the reference's foot height (``swing_clearance``, default on).
 * ``hybrid_c2`` (:class:`HybridC2Params`): the hybrid of ``increment`` on the C2 spline (:mod:`anim_core.c2spline`)
   through the same keys.  A crouch follows its keys with the spring, not SQUAD: at increment 0 that is one geodesic
   driven by the closed-form spring, C2 already, so its ``hybrid_c2`` is the spring hybrid itself; a crouch has no C2
@@ -40,7 +41,10 @@ class HybridIkParams(Params):
                               "holds closer than twice this are joined")
     clearance_m: float = Field(0.05, gt=0, le=0.5, description="a foot is down below this height above the floor")
     contact_source: Literal["union", "reference"] = Field(
-        "union", description="steps of the reference alone, or each grown by the hybrid's contact frames beside it")
+        "reference", description="steps of the reference alone, or each grown by the hybrid's contact frames "
+        "beside it")
+    swing_clearance: bool = Field(True, description="raise each foot to at least the reference's foot height "
+                                  "above the floor")
 
 
 class HybridC2Params(Params):
@@ -77,7 +81,8 @@ def build_hybrid_ik(animation: Animation, params: HybridIkParams) -> FootLockedC
     legs = [tuple(int(j) for j in sk.indices(leg)) for leg in LEGS]
     feet = [[int(j) for j in sk.indices(foot)] for foot in FEET]
     return lock_feet(base, animation.reference, legs, feet, animation.fps, params.blend_frames, params.clearance_m,
-                     up_axis=animation.reference.up_axis, contact_source=params.contact_source)
+                     up_axis=animation.reference.up_axis, contact_source=params.contact_source,
+                     swing_clearance=params.swing_clearance)
 
 
 @register("hybrid_c2", HybridC2Params)

@@ -8,16 +8,27 @@ Built once (:func:`lock_feet`), per foot and frame of one period:
    foot joint within ``clearance`` m of its standing height) in which its foot comes to rest at least once
    (slowest joint at most ``rest_speed``, default the skate threshold): a phase in which the reference's foot never
    slows is its swing passing low over the floor (a *skim*) and is not held (:func:`steps`);
-2. with ``contact_source="union"`` (default) each step grows by the run of the hybrid's own contact frames that
+2. with ``contact_source="union"`` each step grows by the run of the hybrid's own contact frames that
    overlaps it (the hybrid's feet land earlier and lift later than the reference's, and those frames are where
-   it skates); the hybrid's contact runs away from every step are skims and stay as animated (:func:`joined`);
+   it skates); the hybrid's contact runs away from every step are skims and stay as animated (:func:`joined`).
+   With ``"reference"`` (default) the reference's steps alone are held (with step 6 the hybrid's swing is lifted
+   out of its early and late contact frames instead: on a walk's hybrid 0, whose feet are down in 31 of 40
+   frames, holding the union leaves a few frames to swing each foot a whole stride, a pop);
 3. *holds*: each grown by one frame on either side, because the skate measure takes central differences, and
    gaps of at most ``2 * blend_frames`` frames filled (:func:`held_frames`);
 4. :func:`anim_core.footplant.foot_targets` turns the hybrid's own feet over each hold into ankle targets: the
    foot on the ground from its slowest frame on, its slowest joint moving at most ``max_speed`` (by default
    0.3 m/s: a margin under the 0.5 m/s skate threshold for what the IK cannot reach at a hold's edges);
 5. *swings*: between two holds the ankle's offset from its animated place eases (smoothstep) from one foothold to
-   the next over the whole gap (:func:`swing_offsets`), so the foot is never let go in a few frames.
+   the next over the whole gap (:func:`swing_offsets`), so the foot is never let go in a few frames;
+6. *clearance* (``swing_clearance=True``, default; swing clearance as game foot IK does it): the ankle target is
+   raised so that no joint of the foot is lower above the floor (its height over its standing height) than the
+   reference's same joint at that frame: by the largest shortfall of the foot's joints, or 0.  The hybrid's swing
+   foot passes low and fast where the reference's is up (inside the contact band at swing speed it skates, above
+   all where a hold lets it go or takes it); raised, it skims only where the reference's own foot skims.  The
+   lift is a continuous function of the two clips' poses, so it needs no blend of its own (eased from the holds
+   over ``blend_frames``, the hybrid 0's foot still skates in the frames it lifts off and lands in); inside a
+   hold it is the reference's heel or toe rising before the hybrid's (vertical only: the hold stays in place).
 
 Stored: the hybrid's keys plus one ankle target ``(3,)`` and weight per leg and frame of one period, each knee's
 hinge and the soft reach.  At playback (:meth:`FootLockedClip.sample`) the hybrid is evaluated, the targets and
@@ -38,7 +49,15 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import CubicSpline
 
 from .clip import KeyframeClip, PlaybackMode, Pose, playback_time
-from .contacts import CONTACT_CLEARANCE_M, SKATE_SPEED_MPS, contact_intervals, foot_down, foot_speed, interval_mask
+from .contacts import (
+    CONTACT_CLEARANCE_M,
+    SKATE_SPEED_MPS,
+    contact_intervals,
+    foot_down,
+    foot_speed,
+    interval_mask,
+    standing_heights,
+)
 from .footplant import foot_targets
 from .hybrid import HybridClip
 from .ik import hinge_axis, smoothstep, two_bone_ik
@@ -236,7 +255,8 @@ def swing_offsets(offsets: ArrayLike, held: ArrayLike, periodic: bool, blend_fra
 def lock_feet(base: HybridClip, reference: KeyframeClip, legs: Sequence[tuple[int, int, int]],
               feet: Sequence[Sequence[int]], fps: float, blend_frames: int = 3,
               clearance: float = CONTACT_CLEARANCE_M, max_speed: float = 0.3, rest_speed: float = SKATE_SPEED_MPS,
-              up_axis: int = 1, contact_source: ContactSource = "union") -> FootLockedClip:
+              up_axis: int = 1, contact_source: ContactSource = "reference", swing_clearance: bool = True
+              ) -> FootLockedClip:
     """The ``hybrid_ik`` clip of ``base`` with contacts detected on ``reference`` (same duration and playback).
 
     ``legs``: (hip, knee, ankle) joint indices per foot; ``feet``: per foot the joints that touch the ground (ankle,
@@ -246,7 +266,8 @@ def lock_feet(base: HybridClip, reference: KeyframeClip, legs: Sequence[tuple[in
     ``max_speed`` m/s: the held foot's slowest joint moves at most this fast (it may roll, not slide);
     ``rest_speed`` m/s: a reference contact phase whose foot never gets this slow is a skim, not a step;
     ``contact_source``: ``"reference"`` holds the reference's steps, ``"union"`` grows each by the hybrid's own
-    contact frames next to it (steps 1-5 of the module docstring).
+    contact frames next to it; ``swing_clearance``: each foot raised to at least the reference's foot height
+    (steps 1-6 of the module docstring).
     """
     if not np.isclose(base.duration, reference.duration) or base.mode != reference.mode:
         raise ValueError(f"the hybrid ({base.duration:.4f} s, {base.mode}) and its reference "
@@ -280,6 +301,13 @@ def lock_feet(base: HybridClip, reference: KeyframeClip, legs: Sequence[tuple[in
                               rest_speed=np.inf)
     ankles = positions[:, [c[2] for c in chains]]
     offsets, weights = swing_offsets(targets - ankles, held, loop, blend_frames)
+    if swing_clearance:
+        # Step 6: each foot's joints' heights above their standing heights, the hybrid's where the offsets put them
+        # (the foot keeps its world orientation, so an offset moves all of its joints alike).
+        hyb_feet = positions[:, feet_idx]
+        hyb_heights = hyb_feet[..., up_axis] + offsets[:, :, None, up_axis] - standing_heights(hyb_feet, up_axis)
+        ref_heights = ref_feet[..., up_axis] - standing_heights(ref_feet, up_axis)
+        offsets[..., up_axis] += np.maximum(np.max(ref_heights - hyb_heights, axis=2), 0.0)
     # The knees' hinges from the reference: mocap, whose knees bend well in every cycle.
     hinges = np.array([hinge_axis(sk, ref.rotations, ref.root_translation, c) for c in chains])
     reach = min(float(np.linalg.norm(sk.offsets[m]) + np.linalg.norm(sk.offsets[e])) for _, m, e in chains)

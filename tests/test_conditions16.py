@@ -315,7 +315,8 @@ def test_conditions_are_registered_with_typed_params():
     from anim_core.conditions import Condition, ConditionError, methods
     assert {"hybrid_ik", "hybrid_c2", "reduced", "quantized"} <= set(methods())
     ik = Condition.parse("ik", "hybrid_ik", {"increment": 1})
-    assert ik.params_dict() == {"increment": 1, "blend_frames": 3, "clearance_m": 0.05, "contact_source": "union"}
+    assert ik.params_dict() == {"increment": 1, "blend_frames": 3, "clearance_m": 0.05,
+                                "contact_source": "reference", "swing_clearance": True}
     assert Condition.parse("q", "quantized", {"bits": 12, "reduced_epsilon_deg": 2.0}).params_dict() == {
         "bits": 12, "reduced_epsilon_deg": 2.0}
     for method, params, field in [("hybrid_ik", {"increment": 0, "contact_source": "both"}, "contact_source"),
@@ -387,7 +388,7 @@ def test_extra_condition_ids_and_metrics(extra):
     assert "walk-hybrid_ik0" in extra and extra["walk-hybrid_ik0"].condition == "hybrid_ik0"
     assert {"crouch-hybrid_c2_0", "walk-reduced0_5", "run-quantized12", "walk-quantized12_reduced2"} <= set(extra)
     assert extra["walk-hybrid_ik0"].params == {"increment": 0, "blend_frames": 3, "clearance_m": 0.05,
-                                               "contact_source": "union"}
+                                               "contact_source": "reference", "swing_clearance": True}
     for c in extra.values():
         assert c.metrics["bytes"] > 0 and np.isfinite(c.metrics["key_accel_jump_rad_s2"]), c.id
     for a in ("walk", "run"):
@@ -403,29 +404,15 @@ def test_extra_condition_ids_and_metrics(extra):
             assert extra[f"{a}-reduced{eps}"].metrics["max_global_error_deg"] <= float(eps.replace("_", ".")) + 1e-9
 
 
-# The goals of hybrid_ik (issue 16) on the real clip set, one test per clip.  A goal this implementation does not
-# meet is a strict xfail naming what was measured: it fails the suite as soon as it is met (remove the mark then).
+# The goals of hybrid_ik (issue 16) on the real clip set, one test per clip.  Before the swing clearance (the
+# hybrid's foot raised to the reference's height) walk-hybrid_ik2 skated in 4 of 40 frames against the keyframe's 3
+# (its swing skimming the floor at 2.7 m/s), and walk-hybrid_ik0 either swung its feet up to 165 mm per frame (rule
+# 74 mm; holding the union of contacts) or skated in 18 of 40 frames (holding the reference's steps alone).
 IK_INCREMENTS = (0, 1, 2)
-SKATE_UNMET = {
-    ("walk", 2): "skates in 4 of 40 frames (0.100) against the keyframe clip's 3 (0.075): all four are the plain "
-                 "hybrid2's swing passing within 5 cm of the floor at 2.7 m/s (skims, not steps: the reference "
-                 "skims in 3 of them too; holding them would drag the swinging foot back)",
-}
-JUMP_UNMET = {
-    ("walk", 0): "its swing moves up to 165 mm per frame (rule 74 mm; the plain hybrid0 38 mm there): hybrid0's "
-                 "feet are down in 31 of 40 frames, so holding them to meet the skate goal leaves 7 frames to "
-                 "swing each foot a whole stride",
-}
-
-
-def _goal(cases, unmet):
-    return [pytest.param(a, i, id=f"{a}-hybrid_ik{i}",
-                         marks=[pytest.mark.xfail(strict=True, reason=unmet[a, i])] if (a, i) in unmet else [])
-            for a, i in cases]
 
 
 @pytest.mark.parametrize(("animation", "increment"),
-                         _goal([(a, i) for a in ("walk", "run") for i in IK_INCREMENTS], SKATE_UNMET))
+                         [(a, i) for a in ("walk", "run") for i in IK_INCREMENTS])
 def test_hybrid_ik_skates_no_more_than_the_keyframe_clip(full_set, animation, increment):
     by_id = {c.id: c for c in full_set}
     skate = by_id[f"{animation}-hybrid_ik{increment}"].metrics["foot_skate_ratio"]
@@ -434,8 +421,7 @@ def test_hybrid_ik_skates_no_more_than_the_keyframe_clip(full_set, animation, in
 
 
 @pytest.mark.parametrize(("animation", "increment"),
-                         _goal([(a, i) for a in ("walk", "run", "crouch", "idle") for i in IK_INCREMENTS],
-                               JUMP_UNMET))
+                         [(a, i) for a in ("walk", "run", "crouch", "idle") for i in IK_INCREMENTS])
 def test_hybrid_ik_adds_no_jump_and_keeps_bone_lengths(full_set, animation, increment):
     """The seam rule of the stimulus-validity issue (a step of twice the median frame step + 5 mm is a pop) at the
     seam and at every frame, where the locking holds, lets go of or swings a foot: each frame step of the clip
