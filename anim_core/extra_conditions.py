@@ -2,10 +2,12 @@
 and ``hybrid``: usable in any clip-set file as ``[[conditions]] id/method/params``.
 
 * ``hybrid_ik`` (:class:`HybridIkParams`): the hybrid of ``increment`` with locked feet (:mod:`anim_core.footlock`):
-  the steps detected on the reference (``contact_source = "reference"``, default), or each also grown by the
-  hybrid's own contact frames next to it (``"union"``), below ``clearance_m``; held by two-bone leg IK, each swing
-  making up the difference between two holds over at least ``2 * blend_frames + 1`` frames, each foot raised to at
-  least the reference's foot height (``swing_clearance``, default on).
+  the steps detected on the reference (``contact_source = "reference"``), or each also grown by the hybrid's own
+  contact frames next to it (``"union"``, default), below ``clearance_m``; held by two-bone leg IK, each swing
+  making up the difference between two holds over at least ``2 * blend_frames + 1`` frames; with
+  ``swing_clearance`` each foot raised to at least the reference's foot height (off by default: it copies a
+  reference's own seam jump into a loop whose hybrid has none).  ``conditions16.toml`` holds ``"reference"`` with
+  the clearance, which meets every gait goal of issue 16.
 * ``hybrid_c2`` (:class:`HybridC2Params`): the hybrid of ``increment`` on the C2 spline (:mod:`anim_core.c2spline`)
   through the same keys.  A crouch follows its keys with the spring, not SQUAD: at increment 0 that is one geodesic
   driven by the closed-form spring, C2 already, so its ``hybrid_c2`` is the spring hybrid itself; a crouch has no C2
@@ -41,9 +43,8 @@ class HybridIkParams(Params):
                               "holds closer than twice this are joined")
     clearance_m: float = Field(0.05, gt=0, le=0.5, description="a foot is down below this height above the floor")
     contact_source: Literal["union", "reference"] = Field(
-        "reference", description="steps of the reference alone, or each grown by the hybrid's contact frames "
-        "beside it")
-    swing_clearance: bool = Field(True, description="raise each foot to at least the reference's foot height "
+        "union", description="steps of the reference alone, or each grown by the hybrid's contact frames beside it")
+    swing_clearance: bool = Field(False, description="raise each foot to at least the reference's foot height "
                                   "above the floor")
 
 

@@ -8,10 +8,10 @@ Built once (:func:`lock_feet`), per foot and frame of one period:
    foot joint within ``clearance`` m of its standing height) in which its foot comes to rest at least once
    (slowest joint at most ``rest_speed``, default the skate threshold): a phase in which the reference's foot never
    slows is its swing passing low over the floor (a *skim*) and is not held (:func:`steps`);
-2. with ``contact_source="union"`` each step grows by the run of the hybrid's own contact frames that
+2. with ``contact_source="union"`` (default) each step grows by the run of the hybrid's own contact frames that
    overlaps it (the hybrid's feet land earlier and lift later than the reference's, and those frames are where
    it skates); the hybrid's contact runs away from every step are skims and stay as animated (:func:`joined`).
-   With ``"reference"`` (default) the reference's steps alone are held (with step 6 the hybrid's swing is lifted
+   With ``"reference"`` the reference's steps alone are held (with step 6 the hybrid's swing is lifted
    out of its early and late contact frames instead: on a walk's hybrid 0, whose feet are down in 31 of 40
    frames, holding the union leaves a few frames to swing each foot a whole stride, a pop);
 3. *holds*: each grown by one frame on either side, because the skate measure takes central differences, and
@@ -21,7 +21,7 @@ Built once (:func:`lock_feet`), per foot and frame of one period:
    0.3 m/s: a margin under the 0.5 m/s skate threshold for what the IK cannot reach at a hold's edges);
 5. *swings*: between two holds the ankle's offset from its animated place eases (smoothstep) from one foothold to
    the next over the whole gap (:func:`swing_offsets`), so the foot is never let go in a few frames;
-6. *clearance* (``swing_clearance=True``, default; swing clearance as game foot IK does it): the ankle target is
+6. *clearance* (``swing_clearance=True``; swing clearance as game foot IK does it): the ankle target is
    raised so that no joint of the foot is lower above the floor (its height over its standing height) than the
    reference's same joint at that frame: by the largest shortfall of the foot's joints, or 0.  The hybrid's swing
    foot passes low and fast where the reference's is up (inside the contact band at swing speed it skates, above
@@ -29,6 +29,8 @@ Built once (:func:`lock_feet`), per foot and frame of one period:
    lift is a continuous function of the two clips' poses, so it needs no blend of its own (eased from the holds
    over ``blend_frames``, the hybrid 0's foot still skates in the frames it lifts off and lands in); inside a
    hold it is the reference's heel or toe rising before the hybrid's (vertical only: the hold stays in place).
+   Off by default: it follows the reference's pose, seam included, so a loop whose reference is not cyclic (a
+   seam jump of its own, which the hybrid through its keys does not have) gets the reference's jump at its feet.
 
 Stored: the hybrid's keys plus one ankle target ``(3,)`` and weight per leg and frame of one period, each knee's
 hinge and the soft reach.  At playback (:meth:`FootLockedClip.sample`) the hybrid is evaluated, the targets and
@@ -255,7 +257,7 @@ def swing_offsets(offsets: ArrayLike, held: ArrayLike, periodic: bool, blend_fra
 def lock_feet(base: HybridClip, reference: KeyframeClip, legs: Sequence[tuple[int, int, int]],
               feet: Sequence[Sequence[int]], fps: float, blend_frames: int = 3,
               clearance: float = CONTACT_CLEARANCE_M, max_speed: float = 0.3, rest_speed: float = SKATE_SPEED_MPS,
-              up_axis: int = 1, contact_source: ContactSource = "reference", swing_clearance: bool = True
+              up_axis: int = 1, contact_source: ContactSource = "union", swing_clearance: bool = False
               ) -> FootLockedClip:
     """The ``hybrid_ik`` clip of ``base`` with contacts detected on ``reference`` (same duration and playback).
 

@@ -316,7 +316,7 @@ def test_conditions_are_registered_with_typed_params():
     assert {"hybrid_ik", "hybrid_c2", "reduced", "quantized"} <= set(methods())
     ik = Condition.parse("ik", "hybrid_ik", {"increment": 1})
     assert ik.params_dict() == {"increment": 1, "blend_frames": 3, "clearance_m": 0.05,
-                                "contact_source": "reference", "swing_clearance": True}
+                                "contact_source": "union", "swing_clearance": False}
     assert Condition.parse("q", "quantized", {"bits": 12, "reduced_epsilon_deg": 2.0}).params_dict() == {
         "bits": 12, "reduced_epsilon_deg": 2.0}
     for method, params, field in [("hybrid_ik", {"increment": 0, "contact_source": "both"}, "contact_source"),
