@@ -227,20 +227,14 @@ def _render_for(settings: Settings, session: object, study_file: object) -> Rend
     every other study's), and return the render manifest."""
     from server.clipset.build import build_clip_set
     from server.clipset.manifest import MANIFEST, write_clip_set
-    from server.media.build import render_media, rendered_pairs, rendered_settings
+    from server.media.build import render_media, rendered_settings
     from server.media.manifest import read_render_manifest
-    from server.studies.service import clip_set_index, pairs_in_use, required_pairs
+    from server.studies.service import pairs_to_render
 
     if not (settings.clips_dir / MANIFEST).is_file():
         print(f"building the clip set in {settings.clips_dir}", flush=True)
         write_clip_set(build_clip_set(settings.data, progress=lambda m: print(m, flush=True)), settings.clips_dir)
-    index = clip_set_index(settings.clips_dir)
-    needed = required_pairs(study_file.design, index)  # type: ignore[attr-defined]
-    # Adding a study removes nothing: the pairs rendered before (e.g. `animstudy render --study` of a study not
-    # created yet) stay, as far as the clip set still has their clips.
-    clip_ids = set(index.values())
-    before = [p for p in rendered_pairs(settings.media_dir) if set(p) <= clip_ids]
-    pairs = list(dict.fromkeys([*pairs_in_use(session), *before, *needed]))  # type: ignore[arg-type]
+    pairs = pairs_to_render(session, study_file.design, settings.clips_dir, settings.media_dir)  # type: ignore[arg-type, attr-defined]
     render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret,
                  rendered_settings(settings.media_dir), pairs=pairs, every_clip=False,
                  progress=lambda m: print(m, flush=True))

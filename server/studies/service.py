@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session, aliased, object_session
 
 from server.db import utcnow
 from server.errors import Conflict, Forbidden, NotFound, Unprocessable
-from server.media.build import identical_clips, read_clip_set
+from server.media.build import identical_clips, read_clip_set, rendered_pairs
 from server.media.manifest import RenderManifest
 from server.participants.models import ParticipantSession, SessionState, Trial, Vote
 from server.researchers.models import Researcher
@@ -308,6 +308,16 @@ def pairs_in_use(session: Session) -> list[tuple[str, str]]:
                            .join(Comparison, Comparison.reference_id == reference.id)
                            .join(test, Comparison.test_id == test.id)).all()
     return list(dict.fromkeys(p for r, t in rows for p in ((r, t), (t, r))))
+
+
+def pairs_to_render(session: Session, design: Design, clips_dir: Path, media_dir: Path) -> list[tuple[str, str]]:
+    """The pair videos to have when ``design`` is added: the pairs every study in the database shows, the ones
+    rendered before (e.g. by `animstudy render --study` of a study not created yet) as far as the clip set still
+    has their clips — adding a study removes nothing — and the pairs ``design`` needs."""
+    index = clip_set_index(clips_dir)
+    clip_ids = set(index.values())
+    before = [p for p in rendered_pairs(media_dir) if set(p) <= clip_ids]
+    return list(dict.fromkeys([*pairs_in_use(session), *before, *required_pairs(design, index)]))
 
 
 def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:

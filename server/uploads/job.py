@@ -247,10 +247,10 @@ def draft(session: Session, study_id: int) -> Study:
 def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progress: Progress) -> None:
     from server.clipset.build import build_clip_set
     from server.clipset.config import load_config
-    from server.media.build import plan, render_media, rendered_pairs, rendered_settings
+    from server.media.build import plan, render_media, rendered_settings
     from server.media.manifest import read_render_manifest
     from server.studies.design import Design
-    from server.studies.service import clip_set_index, pairs_in_use, required_pairs, update_study
+    from server.studies.service import pairs_to_render, update_study
 
     with factory() as session:
         job = session.get(BuildJob, job_id)
@@ -293,11 +293,7 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
         animations = list(dict.fromkeys([*design.animations, *(a.name for a in assets)]))
         new_design = design.model_copy(update={"animations": animations})
         Design.model_validate(new_design.model_dump())
-        index = clip_set_index(settings.clips_dir)
-        needed = required_pairs(new_design, index)
-        # As `study create`: the pairs rendered before stay, as far as the clip set still has their clips.
-        before = [p for p in rendered_pairs(settings.media_dir) if set(p) <= set(index.values())]
-        pairs = list(dict.fromkeys([*pairs_in_use(session), *before, *needed]))
+        pairs = pairs_to_render(session, new_design, settings.clips_dir, settings.media_dir)
     render = rendered_settings(settings.media_dir)
     todo = [o for j in plan(settings.data, settings.clips_dir, settings.media_dir, render, settings.secret,
                             pairs).jobs for o in j.outputs]
