@@ -57,10 +57,7 @@
   }
 
   function table(container, header, rows) {
-    const t = document.createElement("table");
-    const head = t.createTHead().insertRow();
-    for (const h of header) { const th = document.createElement("th"); th.textContent = h; head.appendChild(th); }
-    const body = t.createTBody();
+    const { table: t, body } = Researcher.newTable(header);
     for (const row of rows) {
       const tr = body.insertRow();
       for (const cell of row) tr.insertCell().textContent = cell;

@@ -40,5 +40,17 @@ window.Researcher = (() => {
     if (token) opened().catch(() => {}); else $("login").hidden = false;
   }
 
-  return { api, start };
+  // A table with a header row of `headers`; rows go into the returned body.
+  function newTable(headers) {
+    const table = document.createElement("table");
+    const head = table.createTHead().insertRow();
+    for (const h of headers) {
+      const th = document.createElement("th");
+      th.textContent = h;
+      head.appendChild(th);
+    }
+    return { table, body: table.createTBody() };
+  }
+
+  return { api, start, newTable };
 })();

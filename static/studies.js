@@ -40,14 +40,7 @@
     const studies = await r.json();
     $("studies").hidden = false;
     $("actions").hidden = false;
-    const t = document.createElement("table");
-    const head = t.createTHead().insertRow();
-    for (const h of ["study", "title", "state", "started", "completed", "votes", "trials", "links", "actions"]) {
-      const th = document.createElement("th");
-      th.textContent = h;
-      head.appendChild(th);
-    }
-    const body = t.createTBody();
+    const { table: t, body } = Researcher.newTable(["study", "title", "state", "started", "completed", "votes", "trials", "links", "actions"]);
     for (const s of studies) {
       const tr = body.insertRow();
       tr.dataset.slug = s.slug;
@@ -140,14 +133,7 @@
     const { assets, build, kinds } = await r.json();
     $("asset-kind").replaceChildren(...kinds.map((k) => new Option(k, k)));
     $("asset-edit").hidden = true;
-    const t = document.createElement("table");
-    const head = t.createTHead().insertRow();
-    for (const h of ["animation", "file", "size", "joints", "convention", "units", "fps", "frames", "suggested", "built as", ""]) {
-      const th = document.createElement("th");
-      th.textContent = h;
-      head.appendChild(th);
-    }
-    const body = t.createTBody();
+    const { table: t, body } = Researcher.newTable(["animation", "file", "size", "joints", "convention", "units", "fps", "frames", "suggested", "built as", ""]);
     for (const a of assets) {
       const tr = body.insertRow();
       tr.dataset.asset = a.name;
