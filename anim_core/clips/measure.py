@@ -83,9 +83,9 @@ def measure(clips: list[BuiltClip], ground_velocity: Array, kind: Kind, source_s
 
 def clip_warnings(clips: list[BuiltClip]) -> list[str]:
     """What makes a side-by-side comparison show more than the method: a clip out of phase with its animation's
-    reference (best lag beyond :data:`MAX_LAG_FRAMES`), a seam that jumps (more than twice the median step +
-    5 mm), or a joint that flips (turns more than :data:`MAX_FRAME_TURN_DEG` between two frames, the wrap
-    included)."""
+    reference (best lag beyond :data:`MAX_LAG_FRAMES`), a seam that jumps (beyond
+    :func:`~anim_core.clips.metrics.seam_limit_from_median`), or a joint that flips (turns more than
+    :data:`MAX_FRAME_TURN_DEG` between two frames, the wrap included)."""
     reference = {c.animation: c.id for c in clips if c.method == REFERENCE}
     out = []
     for c in clips:
@@ -96,7 +96,7 @@ def clip_warnings(clips: list[BuiltClip]) -> list[str]:
                        f"from frame {frame} to {(frame + 1) % c.n_frames} (more than {MAX_FRAME_TURN_DEG:.0f}: a "
                        f"flip)")
         m = c.metrics
-        limit = 2.0 * m["median_step_mm"] + 5.0
+        limit = metrics.seam_limit_from_median(m["median_step_mm"])
         if m["seam_jump_mm"] > limit:
             out.append(f"{c.id}: the seam jumps {m['seam_jump_mm']:.1f} mm (limit {limit:.1f} mm: twice the "
                        f"median step {m['median_step_mm']:.1f} mm + 5 mm)")

@@ -191,8 +191,14 @@ def seam_jump_mm(positions: ArrayLike) -> float:
 
 
 def seam_limit_mm(positions: ArrayLike) -> float:
-    """The largest seam jump that is no pop: twice the median per-frame step (wrap excluded) plus 5 mm."""
-    return float(2.0 * np.median(frame_steps_mm(positions)[:-1]) + 5.0)
+    """The largest seam jump that is no pop (:func:`seam_limit_from_median`) of one period ``(T, J, 3)`` m."""
+    return seam_limit_from_median(float(np.median(frame_steps_mm(positions)[:-1])))
+
+
+def seam_limit_from_median(median_step_mm: float) -> float:
+    """The seam rule: the largest seam jump that is no pop is twice the median per-frame step (wrap excluded) plus
+    5 mm."""
+    return 2.0 * median_step_mm + 5.0
 
 
 def phase_alignment(reference: ArrayLike, other: ArrayLike, max_lag: int | None = None) -> tuple[float, int]:

@@ -190,11 +190,6 @@ def quat_from_rotvec(rv: ArrayLike) -> Array:
     return quat_exp(0.5 * _f(rv))
 
 
-def rotvec_from_quat(q: ArrayLike) -> Array:
-    """Rotation vectors (angle * axis, radians, angle in [0, pi]) of quaternions ``(..., 4)``."""
-    return 2.0 * quat_log(canonicalize(q))
-
-
 def _interp_weights(a: Array, b: Array, t: Array) -> tuple[Array, Array]:
     # Angle between the 4-D unit vectors via atan2: accurate near 0 and near pi.
     omega = 2.0 * np.arctan2(np.linalg.norm(a - b, axis=-1), np.linalg.norm(a + b, axis=-1))

@@ -85,10 +85,6 @@ class Skeleton:
     def children(self, j: int) -> list[int]:
         return [int(c) for c in np.flatnonzero(self.parents == j)]
 
-    def rest_pose(self) -> tuple[Array, Array]:
-        """Local rotations ``(J, 4)`` and root translation ``(3,)`` of the rest pose."""
-        return self.rest_rotations.copy(), np.zeros(3)
-
     def forward_kinematics(self, local_rotations: ArrayLike, root_translation: ArrayLike | None = None
                            ) -> tuple[Array, Array]:
         """Global rotations ``(..., J, 4)`` and positions ``(..., J, 3)`` of a batch of poses.

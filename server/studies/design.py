@@ -16,11 +16,12 @@ from typing import Annotated, Self
 
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
 
+from anim_core.methods.conditions import REFERENCE  # the reference condition's id is its method's name
+
 MAX_SHUFFLES = 10_000
 Ident = Annotated[str, StringConstraints(pattern=r"^[a-z0-9][a-z0-9_-]{0,31}$")]
 # The thesis design, and the default of every design field.
 THESIS_ANIMATIONS = ("walk", "run", "crouch", "idle")
-THESIS_REFERENCE = "keyframe"
 THESIS_CONDITIONS = ("hybrid0", "hybrid1")
 
 
@@ -29,7 +30,7 @@ class Design(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    reference: Ident = Field(THESIS_REFERENCE, description="the reference condition every other is compared with")
+    reference: Ident = Field(REFERENCE, description="the reference condition every other is compared with")
     conditions: list[Ident] = Field(default_factory=lambda: list(THESIS_CONDITIONS), min_length=1, max_length=16,
                                     description="the test conditions, each compared with the reference")
     animations: list[Ident] = Field(default_factory=lambda: list(THESIS_ANIMATIONS), min_length=1, max_length=16)
