@@ -1,12 +1,23 @@
-"""Posing crowds at run time: the runtime of every kind of clip (:mod:`anim_core.runtime.core`) and the uniform
-pose tables they start from (:mod:`anim_core.runtime.crowd`).  Callers import from this package.
+"""Posing crowds at run time, ozz-style runtime and offline apart.  Callers import from this package.
+
+* :mod:`.kinds`: the runtime of every kind of clip (what it holds, how it is posed), :func:`pose_crowd`;
+* :mod:`.kernels`: their compiled kernels, one per kind, made serial and parallel by one factory;
+* :mod:`.offline`: building a runtime from a clip (:func:`runtime_for`), the fits and their tolerances;
+* :mod:`.checks`: accuracy: the exact curve, a pose under a LOD, the angle between them;
+* :mod:`.crowd`: the uniform pose tables (and baking a hybrid into one) the table runtime starts from.
 """
 
-from .core import (
+from .checks import (
+    angle_error_deg,
+    exact_global,
+    lod_pose,
+    max_error_deg,
+    period,
+    sample_times,
+)
+from .crowd import numba
+from .kinds import (
     BONE_LODS,
-    C2_TOLERANCE_DEG,
-    FIT_TOLERANCE_DEG,
-    FOOT_LOCK_TOLERANCE_DEG,
     AnyRuntime,
     C2Runtime,
     FootLockRuntime,
@@ -14,27 +25,25 @@ from .core import (
     SplineRuntime,
     SpringRuntime,
     TableRuntime,
-    angle_error_deg,
     bone_lod_mask,
-    c2_runtime,
     check_inputs,
-    crouch_params,
-    exact_global,
-    foot_lock_runtime,
-    lod_pose,
-    max_error_deg,
-    period,
     pose_crowd,
+)
+from .offline import (
+    C2_TOLERANCE_DEG,
+    FIT_TOLERANCE_DEG,
+    FOOT_LOCK_TOLERANCE_DEG,
+    c2_runtime,
+    crouch_params,
+    foot_lock_runtime,
     quantized_runtime,
     runtime_for,
-    sample_times,
     spline_runtime,
     spring_runtime,
 )
-from .crowd import numba
 
 if numba is not None:  # compiled only where numba is present
-    from .core import crouch_path_parameter  # noqa: F401
+    from .kernels import crouch_path_parameter  # noqa: F401
 
 __all__ = [
     "BONE_LODS", "C2_TOLERANCE_DEG", "FIT_TOLERANCE_DEG", "FOOT_LOCK_TOLERANCE_DEG", "AnyRuntime", "C2Runtime",
