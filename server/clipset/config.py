@@ -15,8 +15,10 @@ from anim_core.methods.conditions import KINDS, REFERENCE, Condition, ConditionE
 from anim_core.rig.rigmap import UNITS
 
 DEFAULT_CONFIG = Path(__file__).with_name("thesis.toml")
-#: Animation names and condition ids: a clip's id is ``<animation>-<condition>``, so neither holds a "-".
-NAME = re.compile(r"^[a-z0-9][a-z0-9_]{0,31}$")
+#: The one rule for animation names and condition ids, wherever they are given (clip-set files, uploads, study
+#: designs): a clip's id is ``<animation>-<condition>``, so neither holds a "-".
+NAME_PATTERN = r"^[a-z0-9][a-z0-9_]{0,31}$"
+NAME = re.compile(NAME_PATTERN)
 
 
 @dataclass(frozen=True)

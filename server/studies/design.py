@@ -17,9 +17,11 @@ from typing import Annotated, Self
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
 
 from anim_core.methods.conditions import REFERENCE  # the reference condition's id is its method's name
+from server.clipset.config import NAME_PATTERN
 
 MAX_SHUFFLES = 10_000
-Ident = Annotated[str, StringConstraints(pattern=r"^[a-z0-9][a-z0-9_-]{0,31}$")]
+# Animation names and condition ids, as the clip set names them (a "-" never matches one of its clips).
+Ident = Annotated[str, StringConstraints(pattern=NAME_PATTERN)]
 # The thesis design, and the default of every design field.
 THESIS_ANIMATIONS = ("walk", "run", "crouch", "idle")
 THESIS_CONDITIONS = ("hybrid0", "hybrid1")

@@ -25,6 +25,7 @@ from sqlalchemy import Engine, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from server.clipset.config import NAME
 from server.config import Settings
 from server.db import utcnow
 from server.errors import Conflict, NotFound, Unprocessable
@@ -38,7 +39,6 @@ from .models import BuildJob, BuildState, StudyAsset
 #: compressed file could unpack to far more than the size limit allows.
 EXTENSIONS = (".bvh", ".glb", ".gltf")
 FILENAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._ -]{0,99}$")
-ANIMATION_NAME = re.compile(r"^[a-z0-9][a-z0-9_]{0,31}$")  # as the clip-set file's animation names
 INCOMING = ".incoming"
 STALE_INCOMING_S = 24 * 3600
 ACTIVE = (BuildState.queued, BuildState.running)
@@ -64,7 +64,7 @@ def animation_name(filename: str, name: str | None = None) -> str:
     """The animation an asset becomes: ``name`` if given (checked), else made from the file name's stem
     (lower case, other characters as ``_``, at most 32)."""
     if name is not None:
-        if not ANIMATION_NAME.match(name):
+        if not NAME.match(name):
             raise Unprocessable(f"name: {name!r} must be 1..32 lower-case letters, digits or '_' (no '-'), "
                                 f"the first a letter or digit")
         return name
