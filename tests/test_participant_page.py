@@ -21,9 +21,11 @@ from server.participants.models import ParticipantSession, PlaybackEvent, Vote
 from server.studies.models import StudyState
 from server.studies.page import Chrome
 from server.studies.service import clip_set_index, create_study, export_rows, required_pairs, set_state
-from server.studies.studyfile import REPO_STUDIES, load_study_file, thesis_study
+from server.studies.studyfile import load_study_file, thesis_study
 from tests.conftest import _fresh_engine
 from tests.server_fixtures import live_server
+
+REPO_STUDIES = Path(__file__).resolve().parents[1] / "studies"
 
 CHROMIUM = "/usr/bin/chromium"
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",

@@ -19,8 +19,9 @@ from .design import Design
 from .page import Page
 from .scale import DEFAULT_LABELS, DEFAULT_QUESTION
 
-REPO_STUDIES = Path(__file__).resolve().parents[2] / "studies"
-THESIS_FILE = REPO_STUDIES / "thesis.toml"
+# Package data (pyproject.toml), so an installed animstudy has its default study: in the checkout a link to
+# studies/thesis.toml, in a built wheel a copy of it.
+THESIS_FILE = Path(__file__).with_name("thesis.toml")
 # Export columns a question id must not shadow (see service.EXPORT_COLUMNS).
 RESERVED_IDS = frozenset({
     "session_id", "trial_index", "practice", "catch", "animation", "reference_condition", "test_condition",
