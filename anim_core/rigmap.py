@@ -25,6 +25,7 @@ helpers), an approximation otherwise.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import tomllib
@@ -609,7 +610,10 @@ class Normalized:
     """A source motion brought into the canonical form: ``bvh`` (CMU joints and channels, Y up, facing +Z), the
     ``mapping``, the detected or given ``units`` and ``up_axis``, ``metres_per_unit`` and ``facing_angle`` (radians
     about up that turned the source's left to +X).  ``reference_frame``: the source frame whose pose is the rest
-    pose of ``bvh`` when the source's own rest (all-zero) pose is not a standing pose, else ``None``."""
+    pose of ``bvh`` when the source's own rest (all-zero) pose is not a standing pose, else ``None``.
+    ``source_positions``: ``(F, 31, 3)`` the mapped source joints by the source's own forward kinematics, turned
+    into the canonical world, in source units (an unmapped joint at its canonical parent's place): what the
+    fidelity gate (:mod:`anim_core.fidelity`) holds the retargeted motion against."""
 
     bvh: Bvh
     mapping: RigMapping
@@ -619,6 +623,7 @@ class Normalized:
     facing_angle: float
     notes: tuple[str, ...] = field(default=())
     reference_frame: int | None = None
+    source_positions: Array | None = field(default=None, repr=False)
 
 
 def normalize_motion(skeleton: Skeleton, rotations: Array, root_translation: Array, frame_time: float,
@@ -705,6 +710,10 @@ def normalize_motion(skeleton: Skeleton, rotations: Array, root_translation: Arr
         else:
             c_rest[c] = c_rest[parent]
             c_glob[:, c] = c_glob[:, parent]
+    own = np.empty((n_frames, n, 3))
+    for c in range(n):
+        own[:, c] = g_pos[:, idx[c]] if idx[c] >= 0 else own[:, CANONICAL_PARENTS[c]]
+    own = rotate(world, own)
     offsets = c_rest.copy()
     offsets[1:] -= c_rest[CANONICAL_PARENTS[1:]]
     local = c_glob.copy()
@@ -730,7 +739,7 @@ def normalize_motion(skeleton: Skeleton, rotations: Array, root_translation: Arr
                      f"of frame {reference}" if rest is None else f"rest pose taken from frame {reference}")
     if abs(facing) > 1e-9:
         notes.append(f"turned {np.degrees(facing):.1f} degrees about up so the character's left is +X")
-    return Normalized(bvh, mapping, units, up_axis, UNITS[units][0], facing, tuple(notes), reference)
+    return Normalized(bvh, mapping, units, up_axis, UNITS[units][0], facing, tuple(notes), reference, own)
 
 
 def _bvh_motion(bvh: Bvh) -> tuple[Skeleton, Array, Array, dict[int, Array], list[str]]:
@@ -844,7 +853,6 @@ def normalize_bvh(bvh: Bvh, explicit: Mapping[str, str] | None = None, units: st
             and out.facing_angle == 0 and out.reference_frame is None
             and np.array_equal(out.mapping.source_index, np.arange(len(CANONICAL_NAMES)))):
         # Already canonical (a CMU file): the file itself, bit for bit; the computation would only add rounding.
-        out = Normalized(bvh, out.mapping, out.units, out.up_axis, out.metres_per_unit, out.facing_angle, out.notes)
+        out = dataclasses.replace(out, bvh=bvh)
     notes = (*read_notes, *out.notes) + ((f"zero-length leaf bones ignored: {', '.join(zero)}",) if zero else ())
-    return Normalized(out.bvh, out.mapping, out.units, out.up_axis, out.metres_per_unit, out.facing_angle, notes,
-                      out.reference_frame)
+    return dataclasses.replace(out, notes=notes)
