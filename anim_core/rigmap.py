@@ -716,9 +716,10 @@ def normalize_motion(skeleton: Skeleton, rotations: Array, root_translation: Arr
     own = rotate(world, own)
     offsets = c_rest.copy()
     offsets[1:] -= c_rest[CANONICAL_PARENTS[1:]]
+    offsets[0] = 0.0  # the root translation is the hips' place, whatever pose the rest is
     local = c_glob.copy()
     local[:, 1:] = quat_mul(quat_conj(c_glob[:, CANONICAL_PARENTS[1:]]), c_glob[:, 1:])
-    root = rotate(world, g_pos[:, hips]) - c_rest[0]
+    root = rotate(world, g_pos[:, hips])
     ends: dict[int, Array] = {}
     for c in range(n):
         if c in CANONICAL_PARENTS:
