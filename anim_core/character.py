@@ -285,7 +285,8 @@ def retarget(character: Character, mocap: Skeleton, end_sites: Mapping[int, Arra
         p = mocap.parents[j]
         q_parent = q_bind[p] if p >= 0 else identity()
         # The bone that orients this joint's segment: its (single) child with a mocap direction, or its End Site.
-        defining = [c for c in children[j] if not zero[c]]
+        # (A bone the mesh's rig has no length for, e.g. a palm bone of another rig, says nothing either.)
+        defining = [c for c in children[j] if not zero[c] and np.linalg.norm(heads[c] - heads[j]) > 1e-9]
         if defining:
             c = max(defining, key=lambda c: np.linalg.norm(mocap.offsets[c]))
             mocap_dir, rig_vec = mocap.offsets[c], heads[c] - heads[j]

@@ -3,6 +3,7 @@ write them, and the fidelity gate.  Every rig here is made from the real CMU mot
 motion, other joint frames, rest pose, root, channels, up axis and units."""
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -271,3 +272,49 @@ def test_a_condition_that_flips_the_body_is_an_error_naming_it():
     check = fidelity.check_condition(flipped, np.zeros(31), reference)
     assert "flips the body: the head is under the hips at frames 8..11" in check.problems[0]
     assert fidelity.check_condition(reference, np.zeros(31), reference).ok
+
+
+# --- glTF as exporters write it --------------------------------------------------------------------------------
+
+def test_gltf_with_one_influence_set_unnamed_joints_and_partial_animation(character, walk, tmp_path):
+    """What Blender and most exporters write: only JOINTS_0/WEIGHTS_0 (<= 4 influences; before the fix an
+    AttributeError on JOINTS_1), joints without names (given by a mapping file), an animation that keys only some
+    joints.  The motion read from it drives the character as the same file written by our exporter does."""
+    from anim_core.gltf import GltfAnimation, read_gltf, write_gltf
+    from anim_core.rigmap import CANONICAL_NAMES, read_mapping_file
+    from anim_core.sourceinfo import read_motions
+
+    rt = retarget(character, walk.posed_skeleton(), walk.end_sites)
+    rot, root = walk.pose_arrays()
+    rot, root = rot[:60], root[:60] * rt.root_scale
+    held = [rt.skeleton.index(n) for n in ("LThumb", "RThumb", "LeftFingerBase", "RightFingerBase")]
+    rot[:, held] = [1.0, 0, 0, 0]  # the file will not key these: they stay at rest
+    ours = tmp_path / "ours.gltf"
+    write_gltf(ours, rt.skeleton, rt.mesh.vertices, rt.mesh.normals, rt.faces, rt.mesh.joints, rt.mesh.weights,
+               rt.mesh.inverse_bind, (GltfAnimation("walk", np.arange(60) * walk.frame_time, rot, root),))
+    doc = json.loads(ours.read_text())
+    for mesh in doc["meshes"]:
+        for prim in mesh["primitives"]:
+            assert "JOINTS_1" in prim["attributes"]  # ours writes two sets; the exporter below does not
+            del prim["attributes"]["JOINTS_1"], prim["attributes"]["WEIGHTS_1"]
+    joint_nodes = doc["skins"][0]["joints"]
+    for node in joint_nodes:
+        doc["nodes"][node].pop("name", None)
+    anim = doc["animations"][0]
+    held_nodes = {joint_nodes[rt.skeleton.index(CANONICAL_NAMES[j])] for j in held}
+    anim["channels"] = [c for c in anim["channels"] if c["target"]["node"] not in held_nodes]
+    theirs = tmp_path / "exported.gltf"
+    theirs.write_text(json.dumps(doc))
+
+    asset = read_gltf(theirs)
+    assert asset.joints.shape[1] == 8 and np.all(asset.joints[:, 4:] == 0) and np.all(asset.weights[:, 4:] == 0)
+    assert asset.skeleton.names[0] == "joint0"
+    mapping = tmp_path / "mapping.toml"
+    names = asset.skeleton.names
+    # The skin lists joints in node order; our writer wrote them in skeleton order, so joint k is canonical k.
+    mapping.write_text("\n".join(f'{c} = "{names[k]}"' for k, c in enumerate(rt.skeleton.names)) + "\n")
+    (name, out), = read_motions(theirs, read_mapping_file(mapping))
+    assert name == "walk" and out.units == "m"
+    (_, same), = read_motions(ours)  # the file as our exporter wrote it, joints named
+    err = np.abs(character_positions(character, out.bvh) - character_positions(character, same.bvh)).max()
+    assert err < 1e-6, err
