@@ -539,7 +539,9 @@ def _gate(source: Source, clips: list[BuiltClip], src_t: Array) -> list[BuiltCli
             raise ConfigError(f"[animations.{cfg.name}] ({cfg.source}): {what} fails the fidelity gate: "
                               f"{'; '.join(check.problems)}. Check the source's mapping, units and up axis (clips "
                               f"inspect), or set accept_unfaithful = true to build it anyway (marked as unfaithful)")
-        metrics = {**c.metrics, **check.as_metrics(), "unfaithful": 1.0 if check.problems else 0.0}
+        # Every clip of an animation whose reference is unfaithful is: the conditions are made from it.
+        unfaithful = bool(check.problems or checks[0].problems)
+        metrics = {**c.metrics, **check.as_metrics(), "unfaithful": 1.0 if unfaithful else 0.0}
         out.append(replace(c, metrics=metrics, fidelity=check))
     return out
 

@@ -361,8 +361,9 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                 print(f"study {study.slug!r} is {study.state}")
             elif command == "export":
                 study = service.get_study(session, args.slug)
-                text = (service.export_csv(session, study) if args.format == "csv" else
-                        json.dumps(service.export_document(session, study), indent=1) + "\n")
+                unfaithful = service.unfaithful_clips(settings.clips_dir)
+                text = (service.export_csv(session, study, unfaithful) if args.format == "csv" else
+                        json.dumps(service.export_document(session, study, unfaithful), indent=1) + "\n")
                 if args.out:
                     args.out.write_text(text, encoding="utf-8")
                     print(f"{text.count(chr(10)) - 1 if args.format == 'csv' else 'the'} rows of {study.slug!r} "

@@ -209,6 +209,7 @@
     $("asset-units-edit").value = given.units || "auto";
     $("asset-up-edit").value = given.up_axis || "auto";
     $("asset-mapping-edit").value = mappingText(given.mapping);
+    $("asset-unfaithful").checked = Boolean(a.report.accept_unfaithful);
     form.dataset.read = JSON.stringify([$("asset-units-edit").value, $("asset-up-edit").value, $("asset-mapping-edit").value]);
     form.hidden = false;
     $("asset-kind").focus();
@@ -217,6 +218,7 @@
   $("asset-edit").addEventListener("submit", async (e) => {
     e.preventDefault();
     const body = { kind: $("asset-kind").value, frames: [Number($("asset-first").value), Number($("asset-last").value)] };
+    body.accept_unfaithful = $("asset-unfaithful").checked;
     const read = [$("asset-units-edit").value, $("asset-up-edit").value, $("asset-mapping-edit").value];
     if (JSON.stringify(read) !== e.target.dataset.read) {  // read the file anew: its new suggestion is taken
       try { body.mapping = parseMapping(read[2]); } catch (err) { $("asset-errors").textContent = err.message; return; }

@@ -1,7 +1,8 @@
 """End to end (issue 24): a study whose clip set mixes the CMU motion with a Bandai-style rig made from CMU motion
 (a static root above the hips, 6 channels on every joint, bones along local X so the zero pose lies in a heap,
 Euler order ZXY, centimetres) uploaded with no options: it builds through the gate, renders small, and a
-participant is served its trials."""
+participant is served its trials.  A source with left and right swapped fails the gate; built anyway, its votes
+are marked unfaithful in the export."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from tests.conftest import _fresh_engine
 from tests.server_fixtures import RESEARCHER, start, vote
 from tests.test_upload_job import small_site, wait_for
 from tests.test_uploads import SECRET, excerpt, login
-from tests.test_wild_motion import wild_rig
+from tests.test_wild_motion import _swapped, wild_rig
 
 
 def test_mixed_cmu_and_bandai_style_rig_build_render_and_serve(tmp_path, tmp_path_factory, data):
@@ -39,6 +40,18 @@ def test_mixed_cmu_and_bandai_style_rig_build_render_and_serve(tmp_path, tmp_pat
             assert (report["units"], report["up_axis"], report["options"]) == ("cm", "y", {})
             assert any("not a standing pose" in n for n in report["notes"])
             assert any("'joint_Root' above 'Hips' left out" in n for n in report["notes"])
+
+            swapped = format_bvh(_swapped(cmu)).encode()  # its left leg on the body's right
+            r = client.post("/api/v1/studies/own/assets", params={"filename": "swapped.bvh"}, content=swapped,
+                            headers=headers)
+            assert r.status_code == 201, r.text
+            assert client.post("/api/v1/studies/own/assets/build", headers=headers).status_code == 202
+            job = wait_for(client, headers, timeout_s=600)
+            assert job["state"] == "failed" and "[animations.swapped]" in job["error"]
+            assert "left and right swapped" in job["error"] and "accept_unfaithful" in job["error"]
+            r = client.patch("/api/v1/studies/own/assets/swapped", json={"accept_unfaithful": True},
+                             headers=headers)
+            assert r.status_code == 200 and r.json()["report"]["accept_unfaithful"] is True
             assert client.post("/api/v1/studies/own/assets/build", headers=headers).status_code == 202
             job = wait_for(client, headers, timeout_s=600)
             assert job["state"] == "done", (job, (settings.assets_dir / "1" / "build.log").read_text())
@@ -65,6 +78,12 @@ def test_mixed_cmu_and_bandai_style_rig_build_render_and_serve(tmp_path, tmp_pat
                 served += 1
                 if served > 20:
                     break
-            assert served == 2 * 2 + 1  # base and bandai_sway: two trials each, and one catch trial
+            assert served == 3 * 2 + 1  # base, bandai_sway and swapped: two trials each, and one catch trial
+            assert {c.id for c in clips.clips if c.metrics.get("unfaithful")} == {"swapped-keyframe",
+                                                                                   "swapped-hybrid0"}
+            rows = client.get("/api/v1/studies/own/export.json", headers=headers).json()["votes"]
+            assert len(rows) == served
+            assert {r["animation"] for r in rows if r["unfaithful"]} == {"swapped"}
+            assert {r["animation"] for r in rows if not r["unfaithful"]} >= {"base", "bandai_sway"}
     finally:
         engine.dispose()

@@ -158,6 +158,8 @@ def write_clip_set_file(path: Path, assets: Sequence[StudyAsset], asset_file: Ca
             mapping = path.with_name(f"{a.name}.mapping.json")
             mapping.write_text(json.dumps(options["mapping"]), encoding="utf-8")
             lines.append(f"mapping = {_toml_value(str(mapping))}")
+        if (a.report or {}).get("accept_unfaithful"):
+            lines.append("accept_unfaithful = true")
         lines.append("")
     for cid, method, params in base.conditions:
         lines += ["[[conditions]]", f"id = {_toml_value(cid)}", f"method = {_toml_value(method)}"]

@@ -42,6 +42,8 @@ class AssetChange(BaseModel):
     up_axis: str | None = Field(None, description="the file's up axis (y, z); 'auto' detects it")
     mapping: dict[str, str] | None = Field(None, description="character joint -> file joint, where the names do "
                                                              "not tell; {} clears it")
+    accept_unfaithful: bool | None = Field(None, description="build its clips even if they fail the fidelity gate "
+                                                             "(they are marked unfaithful, also in the export)")
 
 
 @router.post("/studies/{slug}/assets", status_code=status.HTTP_201_CREATED,
@@ -135,6 +137,8 @@ def change_asset(slug: str, name: str, session: SessionDep, settings: SettingsDe
     asset = service.update_asset(session, study, asset, body.kind,
                                  tuple(body.frames) if body.frames else None,  # type: ignore[arg-type]
                                  options, settings)
+    if body.accept_unfaithful is not None:
+        asset = service.accept_unfaithful(session, asset, body.accept_unfaithful)
     return service.asset_json(asset)
 
 

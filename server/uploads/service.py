@@ -243,6 +243,8 @@ def update_asset(session: Session, study: Study, asset: StudyAsset, kind: str | 
         if settings is None:
             raise ValueError("changing how a file is read needs the settings (where the file is)")
         report = inspect_upload(asset_path(settings, asset), options)
+        if asset.report.get("accept_unfaithful"):
+            report["accept_unfaithful"] = True
         asset.report = report
         asset.kind = report["suggested"]["kind"]
         asset.first_frame, asset.last_frame = report["suggested"]["frames"]
@@ -256,6 +258,13 @@ def update_asset(session: Session, study: Study, asset: StudyAsset, kind: str | 
         if not 0 <= first < last < count:
             raise Unprocessable(f"frames: [{first}, {last}] must be increasing frames of the file's 0..{count - 1}")
         asset.first_frame, asset.last_frame = first, last
+    session.commit()
+    return asset
+
+
+def accept_unfaithful(session: Session, asset: StudyAsset, accept: bool) -> StudyAsset:
+    """Build the asset's clips even if the fidelity gate fails (docs/motion-from-the-wild.md); they are marked."""
+    asset.report = {**asset.report, "accept_unfaithful": accept}  # a new dict: the JSON column sees the change
     session.commit()
     return asset
 
