@@ -526,11 +526,15 @@ def _gate(source: Source, clips: list[BuiltClip], src_t: Array) -> list[BuiltCli
     k = np.arange(reference.n_frames)
     times = src_t[np.where(k <= n, k, 2 * n - k)] if cfg.playback == "pingpong" else src_t[np.minimum(k, n)]
     candidates = [_source_poses(source, times)]
+    slack = None
     if cfg.playback == "loop":  # the seam fades between this cycle and the next or the previous one
         period = float(src_t[-1] - src_t[0])
         candidates += [_source_poses(source, times + period), _source_poses(source, times - period)]
+        # A stretch that does not end as it began is closed by spreading the difference over the loop.
+        ends = fidelity.pose_angles(_source_poses(source, src_t[[0, -1]]))
+        slack = np.degrees(np.abs(ends[1] - ends[0]))
     contact = reference.character.contact_heights
-    checks = [fidelity.check_reference(reference.world_positions, contact, candidates)]
+    checks = [fidelity.check_reference(reference.world_positions, contact, candidates, slack)]
     checks += [fidelity.check_condition(c.world_positions, contact, reference.world_positions) for c in clips[1:]]
     out = []
     for c, check in zip(clips, checks, strict=True):
