@@ -6,10 +6,10 @@ import shutil
 import numpy as np
 import pytest
 
-from anim_core import quat as Q
-from anim_core.clipmetrics import FEET
-from anim_core.clipset import ConfigError
-from anim_core.skeleton import Skeleton
+from anim_core.clips.build import ConfigError
+from anim_core.math import quat as Q
+from anim_core.math.skeleton import Skeleton
+from anim_core.rig.character import FEET
 from server.assets import AssetError
 from server.cli import main
 from server.clipset.build import build_clip_set
@@ -92,7 +92,7 @@ def test_metrics_are_complete_and_plausible(clips, by_id):
              "key_velocity_jump_rad_s", "key_accel_jump_rad_s2", "max_global_error_deg", "jerk_mean", "bytes",
              "source_foot_skate_ratio", "seam_jump_mm",
              "median_step_mm", "phase_hips_r", "phase_hips_lag", "phase_knee_r", "phase_knee_lag",
-             # the fidelity gate's figures (anim_core.fidelity)
+             # the fidelity gate's figures (anim_core.clips.fidelity)
              "upright_m", "foot_reach_m", "under_floor_m", "handedness", "pose_error_deg", "unfaithful"}
     for c in clips:
         assert set(c.metrics) == names

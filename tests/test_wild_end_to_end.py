@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from fastapi.testclient import TestClient
 
-from anim_core.bvh import format_bvh, parse_bvh
+from anim_core.io.bvh import format_bvh, parse_bvh
 from server.app import create_app
 from server.clipset.manifest import read_clip_manifest
 from server.config import Settings

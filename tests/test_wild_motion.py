@@ -8,14 +8,14 @@ import json
 import numpy as np
 import pytest
 
-from anim_core import fidelity
-from anim_core.bvh import Bvh, format_bvh, parse_bvh, read_bvh
-from anim_core.character import retarget
-from anim_core.clipset import AnimationConfig, ConfigError, build_animation, source_from_bvh
-from anim_core.conditions import Condition
-from anim_core.quat import euler_from_quat, quat_conj, quat_from_axis_angle, quat_mul, quat_normalize, rotate
-from anim_core.rigmap import normalize_bvh
-from anim_core.skeleton import Skeleton
+from anim_core.clips import fidelity
+from anim_core.clips.build import AnimationConfig, ConfigError, build_animation, source_from_bvh
+from anim_core.io.bvh import Bvh, format_bvh, parse_bvh, read_bvh
+from anim_core.math.quat import euler_from_quat, quat_conj, quat_from_axis_angle, quat_mul, quat_normalize, rotate
+from anim_core.math.skeleton import Skeleton
+from anim_core.methods.conditions import Condition
+from anim_core.rig.character import retarget
+from anim_core.rig.rigmap import normalize_bvh
 from server.assets import character as load_character
 
 X, Y, Z = np.eye(3)
@@ -280,9 +280,9 @@ def test_gltf_with_one_influence_set_unnamed_joints_and_partial_animation(charac
     """What Blender and most exporters write: only JOINTS_0/WEIGHTS_0 (<= 4 influences; before the fix an
     AttributeError on JOINTS_1), joints without names (given by a mapping file), an animation that keys only some
     joints.  The motion read from it drives the character as the same file written by our exporter does."""
-    from anim_core.gltf import GltfAnimation, read_gltf, write_gltf
-    from anim_core.rigmap import CANONICAL_NAMES, read_mapping_file
-    from anim_core.sourceinfo import read_motions
+    from anim_core.clips.sources import read_motions
+    from anim_core.io.gltf import GltfAnimation, read_gltf, write_gltf
+    from anim_core.rig.rigmap import CANONICAL_NAMES, read_mapping_file
 
     rt = retarget(character, walk.posed_skeleton(), walk.end_sites)
     rot, root = walk.pose_arrays()

@@ -3,8 +3,8 @@ afterwards, as on the command line, and upload errors that say what to do next."
 
 import json
 
-from anim_core.bvh import Bvh, format_bvh, parse_bvh
-from anim_core.skeleton import Skeleton
+from anim_core.io.bvh import Bvh, format_bvh, parse_bvh
+from anim_core.math.skeleton import Skeleton
 from server.uploads.models import StudyAsset
 from tests.test_uploads import admin, app_settings, asset_rows, draft, excerpt, stored_files, uclient, upload
 
