@@ -159,7 +159,27 @@ def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
               f"{m['key_accel_jump_rad_s2']:17.3f} {_fmt(m['max_global_error_deg'], 3):>11} {m['jerk_mean']:9.1f} "
               f"{m['bytes']:6d}")
     _print_comparison(clips, clip_warnings(clips))
+    _print_fidelity(clips)
     return 0
+
+
+def _print_fidelity(clips: list) -> None:
+    """The fidelity gate's figures (anim_core.clips.fidelity): head over hips (smallest, m), the feet's lowest clearance
+    (the higher foot's, mm), depth under the floor (mm), frames with the left hip on the left, and the largest pose
+    angle difference: the reference's against the source, a condition's against the reference."""
+    width = max(16, *(len(c.id) for c in clips))
+    print(f"\n{'fidelity':{width}} {'head m':>6} {'feet mm':>7} {'under mm':>8} {'left':>5} {'pose deg':>8} "
+          f"{'against':>9}  verdict")
+    prev = None
+    for c in clips:
+        f = c.fidelity
+        if f is None:
+            continue
+        verdict = "ok" if f.ok else "UNFAITHFUL (built anyway): " + "; ".join(f.problems)
+        against = "source" if c is clips[0] or c.animation != prev else "reference"
+        prev = c.animation
+        print(f"{c.id:{width}} {f.upright_m:6.2f} {f.foot_reach_m * 1000:7.0f} {-f.under_floor_m * 1000:8.0f} "
+              f"{f.handedness:5.0%} {_fmt(f.pose_error_deg, 1):>8} {against:>9}  {verdict}", flush=True)
 
 
 def _print_comparison(clips: list, warnings: list[str]) -> None:
@@ -340,8 +360,9 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                 print(f"study {study.slug!r} is {study.state}")
             elif command == "export":
                 study = service.get_study(session, args.slug)
-                text = (service.export_csv(session, study) if args.format == "csv" else
-                        json.dumps(service.export_document(session, study), indent=1) + "\n")
+                unfaithful = service.unfaithful_clips(settings.clips_dir)
+                text = (service.export_csv(session, study, unfaithful) if args.format == "csv" else
+                        json.dumps(service.export_document(session, study, unfaithful), indent=1) + "\n")
                 if args.out:
                     args.out.write_text(text, encoding="utf-8")
                     print(f"{text.count(chr(10)) - 1 if args.format == 'csv' else 'the'} rows of {study.slug!r} "

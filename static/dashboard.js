@@ -163,7 +163,8 @@
     table($("table-metrics"), ["clip", "in this study", "method", "same arrays as", "keys", "foot skate", "source skate", "slide mm",
                                "penetration mm", "floating mm", "MPJPE mm", "max rotation error °",
                                "key velocity jump rad/s", "key acceleration jump rad/s²", "jerk m/s³", "bytes",
-                               "seam jump mm", "hips phase r (lag)", "knee phase r (lag)"],
+                               "seam jump mm", "hips phase r (lag)", "knee phase r (lag)", "fidelity",
+                               "pose error °", "head over hips m", "feet reach mm"],
           clips.map((c) => [`${c.animation} ${c.condition}`, c.shown ? "yes" : "", method(c),
                             c.identical_to ? name(c.identical_to) : "", c.key_count,
                             fmt(m(c).foot_skate_ratio, 3), fmt(m(c).source_foot_skate_ratio, 3),
@@ -171,7 +172,15 @@
                             fmt(m(c).mpjpe_mm, 1), fmt(m(c).max_global_error_deg, 3),
                             fmt(m(c).key_velocity_jump_rad_s, 3), fmt(m(c).key_accel_jump_rad_s2, 3),
                             fmt(m(c).jerk_mean, 1), m(c).bytes, fmt(m(c).seam_jump_mm, 1),
-                            phase(m(c).phase_hips_r, m(c).phase_hips_lag), phase(m(c).phase_knee_r, m(c).phase_knee_lag)]));
+                            phase(m(c).phase_hips_r, m(c).phase_hips_lag), phase(m(c).phase_knee_r, m(c).phase_knee_lag),
+                            fidelity(m(c)), fmt(m(c).pose_error_deg, 1), fmt(m(c).upright_m, 2),
+                            m(c).foot_reach_m == null ? "–" : fmt(m(c).foot_reach_m * 1000, 0)]));
+  }
+
+  // The fidelity gate's verdict (docs/motion-from-the-wild.md); clip sets built before the gate have none.
+  function fidelity(metrics) {
+    if (metrics.unfaithful == null) return "–";
+    return metrics.unfaithful ? "UNFAITHFUL (built anyway)" : "ok";
   }
 
   // The registered method and its parameters, e.g. "quantized (bits 12, reduced_epsilon_deg 2)".

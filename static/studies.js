@@ -109,11 +109,32 @@
   let polling = null;
   const assetsUrl = (slug, rest = "") => `/studies/${encodeURIComponent(slug)}/assets${rest}`;
 
+  // "LeftUpLeg = thigh_l" lines or a JSON object -> {character joint: file joint}; throws a message.
+  function parseMapping(text) {
+    const t = text.trim();
+    if (!t) return {};
+    if (t.startsWith("{")) {
+      try { return JSON.parse(t); } catch (err) { throw new Error(`Joint mapping: not JSON (${err.message})`); }
+    }
+    const out = {};
+    for (const [n, line] of t.split("\n").entries()) {
+      if (!line.trim()) continue;
+      const m = line.match(/^\s*([^=\s]+)\s*=\s*"?([^"]+?)"?\s*$/);
+      if (!m) throw new Error(`Joint mapping, line ${n + 1}: write character joint = file joint`);
+      out[m[1]] = m[2];
+    }
+    return out;
+  }
+  const mappingText = (m) => Object.entries(m || {}).map(([k, v]) => `${k} = ${v}`).join("\n");
+
   function cellText(a) {
     const r = a.report;
     const suggested = `${r.suggested.kind}, frames ${r.suggested.frames[0]}..${r.suggested.frames[1]} (${r.suggested.reason})`;
+    const given = r.options || {};
+    const read = `${r.units}${given.units ? " (given)" : ""}, ${r.up_axis.toUpperCase()} up${given.up_axis ? " (given)" : ""}` +
+      (given.mapping ? `, ${Object.keys(given.mapping).length} joints mapped by hand` : "");
     return [a.name, a.filename, `${(a.size_bytes / 1024).toFixed(1)} KiB`, r.joints, r.convention,
-            `${r.units}, ${r.up_axis.toUpperCase()} up`, Number(r.fps).toFixed(2), r.frames, suggested,
+            read, Number(r.fps).toFixed(2), r.frames, suggested,
             `${a.kind}, ${a.frames[0]}..${a.frames[1]}`];
   }
 
@@ -184,6 +205,12 @@
     $("asset-first").value = a.frames[0];
     $("asset-last").value = a.frames[1];
     $("asset-first").max = $("asset-last").max = a.report.frames - 1;
+    const given = a.report.options || {};
+    $("asset-units-edit").value = given.units || "auto";
+    $("asset-up-edit").value = given.up_axis || "auto";
+    $("asset-mapping-edit").value = mappingText(given.mapping);
+    $("asset-unfaithful").checked = Boolean(a.report.accept_unfaithful);
+    form.dataset.read = JSON.stringify([$("asset-units-edit").value, $("asset-up-edit").value, $("asset-mapping-edit").value]);
     form.hidden = false;
     $("asset-kind").focus();
   }
@@ -191,6 +218,15 @@
   $("asset-edit").addEventListener("submit", async (e) => {
     e.preventDefault();
     const body = { kind: $("asset-kind").value, frames: [Number($("asset-first").value), Number($("asset-last").value)] };
+    body.accept_unfaithful = $("asset-unfaithful").checked;
+    const read = [$("asset-units-edit").value, $("asset-up-edit").value, $("asset-mapping-edit").value];
+    if (JSON.stringify(read) !== e.target.dataset.read) {  // read the file anew: its new suggestion is taken
+      try { body.mapping = parseMapping(read[2]); } catch (err) { $("asset-errors").textContent = err.message; return; }
+      body.units = read[0];
+      body.up_axis = read[1];
+      delete body.kind;
+      delete body.frames;
+    }
     const r = await api(assetsUrl(assetsSlug, `/${encodeURIComponent(e.target.dataset.asset)}`), {
       method: "PATCH", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) });
     $("asset-errors").textContent = r.ok ? "" : await problems(r);
@@ -211,6 +247,12 @@
     if (!file || !assetsSlug) return;
     const params = new URLSearchParams({ filename: file.name });
     if ($("asset-name").value) params.set("name", $("asset-name").value);
+    if ($("asset-units").value !== "auto") params.set("units", $("asset-units").value);
+    if ($("asset-up").value !== "auto") params.set("up", $("asset-up").value);
+    try {
+      const mapping = parseMapping($("asset-mapping").value);
+      if (Object.keys(mapping).length) params.set("mapping", JSON.stringify(mapping));
+    } catch (err) { $("asset-errors").textContent = err.message; return; }
     $("asset-errors").textContent = "";
     $("status").textContent = `Uploading ${file.name}…`;
     const r = await api(assetsUrl(assetsSlug, `?${params}`), {

@@ -91,7 +91,9 @@ def test_metrics_are_complete_and_plausible(clips, by_id):
     names = {"foot_skate_ratio", "foot_slide_mm", "penetration_mm", "floating_mm", "mpjpe_mm",
              "key_velocity_jump_rad_s", "key_accel_jump_rad_s2", "max_global_error_deg", "jerk_mean", "bytes",
              "source_foot_skate_ratio", "seam_jump_mm",
-             "median_step_mm", "phase_hips_r", "phase_hips_lag", "phase_knee_r", "phase_knee_lag"}
+             "median_step_mm", "phase_hips_r", "phase_hips_lag", "phase_knee_r", "phase_knee_lag",
+             # the fidelity gate's figures (anim_core.clips.fidelity)
+             "upright_m", "foot_reach_m", "under_floor_m", "handedness", "pose_error_deg", "unfaithful"}
     for c in clips:
         assert set(c.metrics) == names
         assert (c.metrics["mpjpe_mm"] is None) == (c.method == "keyframe")

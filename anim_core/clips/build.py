@@ -26,7 +26,7 @@ and writes them (``server.clipset``, ``server.assets``).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -43,6 +43,7 @@ from ..methods.ik import smoothstep
 from ..methods.keypick import pick_keys
 from ..rig.character import FEET, LEGS, UP, Character, RetargetedCharacter, retarget
 from ..rig.rigmap import UNITS
+from . import fidelity
 from .measure import clip_feet, measure
 from .record import BuiltClip
 
@@ -73,7 +74,8 @@ class AnimationConfig:
     and
     ``up_axis`` (``"y"``/``"z"``) override the detection (:func:`anim_core.rig.rigmap.normalize_bvh`).  ``tolerance_mm``
     (kind ``other``): the largest joint position error, mm, of the hybrid through the picked keys against the
-    reference."""
+    reference.  ``accept_unfaithful``: build even if the fidelity gate (:mod:`anim_core.clips.fidelity`) fails; the
+    clips are marked as such."""
 
     name: str
     kind: Kind
@@ -88,6 +90,7 @@ class AnimationConfig:
     mapping: str | None = None
     units: str | None = None
     up_axis: Literal["y", "z"] | None = None
+    accept_unfaithful: bool = False
 
 
 # --- sources ---------------------------------------------------------------------------------------------------
@@ -102,6 +105,9 @@ class Source:
     frame_time: float
     mocap: Skeleton  # the file's own (canonical) skeleton, on which the clip's rotations play unchanged
     metres_per_unit: float = METRES_PER_CMU_UNIT  # of the mocap skeleton
+    #: ``(F, 31, 3)`` the canonical joints by the source file's own forward kinematics at config.frames (any units
+    #: and orientation: the fidelity gate compares angles)
+    own_positions: Array | None = field(default=None, repr=False)
     def time_of(self, frame: int) -> float:
         return (frame - self.config.frames[0]) * self.frame_time
 
@@ -125,9 +131,13 @@ def _turn(pose: Pose, yaw: float) -> Pose:
 
 
 def source_from_bvh(bvh: Bvh, character: Character, config: AnimationConfig, relocate: tuple[str, ...],
-                    metres_per_unit: float = METRES_PER_CMU_UNIT) -> Source:
+                    metres_per_unit: float = METRES_PER_CMU_UNIT, source_positions: Array | None = None) -> Source:
     """One animation's mocap (``bvh`` on the canonical CMU skeleton, Y up, ``metres_per_unit``; read from
-    ``config.source``) retargeted onto ``character`` and turned to face +Z (errors name the file and the entry)."""
+    ``config.source``) retargeted onto ``character`` and turned to face +Z (errors name the file and the entry).
+
+    ``source_positions``: ``(F, 31, 3)`` the canonical joints by the source file's own forward kinematics
+    (:attr:`anim_core.rig.rigmap.Normalized.source_positions`), for the fidelity gate; default: ``bvh``'s (a CMU file
+    is its own source)."""
     rotations, root = bvh.pose_arrays()
     first, last = config.frames
     if last >= bvh.n_frames:
@@ -145,7 +155,10 @@ def source_from_bvh(bvh: Bvh, character: Character, config: AnimationConfig, rel
         forward = np.cross(left, [0.0, 1.0, 0.0]).mean(axis=0)
     pose = _turn(pose, -float(np.arctan2(forward[0], forward[2])))
     clip = KeyframeClip(rc.skeleton, times, pose.rotations, pose.root_translation, mode="clamp", name=config.name)
-    return Source(config, rc, clip, bvh.frame_time, bvh.posed_skeleton(), metres_per_unit)
+    if source_positions is None:
+        source_positions = bvh.posed_skeleton().forward_kinematics(rotations, root)[1]
+    return Source(config, rc, clip, bvh.frame_time, bvh.posed_skeleton(), metres_per_unit,
+                  np.asarray(source_positions)[first:last + 1])
 
 
 # --- key picking -----------------------------------------------------------------------------------------------
@@ -155,6 +168,18 @@ def _local_maxima(x: Array) -> NDArray[np.intp]:
     right at a peak: the run does)."""
     inner = np.flatnonzero((x[1:-1] >= x[:-2]) & (x[1:-1] > x[2:])) + 1
     return np.concatenate([[0], inner]) if x[0] > x[1] else inner
+
+
+#: A take whose last pose is within this (metres, every joint relative to the hips) of its first is one whole cycle.
+LOOP_POSE_M = 0.05
+
+
+def _loops(positions: Array) -> bool:
+    """Is the take ``(T, J, 3)`` one whole cycle: its last pose (relative to the hips) its first again?"""
+    if len(positions) < 8:
+        return False
+    rel = positions - positions[:, :1]
+    return float(np.linalg.norm(rel[-1] - rel[0], axis=-1).max()) <= LOOP_POSE_M
 
 
 def pick_gait(source: Source) -> tuple[int, int, int]:
@@ -174,6 +199,13 @@ def pick_gait(source: Source) -> tuple[int, int, int]:
     fps = 1.0 / source.frame_time
     steps = [p for p in peaks if all(lead[p] >= lead[q] for q in peaks if abs(q - p) < 0.3 * fps)]
     name = source.config.name
+    first = source.config.frames[0]
+    if len(steps) < 2 and _loops(pos):
+        # A take of exactly one cycle (its last pose is its first again, as the Bandai Namco runs are cut): the
+        # cycle is the whole take, passing where the left foot falls behind the right.
+        behind = np.flatnonzero((lead[:-1] > 0.0) & (lead[1:] <= 0.0))
+        if behind.size:
+            return first, first + int(behind[0]) + 1, first + len(lead) - 1
     if len(steps) < 2:
         raise ConfigError(f"[animations.{name}]: no whole gait cycle found in frames {source.config.frames}; "
                           f"give 'cycle' and 'keys' in the clip set file")
@@ -185,7 +217,6 @@ def pick_gait(source: Source) -> tuple[int, int, int]:
     crossing = np.flatnonzero(lead[start:end] <= 0.0)
     if crossing.size == 0:
         raise ConfigError(f"[animations.{name}]: the feet never pass each other in the cycle; give 'keys'")
-    first = source.config.frames[0]
     return start + first, start + int(crossing[0]) + first, end + first
 
 
@@ -321,6 +352,12 @@ def _on_grid(t: float, start: float, stop: float, clip: KeyframeClip) -> float:
 def reference_animation(source: Source, fps: int) -> tuple[Animation, dict[str, Any]]:
     """The reference keyframe clip of one animation on the frame grid, with its base keys, as builders receive it
     (:class:`~anim_core.methods.conditions.Animation`); and what the manifest records of the source."""
+    animation, source_info, _ = _reference(source, fps)
+    return animation, source_info
+
+
+def _reference(source: Source, fps: int) -> tuple[Animation, dict[str, Any], Array]:
+    """:func:`reference_animation` and the source times (s from ``config.frames[0]``) of the reference's keys."""
     cfg = source.config
     t = source.time_of
     if cfg.kind == "gait":
@@ -338,7 +375,7 @@ def reference_animation(source: Source, fps: int) -> tuple[Animation, dict[str, 
                                 "loop", cfg.in_place, UP, cfg.name)
         source_info = {"file": cfg.source, "cycle_frames": list(cycle), "key_frames": list(keys)}
     elif cfg.kind == "other":
-        keyframe, key_grid, source_info = _other_reference(source, fps)
+        keyframe, key_grid, source_info, src_t = _other_reference(source, fps)
     else:
         # crouch: one stand -> deepest segment played forward and back, so reference and hybrid are deepest at the
         # turn; idle: the sway between its two extremes.
@@ -349,10 +386,10 @@ def reference_animation(source: Source, fps: int) -> tuple[Animation, dict[str, 
         key_grid = (0.0, keyframe.duration)
         source_info = {"file": cfg.source, "frames": [int(keys[0]), int(keys[1])], "key_frames": list(keys)}
     animation = Animation(cfg.name, cfg.kind, keyframe, key_grid, keyframe.duration, cfg.in_place, fps)
-    return animation, source_info
+    return animation, source_info, src_t
 
 
-def _other_reference(source: Source, fps: int) -> tuple[KeyframeClip, tuple[float, ...], dict[str, Any]]:
+def _other_reference(source: Source, fps: int) -> tuple[KeyframeClip, tuple[float, ...], dict[str, Any], Array]:
     """Kind ``other``: the whole frame range on the grid (a loop closed, :meth:`KeyframeClip.closed_loop`; a
     ping-pong clip easing to rest at its turns), planted; its base keys given (source frames, mapped to the grid)
     or picked on it within ``tolerance_mm`` (:func:`anim_core.methods.keypick.pick_keys`)."""
@@ -382,7 +419,7 @@ def _other_reference(source: Source, fps: int) -> tuple[KeyframeClip, tuple[floa
         frames = [cfg.frames[0] + round(src_t[f] / source.frame_time) for f in keys.frames]
         picked = {"tolerance_mm": cfg.tolerance_mm, "key_error_mm": round(keys.error * 1000.0, 3)}
     source_info = {"file": cfg.source, "frames": list(cfg.frames), "key_frames": frames, **picked}
-    return keyframe, key_grid, source_info
+    return keyframe, key_grid, source_info, src_t
 
 
 def build_animation(source: Source, fps: int, conditions: Sequence[Condition],
@@ -395,7 +432,7 @@ def build_animation(source: Source, fps: int, conditions: Sequence[Condition],
         raise ConfigError(f"the clip set needs exactly one condition with method {REFERENCE!r} (the reference), "
                           f"got {len(reference)}")
     ordered = [*reference, *(c for c in conditions if not c.is_reference)]
-    animation, source_info = reference_animation(source, fps)
+    animation, source_info, src_t = _reference(source, fps)
     keyframe = animation.reference
     source_skate = _source_skate(source, source.time_of(cfg.frames[0]), source.time_of(cfg.frames[1]), fps)
 
@@ -422,7 +459,52 @@ def build_animation(source: Source, fps: int, conditions: Sequence[Condition],
         stored = condition.stored_bytes(c.clip)
         if stored is not None:
             c.metrics["bytes"] = stored
-    return measured
+    return _gate(source, measured, src_t)
+
+
+def _source_poses(source: Source, times: Array) -> Array:
+    """``(T, 31, 3)`` the source's own forward kinematics at source times (s from ``config.frames[0]``), linear
+    between its frames."""
+    own = source.own_positions
+    assert own is not None
+    x = np.clip(np.asarray(times) / source.frame_time, 0.0, own.shape[0] - 1.0)
+    i = np.minimum(np.floor(x).astype(np.intp), own.shape[0] - 2) if own.shape[0] > 1 else np.zeros(x.shape, np.intp)
+    w = (x - i)[:, None, None]
+    return own[i] * (1.0 - w) + own[np.minimum(i + 1, own.shape[0] - 1)] * w
+
+
+def _gate(source: Source, clips: list[BuiltClip], src_t: Array) -> list[BuiltClip]:
+    """The fidelity gate (:mod:`anim_core.clips.fidelity`) on one animation's built clips (the reference first): the
+    figures go into each clip's metrics; a failure raises :class:`ConfigError` naming the animation or condition,
+    the check, the bone and the frame, unless ``accept_unfaithful`` (then the clips are marked)."""
+    cfg = source.config
+    reference = clips[0]
+    n = src_t.size - 1  # the reference's keys span n frames of the grid
+    k = np.arange(reference.n_frames)
+    times = src_t[np.where(k <= n, k, 2 * n - k)] if cfg.playback == "pingpong" else src_t[np.minimum(k, n)]
+    candidates = [_source_poses(source, times)]
+    slack = None
+    if cfg.playback == "loop":  # the seam fades between this cycle and the next or the previous one
+        period = float(src_t[-1] - src_t[0])
+        candidates += [_source_poses(source, times + period), _source_poses(source, times - period)]
+        # A stretch that does not end as it began is closed by spreading the difference over the loop.
+        ends = fidelity.pose_angles(_source_poses(source, src_t[[0, -1]]))
+        slack = np.degrees(np.abs(ends[1] - ends[0]))
+    contact = reference.character.contact_heights
+    checks = [fidelity.check_reference(reference.world_positions, contact, candidates, slack)]
+    checks += [fidelity.check_condition(c.world_positions, contact, reference.world_positions) for c in clips[1:]]
+    out = []
+    for c, check in zip(clips, checks, strict=True):
+        if check.problems and not cfg.accept_unfaithful:
+            what = "the reference" if c is reference else f"condition {c.condition!r}"
+            raise ConfigError(f"[animations.{cfg.name}] ({cfg.source}): {what} fails the fidelity gate: "
+                              f"{'; '.join(check.problems)}. Check the source's mapping, units and up axis (clips "
+                              f"inspect), or set accept_unfaithful = true to build it anyway (marked as unfaithful)")
+        # Every clip of an animation whose reference is unfaithful is: the conditions are made from it.
+        unfaithful = bool(check.problems or checks[0].problems)
+        metrics = {**c.metrics, **check.as_metrics(), "unfaithful": 1.0 if unfaithful else 0.0}
+        out.append(replace(c, metrics=metrics, fidelity=check))
+    return out
 
 
 def _place_on_floor(clips: list[BuiltClip]) -> list[BuiltClip]:

@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 from ..math.clip import PlaybackMode
 from ..methods.conditions import AnimClip, Kind
 from ..rig.character import RetargetedCharacter
+from .fidelity import Fidelity
 
 Array = NDArray[np.float64]
 
@@ -41,6 +42,7 @@ class BuiltClip:
     world_rotations: Array = field(repr=False)
     world_positions: Array = field(repr=False)
     metrics: dict[str, float | None] = field(default_factory=dict)
+    fidelity: Fidelity | None = None  # the fidelity gate's verdict (build_animation)
 
     @property
     def times(self) -> Array:

@@ -36,6 +36,9 @@ GAIT_SPEED = 0.3
 CROUCH_DROP = 0.2
 IDLE_TRAVEL = 0.3
 MIN_PHASE = 0.1
+#: A hand moving further than this (m) from its mean place against the hips: the motion is no idle sway.
+ARM_MOTION = 0.2
+_CANON = {n: i for i, n in enumerate(CANONICAL_NAMES)}
 
 
 @dataclass(frozen=True)
@@ -78,8 +81,9 @@ def suggest(positions: Array, fps: float, contacts: Mapping[str, NDArray[np.intp
 
     A calibration T-pose in frame 0 is skipped.  ``crouch``: the hips drop by more than :data:`CROUCH_DROP` of
     their height in the first frame; ``gait``: the root moves faster than :data:`GAIT_SPEED` and both feet touch
-    down; the range is then one cycle, from a left touchdown to the next; ``idle``: the root travels less than
-    :data:`IDLE_TRAVEL`; else ``other``.
+    down; ``idle``: the root travels less than
+    :data:`IDLE_TRAVEL` and no hand moves more than :data:`ARM_MOTION` against the hips; else ``other``.  A gait's
+    range is the whole take: the build picks its cleanest whole cycle.
     """
     first = 1 if len(positions) > 2 and _t_pose(positions) else 0
     last = len(positions) - 1
@@ -94,10 +98,16 @@ def suggest(positions: Array, fps: float, contacts: Mapping[str, NDArray[np.intp
         return "crouch", (first, last), f"the hips drop by {drop:.0%} of their height{skip}"
     left = [int(s) for s, _ in contacts["left"] if s > first]
     if speed > GAIT_SPEED and len(contacts["left"]) and len(contacts["right"]):
-        if len(left) >= 2:
-            return "gait", (left[0], left[1]), (f"the root moves {speed:.2f} m/s with alternating foot contacts; "
-                                                f"one cycle between the first two left touchdowns")
-        return "gait", (first, last), f"the root moves {speed:.2f} m/s with foot contacts{skip}"
+        # The whole take: the builder picks its cleanest whole cycle (a range cut at touchdowns can miss the
+        # cycle's ends, which are where the left foot leads most).
+        cycles = f"; about {len(left) - 1} whole cycle(s) between left touchdowns" if len(left) >= 2 else ""
+        return "gait", (first, last), (f"the root moves {speed:.2f} m/s with alternating foot contacts{cycles}; "
+                                       f"the build picks the cleanest cycle{skip}")
+    hands = positions[first:, [_CANON["LeftHand"], _CANON["RightHand"]]] - positions[first:, :1]
+    arms = float(np.linalg.norm(hands - hands.mean(axis=0), axis=-1).max())
+    if travel < IDLE_TRAVEL and arms > ARM_MOTION:
+        return "other", (first, last), (f"the root travels {travel:.2f} m in all but a hand moves {arms:.2f} m "
+                                        f"against the hips (arm motion, not an idle sway){skip}")
     if travel < IDLE_TRAVEL:
         return "idle", (first, last), f"the root travels {travel:.2f} m in all{skip}"
     return "other", (first, last), f"no gait, crouch or idle pattern (root travels {travel:.2f} m){skip}"

@@ -31,6 +31,8 @@ Array = NDArray[np.float64]
 #: Limits checked while parsing, before memory is spent: a hostile or broken file fails fast with its line.
 MAX_JOINTS = 10_000
 MAX_FRAMES = 1_000_000
+#: Relative tolerance within which a constant position channel equals the joint's OFFSET (it is then the bone).
+OFFSET_MATCH = 1e-4
 CHANNEL_NAMES = ("Xposition", "Yposition", "Zposition", "Xrotation", "Yrotation", "Zrotation")
 
 
@@ -153,10 +155,19 @@ class Bvh:
         out = np.zeros((self.skeleton.n_joints, 3))
         if self.n_frames:
             out[1:] = values[0]
+        # Tools that key every joint's translation (MotionBuilder, the Bandai Namco dataset) write the OFFSET again
+        # as the channel value: that is the bone, not a translation on top of it.
+        has = positions[1:] >= 0
+        same = np.all(~has | (np.abs(out[1:] - self.skeleton.offsets[1:]) <= OFFSET_MATCH * np.maximum(
+            np.abs(self.skeleton.offsets[1:]), 1.0)), axis=1) & np.any(has, axis=1)
+        out[1:][same] = 0.0
         return out
 
     def posed_skeleton(self) -> Skeleton:
-        """The skeleton with constant non-root position channels added to the offsets (for FK of poses)."""
+        """The skeleton with constant non-root position channels added to the offsets (for FK of poses).
+
+        Channels whose constant values equal the joint's OFFSET (to :data:`OFFSET_MATCH`) restate the bone and
+        add nothing."""
         s = self.skeleton
         return Skeleton(s.names, s.parents, s.offsets + self._joint_positions(), s.rest_rotations)
 
@@ -192,7 +203,9 @@ class Bvh:
         n_frames = rot.shape[0]
         # Writes for missing channels (column -1) land in a spare last column, dropped at the end.
         padded = np.zeros((n_frames, self.motion.shape[1] + 1))
-        padded[:, positions[1:]] = self._joint_positions()[1:]
+        self._joint_positions()  # raises if a non-root joint's positions vary
+        if self.n_frames:  # constant non-root position channels are written back as they were
+            padded[:, positions[1:]] = self._padded_motion()[0, positions[1:]]
         padded[:, positions[0]] = trans
         if np.any(np.abs(trans[:, positions[0] < 0]) > 1e-9):
             raise BvhError(f"{self.source}: root {self.skeleton.names[0]!r} lacks a position channel for an "

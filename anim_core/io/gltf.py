@@ -284,8 +284,10 @@ def read_gltf(path: str | os.PathLike[str], fps: float = 30.0) -> GltfAsset:
         if len(idx) % 3 or (len(idx) and (idx.min() < 0 or idx.max() >= n_v)):
             raise r.fail(f"mesh primitive {p}: indices are not whole triangles of existing vertices")
         jw = [(r.accessor(a.JOINTS_0, "joints"), r.accessor(a.WEIGHTS_0, "weights"))]
-        if a.JOINTS_1 is not None and a.WEIGHTS_1 is not None:
-            jw.append((r.accessor(a.JOINTS_1, "joints"), r.accessor(a.WEIGHTS_1, "weights")))
+        # pygltflib only has the attributes a file names: exporters writing <= 4 influences have no JOINTS_1.
+        joints_1, weights_1 = getattr(a, "JOINTS_1", None), getattr(a, "WEIGHTS_1", None)
+        if joints_1 is not None and weights_1 is not None:
+            jw.append((r.accessor(joints_1, "joints"), r.accessor(weights_1, "weights")))
         jj = np.concatenate([x for x, _ in jw], axis=1)
         ww = np.concatenate([w for _, w in jw], axis=1)
         if jj.shape[0] != n_v or ww.shape != jj.shape or (jj.size and jj.max() >= len(skin_joints)):

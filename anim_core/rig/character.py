@@ -251,7 +251,8 @@ def retarget(character: Character, mocap: Skeleton, end_sites: Mapping[int, Arra
     ``end_sites``: mocap End Site offsets per leaf joint (they give the direction of the last bones);
     ``name_map``: mocap -> rig joint names where they differ (default :data:`CMU_TO_RIG`); ``relocate``: mocap
     joints with a zero-length bone to their parent whose mesh keeps its parent's orientation; the joint itself is
-    moved instead so that its child bone gets the mocap's direction while the child stays where the mesh has it.
+    moved instead so that its child bone gets the mocap's direction while the child stays where the mesh has it
+    (joints of ``relocate`` without such a bone are bound as the others).
     """
     name_map = dict(CMU_TO_RIG if name_map is None else name_map)
     if not np.allclose(mocap.rest_rotations, identity((mocap.n_joints,))):
@@ -278,7 +279,8 @@ def retarget(character: Character, mocap: Skeleton, end_sites: Mapping[int, Arra
         p = mocap.parents[j]
         q_parent = q_bind[p] if p >= 0 else identity()
         # The bone that orients this joint's segment: its (single) child with a mocap direction, or its End Site.
-        defining = [c for c in children[j] if not zero[c]]
+        # (A bone the mesh's rig has no length for, e.g. a palm bone of another rig, says nothing either.)
+        defining = [c for c in children[j] if not zero[c] and np.linalg.norm(heads[c] - heads[j]) > 1e-9]
         if defining:
             c = max(defining, key=lambda c: np.linalg.norm(mocap.offsets[c]))
             mocap_dir, rig_vec = mocap.offsets[c], heads[c] - heads[j]
@@ -286,10 +288,9 @@ def retarget(character: Character, mocap: Skeleton, end_sites: Mapping[int, Arra
             mocap_dir, rig_vec = np.asarray(end_sites[j], np.float64), tails[j] - heads[j]
         else:
             mocap_dir = rig_vec = None
-        if mocap.names[j] in relocate:
-            if not (zero[j] and defining and p >= 0):
-                raise ValueError(f"cannot relocate joint {mocap.names[j]!r}: it needs a zero-length bone to its "
-                                 f"parent and a child bone")
+        # Only a joint with a zero-length bone to its parent and a child bone can move instead of turning its mesh
+        # (the CMU pelvis); on rigs built otherwise (Mixamo: thighs straight under the hips) it is bound as usual.
+        if mocap.names[j] in relocate and zero[j] and defining and p >= 0:
             q_bind[j] = q_parent
             direction = rotate(q_parent, mocap_dir / np.linalg.norm(mocap_dir))
             p_bind[j] = heads[c] - np.linalg.norm(rig_vec) * direction

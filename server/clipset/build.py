@@ -96,7 +96,8 @@ def load_source(data_dir: Path, character: Character, config: AnimationConfig, r
         raise
     except (ValueError, OSError) as exc:  # BvhError (with its line), GltfError and RigMapError name the file
         raise AssetError(f"{where} source: {exc}") from None
-    return source_from_bvh(normalized.bvh, character, config, relocate, normalized.metres_per_unit)
+    return source_from_bvh(normalized.bvh, character, config, relocate, normalized.metres_per_unit,
+                           normalized.source_positions)
 
 
 def animation_clips(data_dir: Path, character: Character, config: AnimationConfig, fps: int,

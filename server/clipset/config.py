@@ -56,7 +56,7 @@ def _animation(name: str, entry: Any, where: str) -> AnimationConfig:
     if not isinstance(entry, dict):
         raise ConfigError(f"{where} must be a table")
     known = {"kind", "source", "frames", "playback", "in_place", "keys", "cycle", "tolerance_mm", "animation",
-             "mapping", "units", "up_axis"}
+             "mapping", "units", "up_axis", "accept_unfaithful"}
     if unknown := sorted(set(entry) - known):
         raise ConfigError(f"{where}: unknown field {unknown[0]!r}; allowed: {', '.join(sorted(known))}")
     kind = entry.get("kind")
@@ -115,10 +115,14 @@ def _animation(name: str, entry: Any, where: str) -> AnimationConfig:
     up_axis = entry.get("up_axis")
     if up_axis is not None and up_axis not in ("y", "z"):
         raise ConfigError(f"{where} up_axis: 'y' or 'z', got {up_axis!r}")
+    accept_unfaithful = entry.get("accept_unfaithful", False)
+    if not isinstance(accept_unfaithful, bool):
+        raise ConfigError(f"{where} accept_unfaithful: true (build even if the fidelity gate fails; the clips are "
+                          f"marked unfaithful) or false, got {accept_unfaithful!r}")
     return AnimationConfig(
         name, kind, source, frames, playback, in_place, keys,  # type: ignore[arg-type]
         None if cycle is None else _frames(cycle, f"{where} cycle", 2),  # type: ignore[arg-type]
-        float(tolerance), animation, mapping, units, up_axis)
+        float(tolerance), animation, mapping, units, up_axis, accept_unfaithful)
 
 
 def _other_keys(keys: tuple[int, ...], frames: tuple[int, ...], playback: str, where: str) -> None:

@@ -148,15 +148,17 @@ def close_study(slug: str, session: SessionDep, researcher: ResearcherDep) -> St
 
 @router.get("/studies/{slug}/export.csv", response_class=Response,
             responses={200: {"content": {"text/csv": {}}}})
-def export_csv(slug: str, session: SessionDep, researcher: ResearcherDep) -> Response:
+def export_csv(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep) -> Response:
     study = service.managed_study(session, slug, researcher)
-    return Response(service.export_csv(session, study), media_type="text/csv; charset=utf-8",
+    unfaithful = service.unfaithful_clips(settings.clips_dir)
+    return Response(service.export_csv(session, study, unfaithful), media_type="text/csv; charset=utf-8",
                     headers={"Content-Disposition": f'attachment; filename="{study.slug}-votes.csv"'})
 
 
 @router.get("/studies/{slug}/export.json", response_model=ExportJson)
-def export_json(slug: str, session: SessionDep, researcher: ResearcherDep) -> ExportJson:
-    return ExportJson(**service.export_document(session, service.managed_study(session, slug, researcher)))
+def export_json(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep) -> ExportJson:
+    return ExportJson(**service.export_document(session, service.managed_study(session, slug, researcher),
+                                                service.unfaithful_clips(settings.clips_dir)))
 
 
 @router.get("/data-dictionary", response_class=PlainTextResponse)

@@ -254,7 +254,7 @@ def session_outcome(study: Study, state: str, failed_catch: int) -> str | None:
 EXPORT_COLUMNS = ("session_id", "trial_index", "practice", "catch", "animation", "reference_condition",
                   "test_condition", "reference_side", "test_side", "choice", "score", "rt_ms", "answered_at",
                   "consent_version", "session_state", "outcome", "viewport_width", "viewport_height",
-                  "device_pixel_ratio", "video_scale", "video_scaled")
+                  "device_pixel_ratio", "video_scale", "video_scaled", "unfaithful")
 
 
 def export_columns(study: Study) -> list[str]:
@@ -282,23 +282,35 @@ def csv_cell(value: object) -> object:
     return value
 
 
-def export_csv(session: Session, study: Study) -> str:
-    """The export as CSV (cells as :func:`csv_cell` writes them)."""
+def unfaithful_clips(clips_dir: Path) -> frozenset[str]:
+    """Ids of the clips built although the fidelity gate failed (``accept_unfaithful``; docs/motion-from-the-wild.md);
+    none if there is no readable clip set."""
+    from server.clipset.manifest import ManifestError, read_clip_manifest
+
+    try:
+        manifest = read_clip_manifest(clips_dir)
+    except (ManifestError, OSError, ValueError):
+        return frozenset()
+    return frozenset(c.id for c in manifest.clips if c.metrics.get("unfaithful"))
+
+
+def export_csv(session: Session, study: Study, unfaithful: frozenset[str] = frozenset()) -> str:
+    """The export as CSV (cells as :func:`csv_cell` writes them); ``unfaithful``: :func:`unfaithful_clips`."""
     buffer = io.StringIO()
     # RFC 4180 line ends: with "\n" alone the csv module would not quote a value holding a bare "\r", and every
     # reader would split the row there.
     writer = csv.DictWriter(buffer, fieldnames=export_columns(study), lineterminator="\r\n")
     writer.writeheader()
-    for row in export_rows(session, study):
+    for row in export_rows(session, study, unfaithful):
         writer.writerow({k: csv_cell(v) for k, v in row.items()})
     return buffer.getvalue()
 
 
-def export_document(session: Session, study: Study) -> dict[str, Any]:
-    """The export as one JSON document: the study, the columns, the rows."""
+def export_document(session: Session, study: Study, unfaithful: frozenset[str] = frozenset()) -> dict[str, Any]:
+    """The export as one JSON document: the study, the columns, the rows (``unfaithful``: :func:`unfaithful_clips`)."""
     return {"study": {"slug": study.slug, "title": study.title, "state": study.state, "design": study.design,
                       "consent_version": study.consent_version, "questions": study.questions},
-            "columns": export_columns(study), "votes": list(export_rows(session, study))}
+            "columns": export_columns(study), "votes": list(export_rows(session, study, unfaithful))}
 
 
 def pairs_in_use(session: Session) -> list[tuple[str, str]]:
@@ -320,14 +332,15 @@ def pairs_to_render(session: Session, design: Design, clips_dir: Path, media_dir
     return list(dict.fromkeys([*pairs_in_use(session), *before, *required_pairs(design, index)]))
 
 
-def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
-    """One row per vote (withdrawn participants' votes no longer exist), in session and trial order."""
+def export_rows(session: Session, study: Study, unfaithful: frozenset[str] = frozenset()) -> Iterator[dict[str, Any]]:
+    """One row per vote (withdrawn participants' votes no longer exist), in session and trial order; ``unfaithful``:
+    the clip ids built in spite of the fidelity gate (:func:`unfaithful_clips`), which mark a vote on them."""
     reference, test = aliased(Stimulus), aliased(Stimulus)
     questions = [q["id"] for q in study.questions]
     parameters = list(study.recruitment["parameters"])
     rows = session.execute(
         select(Vote, Trial, ParticipantSession, Comparison.kind, reference.animation, reference.condition,
-               test.condition)
+               test.condition, reference.clip_id, test.clip_id)
         .join(Trial, Vote.trial_id == Trial.id)
         .join(ParticipantSession, Trial.session_id == ParticipantSession.id)
         .join(Comparison, Trial.comparison_id == Comparison.id)
@@ -337,7 +350,7 @@ def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
         .order_by(ParticipantSession.created_at, ParticipantSession.id, Trial.index)
     )
     failed = failed_catch_trials(session, study)
-    for vote, trial, ps, kind, animation, ref_condition, test_condition in rows:
+    for vote, trial, ps, kind, animation, ref_condition, test_condition, ref_clip, test_clip in rows:
         answers, external, device = ps.answers or {}, ps.external or {}, ps.device or {}
         yield {
             "session_id": ps.id, "trial_index": trial.index, "practice": trial.practice,
@@ -350,6 +363,7 @@ def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
             "viewport_width": device.get("viewport_width"),
             "viewport_height": device.get("viewport_height"), "device_pixel_ratio": device.get("device_pixel_ratio"),
             "video_scale": device.get("scale"), "video_scaled": device.get("scaled"),
+            "unfaithful": ref_clip in unfaithful or test_clip in unfaithful,
             **{p: external.get(p) for p in parameters},
         }
 

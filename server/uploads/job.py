@@ -151,7 +151,16 @@ def write_clip_set_file(path: Path, assets: Sequence[StudyAsset], asset_file: Ca
     for a in assets:
         lines += [f"[animations.{a.name}]", f"kind = {_toml_value(a.kind)}",
                   f"source = {_toml_value(str(asset_file(a)))}",
-                  f"frames = {_toml_value([a.first_frame, a.last_frame])}", ""]
+                  f"frames = {_toml_value([a.first_frame, a.last_frame])}"]
+        options = (a.report or {}).get("options", {})  # how the researcher said to read the file
+        lines += [f"{key} = {_toml_value(options[key])}" for key in ("units", "up_axis") if options.get(key)]
+        if options.get("mapping"):
+            mapping = path.with_name(f"{a.name}.mapping.json")
+            mapping.write_text(json.dumps(options["mapping"]), encoding="utf-8")
+            lines.append(f"mapping = {_toml_value(str(mapping))}")
+        if (a.report or {}).get("accept_unfaithful"):
+            lines.append("accept_unfaithful = true")
+        lines.append("")
     for cid, method, params in base.conditions:
         lines += ["[[conditions]]", f"id = {_toml_value(cid)}", f"method = {_toml_value(method)}"]
         if params:

@@ -7,6 +7,7 @@ file, and the dashboard sends a ``File`` as is.
 
 from __future__ import annotations
 
+import json
 import re
 from typing import Annotated, Any
 
@@ -37,6 +38,12 @@ class AssetChange(BaseModel):
     kind: str | None = Field(None, description="the clip-set kind its clips are built as (gait, crouch, idle)")
     frames: list[int] | None = Field(None, min_length=2, max_length=2,
                                      description="first and last source frame (inclusive)")
+    units: str | None = Field(None, description="the file's units (m, cm, mm, inch, cmu); 'auto' detects them")
+    up_axis: str | None = Field(None, description="the file's up axis (y, z); 'auto' detects it")
+    mapping: dict[str, str] | None = Field(None, description="character joint -> file joint, where the names do "
+                                                             "not tell; {} clears it")
+    accept_unfaithful: bool | None = Field(None, description="build its clips even if they fail the fidelity gate "
+                                                             "(they are marked unfaithful, also in the export)")
 
 
 @router.post("/studies/{slug}/assets", status_code=status.HTTP_201_CREATED,
@@ -47,7 +54,14 @@ async def upload_asset(slug: str, request: Request, session: SessionDep, setting
                        filename: Annotated[str, Query(max_length=200, description="the file's name (.bvh, .glb, "
                                                       ".gltf)")],
                        name: Annotated[str | None, Query(description="the animation it becomes (default: from the "
-                                                         "file name)")] = None) -> dict[str, Any]:
+                                                         "file name)")] = None,
+                       units: Annotated[str | None, Query(description="the file's units (m, cm, mm, inch, cmu; "
+                                                          "default: detected from the leg length)")] = None,
+                       up: Annotated[str | None, Query(description="the file's up axis (y, z; default: detected "
+                                                       "from the motion)")] = None,
+                       mapping: Annotated[str | None, Query(max_length=8000, description="JSON object character "
+                                                            "joint -> file joint, where the names do not tell")]
+                       = None) -> dict[str, Any]:
     """Upload a BVH or glTF file into a draft study's assets (the raw body is the file; at most
     ``ANIMSTUDY_UPLOAD_MAX_BYTES``, default 50 MB, else 413).  It is inspected before anything is stored; the
     answer is the asset with what inspecting it found (joints, convention, units, fps, frames, suggested kind and
@@ -55,6 +69,12 @@ async def upload_asset(slug: str, request: Request, session: SessionDep, setting
     BVH), the name taken → 409, not a draft → 409."""
     filename = service.check_filename(filename)
     animation = service.animation_name(filename, name)
+    try:
+        explicit = json.loads(mapping) if mapping is not None else None
+    except ValueError:
+        raise Unprocessable("mapping: not JSON; an object of character joint -> file joint names, e.g. "
+                            "{\"LeftUpLeg\": \"thigh_l\"}") from None
+    options = service.check_options(units, up, explicit)
 
     def check() -> Any:
         study = service.draft_study(session, slug, researcher)
@@ -81,7 +101,7 @@ async def upload_asset(slug: str, request: Request, session: SessionDep, setting
     except BaseException:
         service.discard(incoming)
         raise
-    asset = await run_in_threadpool(service.store_upload, session, settings, study, incoming, animation)
+    asset = await run_in_threadpool(service.store_upload, session, settings, study, incoming, animation, options)
     return service.asset_json(asset)
 
 
@@ -97,12 +117,28 @@ def list_assets(slug: str, session: SessionDep, researcher: ResearcherDep) -> di
 
 
 @router.patch("/studies/{slug}/assets/{name}")
-def change_asset(slug: str, name: str, session: SessionDep, researcher: ResearcherDep,
+def change_asset(slug: str, name: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep,
                  body: Annotated[AssetChange, Body()]) -> dict[str, Any]:
-    """Change the kind or the frames its clips are built from (draft only)."""
+    """Change the kind or the frames its clips are built from, or how the file is read (units, up axis, joint
+    mapping: it is inspected again; 422 with what to change if it does not read so) (draft only)."""
     study = service.draft_study(session, slug, researcher)
-    asset = service.update_asset(session, study, service.get_asset(session, study, name), body.kind,
-                                   tuple(body.frames) if body.frames else None)  # type: ignore[arg-type]
+    asset = service.get_asset(session, study, name)
+    options = None
+    if body.units is not None or body.up_axis is not None or body.mapping is not None:
+        old = dict(asset.report.get("options", {}))
+        for key, value in (("units", body.units), ("up_axis", body.up_axis)):
+            if value == "auto":
+                old.pop(key, None)
+            elif value is not None:
+                old[key] = value
+        if body.mapping is not None:
+            old["mapping"] = body.mapping
+        options = service.check_options(old.get("units"), old.get("up_axis"), old.get("mapping"))
+    asset = service.update_asset(session, study, asset, body.kind,
+                                 tuple(body.frames) if body.frames else None,  # type: ignore[arg-type]
+                                 options, settings)
+    if body.accept_unfaithful is not None:
+        asset = service.accept_unfaithful(session, asset, body.accept_unfaithful)
     return service.asset_json(asset)
 
 

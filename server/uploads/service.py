@@ -129,18 +129,53 @@ def report_json(report: Any, motions: list[str]) -> dict[str, Any]:
             "unmapped": list(m.unmapped)}
 
 
-def inspect_upload(path: Path) -> dict[str, Any]:
-    """Inspect an uploaded file: its report, or 422 with the reader's message (file, line, what is wrong).  A glTF
-    with several animations gives its first one (the report names the others)."""
+def check_options(units: str | None, up_axis: str | None, mapping: Any) -> dict[str, Any]:
+    """How to read a file where the detection cannot tell (``units``, ``up_axis``, an explicit joint ``mapping``
+    ``{character joint: file joint}``), checked; 422 naming the field and the choices.  None: detect."""
+    from anim_core.rig.rigmap import CANONICAL_NAMES, UNITS
+
+    if units is not None and units not in UNITS:
+        raise Unprocessable(f"units: {units!r} is not a unit; one of {', '.join(UNITS)} (or leave it out to detect "
+                            f"it from the leg length)")
+    if up_axis is not None and up_axis not in ("y", "z"):
+        raise Unprocessable(f"up axis: {up_axis!r}; 'y' or 'z' (or leave it out to detect it from the motion)")
+    if mapping is not None:
+        if not isinstance(mapping, dict) or not all(isinstance(k, str) and isinstance(v, str)
+                                                    for k, v in mapping.items()):
+            raise Unprocessable("mapping: an object of character joint -> file joint names, e.g. "
+                                "{\"LeftUpLeg\": \"thigh_l\"}")
+        if unknown := sorted(set(mapping) - set(CANONICAL_NAMES)):
+            raise Unprocessable(f"mapping: {unknown[0]!r} is not a character joint; they are "
+                                f"{', '.join(CANONICAL_NAMES)}")
+    return {k: v for k, v in (("units", units), ("up_axis", up_axis), ("mapping", mapping or None))
+            if v is not None}
+
+
+#: Said after an upload that does not read, so the researcher knows what to change.
+NEXT_STEP = {
+    "RigMapError": "choose the units, the up axis or a joint mapping in the upload form (API: units=, up=, "
+                   "mapping=) and upload the file again",
+    "BvhError": "correct the file there (or export it again) and upload it again",
+    "GltfError": "export the file again from your tool (glTF 2.0, one skinned character) and upload it again",
+}
+
+
+def inspect_upload(path: Path, options: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Inspect an uploaded file read with ``options`` (:func:`check_options`): its report (with the options), or
+    422 with the reader's message (file, line, what is wrong) and what to do next.  A glTF with several animations
+    gives its first one (the report names the others)."""
     from anim_core.clips.sources import inspect_source
 
+    options = options or {}
     try:
-        reports = inspect_source(path)
+        reports = inspect_source(path, options.get("mapping"), options.get("units"), options.get("up_axis"))
     except (ValueError, OSError, RecursionError, MemoryError) as exc:  # BvhError, GltfError, RigMapError ...
-        raise Unprocessable(str(exc) or f"{path.name}: cannot be read ({type(exc).__name__})") from None
+        message = str(exc) or f"{path.name}: cannot be read ({type(exc).__name__})"
+        step = NEXT_STEP.get(type(exc).__name__, "check the file and upload it again")
+        raise Unprocessable(f"{message.rstrip('.')}. To go on: {step}") from None
     if not reports:
-        raise Unprocessable(f"{path.name}: holds no motion")
-    return report_json(reports[0], [r.name for r in reports])
+        raise Unprocessable(f"{path.name}: holds no motion; upload a file with an animation")
+    return {**report_json(reports[0], [r.name for r in reports]), "options": options}
 
 
 def _sha256(path: Path) -> str:
@@ -151,12 +186,13 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def store_upload(session: Session, settings: Settings, study: Study, incoming: Path, name: str) -> StudyAsset:
+def store_upload(session: Session, settings: Settings, study: Study, incoming: Path, name: str,
+                 options: dict[str, Any] | None = None) -> StudyAsset:
     """Validate the streamed file ``incoming`` and, if it is good, put it in place and record it (both or
     neither); the incoming folder is removed either way.  The file is inspected before any query, so no
     transaction is open meanwhile."""
     try:
-        report = inspect_upload(incoming)
+        report = inspect_upload(incoming, options)
         check_free(session, study, incoming.name, name)
         asset = StudyAsset(study_id=study.id, name=name, filename=incoming.name,
                            size_bytes=incoming.stat().st_size, sha256=_sha256(incoming),
@@ -195,11 +231,23 @@ def get_asset(session: Session, study: Study, name: str) -> StudyAsset:
 
 
 def update_asset(session: Session, study: Study, asset: StudyAsset, kind: str | None,
-                 frames: tuple[int, int] | None) -> StudyAsset:
-    """Change what the asset's clips are built from: the clip-set ``kind`` and the source ``frames`` (inclusive)."""
+                 frames: tuple[int, int] | None, options: dict[str, Any] | None = None,
+                 settings: Settings | None = None) -> StudyAsset:
+    """Change what the asset's clips are built from: the clip-set ``kind``, the source ``frames`` (inclusive) and
+    how the file is read (``options``, :func:`check_options`: the file is inspected again with them; its new
+    suggestion is taken unless kind or frames are given too)."""
     from server.clipset.config import KINDS
 
     check_not_building(session, study)
+    if options is not None:
+        if settings is None:
+            raise ValueError("changing how a file is read needs the settings (where the file is)")
+        report = inspect_upload(asset_path(settings, asset), options)
+        if asset.report.get("accept_unfaithful"):
+            report["accept_unfaithful"] = True
+        asset.report = report
+        asset.kind = report["suggested"]["kind"]
+        asset.first_frame, asset.last_frame = report["suggested"]["frames"]
     if kind is not None:
         if kind not in KINDS:
             raise Unprocessable(f"kind: {kind!r} is not a kind of the clip set; one of {', '.join(KINDS)}")
@@ -210,6 +258,13 @@ def update_asset(session: Session, study: Study, asset: StudyAsset, kind: str | 
         if not 0 <= first < last < count:
             raise Unprocessable(f"frames: [{first}, {last}] must be increasing frames of the file's 0..{count - 1}")
         asset.first_frame, asset.last_frame = first, last
+    session.commit()
+    return asset
+
+
+def accept_unfaithful(session: Session, asset: StudyAsset, accept: bool) -> StudyAsset:
+    """Build the asset's clips even if the fidelity gate fails (docs/motion-from-the-wild.md); they are marked."""
+    asset.report = {**asset.report, "accept_unfaithful": accept}  # a new dict: the JSON column sees the change
     session.commit()
     return asset
 
