@@ -549,16 +549,16 @@ def _even(text: str) -> int:
     return value
 
 
-def _main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv[:1] == ["loadtest"]:  # its own options (see server/loadtest.py)
-        from server import loadtest
+def build_parser() -> argparse.ArgumentParser:
+    """The whole command line, every subcommand and option (the docs site's CLI reference is generated from it)."""
+    from server import loadtest
 
-        return loadtest.main(argv[1:])
     parser = argparse.ArgumentParser(prog="animstudy", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("inspect", help="summarize the motion-capture files of the data directory")
-    sub.add_parser("loadtest", help="load, crash and outage test of the participant API (see --help)")
+    # Parsed by loadtest.main itself (see _main); attached here so that help and the reference show its options.
+    sub.add_parser("loadtest", help="load, crash and outage test of the participant API",
+                   parents=[loadtest.build_parser(add_help=False)], description=loadtest.__doc__)
     clips = sub.add_parser("clips", help="the clip set (keyframe and hybrid clips with motion metrics)")
     clips_sub = clips.add_subparsers(dest="clips_command", required=True)
     build = clips_sub.add_parser("build", help="build the clip set from the data directory")
@@ -631,7 +631,16 @@ def _main(argv: Sequence[str] | None = None) -> int:
     bn.add_argument("--frames", type=int, default=None, help="timed frames per measurement (default: 200)")
     bn.add_argument("--variants", type=_variants, default=None,
                     help="comma-separated: keys, baked, reference, naive (default: all)")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def _main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["loadtest"]:  # its own options (see server/loadtest.py)
+        from server import loadtest
+
+        return loadtest.main(argv[1:])
+    args = build_parser().parse_args(argv)
     settings = Settings.from_env()
     if args.command == "bench":
         from anim_core.benchmark import DEFAULT_CHARACTERS, VARIANTS

@@ -10,6 +10,7 @@ is acknowledged, and follow the server's state after a 409.
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import json
 import os
@@ -381,10 +382,9 @@ def format_report(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    import argparse
-
-    p = argparse.ArgumentParser(prog="animstudy loadtest", description=__doc__)
+def build_parser(add_help: bool = True) -> argparse.ArgumentParser:
+    """The options of ``animstudy loadtest``."""
+    p = argparse.ArgumentParser(prog="animstudy loadtest", description=__doc__, add_help=add_help)
     p.add_argument("--database", choices=["sqlite", "postgresql"], default="sqlite")
     p.add_argument("--participants", type=int, default=200)
     p.add_argument("--workers", type=int, default=2)
@@ -398,7 +398,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--time-limit", type=float, default=300.0)
     p.add_argument("--pg-url", default=DEFAULT_PG)
     p.add_argument("--json", type=Path, default=None)
-    a = p.parse_args(argv)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = build_parser().parse_args(argv)
     report = run(a.database, a.participants, a.workers, a.concurrency, time_limit=a.time_limit,
                  pause_ms=a.pause_ms, ramp_s=a.ramp_s, crash_at=a.crash_at, outage_at=a.outage_at, outage_s=a.outage_s,
                  pg_url=a.pg_url)
