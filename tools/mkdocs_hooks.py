@@ -20,9 +20,9 @@ from mkdocs.structure.files import File, Files
 
 CLI_PAGE = "reference/cli.md"
 DATA_DICTIONARY_PAGE = "reference/data-dictionary.md"
-# MathJax (npm package mathjax@3, installed by `make docs` into var/node like axe-core): copied into the site when
-# present, so formulas render without fetching anything; without it they show as TeX source.
-MATHJAX = Path(__file__).resolve().parents[1] / "var/node/node_modules/mathjax/es5/tex-svg.js"
+# MathJax (npm package mathjax@3, installed by `make docs` into var/node-docs: in var/node npm would prune axe-core)
+# is copied into the site when present, so formulas render without fetching anything; without it they show as TeX.
+MATHJAX = Path(__file__).resolve().parents[1] / "var/node-docs/node_modules/mathjax/es5/tex-svg.js"
 USAGE_WIDTH = 100
 
 
