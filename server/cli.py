@@ -107,7 +107,7 @@ def inspect(data_dir: Path) -> int:
 
     paths = sorted(data_dir.glob("mocap/**/*.bvh*"))
     if not paths:
-        return _fail(f"no BVH files under {data_dir / 'mocap'}; set ANIMSTUDY_DATA_DIR (see README.md)")
+        return _fail(f"no BVH files under {data_dir / 'mocap'}; set ANIMSTUDY_DATA_DIR (see docs/reference/data.md)")
     print(f"motion capture in {data_dir}:")
     print(f"{'file':34} {'frames':>6} {'fps':>5} {'seconds':>7} {'joints':>6} {'travel m':>8} {'speed m/s':>9}")
     status = 0
