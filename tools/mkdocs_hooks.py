@@ -23,7 +23,7 @@ DATA_DICTIONARY_PAGE = "reference/data-dictionary.md"
 # MathJax (npm package mathjax@3, installed by `make docs` into var/node-docs: in var/node npm would prune axe-core)
 # is copied into the site when present, so formulas render without fetching anything; without it they show as TeX.
 MATHJAX = Path(__file__).resolve().parents[1] / "var/node-docs/node_modules/mathjax/es5/tex-svg.js"
-USAGE_WIDTH = 100
+USAGE_WIDTH = 80  # fits the theme's code block without scrolling
 
 
 def _subcommands(parser: argparse.ArgumentParser) -> list[tuple[str, str, argparse.ArgumentParser]]:
