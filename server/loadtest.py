@@ -382,31 +382,11 @@ def format_report(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def build_parser(add_help: bool = True) -> argparse.ArgumentParser:
-    """The options of ``animstudy loadtest``."""
-    p = argparse.ArgumentParser(prog="animstudy loadtest", description=__doc__, add_help=add_help)
-    p.add_argument("--database", choices=["sqlite", "postgresql"], default="sqlite",
-                   help="a fresh database of this kind (PostgreSQL: the one of --pg-url, emptied first)")
-    p.add_argument("--participants", type=int, default=200, help="simulated participants, 16 votes each")
-    p.add_argument("--workers", type=int, default=2, help="uvicorn worker processes of the server")
-    p.add_argument("--concurrency", type=int, default=100, help="participants in progress at a time")
-    p.add_argument("--pause-ms", type=float, default=0.0, help="mean think time before each vote")
-    p.add_argument("--ramp-s", type=float, default=0.0,
-                   help="spread the participants' arrivals over this many seconds (default: all at once)")
-    p.add_argument("--crash-at", type=float, default=None, help="SIGKILL the server at this share of the votes")
-    p.add_argument("--outage-at", type=float, default=None, help="stop PostgreSQL at this share of the votes")
-    p.add_argument("--outage-s", type=float, default=5.0, help="seconds PostgreSQL stays stopped")
-    p.add_argument("--time-limit", type=float, default=300.0, help="seconds before the run gives up")
-    p.add_argument("--pg-url", default=DEFAULT_PG, help="PostgreSQL database to use (its schema is dropped)")
-    p.add_argument("--json", type=Path, default=None, help="also write the report as JSON to this file")
-    return p
-
-
-def main(argv: list[str] | None = None) -> int:
-    a = build_parser().parse_args(argv)
+def main(a: argparse.Namespace) -> int:
+    """``animstudy loadtest`` with its parsed options (``server.cli.loadtest_parser``)."""
     report = run(a.database, a.participants, a.workers, a.concurrency, time_limit=a.time_limit,
                  pause_ms=a.pause_ms, ramp_s=a.ramp_s, crash_at=a.crash_at, outage_at=a.outage_at, outage_s=a.outage_s,
-                 pg_url=a.pg_url)
+                 pg_url=a.pg_url or DEFAULT_PG)
     print(format_report(report))
     if a.json:
         a.json.write_text(json.dumps(report, indent=1) + "\n", encoding="utf-8")
