@@ -1,12 +1,14 @@
-# The two set-up commands of README.md: `make run` and `make test`.  Both create the virtual environment
-# (.venv) on first use and re-install only when pyproject.toml changes.
+# The two commands of README.md: `make run` and `make test` (`make docs` builds the manual into var/site).  Both
+# create the virtual environment (.venv) on first use and re-install only when pyproject.toml changes.
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 AXE := var/node/node_modules/axe-core/axe.min.js
+# MathJax for the manual's formulas; a prefix of its own, since npm prunes what it did not just install.
+MATHJAX := var/node-docs/node_modules/mathjax/es5/tex-svg.js
 
-.PHONY: install run test lint clean
+.PHONY: install run test lint docs clean
 
 $(STAMP): pyproject.toml
 	@# Debian's python3 lacks venv/ensurepip unless python3-venv is installed.
@@ -19,7 +21,7 @@ $(STAMP): pyproject.toml
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libosmesa6 libgl1; }
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/python -m pip install --quiet -e '.[test,docs]'
 	$(BIN)/python -m pip install --quiet --no-deps pyrender==0.1.45
 	@touch $(STAMP)
 
@@ -33,6 +35,13 @@ run: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check .
 
+# Strict: a broken link or anchor, or a page in the nav missing from docs/, fails.  Offline: the theme fetches no
+# fonts, no plugin downloads anything; only MathJax comes from the npm registry, once, and the site works without it.
+docs: $(STAMP)
+	@test -f $(MATHJAX) || { command -v npm >/dev/null && npm install --no-save --no-audit --no-fund \
+		--prefix var/node-docs mathjax@3; } || echo "note: MathJax not installed; formulas show as TeX source"
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet
+
 test: lint
 	@# The browser tests drive Debian's Chromium through Playwright (never a downloaded browser).
 	@test -x /usr/bin/chromium || { echo "installing chromium (apt-get)"; \
@@ -41,7 +50,8 @@ test: lint
 	@command -v npm >/dev/null || { echo "installing npm (apt-get)"; \
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq npm; }
 	@test -f $(AXE) || npm install --no-save --no-audit --no-fund --prefix var/node axe-core@4
+	@$(MAKE) --no-print-directory docs
 	$(BIN)/python -m pytest
 
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache *.egg-info
+	rm -rf $(VENV) .pytest_cache .ruff_cache *.egg-info var/site

@@ -51,7 +51,7 @@ def check_data_dir(data_dir: Path) -> Path:
     if not data_dir.is_dir():
         raise AssetError(f"data directory {data_dir} does not exist; set ANIMSTUDY_DATA_DIR to the folder holding "
                          f"mocap/ and character/, or unset it to use the sample data in the repository's data/ "
-                         f"(see README.md, Data)")
+                         f"(see docs/reference/data.md)")
     return data_dir
 
 
@@ -62,7 +62,7 @@ def resolve(data_dir: Path, name: str) -> Path:
     for path in candidates:
         if path.is_file():
             return path
-    raise AssetError(f"missing file {base / name} (see README.md, Data: the repository's data/ folder ships it)")
+    raise AssetError(f"missing file {base / name} (see docs/reference/data.md: the repository's data/ folder ships it)")
 
 
 def read_bytes(path: Path) -> bytes:
@@ -118,7 +118,7 @@ def user_file(data_dir: Path, name: str, what: str) -> Path:
 
 def gltf_character(data_dir: Path, gltf: str, mapping: str | None = None, units: str | None = None,
                    up_axis: str | None = None) -> MappedCharacter:
-    """A skinned glTF character (README: "A glTF character"); every error names the file."""
+    """A skinned glTF character (docs/motion/your-own-motion.md, *A glTF character*); every error names the file."""
     path = user_file(data_dir, gltf, "glTF character")
     explicit = None
     if mapping is not None:

@@ -106,7 +106,7 @@ def inspect(data_dir: Path) -> int:
 
     paths = sorted(data_dir.glob("mocap/**/*.bvh*"))
     if not paths:
-        return _fail(f"no BVH files under {data_dir / 'mocap'}; set ANIMSTUDY_DATA_DIR (see README.md)")
+        return _fail(f"no BVH files under {data_dir / 'mocap'}; set ANIMSTUDY_DATA_DIR (see docs/reference/data.md)")
     print(f"motion capture in {data_dir}:")
     print(f"{'file':34} {'frames':>6} {'fps':>5} {'seconds':>7} {'joints':>6} {'travel m':>8} {'speed m/s':>9}")
     status = 0
@@ -569,16 +569,39 @@ def _even(text: str) -> int:
     return value
 
 
-def _main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv[:1] == ["loadtest"]:  # its own options (see server/loadtest.py)
-        from server import loadtest
+def loadtest_parser(add_help: bool = True) -> argparse.ArgumentParser:
+    """The options of ``animstudy loadtest`` (defined here, not in server/loadtest.py, whose imports would slow
+    every command's start)."""
+    p = argparse.ArgumentParser(prog="animstudy loadtest", add_help=add_help,
+                                description="Load, crash and outage test of the participant API: N simulated "
+                                "participants against a fresh server and database; exits non-zero if any "
+                                "acknowledged vote was lost or doubled.")
+    p.add_argument("--database", choices=["sqlite", "postgresql"], default="sqlite",
+                   help="a fresh database of this kind (PostgreSQL: the one of --pg-url, emptied first)")
+    p.add_argument("--participants", type=int, default=200, help="simulated participants, 16 votes each")
+    p.add_argument("--workers", type=int, default=2, help="uvicorn worker processes of the server")
+    p.add_argument("--concurrency", type=int, default=100, help="participants in progress at a time")
+    p.add_argument("--pause-ms", type=float, default=0.0, help="mean think time before each vote")
+    p.add_argument("--ramp-s", type=float, default=0.0,
+                   help="spread the participants' arrivals over this many seconds (default: all at once)")
+    p.add_argument("--crash-at", type=float, default=None, help="SIGKILL the server at this share of the votes")
+    p.add_argument("--outage-at", type=float, default=None, help="stop PostgreSQL at this share of the votes")
+    p.add_argument("--outage-s", type=float, default=5.0, help="seconds PostgreSQL stays stopped")
+    p.add_argument("--time-limit", type=float, default=300.0, help="seconds before the run gives up")
+    p.add_argument("--pg-url", default=None, help="PostgreSQL database to use, its schema dropped (default: "
+                   "database animstudy_load of the local server, as user postgres)")
+    p.add_argument("--json", type=Path, default=None, help="also write the report as JSON to this file")
+    return p
 
-        return loadtest.main(argv[1:])
+
+def build_parser() -> argparse.ArgumentParser:
+    """The whole command line, every subcommand and option (the docs site's CLI reference is generated from it)."""
     parser = argparse.ArgumentParser(prog="animstudy", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("inspect", help="summarize the motion-capture files of the data directory")
-    sub.add_parser("loadtest", help="load, crash and outage test of the participant API (see --help)")
+    loadtest = loadtest_parser(add_help=False)
+    sub.add_parser("loadtest", help="load, crash and outage test of the participant API", parents=[loadtest],
+                   description=loadtest.description)
     clips = sub.add_parser("clips", help="the clip set (keyframe and hybrid clips with motion metrics)")
     clips_sub = clips.add_subparsers(dest="clips_command", required=True)
     build = clips_sub.add_parser("build", help="build the clip set from the data directory")
@@ -651,7 +674,15 @@ def _main(argv: Sequence[str] | None = None) -> int:
     bn.add_argument("--frames", type=int, default=None, help="timed frames per measurement (default: 200)")
     bn.add_argument("--variants", type=_variants, default=None,
                     help="comma-separated: keys, baked, reference, naive (default: all)")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def _main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.command == "loadtest":
+        from server import loadtest
+
+        return loadtest.main(args)
     settings = Settings.from_env()
     if args.command == "bench":
         from anim_core.bench.suite import DEFAULT_CHARACTERS, VARIANTS

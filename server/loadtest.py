@@ -10,6 +10,7 @@ is acknowledged, and follow the server's state after a 409.
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import json
 import os
@@ -381,27 +382,11 @@ def format_report(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    import argparse
-
-    p = argparse.ArgumentParser(prog="animstudy loadtest", description=__doc__)
-    p.add_argument("--database", choices=["sqlite", "postgresql"], default="sqlite")
-    p.add_argument("--participants", type=int, default=200)
-    p.add_argument("--workers", type=int, default=2)
-    p.add_argument("--concurrency", type=int, default=100)
-    p.add_argument("--pause-ms", type=float, default=0.0, help="mean think time before each vote")
-    p.add_argument("--ramp-s", type=float, default=0.0,
-                   help="spread the participants' arrivals over this many seconds (default: all at once)")
-    p.add_argument("--crash-at", type=float, default=None, help="SIGKILL the server at this share of the votes")
-    p.add_argument("--outage-at", type=float, default=None, help="stop PostgreSQL at this share of the votes")
-    p.add_argument("--outage-s", type=float, default=5.0)
-    p.add_argument("--time-limit", type=float, default=300.0)
-    p.add_argument("--pg-url", default=DEFAULT_PG)
-    p.add_argument("--json", type=Path, default=None)
-    a = p.parse_args(argv)
+def main(a: argparse.Namespace) -> int:
+    """``animstudy loadtest`` with its parsed options (``server.cli.loadtest_parser``)."""
     report = run(a.database, a.participants, a.workers, a.concurrency, time_limit=a.time_limit,
                  pause_ms=a.pause_ms, ramp_s=a.ramp_s, crash_at=a.crash_at, outage_at=a.outage_at, outage_s=a.outage_s,
-                 pg_url=a.pg_url)
+                 pg_url=a.pg_url or DEFAULT_PG)
     print(format_report(report))
     if a.json:
         a.json.write_text(json.dumps(report, indent=1) + "\n", encoding="utf-8")

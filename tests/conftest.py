@@ -16,7 +16,7 @@ def data_dir() -> Path:
     """``ANIMSTUDY_DATA_DIR`` or the sample data shipped in the repository (``data/``)."""
     path = Path(os.environ.get("ANIMSTUDY_DATA_DIR", REPO / "data"))
     if not (path / "mocap").is_dir():
-        pytest.fail(f"motion-capture data not found in {path}: set ANIMSTUDY_DATA_DIR (see README.md)")
+        pytest.fail(f"motion-capture data not found in {path}: set ANIMSTUDY_DATA_DIR (see docs/reference/data.md)")
     return path
 
 

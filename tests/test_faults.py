@@ -1,4 +1,4 @@
-"""Short forms of the fault scenarios (the full load test is `animstudy loadtest`, see README.md):
+"""Short forms of the fault scenarios (the full load test is `animstudy loadtest`, see docs/reference/load-test.md):
 a server killed with SIGKILL mid-load, PostgreSQL stopped mid-load, schema-driven fuzzing, and a targeted fuzz
 with what schemas cannot describe (NaN, Infinity, lone surrogates, bytes that are not UTF-8)."""
 

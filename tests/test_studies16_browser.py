@@ -1,4 +1,4 @@
-"""Issue 16's two example studies end to end, as a user runs them (README, "More conditions"): the clip set of
+"""Issue 16's two example studies end to end, as a user runs them (docs/motion/conditions.md): the clip set of
 server/clipset/conditions16.toml built, the videos of both studies rendered (small, no shadows: the pipeline is
 the one of the full size, only cheaper), both studies created and opened with `animstudy study create`, one
 participant walked through each in Chromium (every trial's video plays, every vote is stored), and the dashboard

@@ -1,7 +1,7 @@
 """Motion metrics of a built clip set (:mod:`anim_core.clips.build`): per clip, every other condition against its
 animation's reference on the same frame grid, and the warnings ``animstudy clips build`` prints.
 
-Metrics and units are listed in the README ("How the thesis clips are built", metrics paragraph).
+Metrics and units are listed in docs/methods/metrics.md.
 """
 
 from __future__ import annotations

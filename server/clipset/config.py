@@ -1,5 +1,5 @@
 """The clip-set file (TOML): animations x conditions.  Read and validated here only; errors name the file, the
-entry and the field.  The format is documented in the README ("Clip-set file")."""
+entry and the field.  The format is documented in docs/motion/clip-sets.md."""
 
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ NAME = re.compile(NAME_PATTERN)
 class CharacterConfig:
     """``[character]``'s choice of body: ``gltf`` None is the MakeHuman character of the data directory, else a
     skinned glTF file (path under the data directory or absolute) with an optional explicit joint ``mapping``
-    file and ``units``/``up_axis`` overrides (README: "A glTF character")."""
+    file and ``units``/``up_axis`` overrides (docs/motion/your-own-motion.md, *A glTF character*)."""
 
     gltf: str | None = None
     mapping: str | None = None

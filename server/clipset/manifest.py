@@ -20,7 +20,7 @@ from anim_core.methods.conditions import Kind
 
 MANIFEST = "manifest.json"
 VERSION = 2
-#: The arrays of each clip's ``.npz`` (README: "Clip manifest").
+#: The arrays of each clip's ``.npz`` (docs/reference/manifests.md).
 CLIP_ARRAYS = ("joint_names", "parents", "offsets", "bind_rotations", "bind_positions", "times", "local_rotations",
                "root_positions", "world_rotations", "world_positions", "key_times", "key_rotations")
 M = TypeVar("M", bound=BaseModel)
@@ -42,7 +42,7 @@ class Units(_Model):
 
 
 class ClipEntry(_Model):
-    """One clip: ``file`` (``<id>.npz`` beside the manifest) holds its arrays (README: "Clip manifest")."""
+    """One clip: ``file`` (``<id>.npz`` beside the manifest) holds its arrays (docs/reference/manifests.md)."""
 
     id: str
     animation: str

@@ -18,7 +18,7 @@ STRICT = ConfigDict(strict=True)
 
 
 class DeviceReport(BaseModel):
-    """What the page's device gate measured when the participant started (see README, "Device gate")."""
+    """What the page's device gate measured when the participant started (docs/researchers/participant-page.md)."""
 
     model_config = ConfigDict(strict=True, extra="forbid")
 

@@ -1,6 +1,5 @@
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Depends, Request, status
@@ -17,6 +16,7 @@ from server.participants.models import ParticipantSession, Vote
 from server.uploads.service import remove_study_assets
 
 from . import service
+from .columns import data_dictionary_markdown
 from .models import Study, StudyState
 from .page import Page
 from .results import participant_counts, study_results
@@ -24,7 +24,6 @@ from .schemas import ExportJson, StudyPublic, StudyStateRead, StudySummary
 from .studyfile import StudyFile, StudyFileError, parse_study_text
 
 router = APIRouter(prefix="/api/v1", tags=["studies"])
-DATA_DICTIONARY = Path(__file__).with_name("DATA_DICTIONARY.md")
 MAX_STUDY_FILE_BYTES = 200_000
 
 
@@ -164,7 +163,7 @@ def export_json(slug: str, session: SessionDep, settings: SettingsDep, researche
 @router.get("/data-dictionary", response_class=PlainTextResponse)
 def data_dictionary() -> str:
     """The columns of the exports, documented (Markdown)."""
-    return DATA_DICTIONARY.read_text(encoding="utf-8")
+    return data_dictionary_markdown()
 
 
 @router.get("/studies/{slug}/results")

@@ -19,6 +19,7 @@ from server.media.manifest import RenderManifest
 from server.participants.models import ParticipantSession, SessionState, Trial, Vote
 from server.researchers.models import Researcher
 
+from .columns import EXPORT_COLUMNS, QUESTIONS_BEFORE
 from .design import ComparisonIds, Design
 from .models import Comparison, ComparisonKind, Stimulus, Study, StudyState
 from .scale import other_side
@@ -251,17 +252,11 @@ def session_outcome(study: Study, state: str, failed_catch: int) -> str | None:
     return "screened_out" if failed_catch > recruitment(study).catch_failures_allowed else "completed"
 
 
-EXPORT_COLUMNS = ("session_id", "trial_index", "practice", "catch", "animation", "reference_condition",
-                  "test_condition", "reference_side", "test_side", "choice", "score", "rt_ms", "answered_at",
-                  "consent_version", "session_state", "outcome", "viewport_width", "viewport_height",
-                  "device_pixel_ratio", "video_scale", "video_scaled", "unfaithful")
-
-
 def export_columns(study: Study) -> list[str]:
     """The fixed columns, with one per question of the study (its id) before ``answered_at`` and one per accepted
     URL parameter (its name, e.g. ``PROLIFIC_PID``) at the end."""
     base = list(EXPORT_COLUMNS)
-    at = base.index("answered_at")
+    at = base.index(QUESTIONS_BEFORE)
     return base[:at] + [q["id"] for q in study.questions] + base[at:] + list(study.recruitment["parameters"])
 
 

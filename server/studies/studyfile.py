@@ -15,6 +15,7 @@ from urllib.parse import quote, urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, ValidationError, field_validator, model_validator
 
+from .columns import EXPORT_COLUMNS
 from .design import Design
 from .page import Page
 from .scale import DEFAULT_LABELS, DEFAULT_QUESTION
@@ -22,11 +23,8 @@ from .scale import DEFAULT_LABELS, DEFAULT_QUESTION
 # Package data (pyproject.toml), so an installed animstudy has its default study: in the checkout a link to
 # studies/thesis.toml, in a built wheel a copy of it.
 THESIS_FILE = Path(__file__).with_name("thesis.toml")
-# Export columns a question id must not shadow (see service.EXPORT_COLUMNS).
-RESERVED_IDS = frozenset({
-    "session_id", "trial_index", "practice", "catch", "animation", "reference_condition", "test_condition",
-    "reference_side", "test_side", "choice", "score", "rt_ms", "answered_at", "consent_version", "session_state",
-    "outcome", "viewport_width", "viewport_height", "device_pixel_ratio", "video_scale", "video_scaled"})
+# Export columns a question id must not shadow.
+RESERVED_IDS = frozenset(EXPORT_COLUMNS)
 # A URL parameter must not shadow an export column either (question ids are lower case, so they never meet).
 
 Slug = Annotated[str, StringConstraints(pattern=r"^[a-z0-9][a-z0-9-]{0,63}$")]

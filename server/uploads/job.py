@@ -143,7 +143,7 @@ def base_clip_set(data_dir: Path, clips_dir: Path) -> BaseClipSet:
 
 def write_clip_set_file(path: Path, assets: Sequence[StudyAsset], asset_file: Callable[[StudyAsset], Path],
                         base: BaseClipSet) -> Path:
-    """The clip-set file (README "Clip-set file") of ``assets``, through a temporary file."""
+    """The clip-set file (docs/motion/clip-sets.md, *Clip-set file*) of ``assets``, through a temporary file."""
     body = {k: v for k, v in asdict(base.character).items() if v is not None}
     lines = ["# written by the build job of the study's uploaded assets (server/uploads/job.py)",
              f"fps = {base.fps}", "", "[character]", f"relocate = {_toml_value(list(base.relocate))}",

@@ -1,4 +1,4 @@
-"""The researcher API of a study's assets (README: "Uploading motion files").
+"""The researcher API of a study's assets (docs/motion/uploads.md).
 
 ``POST /api/v1/studies/{slug}/assets?filename=NAME[&name=ANIMATION]`` takes the file itself as the raw request
 body (any content type; ``Content-Length`` or chunked), not a multipart form: the body streams straight into a
