@@ -39,6 +39,13 @@ from .models import BuildJob, BuildState, StudyAsset
 EXTENSIONS = (".bvh", ".glb", ".gltf")
 FILENAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._ -]{0,99}$")
 ANIMATION_NAME = re.compile(r"^[a-z0-9][a-z0-9_]{0,31}$")  # as the clip-set file's animation names
+#: Memory inspecting an upload may take: ``MEMORY_PER_BYTE`` × its size + ``MEMORY_BASE`` (issue 26).  The part
+#: that does not grow with the file's bytes grows with its frames × joints (a BVH joint without channels costs
+#: nothing in the file and as much as any other in memory): inspecting a 1000-joint BVH took 258 bytes per
+#: frame·joint, so the motion may have at most that memory / :data:`BYTES_PER_FRAME_JOINT` frame·joints.
+MEMORY_PER_BYTE = 50
+MEMORY_BASE = 200_000_000
+BYTES_PER_FRAME_JOINT = 300
 INCOMING = ".incoming"
 STALE_INCOMING_S = 24 * 3600
 ACTIVE = (BuildState.queued, BuildState.running)
@@ -129,13 +136,19 @@ def report_json(report: Any, motions: list[str]) -> dict[str, Any]:
             "unmapped": list(m.unmapped)}
 
 
+def max_frame_joints(size_bytes: int) -> int:
+    """The frames × joints an upload of ``size_bytes`` may hold (see :data:`MEMORY_PER_BYTE`)."""
+    return (MEMORY_PER_BYTE * size_bytes + MEMORY_BASE) // BYTES_PER_FRAME_JOINT
+
+
 def inspect_upload(path: Path) -> dict[str, Any]:
     """Inspect an uploaded file: its report, or 422 with the reader's message (file, line, what is wrong).  A glTF
-    with several animations gives its first one (the report names the others)."""
+    with several animations gives its first one (the report names the others).  A motion of more frames × joints
+    than :func:`max_frame_joints` allows for the file's size is refused before it is read."""
     from anim_core.sourceinfo import inspect_source
 
     try:
-        reports = inspect_source(path)
+        reports = inspect_source(path, max_frame_joints=max_frame_joints(path.stat().st_size))
     except (ValueError, OSError, RecursionError, MemoryError) as exc:  # BvhError, GltfError, RigMapError ...
         raise Unprocessable(str(exc) or f"{path.name}: cannot be read ({type(exc).__name__})") from None
     if not reports:
