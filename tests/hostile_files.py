@@ -92,9 +92,10 @@ def gltf_stride_bomb(path: Path, count: int = 2_000_000) -> Path:
     return path
 
 
-def _peak_of_inspection(path: Path) -> None:
-    """Inspect ``path`` as an upload is (:func:`server.uploads.service.inspect_upload`) and print JSON: the
-    outcome, seconds, and peak RSS (MiB) before and after (``ru_maxrss`` of this process)."""
+def _peak_of_inspection(paths: list[Path]) -> None:
+    """Inspect each file as an upload is (:func:`server.uploads.service.inspect_upload`) and print one JSON line
+    each: the outcome, seconds, and the peak RSS (MiB, ``ru_maxrss`` of this process) before and after; the peak
+    only grows, so ``added_mib`` of the last line bounds every file's."""
     import resource
     import time
 
@@ -104,36 +105,41 @@ def _peak_of_inspection(path: Path) -> None:
     # A ceiling for this measurement only, so that the unfixed readers (14.9 GiB asked) cannot take the machine.
     resource.setrlimit(resource.RLIMIT_AS, (CEILING, CEILING))
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    t0 = time.perf_counter()
-    try:
-        service.inspect_upload(path)
-        outcome = "accepted"
-    except ServiceError as exc:
-        outcome = f"{exc.status_code}: {exc.detail}"[:200]
-    except MemoryError:
-        outcome = f"MemoryError at the measurement's ceiling of {CEILING >> 20} MiB"
-    seconds = time.perf_counter() - t0
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(json.dumps({"file": path.name, "bytes": path.stat().st_size, "outcome": outcome,
-                      "seconds": round(seconds, 2), "rss_before_mib": round(before, 1),
-                      "peak_rss_mib": round(peak, 1), "added_mib": round(peak - before, 1)}))
+    for path in paths:
+        t0 = time.perf_counter()
+        try:
+            service.inspect_upload(path)
+            outcome = "accepted"
+        except ServiceError as exc:
+            outcome = f"{exc.status_code}: {exc.detail}"[:200]
+        except MemoryError:
+            outcome = f"MemoryError at the measurement's ceiling of {CEILING >> 20} MiB"
+        seconds = time.perf_counter() - t0
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        print(json.dumps({"file": path.name, "bytes": path.stat().st_size, "outcome": outcome,
+                          "seconds": round(seconds, 2), "rss_before_mib": round(before, 1),
+                          "peak_rss_mib": round(peak, 1), "added_mib": round(peak - before, 1)}), flush=True)
+
+
+def write_bombs(out: Path, data: Path) -> list[Path]:
+    """The bomb files of issue 26 in ``out``: the BVH, the glTF key bombs (last key 1000 and 16666 s), the stride
+    bomb."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bomb.bvh").write_bytes(bvh_bomb(data))
+    return [out / "bomb.bvh", gltf_key_bomb(out / "keys_1000.glb", 1000.0), gltf_key_bomb(out / "keys_16666.glb"),
+            gltf_stride_bomb(out / "stride.glb")]
 
 
 def main(argv: list[str]) -> int:
     """``python -m tests.hostile_files DIR`` writes the bomb files into DIR and measures inspecting each in its
-    own process; ``python -m tests.hostile_files --inspect FILE`` is that process."""
+    own process; ``python -m tests.hostile_files --inspect FILE...`` measures the files in one process."""
     import subprocess
 
     if argv[:1] == ["--inspect"]:
-        _peak_of_inspection(Path(argv[1]))
+        _peak_of_inspection([Path(a) for a in argv[1:]])
         return 0
-    out = Path(argv[0])
-    out.mkdir(parents=True, exist_ok=True)
     data = Path(__file__).resolve().parents[1] / "data"
-    (out / "bomb.bvh").write_bytes(bvh_bomb(data))
-    files = [out / "bomb.bvh", gltf_key_bomb(out / "keys_1000.glb", 1000.0), gltf_key_bomb(out / "keys_16666.glb"),
-             gltf_stride_bomb(out / "stride.glb")]
-    for f in files:
+    for f in write_bombs(Path(argv[0]), data):
         subprocess.run([sys.executable, "-m", "tests.hostile_files", "--inspect", str(f)], check=False)
     return 0
 
