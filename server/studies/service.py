@@ -224,7 +224,8 @@ def set_state(session: Session, study: Study, state: StudyState) -> Study:
 
 
 def recruitment(study: Study) -> Recruitment:
-    return Recruitment.model_validate(study.recruitment)
+    # Stored: a template saved before the rules of studyfile.template_problem reads, and gives no URL.
+    return Recruitment.model_validate(study.recruitment, context={"stored": True})
 
 
 def texts(study: Study) -> Texts:

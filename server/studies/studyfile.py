@@ -13,7 +13,18 @@ from pathlib import Path
 from typing import Annotated, Any, Self
 from urllib.parse import quote, urlsplit
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from server.security import refuse_bidi_controls
 
 from .design import Design
 from .page import Page
@@ -39,6 +50,11 @@ def _text(max_length: int, description: str) -> Any:
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", str_strip_whitespace=True)
+
+    @field_validator("*")
+    @classmethod
+    def no_bidi_controls(cls, value: Any) -> Any:
+        return refuse_bidi_controls(value)
 
 
 class Texts(_Strict):
@@ -124,7 +140,9 @@ class Recruitment(_Strict):
         return value
 
     @model_validator(mode="after")
-    def urls(self) -> Self:
+    def urls(self, info: ValidationInfo) -> Self:
+        if (info.context or {}).get("stored"):  # as stored before these rules: completion_url() gives no URL
+            return self
         fields = {"code", *self.parameters}
         for name in ("completed", "screened_out"):
             url = getattr(self, name).url
@@ -270,15 +288,22 @@ def errors_of(exc: ValidationError, text: str | None = None) -> list[str]:
     return out
 
 
+NESTED_TOO_DEEPLY = "not a study file: its arrays or tables are nested too deeply"
+
+
 def parse_study_text(text: str, source: str = "study file") -> StudyFile:
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise StudyFileError(source, [f"not valid TOML: {exc}"]) from None
+    except RecursionError:  # tomllib recurses per level of [ or {: a few hundred levels exhaust the stack
+        raise StudyFileError(source, [NESTED_TOO_DEEPLY]) from None
     try:
         return StudyFile.model_validate(raw)
     except ValidationError as exc:
         raise StudyFileError(source, errors_of(exc, text)) from None
+    except RecursionError:
+        raise StudyFileError(source, [NESTED_TOO_DEEPLY]) from None
 
 
 def load_study_file(path: Path) -> StudyFile:
