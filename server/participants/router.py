@@ -13,16 +13,18 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Path, Response, status
+from fastapi import APIRouter, Depends, Path, Request, Response, status
 from fastapi.exceptions import RequestValidationError
 
 from server.deps import ParticipantTokenDep, SessionDep, limit_new_sessions
+from server.errors import PayloadTooLarge
 from server.participants import service
 from server.studies import service as studies_service
-from server.studies.service import get_study
+from server.studies.service import public_study
 
 from .models import ParticipantSession, SessionState, Trial
 from .schemas import (
+    MAX_EVENT_BYTES,
     Answers,
     EventCreate,
     EventRead,
@@ -46,7 +48,7 @@ def media_url(name: str) -> str:
 @router.post("/studies/{slug}/sessions", status_code=status.HTTP_201_CREATED, response_model=SessionCreated,
              dependencies=[Depends(limit_new_sessions)])
 async def create_session(slug: str, body: SessionCreate, session: SessionDep) -> SessionCreated:
-    study = get_study(session, slug)
+    study = public_study(session, slug)
     new = service.start_session(session, study, body.external,
                                 body.device.model_dump() if body.device else None)
     return SessionCreated(session_id=new.session.id, token=new.token, trials_total=new.session.trials_total)
@@ -117,9 +119,21 @@ async def withdraw(session_id: str, token: ParticipantTokenDep, session: Session
     return WithdrawRead(state=service.withdraw(session, ps).state)
 
 
-@router.post("/sessions/{session_id}/events", response_model=EventRead, status_code=status.HTTP_201_CREATED)
+async def small_event(request: Request) -> None:
+    """413 for an event body over :data:`~.schemas.MAX_EVENT_BYTES` (before it is validated)."""
+    if len(await request.body()) > MAX_EVENT_BYTES:
+        raise PayloadTooLarge(f"an event may hold at most {MAX_EVENT_BYTES} bytes")
+
+
+@router.post("/sessions/{session_id}/events", response_model=EventRead, status_code=status.HTTP_201_CREATED,
+             dependencies=[Depends(small_event)],
+             responses={413: {"description": "the event is too large"},
+                        429: {"description": "the session or trial has reported enough events"}})
 async def report_event(session_id: str, body: EventCreate, token: ParticipantTokenDep,
                        session: SessionDep) -> EventRead:
-    ps = service.authorize(session, session_id, token, lock="share")
-    event = service.record_event(session, ps, body.kind, body.trial_id, body.detail)
+    """A playback problem (``detail``: only the known fields of ``EventDetail``), at most 100 per session and
+    10 per trial."""
+    ps = service.authorize(session, session_id, token, lock="update")
+    detail = body.detail.model_dump(exclude_none=True) if body.detail else None
+    event = service.record_event(session, ps, body.kind, body.trial_id, detail)
     return EventRead(id=event.id, kind=event.kind)

@@ -15,7 +15,7 @@ from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session, joinedload
 
 from server.db import utcnow
-from server.errors import Conflict, Forbidden, NotFound, Unauthorized
+from server.errors import Conflict, Forbidden, NotFound, TooManyRequests, Unauthorized
 from server.studies.design import Design, trial_order
 from server.studies.models import Study, StudyState
 from server.studies.scale import score
@@ -224,10 +224,15 @@ def cast_vote(session: Session, ps: ParticipantSession, trial: Trial, choice: st
 
 
 def withdraw(session: Session, ps: ParticipantSession) -> ParticipantSession:
-    """Delete the session's votes, answers and external ids; keep an anonymous row for the count."""
+    """Delete everything the participant gave or their browser reported: votes, answers, external ids, the device
+    report and every playback event.  Kept (docs/security.md, "Withdrawal"): an anonymous row for the withdrawal
+    count (state, study, consent version and time, start and withdrawal times) and the trial order the server
+    drew (no participant data)."""
     session.execute(delete(Vote).where(Vote.session_id == ps.id))
+    session.execute(delete(PlaybackEvent).where(PlaybackEvent.session_id == ps.id))
     ps.answers = None
     ps.external = None
+    ps.device = None
     ps.token_hash = None
     ps.state = SessionState.withdrawn
     ps.withdrawn_at = utcnow()
@@ -235,13 +240,27 @@ def withdraw(session: Session, ps: ParticipantSession) -> ParticipantSession:
     return ps
 
 
+#: Playback events kept per session and per trial; beyond them, 429 (the page reports a failed video once per
+#: trial and a left full screen when it happens).
+MAX_EVENTS_PER_SESSION = 100
+MAX_EVENTS_PER_TRIAL = 10
+
+
 def record_event(session: Session, ps: ParticipantSession, kind: str, trial_id: int | None,
                  detail: dict[str, Any] | None) -> PlaybackEvent:
-    """Keep what the browser reports (e.g. a video that failed to load after its retries)."""
+    """Keep what the browser reports (e.g. a video that failed to load after its retries), up to
+    :data:`MAX_EVENTS_PER_SESSION` per session and :data:`MAX_EVENTS_PER_TRIAL` per trial (429 beyond).  The
+    caller holds the session row locked (``authorize(lock="update")``), so concurrent reports count right."""
     if trial_id is not None:
         trial = session.get(Trial, trial_id)
         if trial is None or trial.session_id != ps.id:
             raise NotFound("no such trial in this session")
+    count = select(func.count(PlaybackEvent.id)).where(PlaybackEvent.session_id == ps.id)
+    if (session.scalar(count) or 0) >= MAX_EVENTS_PER_SESSION:
+        raise TooManyRequests(f"this session has reported {MAX_EVENTS_PER_SESSION} events already; no more are kept")
+    if trial_id is not None and (session.scalar(count.where(PlaybackEvent.trial_id == trial_id)) or 0) \
+            >= MAX_EVENTS_PER_TRIAL:
+        raise TooManyRequests(f"this trial has {MAX_EVENTS_PER_TRIAL} events already; no more are kept")
     event = PlaybackEvent(session_id=ps.id, trial_id=trial_id, kind=kind, detail=detail or None)
     session.add(event)
     session.commit()
