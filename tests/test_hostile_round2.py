@@ -239,3 +239,25 @@ def test_x_forwarded_for_is_trusted_only_from_configured_proxies(db, engine, tmp
         codes = [c.post("/api/v1/studies/thesis/sessions", json={"consent": True},
                         headers={"X-Forwarded-For": f"10.0.0.{k}"}).status_code for k in range(3)]
         assert codes == [201, 201, 429]
+
+
+def test_trial_ids_are_opaque_and_old_row_ids_still_answer(client, db, study):
+    import re
+
+    from server.participants.models import ParticipantSession
+
+    seen = []
+    for _ in range(3):
+        sid, headers = start(client)
+        trial = client.get(f"/api/v1/sessions/{sid}/next", headers=headers).json()
+        assert re.fullmatch(r"[0-9a-f]{32}", trial["trial_id"]), trial["trial_id"]
+        seen.append(trial["trial_id"])
+    assert len(set(seen)) == 3
+    # a page loaded before migration 0008 holds the trial's row id: its vote still counts
+    row_id = db.get(ParticipantSession, sid).trials[0].id
+    r = client.post(f"/api/v1/sessions/{sid}/trials/{row_id}/vote", headers=headers,
+                    json={"choice": "equal", "rt_ms": 900, "idempotency_key": "k"})
+    assert r.status_code == 201 and r.json()["trial_id"] == seen[-1]
+    assert r.json()["next"]["trial_id"] != seen[-1] and re.fullmatch(r"[0-9a-f]{32}", r.json()["next"]["trial_id"])
+    assert event(client, sid, headers, trial_id=r.json()["next"]["trial_id"]).status_code == 201
+    assert event(client, sid, headers, trial_id=seen[0]).status_code == 404  # another session's trial

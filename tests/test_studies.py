@@ -190,7 +190,7 @@ def test_recruitment_parameters_completion_url_and_screening(client, db, researc
 def _is_catch(db, trial_id):
     from server.participants.models import Trial
 
-    return db.get(Trial, trial_id).comparison.kind == "catch"
+    return db.query(Trial).filter_by(public_id=trial_id).one().comparison.kind == "catch"
 
 
 # --- ownership -----------------------------------------------------------------------------------------------------

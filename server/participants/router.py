@@ -28,10 +28,10 @@ from .schemas import (
     Answers,
     EventCreate,
     EventRead,
-    RowId,
     SessionCreate,
     SessionCreated,
     SessionRead,
+    TrialKey,
     TrialRead,
     VoteCreate,
     VoteRead,
@@ -80,12 +80,17 @@ async def get_session_state(session_id: str, token: ParticipantTokenDep, session
     return read
 
 
+def public_trial_id(trial: Trial) -> str:
+    # A trial of before migration 0008 that it did not reach has no public id: its row id stands in.
+    return trial.public_id or str(trial.id)
+
+
 def trial_read(ps: ParticipantSession, upcoming: list[Trial]) -> TrialRead | None:
     """The first of ``upcoming`` as the page shows it, with the video of the one after it to preload."""
     if not upcoming:
         return None
     trial, following = upcoming[0], (upcoming[1] if len(upcoming) > 1 else None)
-    return TrialRead(trial_id=trial.id, index=trial.index, total=ps.trials_total,
+    return TrialRead(trial_id=public_trial_id(trial), index=trial.index, total=ps.trials_total,
                      practice=trial.practice, video_url=media_url(trial.comparison.video(trial.reference_side)),
                      preload_url=media_url(following.comparison.video(following.reference_side)) if following else None)
 
@@ -100,7 +105,7 @@ async def next_trial(session_id: str, token: ParticipantTokenDep, session: Sessi
 
 @router.post("/sessions/{session_id}/trials/{trial_id}/vote", response_model=VoteRead,
              status_code=status.HTTP_201_CREATED, responses={200: {"description": "the same vote, already stored"}})
-async def vote(session_id: str, trial_id: Annotated[RowId, Path()], body: VoteCreate, token: ParticipantTokenDep,
+async def vote(session_id: str, trial_id: Annotated[TrialKey, Path()], body: VoteCreate, token: ParticipantTokenDep,
                session: SessionDep, response: Response) -> VoteRead:
     """Store the vote (exactly once, see ``cast_vote``) and answer with the next trial, which saves the page a
     request per trial."""
@@ -108,7 +113,7 @@ async def vote(session_id: str, trial_id: Annotated[RowId, Path()], body: VoteCr
     result = service.cast_vote(session, ps, trial, body.choice, body.rt_ms, body.idempotency_key, body.extra())
     if not result.created:
         response.status_code = status.HTTP_200_OK
-    return VoteRead(trial_id=result.trial_id, choice=result.choice, rt_ms=result.rt_ms,
+    return VoteRead(trial_id=public_trial_id(trial), choice=result.choice, rt_ms=result.rt_ms,
                     answered_at=result.answered_at, answered=result.answered, trials_total=ps.trials_total,
                     next=trial_read(ps, result.upcoming))
 
@@ -135,5 +140,6 @@ async def report_event(session_id: str, body: EventCreate, token: ParticipantTok
     10 per trial."""
     ps = service.authorize(session, session_id, token, lock="update")
     detail = body.detail.model_dump(exclude_none=True) if body.detail else None
-    event = service.record_event(session, ps, body.kind, body.trial_id, detail)
+    event = service.record_event(session, ps, body.kind, None if body.trial_id is None else str(body.trial_id),
+                                 detail)
     return EventRead(id=event.id, kind=event.kind)

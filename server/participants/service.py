@@ -58,10 +58,17 @@ def start_session(session: Session, study: Study, external: dict[str, str] | Non
 
 _by_id = select(ParticipantSession).where(ParticipantSession.id == bindparam("id"))
 _SESSION = {None: _by_id, "share": _by_id.with_for_update(read=True), "update": _by_id.with_for_update()}
-# A vote's session (locked as by authorize(lock="share")) and its trial, in one round trip.
-_ANSWER = (select(ParticipantSession, Trial)
-           .outerjoin(Trial, (Trial.id == bindparam("trial_id")) & (Trial.session_id == ParticipantSession.id))
-           .where(ParticipantSession.id == bindparam("id")).with_for_update(read=True, of=ParticipantSession))
+# A vote's session (locked as by authorize(lock="share")) and its trial, in one round trip: by the trial's public id,
+# or by its row id from a page loaded before migration 0008.
+_ANSWER = {by: (select(ParticipantSession, Trial)
+                .outerjoin(Trial, (column == bindparam("trial_id")) & (Trial.session_id == ParticipantSession.id))
+                .where(ParticipantSession.id == bindparam("id")).with_for_update(read=True, of=ParticipantSession))
+           for by, column in (("public", Trial.public_id), ("row", Trial.id))}
+
+
+def _trial_key(trial_id: str) -> tuple[str, str | int]:
+    """Which column a trial id of the API names (``TrialKey``: 32 hex digits, or old row-id digits)."""
+    return ("row", int(trial_id)) if trial_id.isdigit() and len(trial_id) <= 10 else ("public", trial_id)
 
 
 def authorize(session: Session, session_id: str, token: str | None,
@@ -76,10 +83,12 @@ def authorize(session: Session, session_id: str, token: str | None,
     return _checked(session, session.scalars(_SESSION[lock], {"id": session_id}).first(), token)
 
 
-def authorize_answer(session: Session, session_id: str, token: str | None, trial_id: int
+def authorize_answer(session: Session, session_id: str, token: str | None, trial_id: str
                      ) -> tuple[ParticipantSession, Trial]:
-    """:func:`authorize` with ``lock="share"``, and the session's trial ``trial_id`` (404 if it has none)."""
-    row = session.execute(_ANSWER, {"id": session_id, "trial_id": trial_id}).first()
+    """:func:`authorize` with ``lock="share"``, and the session's trial ``trial_id`` (its public id, or its row id
+    from a page of before migration 0008; 404 if the session has no such trial)."""
+    by, key = _trial_key(trial_id)
+    row = session.execute(_ANSWER[by], {"id": session_id, "trial_id": key}).first()
     ps = _checked(session, row[0] if row is not None else None, token)
     trial = row[1]  # type: ignore[index]  # _checked raised if there was no row
     if trial is None:
@@ -246,15 +255,19 @@ MAX_EVENTS_PER_SESSION = 100
 MAX_EVENTS_PER_TRIAL = 10
 
 
-def record_event(session: Session, ps: ParticipantSession, kind: str, trial_id: int | None,
+def record_event(session: Session, ps: ParticipantSession, kind: str, trial_key: str | None,
                  detail: dict[str, Any] | None) -> PlaybackEvent:
     """Keep what the browser reports (e.g. a video that failed to load after its retries), up to
     :data:`MAX_EVENTS_PER_SESSION` per session and :data:`MAX_EVENTS_PER_TRIAL` per trial (429 beyond).  The
     caller holds the session row locked (``authorize(lock="update")``), so concurrent reports count right."""
-    if trial_id is not None:
-        trial = session.get(Trial, trial_id)
-        if trial is None or trial.session_id != ps.id:
+    trial_id = None
+    if trial_key is not None:
+        by, key = _trial_key(trial_key)
+        trial = session.scalar(select(Trial).where(Trial.session_id == ps.id,
+                                                   (Trial.public_id if by == "public" else Trial.id) == key))
+        if trial is None:
             raise NotFound("no such trial in this session")
+        trial_id = trial.id
     count = select(func.count(PlaybackEvent.id)).where(PlaybackEvent.session_id == ps.id)
     if (session.scalar(count) or 0) >= MAX_EVENTS_PER_SESSION:
         raise TooManyRequests(f"this session has reported {MAX_EVENTS_PER_SESSION} events already; no more are kept")
