@@ -192,7 +192,18 @@ def read_gltf(path: str | os.PathLike[str], fps: float = 30.0, max_frame_joints:
     """Read the first skin of a ``.glb``/``.gltf`` file with every mesh bound to it, and all its animations (see
     module docstring).  An animation sampled to more than ``max_frame_joints`` frames × joints, or accessors
     decoding to more than :data:`VALUES_PER_FRAME_JOINT` times as many numbers, fail before the memory is taken."""
-    r = _Reader(Path(path), VALUES_PER_FRAME_JOINT * max_frame_joints)
+    try:
+        return _read_gltf(Path(path), fps, max_frame_joints)
+    except GltfError:
+        raise
+    except (IndexError, KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
+        # A file whose parts do not fit together in a way no check above foresaw (found by tests/test_fuzz_readers.py:
+        # empty influences beside full ones, indices into empty arrays): still the reader's own error, never a crash.
+        raise GltfError(f"{Path(path).name}: malformed glTF ({type(exc).__name__}: {exc})") from None
+
+
+def _read_gltf(path: Path, fps: float, max_frame_joints: int) -> GltfAsset:
+    r = _Reader(path, VALUES_PER_FRAME_JOINT * max_frame_joints)
     g = r.gltf
     nodes = g.nodes or []
     # Parents of every node, with cycle and shared-child detection.
