@@ -26,7 +26,9 @@ class Settings(BaseSettings):
     largest motion file a researcher may upload into a study's assets (``POST /api/v1/studies/{slug}/assets``);
     default 50 MB (50 * 2**20 bytes).  ``ANIMSTUDY_TRUSTED_PROXIES``: addresses of the reverse proxies whose
     ``X-Forwarded-For`` names the client (comma-separated IP addresses or networks, e.g. ``127.0.0.1,10.0.0.0/8``);
-    default none: the header is ignored, and the rate limits count the connecting address."""
+    default none: the header is ignored, and the rate limits count the connecting address.
+    ``ANIMSTUDY_BUILD_MEMORY_MB``: the address space a build job's process may take (``RLIMIT_AS``), beyond which
+    the build fails with a MemoryError instead of taking the machine's memory; default 8192, 0 for no limit."""
 
     model_config = SettingsConfigDict(env_prefix="ANIMSTUDY_", extra="ignore")
 
@@ -42,6 +44,7 @@ class Settings(BaseSettings):
     trusted_proxies: Annotated[list[str], NoDecode] = []
     sessions_per_minute: int = Field(default=60, ge=0)
     upload_max_bytes: int = Field(default=50 * 2**20, ge=1)
+    build_memory_mb: int = Field(default=8192, ge=0)
 
     @field_validator("allowed_hosts", "trusted_proxies", mode="before")
     @classmethod

@@ -292,6 +292,7 @@ def job_environment(settings: Settings, engine: Engine) -> dict[str, str]:
     env = {**os.environ, "ANIMSTUDY_DATA_DIR": str(settings.data), "ANIMSTUDY_VAR_DIR": str(settings.var),
            "DATABASE_URL": engine.url.render_as_string(hide_password=False)}
     env.pop("ANIMSTUDY_DATABASE_URL", None)
+    env["ANIMSTUDY_BUILD_MEMORY_MB"] = str(settings.build_memory_mb)
     if settings.secret_key:
         env["ANIMSTUDY_SECRET_KEY"] = settings.secret_key
     return env
