@@ -126,7 +126,7 @@ def test_the_build_job_runs_under_a_memory_ceiling(tmp_path, data, engine):
     env = job_environment(settings, engine)
     assert env["ANIMSTUDY_BUILD_MEMORY_MB"] == "1024"
     code = ("import numpy as np\nfrom server.config import Settings\nfrom server.uploads.job import limit_memory\n"
-            "limit_memory(Settings().build_memory_mb)\nnp.ones(10**8)\nprint('small ok', flush=True)\n"
+            "limit_memory(Settings().build_memory_mb)\nnp.ones(10**7)\nprint('small ok', flush=True)\n"
             "try:\n    np.ones(2 * 10**8)\nexcept MemoryError:\n    print('MemoryError')\n")
     run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
     assert run.stdout.split() == ["small", "ok", "MemoryError"], (run.stdout, run.stderr[-1000:])
