@@ -66,8 +66,9 @@ _ANSWER = {by: (select(ParticipantSession, Trial)
            for by, column in (("public", Trial.public_id), ("row", Trial.id))}
 
 
-def _trial_key(trial_id: str) -> tuple[str, str | int]:
-    """Which column a trial id of the API names (``TrialKey``: 32 hex digits, or old row-id digits)."""
+def _trial_key(trial_id: str | int) -> tuple[str, str | int]:
+    """Which column a trial id of the API names (``TrialKey``: 32 hex digits, or an old row id, digits)."""
+    trial_id = str(trial_id)
     return ("row", int(trial_id)) if trial_id.isdigit() and len(trial_id) <= 10 else ("public", trial_id)
 
 
@@ -83,7 +84,7 @@ def authorize(session: Session, session_id: str, token: str | None,
     return _checked(session, session.scalars(_SESSION[lock], {"id": session_id}).first(), token)
 
 
-def authorize_answer(session: Session, session_id: str, token: str | None, trial_id: str
+def authorize_answer(session: Session, session_id: str, token: str | None, trial_id: str | int
                      ) -> tuple[ParticipantSession, Trial]:
     """:func:`authorize` with ``lock="share"``, and the session's trial ``trial_id`` (its public id, or its row id
     from a page of before migration 0008; 404 if the session has no such trial)."""
