@@ -42,8 +42,8 @@ def bvh_bomb(data: Path, extra_joints: int = 969, frames: int = 10_000) -> bytes
 
 def _chain_gltf(path: Path, joints: int, times: list[float]) -> None:
     """A ``joints``-joint chain with one triangle and an animation keyed at ``times`` (written by write_gltf)."""
-    from anim_core.gltf import GltfAnimation, write_gltf
-    from anim_core.skeleton import Skeleton
+    from anim_core.io.gltf import GltfAnimation, write_gltf
+    from anim_core.math.skeleton import Skeleton
 
     offsets = np.zeros((joints, 3))
     offsets[1:, 1] = 0.01

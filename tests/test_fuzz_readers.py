@@ -21,9 +21,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from anim_core.bvh import BvhError, format_bvh, parse_bvh, read_bvh
-from anim_core.clipset import ConfigError
-from anim_core.gltf import GltfError, read_gltf
+from anim_core.clips.build import ConfigError
+from anim_core.io.bvh import BvhError, format_bvh, parse_bvh, read_bvh
+from anim_core.io.gltf import GltfError, read_gltf
 from server.clipset.config import load_config
 from server.studies.studyfile import THESIS_FILE, StudyFileError, parse_study_text
 from server.uploads.service import max_frame_joints
@@ -66,7 +66,7 @@ EDITS = st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 8),
 @pytest.fixture(scope="module")
 def small_bvh(data) -> bytes:
     bvh = read_bvh(data / "mocap" / "cmu" / "113_21_idle_30fps.bvh.gz")
-    from anim_core.bvh import Bvh
+    from anim_core.io.bvh import Bvh
 
     return format_bvh(Bvh(bvh.skeleton, bvh.channels, bvh.end_sites, bvh.frame_time, bvh.motion[:4])).encode()
 

@@ -90,10 +90,11 @@ def test_peak_memory_of_inspecting_the_bomb_files_is_within_50_times_their_size_
 
 def test_a_gltf_with_only_joints_0_and_weights_0_uploads(client, admin, data, settings, tmp_path):
     """The usual export (four influences per vertex).  The reader's fix is issue 24's (h24); until it is merged
-    this fails with a 500 (AttributeError: 'Attributes' object has no attribute 'JOINTS_1')."""
-    from anim_core.bvh import read_bvh
-    from anim_core.character import retarget
-    from anim_core.gltf import GltfAnimation, write_gltf
+    this fails (before: a 500, AttributeError: 'Attributes' object has no attribute 'JOINTS_1'; on this branch the
+    glTF reader reports it as a GltfError, 422)."""
+    from anim_core.io.bvh import read_bvh
+    from anim_core.io.gltf import GltfAnimation, write_gltf
+    from anim_core.rig.character import retarget
     from server.assets import character as load_character
 
     character = load_character(data)
