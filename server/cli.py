@@ -422,8 +422,10 @@ def serve(settings: Settings, host: str, port: int, workers: int) -> int:
         engine.dispose()
     print(f"serving on http://{host}:{port} (database {engine.url.render_as_string(hide_password=True)})",
           flush=True)
+    # The app reads X-Forwarded-For itself, from ANIMSTUDY_TRUSTED_PROXIES only (server.deps.client_address);
+    # uvicorn would otherwise trust it from 127.0.0.1 by default.
     uvicorn.run("server.app:app_from_env", factory=True, host=host, port=port, workers=workers,
-                log_level="info")
+                log_level="info", proxy_headers=False)
     return 0
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ipaddress
 import os
 from functools import cached_property
 from pathlib import Path
@@ -23,7 +24,11 @@ class Settings(BaseSettings):
     ``Host`` headers get 400.  ``ANIMSTUDY_SESSIONS_PER_MINUTE``: new participant sessions allowed per client
     address and minute (per worker process); default 60, 0 for no limit.  ``ANIMSTUDY_UPLOAD_MAX_BYTES``: the
     largest motion file a researcher may upload into a study's assets (``POST /api/v1/studies/{slug}/assets``);
-    default 50 MB (50 * 2**20 bytes)."""
+    default 50 MB (50 * 2**20 bytes).  ``ANIMSTUDY_TRUSTED_PROXIES``: addresses of the reverse proxies whose
+    ``X-Forwarded-For`` names the client (comma-separated IP addresses or networks, e.g. ``127.0.0.1,10.0.0.0/8``);
+    default none: the header is ignored, and the rate limits count the connecting address.
+    ``ANIMSTUDY_BUILD_MEMORY_MB``: the address space a build job's process may take (``RLIMIT_AS``), beyond which
+    the build fails with a MemoryError instead of taking the machine's memory; default 8192, 0 for no limit."""
 
     model_config = SettingsConfigDict(env_prefix="ANIMSTUDY_", extra="ignore")
 
@@ -36,15 +41,31 @@ class Settings(BaseSettings):
     admin_password: str | None = None
     token_hours: float = 12.0
     allowed_hosts: Annotated[list[str], NoDecode] = ["*"]
+    trusted_proxies: Annotated[list[str], NoDecode] = []
     sessions_per_minute: int = Field(default=60, ge=0)
     upload_max_bytes: int = Field(default=50 * 2**20, ge=1)
+    build_memory_mb: int = Field(default=8192, ge=0)
 
-    @field_validator("allowed_hosts", mode="before")
+    @field_validator("allowed_hosts", "trusted_proxies", mode="before")
     @classmethod
     def comma_separated(cls, value: object) -> object:
         if isinstance(value, str):
             return [h.strip() for h in value.split(",") if h.strip()]
         return value
+
+    @field_validator("trusted_proxies")
+    @classmethod
+    def networks(cls, value: list[str]) -> list[str]:
+        for item in value:
+            try:
+                ipaddress.ip_network(item, strict=False)
+            except ValueError:
+                raise ValueError(f"{item!r} is not an IP address or network") from None
+        return value
+
+    @cached_property
+    def proxy_networks(self) -> tuple[ipaddress.IPv4Network | ipaddress.IPv6Network, ...]:
+        return tuple(ipaddress.ip_network(p, strict=False) for p in self.trusted_proxies)
 
     @classmethod
     def from_env(cls) -> Settings:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ipaddress
 from collections.abc import AsyncIterator
 from typing import Annotated
 
@@ -53,9 +54,28 @@ def current_researcher(session: SessionDep, settings: SettingsDep,
     return researcher_from_token(session, token, settings.secret)
 
 
+def _trusted(address: str, networks: tuple) -> bool:
+    try:
+        ip = ipaddress.ip_address(address.strip())
+    except ValueError:
+        return False
+    return any(ip in n for n in networks)
+
+
 def client_address(request: Request) -> str:
-    """The client's address (behind a reverse proxy, uvicorn's ``--forwarded-allow-ips`` makes it the real one)."""
-    return request.client.host if request.client else "?"
+    """The client's address: the connecting one, unless that is one of ``ANIMSTUDY_TRUSTED_PROXIES``; then the
+    last address of ``X-Forwarded-For`` that is not a trusted proxy (each proxy appends the address it was reached
+    from; what comes before was written by the client and proves nothing).  Without trusted proxies the header is
+    ignored, so a client cannot choose its address to escape the rate limits."""
+    address = request.client.host if request.client else "?"
+    networks = request.app.state.settings.proxy_networks
+    if not networks or not _trusted(address, networks):
+        return address
+    hops = [h.strip() for v in request.headers.getlist("x-forwarded-for") for h in v.split(",") if h.strip()]
+    for hop in reversed(hops):
+        if not _trusted(hop, networks):
+            return hop
+    return address
 
 
 async def limit_new_sessions(request: Request) -> None:

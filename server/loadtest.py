@@ -34,7 +34,7 @@ from sqlalchemy import make_url, select, text
 from .config import REPO_ROOT, normalize_database_url
 from .db import make_engine, migrate, session_factory
 from .media.manifest import RenderedClip, RenderedPair, RenderManifest
-from .participants.models import Vote
+from .participants.models import Trial, Vote
 from .studies.design import Design
 from .studies.models import StudyState
 from .studies.scale import CHOICES
@@ -284,8 +284,10 @@ def check_database(database_url: str, stats: Stats) -> dict[str, int]:
     """Every acknowledged vote stored once with its choice; no vote stored that was never acknowledged."""
     engine = make_engine(database_url)
     with session_factory(engine)() as db:
-        stored = {v.trial_id: (v.session_id, v.choice) for v in db.scalars(
-            select(Vote).where(Vote.session_id.in_(stats.sessions)))}
+        # keyed by the trial's id in the API (its public id), as the acknowledgements are
+        stored = {public: (v.session_id, v.choice) for v, public in db.execute(
+            select(Vote, Trial.public_id).join(Trial, Trial.id == Vote.trial_id)
+            .where(Vote.session_id.in_(stats.sessions)))}
         total = db.scalar(text("SELECT count(*) FROM votes"))
         per_trial = db.execute(text("SELECT trial_id, count(*) FROM votes GROUP BY trial_id HAVING count(*) > 1"))
         duplicated = len(per_trial.all())

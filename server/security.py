@@ -30,6 +30,10 @@ SECURITY_HEADERS = [
     (b"cross-origin-opener-policy", b"same-origin"),
 ]
 _SURROGATE = re.compile("[\ud800-\udfff]")
+#: Bidirectional embeddings, overrides and isolates (U+202A..U+202E, U+2066..U+2069): in a title or a label they
+#: make text display in another order than it is stored ("Trojan Source").  The marks LRM, RLM and ALM, which
+#: right-to-left text needs, are allowed.
+BIDI_CONTROLS = re.compile("[\u202a-\u202e\u2066-\u2069]")
 _FORM_TYPES = (b"application/x-www-form-urlencoded", b"multipart/form-data")
 log = logging.getLogger(__name__)
 
@@ -76,6 +80,17 @@ def hostile_json(body: bytes) -> dict[str, Any] | None:
         elif isinstance(v, list):
             queue.extend(((*path, i), item) for i, item in enumerate(v))
     return None
+
+
+def refuse_bidi_controls(value: Any) -> Any:
+    """``value`` (a text, or a list or dict of texts) unchanged, or ValueError naming the first
+    :data:`BIDI_CONTROLS` character found (for pydantic validators)."""
+    texts = value if isinstance(value, list) else list(value.values()) if isinstance(value, dict) else [value]
+    for text in texts:
+        if isinstance(text, str) and (found := BIDI_CONTROLS.search(text)):
+            raise ValueError(f"must not contain the bidirectional control character U+{ord(found.group()):04X} "
+                             f"(it shows text in another order than it is stored)")
+    return value
 
 
 @dataclass(frozen=True)

@@ -299,7 +299,7 @@ def test_participant_bodies_are_strictly_typed(client, study):
     r = client.post(f"/api/v1/sessions/{sid}/trials/{trial}/vote",
                     json={"choice": "equal", "rt_ms": 100, "idempotency_key": 7}, headers=headers)
     assert r.status_code == 422
-    r = client.post(f"/api/v1/sessions/{sid}/events", json={"kind": "error", "trial_id": str(trial)},
+    r = client.post(f"/api/v1/sessions/{sid}/events", json={"kind": "error", "trial_id": [trial]},
                     headers=headers)
     assert r.status_code == 422
     assert vote(client, sid, headers, trial, rt_ms=100).status_code == 201

@@ -197,9 +197,9 @@ def test_researchers_only_and_drafts_only(uclient, admin, draft, data, db, app_s
     assert uclient.get("/api/v1/studies/mine/assets").status_code == 401
     create_researcher(db, "other@example.org", "another good password")
     other = login(uclient, "other@example.org", "another good password")
-    assert upload(uclient, other, body).status_code == 403  # not their study
-    assert uclient.get("/api/v1/studies/mine/assets", headers=other).status_code == 403
-    assert uclient.post("/api/v1/studies/mine/assets/build", headers=other).status_code == 403
+    assert upload(uclient, other, body).status_code == 404  # not their study
+    assert uclient.get("/api/v1/studies/mine/assets", headers=other).status_code == 404
+    assert uclient.post("/api/v1/studies/mine/assets/build", headers=other).status_code == 404
     assert upload(uclient, admin, body, slug="nope").status_code == 404
     make_study(db, slug="running", state=StudyState.open)
     r = upload(uclient, admin, body, slug="running")

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from ..io.bvh import Bvh, bvh_from_poses, read_bvh, write_bvh
+from ..io.bvh import MAX_FRAME_JOINTS, Bvh, bvh_from_poses, read_bvh, write_bvh
 from ..io.gltf import GltfAnimation, read_gltf, write_gltf
 from ..math.contacts import contact_intervals, foot_down
 from ..math.skeleton import Skeleton
@@ -141,16 +141,19 @@ def _report(name: str, out: Normalized) -> MotionReport:
 
 
 def read_motions(path: str | os.PathLike[str], explicit: Mapping[str, str] | None = None,
-                 units: str | None = None, up_axis: str | None = None) -> list[tuple[str, Normalized]]:
+                 units: str | None = None, up_axis: str | None = None,
+                 max_frame_joints: int = MAX_FRAME_JOINTS) -> list[tuple[str, Normalized]]:
     """Every motion of a BVH (one) or glTF file (one per animation), named and normalized
-    (:func:`~anim_core.rig.rigmap.normalize_bvh`); errors are ``ValueError`` subclasses naming the file."""
+    (:func:`~anim_core.rig.rigmap.normalize_bvh`); errors are ``ValueError`` subclasses naming the file.  A motion
+    of more than ``max_frame_joints`` frames × joints fails before it is read (the memory spent on a motion grows
+    with it; :func:`~anim_core.io.bvh.parse_bvh`, :func:`~anim_core.io.gltf.read_gltf`)."""
     path = Path(path)
     name = path.name.lower()
     if name.endswith((".bvh", ".bvh.gz")):
-        bvh: Bvh = read_bvh(path)
+        bvh: Bvh = read_bvh(path, max_frame_joints)
         return [(path.name, normalize_bvh(bvh, explicit, units, up_axis))]
     if name.endswith((".glb", ".gltf")):
-        asset = read_gltf(path)
+        asset = read_gltf(path, max_frame_joints=max_frame_joints)
         if not asset.animations:
             raise ValueError(f"{path.name}: the file holds a character but no animation")
         return [(a.name, normalize_motion(asset.skeleton, a.rotations, a.root_translation, a.frame_time, {},
@@ -160,9 +163,11 @@ def read_motions(path: str | os.PathLike[str], explicit: Mapping[str, str] | Non
 
 
 def inspect_source(path: str | os.PathLike[str], explicit: Mapping[str, str] | None = None,
-                   units: str | None = None, up_axis: str | None = None) -> list[MotionReport]:
-    """Reports of every motion in the file (one for a BVH, one per animation of a glTF)."""
-    return [_report(name, out) for name, out in read_motions(path, explicit, units, up_axis)]
+                   units: str | None = None, up_axis: str | None = None,
+                   max_frame_joints: int = MAX_FRAME_JOINTS) -> list[MotionReport]:
+    """Reports of every motion in the file (one for a BVH, one per animation of a glTF); ``max_frame_joints`` as
+    :func:`read_motions` takes it."""
+    return [_report(name, out) for name, out in read_motions(path, explicit, units, up_axis, max_frame_joints)]
 
 
 def format_report(path: str | os.PathLike[str], reports: list[MotionReport]) -> str:

@@ -33,6 +33,10 @@ MAX_JOINTS = 10_000
 MAX_FRAMES = 1_000_000
 #: Relative tolerance within which a constant position channel equals the joint's OFFSET (it is then the bone).
 OFFSET_MATCH = 1e-4
+#: Frames × joints read by default: every frame costs memory for every joint, channels or not (a few hundred bytes
+#: per frame·joint by the time a motion is inspected), so a small file of channel-less joints and many frames could
+#: otherwise ask for gigabytes.  Callers reading untrusted files pass a bound of their own (``max_frame_joints``).
+MAX_FRAME_JOINTS = 20_000_000
 CHANNEL_NAMES = ("Xposition", "Yposition", "Zposition", "Xrotation", "Yrotation", "Zrotation")
 
 
@@ -253,10 +257,11 @@ def _expect(lines: _Lines, token: str, what: str) -> None:
         raise lines.error(number, f"{token!r} {what}", line)
 
 
-def parse_bvh(text: str, source: str = "<string>") -> Bvh:
+def parse_bvh(text: str, source: str = "<string>", max_frame_joints: int = MAX_FRAME_JOINTS) -> Bvh:
     """Parse BVH text; ``source`` names it in :class:`BvhError` messages.
 
-    One frame per line; messages count frames from 0 and the values of a frame from 1.
+    One frame per line; messages count frames from 0 and the values of a frame from 1.  A file declaring more
+    than ``max_frame_joints`` frames × joints fails at its ``Frames:`` line, before any frame is read.
     """
     lines = _Lines(text, source)
     _expect(lines, "HIERARCHY", "at the start")
@@ -312,6 +317,9 @@ def parse_bvh(text: str, source: str = "<string>") -> Bvh:
     n_frames, declared = int(tokens[1]), f"declared on line {number}"
     if n_frames > MAX_FRAMES:
         raise _fail(source, number, f"{n_frames} frames declared; at most {MAX_FRAMES} are supported")
+    if n_frames * len(names) > max_frame_joints:
+        raise _fail(source, number, f"{n_frames} frames of {len(names)} joints ({n_frames * len(names)} frame-joints) "
+                                    f"are more than the {max_frame_joints} allowed here")
     number, line, tokens = lines.next("'Frame Time: <seconds>'")
     frame_time = _to_float(tokens[2]) if tokens[:2] == ["Frame", "Time:"] and len(tokens) == 3 else None
     if frame_time is None or frame_time <= 0:
@@ -338,8 +346,9 @@ def parse_bvh(text: str, source: str = "<string>") -> Bvh:
     return Bvh(skeleton, tuple(channels), end_sites, frame_time, motion, source)
 
 
-def read_bvh(path: str | os.PathLike[str]) -> Bvh:
-    """Read a ``.bvh`` or gzip-compressed ``.bvh.gz`` file; errors name the file."""
+def read_bvh(path: str | os.PathLike[str], max_frame_joints: int = MAX_FRAME_JOINTS) -> Bvh:
+    """Read a ``.bvh`` or gzip-compressed ``.bvh.gz`` file; errors name the file (``max_frame_joints``: see
+    :func:`parse_bvh`)."""
     path = Path(path)
     data = path.read_bytes()
     if path.suffix == ".gz":
@@ -348,7 +357,7 @@ def read_bvh(path: str | os.PathLike[str]) -> Bvh:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError:
         text = data.decode("latin-1")  # BVH is ASCII in practice; joint names are the only place this matters
-    return parse_bvh(text, path.name)
+    return parse_bvh(text, path.name, max_frame_joints)
 
 
 def _number(x: float) -> str:

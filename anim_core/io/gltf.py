@@ -36,6 +36,11 @@ Array = NDArray[np.float64]
 
 MAX_JOINTS = 1000
 MAX_KEYS = 500_000
+#: Sampled frames × joints of an animation read by default, and (× :data:`VALUES_PER_FRAME_JOINT`) the numbers all
+#: accessors may decode to: uneven key times are resampled at ``fps``, so keys at 0, 1 and 16666 s on a 1000-joint
+#: skin asked for 15 GiB.  Callers reading untrusted files pass a bound of their own (``max_frame_joints``).
+MAX_FRAME_JOINTS = 20_000_000
+VALUES_PER_FRAME_JOINT = 8
 MAX_INFLUENCES = 8
 _COMPONENTS = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
 _WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
@@ -87,9 +92,11 @@ def _wxyz(q: Array) -> Array:
 
 
 class _Reader:
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, max_values: int) -> None:
         self.path = path
         self.name = path.name
+        self.max_values = max_values  # numbers all accessors together may decode to
+        self.values = 0
         try:
             with warnings.catch_warnings():  # pygltflib warns (and then fails) on bad headers; the error says it
                 warnings.simplefilter("ignore")
@@ -144,6 +151,16 @@ class _Reader:
         if dtype is None or width is None:
             raise self.fail(f"{what}: unsupported accessor type {acc.type} / component {acc.componentType}")
         item = np.dtype(dtype).itemsize
+        if view.byteStride is not None and view.byteStride < item * width:
+            # Elements may not overlap (glTF 2.0: byteStride >= element size); overlapping ones would let a few
+            # bytes of buffer stand for millions of elements.
+            raise self.fail(f"{what}: buffer view {acc.bufferView} has byteStride {view.byteStride}, less than the "
+                            f"{item * width} bytes of one {acc.type} element")
+        if acc.count is None or acc.count < 0:
+            raise self.fail(f"{what}: accessor {index} has no valid count")
+        self.values += acc.count * width
+        if self.values > self.max_values:
+            raise self.fail(f"{what}: the accessors hold more than the {self.max_values} numbers allowed here")
         stride = view.byteStride or item * width
         start = (view.byteOffset or 0) + (acc.byteOffset or 0)
         need = start + stride * (acc.count - 1) + item * width if acc.count else start
@@ -171,10 +188,22 @@ def _node_trs(node: pygltflib.Node) -> tuple[Array, Array, Array]:
     return t, r / np.linalg.norm(r), s
 
 
-def read_gltf(path: str | os.PathLike[str], fps: float = 30.0) -> GltfAsset:
+def read_gltf(path: str | os.PathLike[str], fps: float = 30.0, max_frame_joints: int = MAX_FRAME_JOINTS) -> GltfAsset:
     """Read the first skin of a ``.glb``/``.gltf`` file with every mesh bound to it, and all its animations (see
-    module docstring)."""
-    r = _Reader(Path(path))
+    module docstring).  An animation sampled to more than ``max_frame_joints`` frames × joints, or accessors
+    decoding to more than :data:`VALUES_PER_FRAME_JOINT` times as many numbers, fail before the memory is taken."""
+    try:
+        return _read_gltf(Path(path), fps, max_frame_joints)
+    except GltfError:
+        raise
+    except (IndexError, KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
+        # A file whose parts do not fit together in a way no check above foresaw (found by tests/test_fuzz_readers.py:
+        # empty influences beside full ones, indices into empty arrays): still the reader's own error, never a crash.
+        raise GltfError(f"{Path(path).name}: malformed glTF ({type(exc).__name__}: {exc})") from None
+
+
+def _read_gltf(path: Path, fps: float, max_frame_joints: int) -> GltfAsset:
+    r = _Reader(path, VALUES_PER_FRAME_JOINT * max_frame_joints)
     g = r.gltf
     nodes = g.nodes or []
     # Parents of every node, with cycle and shared-child detection.
@@ -306,7 +335,7 @@ def read_gltf(path: str | os.PathLike[str], fps: float = 30.0) -> GltfAsset:
         joints.append(jj)
         weights.append(ww)
         base += n_v
-    animations = tuple(_read_animation(r, a, k, node_to_joint, skeleton, above, fps)
+    animations = tuple(_read_animation(r, a, k, node_to_joint, skeleton, above, fps, max_frame_joints)
                        for k, a in enumerate(g.animations))
     return GltfAsset(r.name, skeleton, np.concatenate(vertices), np.concatenate(normals),
                      np.concatenate(faces), np.concatenate(joints), np.concatenate(weights), inverse_bind,
@@ -328,7 +357,8 @@ def _sample(times: Array, values: Array, t: Array, interpolation: str, rotation:
 
 
 def _read_animation(r: _Reader, anim: pygltflib.Animation, k: int, node_to_joint: dict[int, int],
-                    skeleton: Skeleton, above: tuple[Array, Array, float], fps: float) -> GltfAnimation:
+                    skeleton: Skeleton, above: tuple[Array, Array, float], fps: float,
+                    max_frame_joints: int = MAX_FRAME_JOINTS) -> GltfAnimation:
     """One animation on ``skeleton``; ``above``: (translation, rotation, uniform scale) of the nodes above the root
     joint, which the root's channels are in."""
     above_pos, above_rot, above_scale = above
@@ -360,6 +390,9 @@ def _read_animation(r: _Reader, anim: pygltflib.Animation, k: int, node_to_joint
     n = int(np.floor((end - start) * fps + 1e-3)) + 1
     if n > MAX_KEYS:
         raise r.fail(f"animation {name!r} would have {n} frames; at most {MAX_KEYS} are supported")
+    if n * skeleton.n_joints > max_frame_joints:
+        raise r.fail(f"animation {name!r} would have {n} frames of {skeleton.n_joints} joints (its keys span "
+                     f"{end - start:g} s at {fps:g} fps), more than the {max_frame_joints} frame-joints allowed here")
     t = start + np.arange(n) / fps
     rot = np.broadcast_to(skeleton.rest_rotations, (n, skeleton.n_joints, 4)).copy()
     root = np.zeros((n, 3))

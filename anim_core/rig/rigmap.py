@@ -489,7 +489,7 @@ def read_mapping_file(path: str | Path) -> dict[str, str]:
     try:
         text = path.read_text(encoding="utf-8")
         data = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:  # RecursionError: nested too deeply
         raise RigMapError(f"{path}: cannot read the mapping: {exc}") from None
     data = data.get("mapping", data) if isinstance(data, dict) else data
     if not isinstance(data, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in data.items()):

@@ -213,6 +213,8 @@ def load_config(path: Path = DEFAULT_CONFIG) -> ClipSetConfig:
         raise ConfigError(f"cannot read clip set file {path}: {exc}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: {exc}") from None
+    except RecursionError:  # tomllib recurses per level of [ or {
+        raise ConfigError(f"{path}: not a clip set file: its arrays or tables are nested too deeply") from None
     if unknown := sorted(set(raw) - {"fps", "character", "animations", "conditions"}):
         hint = " (conditions are listed as [[conditions]] now)" if "increments" in unknown else ""
         raise ConfigError(f"{path}: unknown field {unknown[0]!r}{hint}; allowed: fps, character, animations, "

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import secrets
 from datetime import datetime
 from enum import StrEnum
 from typing import Any
@@ -42,11 +43,18 @@ class ParticipantSession(Base):
                                                order_by="Trial.index")
 
 
+def new_public_id() -> str:
+    """A trial's id in the API: 128 random bits, so it tells nothing of how many sessions or trials exist."""
+    return secrets.token_hex(16)
+
+
 class Trial(Base):
     __tablename__ = "trials"
     __table_args__ = (UniqueConstraint("session_id", "index"),)
 
     id: Mapped[int] = mapped_column(primary_key=True)
+    # Null only for trials of before migration 0008 that it has not reached (it fills every row).
+    public_id: Mapped[str | None] = mapped_column(String(32), unique=True, index=True, default=new_public_id)
     session_id: Mapped[str] = mapped_column(ForeignKey("sessions.id", ondelete="CASCADE"), index=True)
     index: Mapped[int]
     comparison_id: Mapped[int] = mapped_column(ForeignKey("comparisons.id"))

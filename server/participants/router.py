@@ -13,23 +13,25 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Path, Response, status
+from fastapi import APIRouter, Depends, Path, Request, Response, status
 from fastapi.exceptions import RequestValidationError
 
 from server.deps import ParticipantTokenDep, SessionDep, limit_new_sessions
+from server.errors import PayloadTooLarge
 from server.participants import service
 from server.studies import service as studies_service
-from server.studies.service import get_study
+from server.studies.service import public_study
 
 from .models import ParticipantSession, SessionState, Trial
 from .schemas import (
+    MAX_EVENT_BYTES,
     Answers,
     EventCreate,
     EventRead,
-    RowId,
     SessionCreate,
     SessionCreated,
     SessionRead,
+    TrialKey,
     TrialRead,
     VoteCreate,
     VoteRead,
@@ -46,7 +48,7 @@ def media_url(name: str) -> str:
 @router.post("/studies/{slug}/sessions", status_code=status.HTTP_201_CREATED, response_model=SessionCreated,
              dependencies=[Depends(limit_new_sessions)])
 async def create_session(slug: str, body: SessionCreate, session: SessionDep) -> SessionCreated:
-    study = get_study(session, slug)
+    study = public_study(session, slug)
     new = service.start_session(session, study, body.external,
                                 body.device.model_dump() if body.device else None)
     return SessionCreated(session_id=new.session.id, token=new.token, trials_total=new.session.trials_total)
@@ -78,12 +80,17 @@ async def get_session_state(session_id: str, token: ParticipantTokenDep, session
     return read
 
 
+def public_trial_id(trial: Trial) -> str:
+    # A trial of before migration 0008 that it did not reach has no public id: its row id stands in.
+    return trial.public_id or str(trial.id)
+
+
 def trial_read(ps: ParticipantSession, upcoming: list[Trial]) -> TrialRead | None:
     """The first of ``upcoming`` as the page shows it, with the video of the one after it to preload."""
     if not upcoming:
         return None
     trial, following = upcoming[0], (upcoming[1] if len(upcoming) > 1 else None)
-    return TrialRead(trial_id=trial.id, index=trial.index, total=ps.trials_total,
+    return TrialRead(trial_id=public_trial_id(trial), index=trial.index, total=ps.trials_total,
                      practice=trial.practice, video_url=media_url(trial.comparison.video(trial.reference_side)),
                      preload_url=media_url(following.comparison.video(following.reference_side)) if following else None)
 
@@ -98,7 +105,7 @@ async def next_trial(session_id: str, token: ParticipantTokenDep, session: Sessi
 
 @router.post("/sessions/{session_id}/trials/{trial_id}/vote", response_model=VoteRead,
              status_code=status.HTTP_201_CREATED, responses={200: {"description": "the same vote, already stored"}})
-async def vote(session_id: str, trial_id: Annotated[RowId, Path()], body: VoteCreate, token: ParticipantTokenDep,
+async def vote(session_id: str, trial_id: Annotated[TrialKey, Path()], body: VoteCreate, token: ParticipantTokenDep,
                session: SessionDep, response: Response) -> VoteRead:
     """Store the vote (exactly once, see ``cast_vote``) and answer with the next trial, which saves the page a
     request per trial."""
@@ -106,7 +113,7 @@ async def vote(session_id: str, trial_id: Annotated[RowId, Path()], body: VoteCr
     result = service.cast_vote(session, ps, trial, body.choice, body.rt_ms, body.idempotency_key, body.extra())
     if not result.created:
         response.status_code = status.HTTP_200_OK
-    return VoteRead(trial_id=result.trial_id, choice=result.choice, rt_ms=result.rt_ms,
+    return VoteRead(trial_id=public_trial_id(trial), choice=result.choice, rt_ms=result.rt_ms,
                     answered_at=result.answered_at, answered=result.answered, trials_total=ps.trials_total,
                     next=trial_read(ps, result.upcoming))
 
@@ -117,9 +124,22 @@ async def withdraw(session_id: str, token: ParticipantTokenDep, session: Session
     return WithdrawRead(state=service.withdraw(session, ps).state)
 
 
-@router.post("/sessions/{session_id}/events", response_model=EventRead, status_code=status.HTTP_201_CREATED)
+async def small_event(request: Request) -> None:
+    """413 for an event body over :data:`~.schemas.MAX_EVENT_BYTES` (before it is validated)."""
+    if len(await request.body()) > MAX_EVENT_BYTES:
+        raise PayloadTooLarge(f"an event may hold at most {MAX_EVENT_BYTES} bytes")
+
+
+@router.post("/sessions/{session_id}/events", response_model=EventRead, status_code=status.HTTP_201_CREATED,
+             dependencies=[Depends(small_event)],
+             responses={413: {"description": "the event is too large"},
+                        429: {"description": "the session or trial has reported enough events"}})
 async def report_event(session_id: str, body: EventCreate, token: ParticipantTokenDep,
                        session: SessionDep) -> EventRead:
-    ps = service.authorize(session, session_id, token, lock="share")
-    event = service.record_event(session, ps, body.kind, body.trial_id, body.detail)
+    """A playback problem (``detail``: only the known fields of ``EventDetail``), at most 100 per session and
+    10 per trial."""
+    ps = service.authorize(session, session_id, token, lock="update")
+    detail = body.detail.model_dump(exclude_none=True) if body.detail else None
+    event = service.record_event(session, ps, body.kind, None if body.trial_id is None else str(body.trial_id),
+                                 detail)
     return EventRead(id=event.id, kind=event.kind)

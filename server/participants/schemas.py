@@ -1,16 +1,40 @@
 from __future__ import annotations
 
 import json
+import re
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    field_validator,
+    model_validator,
+)
 
 from server.studies.scale import Choice
 
 # Row ids are 32-bit integers in the schema; a larger id is refused as invalid input (422), not sent to the
 # database (SQLite cannot even bind integers over 64 bits).
 RowId = Annotated[int, Field(ge=1, le=2**31 - 1)]
+
+#: A trial in the API: its public id (32 hex digits, ``Trial.public_id``), or, from a page loaded before migration
+#: 0008, its old row id (digits).  Row ids are given out no more.
+PUBLIC_TRIAL_ID = re.compile(r"^[0-9a-f]{32}$")
+
+
+def _trial_key(value: str) -> str:
+    if PUBLIC_TRIAL_ID.match(value) or (value.isascii() and value.isdigit() and 1 <= int(value) <= 2**31 - 1
+                                        and len(value) <= 10):
+        return value
+    raise ValueError("a trial id is the trial_id given by GET .../next (32 hex digits)")
+
+
+TrialKey = Annotated[str, StringConstraints(max_length=32), AfterValidator(_trial_key)]
+PublicTrialId = Annotated[str, StringConstraints(pattern=PUBLIC_TRIAL_ID.pattern)]
 
 MAX_EXTRA_BYTES = 16_384
 # Request bodies are strict: JSON true is consent, "true" or 1 is not; a number is a number, not a string of one.
@@ -77,7 +101,7 @@ class SessionRead(BaseModel):
 
 
 class TrialRead(BaseModel):
-    trial_id: int
+    trial_id: str = Field(description="the trial's id (opaque)")
     index: int
     total: int
     practice: bool
@@ -105,7 +129,7 @@ class VoteCreate(BaseModel):
 
 
 class VoteRead(BaseModel):
-    trial_id: int
+    trial_id: str
     choice: str
     rt_ms: int
     answered_at: datetime
@@ -119,19 +143,26 @@ class WithdrawRead(BaseModel):
     state: str
 
 
+#: A playback event's whole body, in bytes: beyond it, 413 (the page sends well under 300).
+MAX_EVENT_BYTES = 2048
+
+
+class EventDetail(BaseModel):
+    """What the page reports with an event: nothing else is stored (no free-form JSON)."""
+
+    model_config = ConfigDict(strict=True, extra="forbid")
+
+    error: str | None = Field(None, max_length=500, description="the browser's error message, e.g. "
+                              "'NotAllowedError: ...' for a refused full screen or a video that did not load")
+
+
 class EventCreate(BaseModel):
     model_config = STRICT
 
     kind: Literal["load_failure", "playback_stall", "error", "fullscreen_exit", "fullscreen_refused"]
-    trial_id: RowId | None = None
-    detail: dict[str, Any] | None = None
-
-    @field_validator("detail")
-    @classmethod
-    def small_detail(cls, value: dict[str, Any] | None) -> dict[str, Any] | None:
-        if value is not None and len(json.dumps(value, default=str)) > MAX_EXTRA_BYTES:
-            raise ValueError(f"detail may hold at most {MAX_EXTRA_BYTES} bytes of JSON")
-        return value
+    trial_id: PublicTrialId | RowId | None = Field(None, description="the trial_id given by GET .../next (an "
+                                                   "integer: a trial id of before migration 0008)")
+    detail: EventDetail | None = None
 
 
 class EventRead(BaseModel):

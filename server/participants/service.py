@@ -15,7 +15,7 @@ from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session, joinedload
 
 from server.db import utcnow
-from server.errors import Conflict, Forbidden, NotFound, Unauthorized
+from server.errors import Conflict, Forbidden, NotFound, TooManyRequests, Unauthorized
 from server.studies.design import Design, trial_order
 from server.studies.models import Study, StudyState
 from server.studies.scale import score
@@ -58,10 +58,18 @@ def start_session(session: Session, study: Study, external: dict[str, str] | Non
 
 _by_id = select(ParticipantSession).where(ParticipantSession.id == bindparam("id"))
 _SESSION = {None: _by_id, "share": _by_id.with_for_update(read=True), "update": _by_id.with_for_update()}
-# A vote's session (locked as by authorize(lock="share")) and its trial, in one round trip.
-_ANSWER = (select(ParticipantSession, Trial)
-           .outerjoin(Trial, (Trial.id == bindparam("trial_id")) & (Trial.session_id == ParticipantSession.id))
-           .where(ParticipantSession.id == bindparam("id")).with_for_update(read=True, of=ParticipantSession))
+# A vote's session (locked as by authorize(lock="share")) and its trial, in one round trip: by the trial's public id,
+# or by its row id from a page loaded before migration 0008.
+_ANSWER = {by: (select(ParticipantSession, Trial)
+                .outerjoin(Trial, (column == bindparam("trial_id")) & (Trial.session_id == ParticipantSession.id))
+                .where(ParticipantSession.id == bindparam("id")).with_for_update(read=True, of=ParticipantSession))
+           for by, column in (("public", Trial.public_id), ("row", Trial.id))}
+
+
+def _trial_key(trial_id: str | int) -> tuple[str, str | int]:
+    """Which column a trial id of the API names (``TrialKey``: 32 hex digits, or an old row id, digits)."""
+    trial_id = str(trial_id)
+    return ("row", int(trial_id)) if trial_id.isdigit() and len(trial_id) <= 10 else ("public", trial_id)
 
 
 def authorize(session: Session, session_id: str, token: str | None,
@@ -76,10 +84,12 @@ def authorize(session: Session, session_id: str, token: str | None,
     return _checked(session, session.scalars(_SESSION[lock], {"id": session_id}).first(), token)
 
 
-def authorize_answer(session: Session, session_id: str, token: str | None, trial_id: int
+def authorize_answer(session: Session, session_id: str, token: str | None, trial_id: str | int
                      ) -> tuple[ParticipantSession, Trial]:
-    """:func:`authorize` with ``lock="share"``, and the session's trial ``trial_id`` (404 if it has none)."""
-    row = session.execute(_ANSWER, {"id": session_id, "trial_id": trial_id}).first()
+    """:func:`authorize` with ``lock="share"``, and the session's trial ``trial_id`` (its public id, or its row id
+    from a page of before migration 0008; 404 if the session has no such trial)."""
+    by, key = _trial_key(trial_id)
+    row = session.execute(_ANSWER[by], {"id": session_id, "trial_id": key}).first()
     ps = _checked(session, row[0] if row is not None else None, token)
     trial = row[1]  # type: ignore[index]  # _checked raised if there was no row
     if trial is None:
@@ -224,10 +234,15 @@ def cast_vote(session: Session, ps: ParticipantSession, trial: Trial, choice: st
 
 
 def withdraw(session: Session, ps: ParticipantSession) -> ParticipantSession:
-    """Delete the session's votes, answers and external ids; keep an anonymous row for the count."""
+    """Delete everything the participant gave or their browser reported: votes, answers, external ids, the device
+    report and every playback event.  Kept (docs/security.md, "Withdrawal"): an anonymous row for the withdrawal
+    count (state, study, consent version and time, start and withdrawal times) and the trial order the server
+    drew (no participant data)."""
     session.execute(delete(Vote).where(Vote.session_id == ps.id))
+    session.execute(delete(PlaybackEvent).where(PlaybackEvent.session_id == ps.id))
     ps.answers = None
     ps.external = None
+    ps.device = None
     ps.token_hash = None
     ps.state = SessionState.withdrawn
     ps.withdrawn_at = utcnow()
@@ -235,13 +250,31 @@ def withdraw(session: Session, ps: ParticipantSession) -> ParticipantSession:
     return ps
 
 
-def record_event(session: Session, ps: ParticipantSession, kind: str, trial_id: int | None,
+#: Playback events kept per session and per trial; beyond them, 429 (the page reports a failed video once per
+#: trial and a left full screen when it happens).
+MAX_EVENTS_PER_SESSION = 100
+MAX_EVENTS_PER_TRIAL = 10
+
+
+def record_event(session: Session, ps: ParticipantSession, kind: str, trial_key: str | None,
                  detail: dict[str, Any] | None) -> PlaybackEvent:
-    """Keep what the browser reports (e.g. a video that failed to load after its retries)."""
-    if trial_id is not None:
-        trial = session.get(Trial, trial_id)
-        if trial is None or trial.session_id != ps.id:
+    """Keep what the browser reports (e.g. a video that failed to load after its retries), up to
+    :data:`MAX_EVENTS_PER_SESSION` per session and :data:`MAX_EVENTS_PER_TRIAL` per trial (429 beyond).  The
+    caller holds the session row locked (``authorize(lock="update")``), so concurrent reports count right."""
+    trial_id = None
+    if trial_key is not None:
+        by, key = _trial_key(trial_key)
+        trial = session.scalar(select(Trial).where(Trial.session_id == ps.id,
+                                                   (Trial.public_id if by == "public" else Trial.id) == key))
+        if trial is None:
             raise NotFound("no such trial in this session")
+        trial_id = trial.id
+    count = select(func.count(PlaybackEvent.id)).where(PlaybackEvent.session_id == ps.id)
+    if (session.scalar(count) or 0) >= MAX_EVENTS_PER_SESSION:
+        raise TooManyRequests(f"this session has reported {MAX_EVENTS_PER_SESSION} events already; no more are kept")
+    if trial_id is not None and (session.scalar(count.where(PlaybackEvent.trial_id == trial_id)) or 0) \
+            >= MAX_EVENTS_PER_TRIAL:
+        raise TooManyRequests(f"this trial has {MAX_EVENTS_PER_TRIAL} events already; no more are kept")
     event = PlaybackEvent(session_id=ps.id, trial_id=trial_id, kind=kind, detail=detail or None)
     session.add(event)
     session.commit()

@@ -7,9 +7,11 @@ page fills every element from the study).  ``{name}`` placeholders are filled in
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints, field_validator
+
+from server.security import refuse_bidi_controls
 
 # Scripts written right to left (ISO 639-1): the page sets dir="rtl" for them.
 RTL_LANGUAGES = frozenset({"ar", "dv", "fa", "he", "ks", "ku", "ps", "sd", "ug", "ur", "yi"})
@@ -18,6 +20,11 @@ Lang = Annotated[str, StringConstraints(pattern=r"^[a-z]{2,3}(-[A-Za-z0-9]{2,8})
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", str_strip_whitespace=True)
+
+    @field_validator("*")
+    @classmethod
+    def no_bidi_controls(cls, value: Any) -> Any:
+        return refuse_bidi_controls(value)
 
 
 def _s(default: str) -> str:

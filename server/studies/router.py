@@ -125,7 +125,7 @@ def page_defaults() -> dict[str, Any]:
 
 @router.get("/studies/{slug}", response_model=StudyPublic)
 def read_study(slug: str, session: SessionDep) -> StudyPublic:
-    study = service.get_study(session, slug)
+    study = service.public_study(session, slug)
     return StudyPublic(slug=study.slug, title=study.title, state=study.state, texts=study.texts,
                        consent_version=study.consent_version, trials_total=service.trials_total(study),
                        scale=study.scale, questions=study.questions,

@@ -13,7 +13,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session, aliased, object_session
 
 from server.db import utcnow
-from server.errors import Conflict, Forbidden, NotFound, Unprocessable
+from server.errors import Conflict, NotFound, Unprocessable
 from server.media.build import identical_clips, read_clip_set, rendered_pairs
 from server.media.manifest import RenderManifest
 from server.participants.models import ParticipantSession, SessionState, Trial, Vote
@@ -148,10 +148,20 @@ def can_manage(researcher: Researcher, study: Study) -> bool:
 
 
 def managed_study(session: Session, slug: str, researcher: Researcher) -> Study:
-    """The study ``slug`` if ``researcher`` owns it or is an admin (403 otherwise)."""
-    study = get_study(session, slug)
-    if not can_manage(researcher, study):
-        raise Forbidden(f"study {slug!r} belongs to another researcher")
+    """The study ``slug`` if ``researcher`` owns it or is an admin; another researcher's study answers as an
+    unknown one (404, the same message), so slugs cannot be probed."""
+    study = session.scalar(select(Study).where(Study.slug == slug))
+    if study is None or not can_manage(researcher, study):
+        raise NotFound(f"no study {slug!r}")
+    return study
+
+
+def public_study(session: Session, slug: str) -> Study:
+    """The study ``slug`` as participants may see it: a draft (its texts not yet final nor public) answers as an
+    unknown study (404)."""
+    study = session.scalar(select(Study).where(Study.slug == slug))
+    if study is None or study.state == StudyState.draft:
+        raise NotFound(f"no study {slug!r}")
     return study
 
 
@@ -225,7 +235,8 @@ def set_state(session: Session, study: Study, state: StudyState) -> Study:
 
 
 def recruitment(study: Study) -> Recruitment:
-    return Recruitment.model_validate(study.recruitment)
+    # Stored: a template saved before the rules of studyfile.template_problem reads, and gives no URL.
+    return Recruitment.model_validate(study.recruitment, context={"stored": True})
 
 
 def texts(study: Study) -> Texts:
@@ -260,8 +271,10 @@ def export_columns(study: Study) -> list[str]:
     return base[:at] + [q["id"] for q in study.questions] + base[at:] + list(study.recruitment["parameters"])
 
 
-# A text cell beginning with one of these is a formula (or becomes one) in Excel, LibreOffice and Google Sheets.
-FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
+# A text cell beginning with one of these is a formula (or becomes one) in Excel, LibreOffice and Google Sheets:
+# leading spaces and line breaks are skipped by some of them, and the full-width forms (U+FF1D ＝ and its
+# neighbours) are read as the ASCII ones by others.
+FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r", "\n", " ", "\uff1d", "\uff0b", "\uff0d", "\uff20")
 
 
 def csv_cell(value: object) -> object:

@@ -13,7 +13,18 @@ from pathlib import Path
 from typing import Annotated, Any, Self
 from urllib.parse import quote, urlsplit
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from server.security import refuse_bidi_controls
 
 from .columns import EXPORT_COLUMNS
 from .design import Design
@@ -38,6 +49,11 @@ def _text(max_length: int, description: str) -> Any:
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", str_strip_whitespace=True)
+
+    @field_validator("*")
+    @classmethod
+    def no_bidi_controls(cls, value: Any) -> Any:
+        return refuse_bidi_controls(value)
 
 
 class Texts(_Strict):
@@ -123,32 +139,65 @@ class Recruitment(_Strict):
         return value
 
     @model_validator(mode="after")
-    def urls(self) -> Self:
+    def urls(self, info: ValidationInfo) -> Self:
+        if (info.context or {}).get("stored"):  # as stored before these rules: completion_url() gives no URL
+            return self
         fields = {"code", *self.parameters}
         for name in ("completed", "screened_out"):
             url = getattr(self, name).url
-            if url is None:
-                continue
-            try:
-                names = [f for _, f, _, _ in string.Formatter().parse(url) if f is not None]
-            except ValueError as exc:
-                raise ValueError(f"{name}.url is not a valid template: {exc}") from None
-            unknown = sorted(set(names) - fields)
-            if unknown:
-                raise ValueError(f"{name}.url uses {', '.join(unknown)}, which is neither {{code}} nor an "
-                                 f"accepted parameter")
-            parts = urlsplit(url)
-            if parts.scheme not in ("http", "https") or not parts.netloc:
-                raise ValueError(f"{name}.url must be an http(s) URL, got {url!r}")
+            if url is not None:
+                problem = template_problem(url, fields)
+                if problem:
+                    raise ValueError(f"{name}.url {problem}")
         return self
 
     def completion_url(self, outcome: str, code: str | None, external: dict[str, str] | None) -> str | None:
-        """The outcome's URL with ``{code}`` and the session's parameters filled in (URL-quoted; missing: empty)."""
+        """The outcome's URL with ``{code}`` and the session's parameters filled in (URL-quoted, each at most
+        :data:`MAX_URL_VALUE` characters; missing: empty).  A template stored before the rules of
+        :func:`template_problem` that breaks them gives no URL rather than a redirect anywhere."""
         url = getattr(self, outcome).url
         if url is None:
             return None
-        values = {p: quote((external or {}).get(p, ""), safe="") for p in self.parameters}
-        return url.format(code=quote(code or "", safe=""), **values)
+        fields = {"code", *self.parameters}
+        if template_problem(url, fields):
+            return None
+        values = {p: (external or {}).get(p, "") for p in self.parameters} | {"code": code or ""}
+        out = []
+        for literal, field, _, _ in string.Formatter().parse(url):
+            out.append(literal)
+            if field is not None:
+                out.append(quote(values[field][:MAX_URL_VALUE], safe=""))
+        return "".join(out)
+
+
+#: Characters of one value filled into a completion URL (before URL-encoding).
+MAX_URL_VALUE = 200
+
+
+def template_problem(url: str, fields: set[str]) -> str | None:
+    """What is wrong with a completion-URL template, or None.  Allowed: an ``https://host/`` written out, then
+    path and query with plain ``{name}`` placeholders of ``fields`` (no format spec, conversion, index or
+    attribute: ``{code:>300000000}`` would make a 300 MB answer, ``{code:{PROLIFIC_PID}}`` let the participant
+    choose one, and ``https://{PROLIFIC_PID}/`` send them anywhere)."""
+    try:
+        parts = list(string.Formatter().parse(url))
+    except ValueError as exc:
+        return f"is not a valid template: {exc}"
+    for _, field, spec, conversion in parts:
+        if field is None:
+            continue
+        if spec or conversion or field not in fields:
+            shown = "{" + field + (f"!{conversion}" if conversion else "") + (f":{spec}" if spec else "") + "}"
+            if field not in fields:
+                return (f"uses {shown}, which is neither {{code}} nor an accepted parameter "
+                        f"({', '.join(sorted(fields))})")
+            return f"uses {shown}; only plain {{name}} placeholders are allowed (no format spec or conversion)"
+    fixed = parts[0][0] if parts else url  # the text before the first placeholder
+    split = urlsplit(fixed)
+    if split.scheme != "https" or not split.netloc or not fixed[len(f"https://{split.netloc}"):].startswith("/"):
+        return (f"must start with a fixed https://host/ before any placeholder (placeholders only in the path or "
+                f"query), got {url!r}")
+    return None
 
 
 class StudyFile(_Strict):
@@ -238,15 +287,22 @@ def errors_of(exc: ValidationError, text: str | None = None) -> list[str]:
     return out
 
 
+NESTED_TOO_DEEPLY = "not a study file: its arrays or tables are nested too deeply"
+
+
 def parse_study_text(text: str, source: str = "study file") -> StudyFile:
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise StudyFileError(source, [f"not valid TOML: {exc}"]) from None
+    except RecursionError:  # tomllib recurses per level of [ or {: a few hundred levels exhaust the stack
+        raise StudyFileError(source, [NESTED_TOO_DEEPLY]) from None
     try:
         return StudyFile.model_validate(raw)
     except ValidationError as exc:
         raise StudyFileError(source, errors_of(exc, text)) from None
+    except RecursionError:
+        raise StudyFileError(source, [NESTED_TOO_DEEPLY]) from None
 
 
 def load_study_file(path: Path) -> StudyFile:

@@ -28,6 +28,7 @@ import fcntl
 import json
 import math
 import os
+import resource
 import sys
 import threading
 import traceback
@@ -331,12 +332,20 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
     progress(stage="study", done=1, total=1, message=f"the design shows {', '.join(animations)}")
 
 
+def limit_memory(megabytes: int) -> None:
+    """Cap this process's address space (``ANIMSTUDY_BUILD_MEMORY_MB``; 0: no cap): a build that would take more
+    fails with a MemoryError, stored in the job, instead of taking the server's memory."""
+    if megabytes > 0:
+        resource.setrlimit(resource.RLIMIT_AS, (megabytes << 20, megabytes << 20))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if len(argv) != 1 or not argv[0].isdigit():
         print("usage: python -m server.uploads.job JOB_ID", file=sys.stderr)
         return 2
     settings = Settings()
+    limit_memory(settings.build_memory_mb)
     engine = make_engine(settings.sqlalchemy_url)
     try:
         run(settings, session_factory(engine), int(argv[0]))

@@ -39,6 +39,13 @@ from .models import BuildJob, BuildState, StudyAsset
 #: compressed file could unpack to far more than the size limit allows.
 EXTENSIONS = (".bvh", ".glb", ".gltf")
 FILENAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._ -]{0,99}$")
+#: Memory inspecting an upload may take: ``MEMORY_PER_BYTE`` × its size + ``MEMORY_BASE`` (issue 26).  The part
+#: that does not grow with the file's bytes grows with its frames × joints (a BVH joint without channels costs
+#: nothing in the file and as much as any other in memory): inspecting a 1000-joint BVH took 258 bytes per
+#: frame·joint, so the motion may have at most that memory / :data:`BYTES_PER_FRAME_JOINT` frame·joints.
+MEMORY_PER_BYTE = 50
+MEMORY_BASE = 200_000_000
+BYTES_PER_FRAME_JOINT = 300
 INCOMING = ".incoming"
 STALE_INCOMING_S = 24 * 3600
 ACTIVE = (BuildState.queued, BuildState.running)
@@ -151,6 +158,11 @@ def check_options(units: str | None, up_axis: str | None, mapping: Any) -> dict[
             if v is not None}
 
 
+def max_frame_joints(size_bytes: int) -> int:
+    """The frames × joints an upload of ``size_bytes`` may hold (see :data:`MEMORY_PER_BYTE`)."""
+    return (MEMORY_PER_BYTE * size_bytes + MEMORY_BASE) // BYTES_PER_FRAME_JOINT
+
+
 #: Said after an upload that does not read, so the researcher knows what to change.
 NEXT_STEP = {
     "RigMapError": "choose the units, the up axis or a joint mapping in the upload form (API: units=, up=, "
@@ -163,12 +175,14 @@ NEXT_STEP = {
 def inspect_upload(path: Path, options: dict[str, Any] | None = None) -> dict[str, Any]:
     """Inspect an uploaded file read with ``options`` (:func:`check_options`): its report (with the options), or
     422 with the reader's message (file, line, what is wrong) and what to do next.  A glTF with several animations
-    gives its first one (the report names the others)."""
+    gives its first one (the report names the others).  A motion of more frames × joints than
+    :func:`max_frame_joints` allows for the file's size is refused before it is read."""
     from anim_core.clips.sources import inspect_source
 
     options = options or {}
     try:
-        reports = inspect_source(path, options.get("mapping"), options.get("units"), options.get("up_axis"))
+        reports = inspect_source(path, options.get("mapping"), options.get("units"), options.get("up_axis"),
+                                 max_frame_joints=max_frame_joints(path.stat().st_size))
     except (ValueError, OSError, RecursionError, MemoryError) as exc:  # BvhError, GltfError, RigMapError ...
         message = str(exc) or f"{path.name}: cannot be read ({type(exc).__name__})"
         step = NEXT_STEP.get(type(exc).__name__, "check the file and upload it again")
@@ -334,6 +348,7 @@ def job_environment(settings: Settings, engine: Engine) -> dict[str, str]:
     env = {**os.environ, "ANIMSTUDY_DATA_DIR": str(settings.data), "ANIMSTUDY_VAR_DIR": str(settings.var),
            "DATABASE_URL": engine.url.render_as_string(hide_password=False)}
     env.pop("ANIMSTUDY_DATABASE_URL", None)
+    env["ANIMSTUDY_BUILD_MEMORY_MB"] = str(settings.build_memory_mb)
     if settings.secret_key:
         env["ANIMSTUDY_SECRET_KEY"] = settings.secret_key
     return env
