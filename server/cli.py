@@ -210,7 +210,7 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies
                 needed += required_pairs(design, clip_set_index(clips_dir))
             except Unprocessable as exc:
                 return _fail(f"{path}: {exc.detail}")
-        # The studies' own pairs too: rendering removes every video it was not asked for.
+        # The studies' own pairs too, so that the render manifest (what new studies are made over) lists them.
         pairs = list(dict.fromkeys([*needed, *_pairs_in_use(settings)]))
         render_media(settings.data, clips_dir, out, settings.secret,
                      RenderSettings(width=width, height=height, shadows=shadows), pairs=pairs,
@@ -248,7 +248,7 @@ def _pairs_in_use(settings: Settings) -> list[tuple[str, str]]:
 
     engine = make_engine(settings.sqlalchemy_url)
     try:
-        migrate(engine)
+        migrate(engine, media_dir=settings.media_dir, clips_dir=settings.clips_dir)
         with session_factory(engine)() as session:
             return pairs_in_use(session)
     finally:
@@ -260,16 +260,17 @@ def prepare_study(settings: Settings, session_factory: object) -> None:
     (studies/thesis.toml) needs (what is missing), then create and open it."""
     from sqlalchemy import select
 
-    from server.studies.models import Study, StudyState
-    from server.studies.service import create_study, set_state
+    from server.studies.models import Study
+    from server.studies.service import create_study, open_study
     from server.studies.studyfile import thesis_study
 
     with session_factory() as session:  # type: ignore[operator]
         if session.scalar(select(Study.id).limit(1)) is not None:
             return
         study_file = thesis_study()
-        study = create_study(session, _render_for(settings, session, study_file), study_file)
-        set_state(session, study, StudyState.open)
+        study = create_study(session, _render_for(settings, session, study_file), study_file,
+                             media_dir=settings.media_dir, clips_dir=settings.clips_dir)
+        open_study(session, study, settings.media_dir)
         print(f"created and opened study {study.slug!r} ({len(study.comparisons)} comparisons)", flush=True)
 
 
@@ -277,7 +278,7 @@ def _study_session(settings: Settings) -> object:
     from server.db import make_engine, migrate, session_factory
 
     engine = make_engine(settings.sqlalchemy_url)
-    migrate(engine)
+    migrate(engine, media_dir=settings.media_dir, clips_dir=settings.clips_dir)
     return session_factory(engine)()
 
 
@@ -322,9 +323,10 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                         return _fail(f"no researcher {args.owner!r} (create one with `animstudy researcher create`)")
                 if session.scalar(select(Study.id).where(Study.slug == study_file.slug)) is not None:
                     return _fail(f"a study with slug {study_file.slug!r} exists already")
-                study = service.create_study(session, _render_for(settings, session, study_file), study_file, owner)
+                study = service.create_study(session, _render_for(settings, session, study_file), study_file, owner,
+                                             media_dir=settings.media_dir, clips_dir=settings.clips_dir)
                 if args.open:
-                    service.set_state(session, study, StudyState.open)
+                    service.open_study(session, study, settings.media_dir)
                 print(f"created study {study.slug!r} ({study.state}, {service.trials_total(study)} trials per "
                       f"participant); participant link: /s/{study.slug}")
                 for test, ref in service.identical_comparisons(study_file.design, settings.clips_dir):
@@ -335,9 +337,12 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                 print(f"{'slug':24} {'state':7} {'started':>7} {'completed':>9} {'votes':>6}  title")
                 for r in rows:
                     print(f"{r.slug:24} {r.state:7} {r.started:7d} {r.completed:9d} {r.votes:6d}  {r.title}")
-            elif command in ("open", "close"):
-                study = service.set_state(session, service.get_study(session, args.slug), StudyState(
-                    "open" if command == "open" else "closed"))
+            elif command == "open":
+                study = service.open_study(session, service.get_study(session, args.slug), settings.media_dir)
+                print(f"study {study.slug!r} is {study.state}; its stimulus set {study.stimulus_set.digest[:12]} "
+                      "is pinned")
+            elif command == "close":
+                study = service.set_state(session, service.get_study(session, args.slug), StudyState.closed)
                 print(f"study {study.slug!r} is {study.state}")
             elif command == "export":
                 study = service.get_study(session, args.slug)
@@ -358,6 +363,21 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
         return _fail(exc.detail)
     except (AssetError, ConfigError, MediaError, OSError) as exc:
         return _fail(str(exc))
+    return 0
+
+
+def gc(settings: Settings, dry_run: bool) -> int:
+    """``animstudy gc``: delete the videos and posters that neither a study's stimulus set nor the render manifest
+    uses (``--dry-run``: list them)."""
+    from server.stimuli.service import collect
+
+    with _study_session(settings) as session:  # type: ignore[attr-defined]
+        found = collect(session, settings.media_dir, dry_run=dry_run)
+    for f in found.files:
+        print(f.name)
+    verb = "would delete" if dry_run else "deleted"
+    print(f"{verb} {len(found.files)} unreferenced files ({found.size_bytes / 2**20:.1f} MiB); kept {found.kept} "
+          "that a study's stimulus set or the render manifest uses", file=sys.stderr)
     return 0
 
 
@@ -392,7 +412,7 @@ def serve(settings: Settings, host: str, port: int, workers: int) -> int:
 
     engine = make_engine(settings.sqlalchemy_url)
     try:
-        migrate(engine)
+        migrate(engine, media_dir=settings.media_dir, clips_dir=settings.clips_dir)
         factory = session_factory(engine)
         prepare_study(settings, factory)
         ensure_researcher(settings, factory)
@@ -413,7 +433,7 @@ def researcher_create(settings: Settings, email: str, password: str, admin: bool
     from server.researchers.service import create_researcher
 
     engine = make_engine(settings.sqlalchemy_url)
-    migrate(engine)
+    migrate(engine, media_dir=settings.media_dir, clips_dir=settings.clips_dir)
     try:
         with session_factory(engine)() as session:
             researcher = create_researcher(session, email, password, admin=admin)
@@ -619,6 +639,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
     se.add_argument("slug")
     se.add_argument("--format", choices=("csv", "json"), default="csv")
     se.add_argument("--out", type=Path, default=None, help="file to write (default: standard output)")
+    gcp = sub.add_parser("gc", help="delete the videos no study's stimulus set (and not the render manifest) uses")
+    gcp.add_argument("--dry-run", action="store_true", help="list them, delete nothing")
     bn = sub.add_parser("bench", help="time pose evaluation of crowds, keyframe against every other condition")
     bn.add_argument("--json", type=Path, default=None, help="results file (default: <var dir>/benchmark/results.json)")
     bn.add_argument("--config", type=Path, default=None,
@@ -648,6 +670,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
         return researcher_create(settings, args.email, args.password, args.admin)
     if args.command == "study":
         return study_command(settings, args)
+    if args.command == "gc":
+        return gc(settings, args.dry_run)
     if args.command == "inspect":
         return inspect(settings.data)
     if args.command == "render":

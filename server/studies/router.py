@@ -60,7 +60,8 @@ def create_study(body: StudyFile, session: SessionDep, settings: SettingsDep,
                  researcher: ResearcherDep) -> StudySummary:
     """A draft study from a study file's content (as JSON) over the rendered videos (``animstudy study create``
     renders what is missing; here the videos must exist)."""
-    return summary(session, service.create_study(session, render_manifest(settings), body, owner=researcher))
+    return summary(session, service.create_study(session, render_manifest(settings), body, owner=researcher,
+                                                 media_dir=settings.media_dir, clips_dir=settings.clips_dir))
 
 
 async def study_file_text(request: Request) -> str:
@@ -102,7 +103,7 @@ def patch_study(slug: str, session: SessionDep, settings: SettingsDep, researche
     study = service.managed_study(session, slug, researcher)
     media = render_manifest(settings) if "design" in body else None
     try:
-        service.update_study(session, study, body, media)
+        service.update_study(session, study, body, media, settings.media_dir, settings.clips_dir)
     except ValidationError as exc:
         session.rollback()
         raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in exc.errors()]) from None
@@ -135,8 +136,9 @@ def read_study(slug: str, session: SessionDep) -> StudyPublic:
 
 
 @router.post("/studies/{slug}/open", response_model=StudyStateRead)
-def open_study(slug: str, session: SessionDep, researcher: ResearcherDep) -> StudyStateRead:
-    study = service.set_state(session, service.managed_study(session, slug, researcher), StudyState.open)
+def open_study(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep) -> StudyStateRead:
+    """Open the study once every file of its stimulus set is there (409 naming what is missing); pins the set."""
+    study = service.open_study(session, service.managed_study(session, slug, researcher), settings.media_dir)
     return StudyStateRead(slug=study.slug, state=study.state)
 
 
@@ -169,4 +171,4 @@ def data_dictionary() -> str:
 def results(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep) -> dict:
     """Progress and statistics (participants are the unit of analysis; see ``methods`` in the answer)."""
     study = service.managed_study(session, slug, researcher)
-    return study_results(session, study, settings.clips_dir, settings.benchmark_path)
+    return study_results(session, study, settings.benchmark_path)

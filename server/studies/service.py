@@ -18,6 +18,7 @@ from server.media.build import identical_clips, read_clip_set, rendered_pairs
 from server.media.manifest import RenderManifest
 from server.participants.models import ParticipantSession, SessionState, Trial, Vote
 from server.researchers.models import Researcher
+from server.stimuli import service as stimulus_sets
 
 from .design import ComparisonIds, Design
 from .models import Comparison, ComparisonKind, Stimulus, Study, StudyState
@@ -93,30 +94,37 @@ def definition(study: Study) -> StudyFile:
 
 
 def create_study(session: Session, media: RenderManifest, study_file: StudyFile,
-                 owner: Researcher | None = None) -> Study:
-    """A draft study over the videos of a render manifest (``server.media.build``), which must hold its pairs."""
+                 owner: Researcher | None = None, media_dir: Path | None = None,
+                 clips_dir: Path | None = None) -> Study:
+    """A draft study over the videos of a render manifest (``server.media.build``), which must hold its pairs;
+    its stimulus set (:mod:`server.stimuli`) hashes the files in ``media_dir`` and takes the clips' metrics from
+    the clip set in ``clips_dir``."""
     if session.scalar(select(Study.id).where(Study.slug == study_file.slug)) is not None:
         raise Conflict(f"a study with slug {study_file.slug!r} exists already")
     study = Study(slug=study_file.slug, state=StudyState.draft, owner_id=owner.id if owner else None,
                   **_columns(study_file))
-    _build_comparisons(study, media, study_file.design)
+    _build_comparisons(session, study, media, study_file.design, media_dir, clips_dir)
     session.add(study)
     session.commit()
     return study
 
 
-def _build_comparisons(study: Study, media: RenderManifest, design: Design) -> None:
-    """The study's stimuli and comparisons for ``design`` (replacing any it had)."""
+def _build_comparisons(session: Session, study: Study, media: RenderManifest, design: Design,
+                       media_dir: Path | None, clips_dir: Path | None) -> None:
+    """The study's stimuli, comparisons and stimulus set for ``design`` (replacing any it had)."""
+    if study.opened_at is not None:  # its set is pinned
+        raise Conflict(f"study {study.slug!r} has been open: what it shows is pinned")
     clips = media.clip_index()
     pair_videos = media.pair_videos()
-    missing = [p for p in required_pairs(design, clips) if p not in pair_videos]
+    needed = required_pairs(design, clips)
+    missing = [p for p in needed if p not in pair_videos]
     if missing:
-        raise Conflict(f"the rendered videos lack the pairs {missing}; render them first")
+        raise Conflict(f"the rendered videos lack {len(missing)} of the pairs the design shows; "
+                       "`animstudy study create` renders them")
     if study.comparisons or study.stimuli:
         study.comparisons.clear()
         study.stimuli.clear()
-        session = object_session(study)
-        if session is not None:  # delete the old rows before the new ones meet the unique constraint
+        if object_session(study) is not None:  # delete the old rows before the new ones meet the unique constraint
             session.flush()
     stimuli: dict[StimulusKey, Stimulus] = {}
 
@@ -133,6 +141,8 @@ def _build_comparisons(study: Study, media: RenderManifest, design: Design) -> N
         study.comparisons.append(Comparison(kind=kind, reference=stimulus(ref), test=stimulus(test),
                                             video_reference_left=pair_videos[(r, t)],
                                             video_reference_right=pair_videos[(t, r)]))
+    content = stimulus_sets.make_content(media, [s.clip_id for s in study.stimuli], needed, media_dir, clips_dir)
+    study.stimulus_set = stimulus_sets.store(session, content)
 
 
 def get_study(session: Session, slug: str) -> Study:
@@ -167,7 +177,8 @@ def default_study(session: Session) -> Study | None:
 
 
 def update_study(session: Session, study: Study, changes: Mapping[str, Any],
-                 media: RenderManifest | None = None) -> Study:
+                 media: RenderManifest | None = None, media_dir: Path | None = None,
+                 clips_dir: Path | None = None) -> Study:
     """Apply a partial study file (sections are merged into the current ones): ``title``, ``texts``, ``scale``,
     ``questions`` and ``recruitment`` until the study first opens; ``design`` only while it is a draft that never
     opened (its comparisons are rebuilt over ``media``, the render manifest).  Otherwise 409: participants saw it
@@ -184,7 +195,7 @@ def update_study(session: Session, study: Study, changes: Mapping[str, Any],
     if updated.design.model_dump() != study.design:
         if study.state != StudyState.draft or media is None:
             raise Conflict("the design can change only while the study is a draft")
-        _build_comparisons(study, media, updated.design)
+        _build_comparisons(session, study, media, updated.design, media_dir, clips_dir)
     for key, value in _columns(updated).items():
         setattr(study, key, value)
     session.commit()
@@ -209,6 +220,19 @@ def comparison_ids(study: Study) -> ComparisonIds:
 
 def trials_total(study: Study) -> int:
     return Design.model_validate(study.design).trials_total()
+
+
+def open_study(session: Session, study: Study, media_dir: Path) -> Study:
+    """Open ``study`` for participants once every file of its stimulus set is in ``media_dir`` with the bytes
+    the set records (409 naming what is missing otherwise); from then on the set is pinned."""
+    if study.stimulus_set is None:
+        raise Conflict(f"study {study.slug!r} has no stimulus set; create it again with `animstudy study create`")
+    lacking = stimulus_sets.missing(stimulus_sets.content_of(study.stimulus_set), media_dir)
+    if lacking:
+        shown = "; ".join(lacking[:10]) + (f"; and {len(lacking) - 10} more" if len(lacking) > 10 else "")
+        raise Conflict(f"study {study.slug!r} cannot open: its stimulus set is incomplete ({shown}); "
+                       "`animstudy study create` renders what is missing")
+    return set_state(session, study, StudyState.open)
 
 
 def set_state(session: Session, study: Study, state: StudyState) -> Study:
@@ -254,7 +278,8 @@ def session_outcome(study: Study, state: str, failed_catch: int) -> str | None:
 EXPORT_COLUMNS = ("session_id", "trial_index", "practice", "catch", "animation", "reference_condition",
                   "test_condition", "reference_side", "test_side", "choice", "score", "rt_ms", "answered_at",
                   "consent_version", "session_state", "outcome", "viewport_width", "viewport_height",
-                  "device_pixel_ratio", "video_scale", "video_scaled")
+                  "device_pixel_ratio", "video_scale", "video_scaled", "left_video", "right_video", "pair_video",
+                  "stimulus_set")
 
 
 def export_columns(study: Study) -> list[str]:
@@ -327,7 +352,8 @@ def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
     parameters = list(study.recruitment["parameters"])
     rows = session.execute(
         select(Vote, Trial, ParticipantSession, Comparison.kind, reference.animation, reference.condition,
-               test.condition)
+               test.condition, reference.video, test.video, Comparison.video_reference_left,
+               Comparison.video_reference_right)
         .join(Trial, Vote.trial_id == Trial.id)
         .join(ParticipantSession, Trial.session_id == ParticipantSession.id)
         .join(Comparison, Trial.comparison_id == Comparison.id)
@@ -337,7 +363,12 @@ def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
         .order_by(ParticipantSession.created_at, ParticipantSession.id, Trial.index)
     )
     failed = failed_catch_trials(session, study)
-    for vote, trial, ps, kind, animation, ref_condition, test_condition in rows:
+    pinned = study.stimulus_set
+    hashes = stimulus_sets.content_of(pinned).hashes() if pinned is not None else {}
+    for (vote, trial, ps, kind, animation, ref_condition, test_condition, ref_video, test_video, pair_ref_left,
+         pair_ref_right) in rows:
+        left, right = (ref_video, test_video) if trial.reference_side == "left" else (test_video, ref_video)
+        pair = pair_ref_left if trial.reference_side == "left" else pair_ref_right
         answers, external, device = ps.answers or {}, ps.external or {}, ps.device or {}
         yield {
             "session_id": ps.id, "trial_index": trial.index, "practice": trial.practice,
@@ -350,6 +381,8 @@ def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
             "viewport_width": device.get("viewport_width"),
             "viewport_height": device.get("viewport_height"), "device_pixel_ratio": device.get("device_pixel_ratio"),
             "video_scale": device.get("scale"), "video_scaled": device.get("scaled"),
+            "left_video": hashes.get(left), "right_video": hashes.get(right), "pair_video": hashes.get(pair),
+            "stimulus_set": pinned.digest if pinned is not None else None,
             **{p: external.get(p) for p in parameters},
         }
 

@@ -318,7 +318,8 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
     progress(stage="study", done=0, total=1, message="adding the animations to the study's design")
     with factory() as session:
         study = draft(session, study.id)
-        update_study(session, study, {"design": new_design.model_dump()}, read_render_manifest(settings.media_dir))
+        update_study(session, study, {"design": new_design.model_dump()}, read_render_manifest(settings.media_dir),
+                     settings.media_dir, settings.clips_dir)
     progress(stage="study", done=1, total=1, message=f"the design shows {', '.join(animations)}")
 
 
