@@ -1,4 +1,5 @@
-"""Stimulus sets (issue 25): a new table ``stimulus_sets`` and ``studies.stimulus_set_id``.
+"""Stimulus sets and shared animations (issue 25): new tables ``stimulus_sets`` and ``animation_shares`` (empty:
+nothing was shared before), and ``studies.stimulus_set_id``.
 
 Every existing study is pinned to the stimuli it shows now: its set lists the clips of its ``stimuli`` rows and
 the pair videos of its ``comparisons`` rows, by the names participants are served, with the sha256 of each file
@@ -70,6 +71,23 @@ def upgrade() -> None:
         batch.create_index(batch.f("ix_studies_stimulus_set_id"), ["stimulus_set_id"], unique=False)
         batch.create_foreign_key(batch.f("fk_studies_stimulus_set_id_stimulus_sets"), "stimulus_sets",
                                  ["stimulus_set_id"], ["id"])
+    op.create_table(
+        "animation_shares",
+        sa.Column("id", sa.Integer(), nullable=False),
+        sa.Column("study_id", sa.Integer(), nullable=False),
+        sa.Column("animation", sa.String(length=32), nullable=False),
+        sa.Column("researcher_id", sa.Integer(), nullable=False),
+        sa.Column("created_at", sa.DateTime(timezone=True), nullable=False),
+        sa.ForeignKeyConstraint(["study_id"], ["studies.id"], name=op.f("fk_animation_shares_study_id_studies"),
+                                ondelete="CASCADE"),
+        sa.ForeignKeyConstraint(["researcher_id"], ["researchers.id"],
+                                name=op.f("fk_animation_shares_researcher_id_researchers"), ondelete="CASCADE"),
+        sa.PrimaryKeyConstraint("id", name=op.f("pk_animation_shares")),
+        sa.UniqueConstraint("study_id", "animation", "researcher_id", name=op.f("uq_animation_shares_study_id")),
+    )
+    with op.batch_alter_table("animation_shares") as batch:
+        batch.create_index(batch.f("ix_animation_shares_study_id"), ["study_id"], unique=False)
+        batch.create_index(batch.f("ix_animation_shares_researcher_id"), ["researcher_id"], unique=False)
     _pin_existing()
 
 
@@ -129,6 +147,7 @@ def _pin_existing() -> None:
 
 
 def downgrade() -> None:
+    op.drop_table("animation_shares")
     with op.batch_alter_table("studies") as batch:
         batch.drop_constraint(batch.f("fk_studies_stimulus_set_id_stimulus_sets"), type_="foreignkey")
         batch.drop_index(batch.f("ix_studies_stimulus_set_id"))

@@ -14,7 +14,8 @@ from server.deps import ResearcherDep, SessionDep, SettingsDep
 from server.errors import Conflict, Unprocessable
 from server.media.manifest import ManifestError, RenderManifest, read_render_manifest
 from server.participants.models import ParticipantSession, Vote
-from server.uploads.service import remove_study_assets
+from server.researchers.models import Researcher
+from server.uploads.service import remove_study_assets, usable_animations
 
 from . import service
 from .models import Study, StudyState
@@ -55,13 +56,21 @@ def render_manifest(settings: Any) -> RenderManifest:
         raise Conflict(f"{exc}; `animstudy study create` renders what a study needs") from None
 
 
+def usable(session: Session, settings: Any, researcher: Researcher, media: RenderManifest) -> set[str]:
+    """The animations of the rendered videos ``researcher`` may use: another researcher's uploads are unknown to
+    them (unless shared), in errors too."""
+    return usable_animations(session, settings, researcher, sorted({a for a, _ in media.clip_index()}))
+
+
 @router.post("/studies", response_model=StudySummary, status_code=status.HTTP_201_CREATED)
 def create_study(body: StudyFile, session: SessionDep, settings: SettingsDep,
                  researcher: ResearcherDep) -> StudySummary:
     """A draft study from a study file's content (as JSON) over the rendered videos (``animstudy study create``
     renders what is missing; here the videos must exist)."""
-    return summary(session, service.create_study(session, render_manifest(settings), body, owner=researcher,
-                                                 media_dir=settings.media_dir, clips_dir=settings.clips_dir))
+    media = render_manifest(settings)
+    return summary(session, service.create_study(session, media, body, owner=researcher,
+                                                 media_dir=settings.media_dir, clips_dir=settings.clips_dir,
+                                                 animations=usable(session, settings, researcher, media)))
 
 
 async def study_file_text(request: Request) -> str:
@@ -103,7 +112,8 @@ def patch_study(slug: str, session: SessionDep, settings: SettingsDep, researche
     study = service.managed_study(session, slug, researcher)
     media = render_manifest(settings) if "design" in body else None
     try:
-        service.update_study(session, study, body, media, settings.media_dir, settings.clips_dir)
+        service.update_study(session, study, body, media, settings.media_dir, settings.clips_dir,
+                             usable(session, settings, researcher, media) if media is not None else None)
     except ValidationError as exc:
         session.rollback()
         raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in exc.errors()]) from None

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import csv
 import io
-from collections.abc import Iterator, Mapping
+from collections.abc import Collection, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -95,26 +95,29 @@ def definition(study: Study) -> StudyFile:
 
 def create_study(session: Session, media: RenderManifest, study_file: StudyFile,
                  owner: Researcher | None = None, media_dir: Path | None = None,
-                 clips_dir: Path | None = None) -> Study:
+                 clips_dir: Path | None = None, animations: Collection[str] | None = None) -> Study:
     """A draft study over the videos of a render manifest (``server.media.build``), which must hold its pairs;
     its stimulus set (:mod:`server.stimuli`) hashes the files in ``media_dir`` and takes the clips' metrics from
-    the clip set in ``clips_dir``."""
+    the clip set in ``clips_dir``.  ``animations``: the ones its owner may use (default: all; the others are
+    unknown to them, see ``server.uploads.service.usable_animations``)."""
     if session.scalar(select(Study.id).where(Study.slug == study_file.slug)) is not None:
         raise Conflict(f"a study with slug {study_file.slug!r} exists already")
     study = Study(slug=study_file.slug, state=StudyState.draft, owner_id=owner.id if owner else None,
                   **_columns(study_file))
-    _build_comparisons(session, study, media, study_file.design, media_dir, clips_dir)
+    _build_comparisons(session, study, media, study_file.design, media_dir, clips_dir, animations)
     session.add(study)
     session.commit()
     return study
 
 
 def _build_comparisons(session: Session, study: Study, media: RenderManifest, design: Design,
-                       media_dir: Path | None, clips_dir: Path | None) -> None:
-    """The study's stimuli, comparisons and stimulus set for ``design`` (replacing any it had)."""
+                       media_dir: Path | None, clips_dir: Path | None,
+                       animations: Collection[str] | None = None) -> None:
+    """The study's stimuli, comparisons and stimulus set for ``design`` (replacing any it had), from the clips of
+    ``animations`` (default: all)."""
     if study.opened_at is not None:  # its set is pinned
         raise Conflict(f"study {study.slug!r} has been open: what it shows is pinned")
-    clips = media.clip_index()
+    clips = {k: v for k, v in media.clip_index().items() if animations is None or k[0] in animations}
     pair_videos = media.pair_videos()
     needed = required_pairs(design, clips)
     missing = [p for p in needed if p not in pair_videos]
@@ -178,7 +181,7 @@ def default_study(session: Session) -> Study | None:
 
 def update_study(session: Session, study: Study, changes: Mapping[str, Any],
                  media: RenderManifest | None = None, media_dir: Path | None = None,
-                 clips_dir: Path | None = None) -> Study:
+                 clips_dir: Path | None = None, animations: Collection[str] | None = None) -> Study:
     """Apply a partial study file (sections are merged into the current ones): ``title``, ``texts``, ``scale``,
     ``questions`` and ``recruitment`` until the study first opens; ``design`` only while it is a draft that never
     opened (its comparisons are rebuilt over ``media``, the render manifest).  Otherwise 409: participants saw it
@@ -195,7 +198,7 @@ def update_study(session: Session, study: Study, changes: Mapping[str, Any],
     if updated.design.model_dump() != study.design:
         if study.state != StudyState.draft or media is None:
             raise Conflict("the design can change only while the study is a draft")
-        _build_comparisons(session, study, media, updated.design, media_dir, clips_dir)
+        _build_comparisons(session, study, media, updated.design, media_dir, clips_dir, animations)
     for key, value in _columns(updated).items():
         setattr(study, key, value)
     session.commit()

@@ -28,6 +28,7 @@ import fcntl
 import json
 import math
 import os
+import re
 import sys
 import threading
 import traceback
@@ -58,9 +59,10 @@ class BuildError(Exception):
 class Progress:
     """Writes the job's progress to its row (one short transaction per update)."""
 
-    def __init__(self, factory: sessionmaker[Session], job_id: int) -> None:
+    def __init__(self, factory: sessionmaker[Session], job_id: int, settings: Settings | None = None) -> None:
         self.factory = factory
         self.job_id = job_id
+        self.settings = settings
         self._lock = threading.Lock()
 
     def __call__(self, stage: str | None = None, done: int | None = None, total: int | None = None,
@@ -68,6 +70,9 @@ class Progress:
         changes = {k: v for k, v in (("stage", stage), ("done", done), ("total", total), ("message", message))
                    if v is not None}
         changes.update(values)
+        for key in ("message", "error"):
+            if key in changes and self.settings is not None:
+                changes[key] = scrub(str(changes[key]), self.settings)
         if "message" in changes:
             changes["message"] = str(changes["message"])[-2000:]
         with self._lock, self.factory() as session:
@@ -173,8 +178,9 @@ def check_names(clips_dir: Path, assets: Sequence[StudyAsset], asset_file: Calla
     sources = {c.animation: str(c.source.get("file")) for c in manifest.clips}
     for a in assets:
         if a.name in sources and sources[a.name] != str(asset_file(a)):
-            raise BuildError(f"asset {a.filename!r}: the clip set has an animation {a.name!r} already (from "
-                             f"{sources[a.name]}); delete the asset and upload it again with another name")
+            # Not where it comes from: that may be another researcher's upload.
+            raise BuildError(f"asset {a.filename!r}: the server has an animation {a.name!r} already; delete the "
+                             "asset and upload it again with another name")
 
 
 def merge_clips(clips_dir: Path, built: list[Any]) -> Path:
@@ -206,9 +212,18 @@ def merge_clips(clips_dir: Path, built: list[Any]) -> Path:
 
 # --- the job ---------------------------------------------------------------------------------------------------
 
+def scrub(message: str, settings: Settings) -> str:
+    """``message`` as a researcher may read it: no server path (an asset file by its name alone, the var and data
+    directories by name)."""
+    message = re.sub(re.escape(str(settings.assets_dir)) + r"/\d+/", "", message)
+    for path, name in ((settings.var, "<var dir>"), (settings.data, "<data dir>")):
+        message = message.replace(str(path), name)
+    return message
+
+
 def run(settings: Settings, factory: sessionmaker[Session], job_id: int) -> None:
     """Run the job ``job_id`` to its end; every failure is stored in the job (never raised)."""
-    progress = Progress(factory, job_id)
+    progress = Progress(factory, job_id, settings)
     lock_path = settings.assets_dir / ".build.lock"
     lock_path.parent.mkdir(parents=True, exist_ok=True)
     with lock_path.open("w") as lock:
@@ -269,7 +284,7 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
 
     missing = [a.filename for a in assets if not asset_file(a).is_file()]
     if missing:
-        raise BuildError(f"the asset files {', '.join(missing)} are missing from {settings.assets_dir}")
+        raise BuildError(f"the asset files {', '.join(missing)} are missing on the server; upload them again")
     check_names(settings.clips_dir, assets, asset_file)
     config_path = write_clip_set_file(settings.assets_dir / str(study.id) / "clipset.toml", assets, asset_file,
                                       base_clip_set(settings.data, settings.clips_dir))
