@@ -9,12 +9,9 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from .config import Settings
-
-if TYPE_CHECKING:
-    from .media.manifest import RenderManifest
 
 
 def _fail(message: str) -> int:
@@ -222,25 +219,6 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies
     return 0
 
 
-def _render_for(settings: Settings, session: object, study_file: object) -> RenderManifest:
-    """Build the clip set if it is missing, render the videos ``study_file`` needs that are missing (keeping
-    every other study's), and return the render manifest."""
-    from server.clipset.build import build_clip_set
-    from server.clipset.manifest import MANIFEST, write_clip_set
-    from server.media.build import render_media, rendered_settings
-    from server.media.manifest import read_render_manifest
-    from server.studies.service import pairs_to_render
-
-    if not (settings.clips_dir / MANIFEST).is_file():
-        print(f"building the clip set in {settings.clips_dir}", flush=True)
-        write_clip_set(build_clip_set(settings.data, progress=lambda m: print(m, flush=True)), settings.clips_dir)
-    pairs = pairs_to_render(session, study_file.design, settings.clips_dir, settings.media_dir)  # type: ignore[arg-type, attr-defined]
-    render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret,
-                 rendered_settings(settings.media_dir), pairs=pairs, every_clip=False,
-                 progress=lambda m: print(m, flush=True))
-    return read_render_manifest(settings.media_dir)
-
-
 def _pairs_in_use(settings: Settings) -> list[tuple[str, str]]:
     """The pair videos the studies in the database show (none without a database)."""
     from server.db import make_engine, migrate, session_factory
@@ -260,6 +238,7 @@ def prepare_study(settings: Settings, session_factory: object) -> None:
     (studies/thesis.toml) needs (what is missing), then create and open it."""
     from sqlalchemy import select
 
+    from server.stimuli import pipeline
     from server.studies.models import Study
     from server.studies.service import create_study, open_study
     from server.studies.studyfile import thesis_study
@@ -268,8 +247,8 @@ def prepare_study(settings: Settings, session_factory: object) -> None:
         if session.scalar(select(Study.id).limit(1)) is not None:
             return
         study_file = thesis_study()
-        study = create_study(session, _render_for(settings, session, study_file), study_file,
-                             media_dir=settings.media_dir, clips_dir=settings.clips_dir)
+        media, place = pipeline.prepare(settings, session, study_file, progress=lambda m: print(m, flush=True))
+        study = create_study(session, media, study_file, media_dir=settings.media_dir, clips_dir=place.clips_dir)
         open_study(session, study, settings.media_dir)
         print(f"created and opened study {study.slug!r} ({len(study.comparisons)} comparisons)", flush=True)
 
@@ -291,8 +270,10 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
     from server.clipset.manifest import MANIFEST
     from server.errors import ServiceError
     from server.media.build import MediaError
+    from server.media.scene import RenderSettings
     from server.researchers.models import Researcher
     from server.researchers.service import normalize_email
+    from server.stimuli import pipeline
     from server.studies import service
     from server.studies.models import Study, StudyState
     from server.studies.router import summary
@@ -323,13 +304,19 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                         return _fail(f"no researcher {args.owner!r} (create one with `animstudy researcher create`)")
                 if session.scalar(select(Study.id).where(Study.slug == study_file.slug)) is not None:
                     return _fail(f"a study with slug {study_file.slug!r} exists already")
-                study = service.create_study(session, _render_for(settings, session, study_file), study_file, owner,
-                                             media_dir=settings.media_dir, clips_dir=settings.clips_dir)
+                size = None
+                if args.width or args.height or args.no_shadows:
+                    size = RenderSettings(width=args.width or 640, height=args.height or 480,
+                                          shadows=not args.no_shadows)
+                media, place = pipeline.prepare(settings, session, study_file, args.file, size,
+                                                progress=lambda m: print(m, flush=True))
+                study = service.create_study(session, media, study_file, owner, media_dir=settings.media_dir,
+                                             clips_dir=place.clips_dir)
                 if args.open:
                     service.open_study(session, study, settings.media_dir)
                 print(f"created study {study.slug!r} ({study.state}, {service.trials_total(study)} trials per "
                       f"participant); participant link: /s/{study.slug}")
-                for test, ref in service.identical_comparisons(study_file.design, settings.clips_dir):
+                for test, ref in service.identical_comparisons(study_file.design, place.clips_dir):
                     print(f"note: {test} is identical to {ref} (same arrays): that comparison shows one clip on "
                           "both sides, like a catch trial")
             elif command == "list":
@@ -369,10 +356,11 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
 def gc(settings: Settings, dry_run: bool) -> int:
     """``animstudy gc``: delete the videos and posters that neither a study's stimulus set nor the render manifest
     uses (``--dry-run``: list them)."""
+    from server.stimuli.pipeline import render_manifest_dirs
     from server.stimuli.service import collect
 
     with _study_session(settings) as session:  # type: ignore[attr-defined]
-        found = collect(session, settings.media_dir, dry_run=dry_run)
+        found = collect(session, settings.media_dir, render_manifest_dirs(settings), dry_run=dry_run)
     for f in found.files:
         print(f.name)
     verb = "would delete" if dry_run else "deleted"
@@ -625,12 +613,15 @@ def _main(argv: Sequence[str] | None = None) -> int:
     st_sub.add_parser("schema", help="print the JSON Schema of study files")
     sv = st_sub.add_parser("validate", help="check a study file (every error with its field and line)")
     sv.add_argument("file", type=Path)
-    sc = st_sub.add_parser("create", help="render the videos a study file needs (what is missing) and create it "
-                           "as a draft")
+    sc = st_sub.add_parser("create", help="build the clips and render the videos a study file needs (what is "
+                           "missing; its [clips] set or the server's clip set) and create it as a draft")
     sc.add_argument("file", type=Path)
     sc.add_argument("--open", action="store_true", help="open it for participants at once")
     sc.add_argument("--owner", default=None, help="e-mail of the researcher who owns it (default: none; admins "
                     "manage it)")
+    sc.add_argument("--width", type=_even, default=None, help="video width when none were rendered before (640)")
+    sc.add_argument("--height", type=_even, default=None, help="video height (480)")
+    sc.add_argument("--no-shadows", action="store_true")
     st_sub.add_parser("list", help="every study with its state and counts")
     for name in ("open", "close"):
         so = st_sub.add_parser(name, help=f"{name} a study for participants")

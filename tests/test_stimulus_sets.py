@@ -211,3 +211,40 @@ def test_gc_command(tmp_path, monkeypatch, capsys):
     assert set(out.split()) == unused and f"would delete {len(unused)} unreferenced files" in err
     assert cli.main(["gc"]) == 0
     assert {f.name for f in settings.media_dir.iterdir()} == set(used)
+
+
+FUTURE_WORK = Path(__file__).resolve().parents[1] / "studies" / "future-work.toml"
+
+
+def test_study_create_builds_and_renders_the_clip_set_a_study_file_names(tmp_path, monkeypatch, capsys, data):
+    """`study create studies/future-work.toml` on a fresh server: its [clips] set (conditions16.toml) is built for
+    the study's animations and conditions and rendered, in one command; a second study over the same clip set
+    finds everything done."""
+    monkeypatch.setenv("ANIMSTUDY_VAR_DIR", str(tmp_path / "var"))
+    monkeypatch.setenv("ANIMSTUDY_DATA_DIR", str(data))
+    monkeypatch.setenv("ANIMSTUDY_SECRET_KEY", "future-work-secret-0123456789abcdef01")
+    monkeypatch.delenv("ANIMSTUDY_DATABASE_URL", raising=False)
+    monkeypatch.delenv("DATABASE_URL", raising=False)
+    size = ["--width", "96", "--height", "72", "--no-shadows"]
+    assert cli.main(["study", "create", str(FUTURE_WORK), "--open", *size]) == 0
+    out = capsys.readouterr().out
+    assert "[1/2] walk: building 4 clips" in out and "clips: 8 built into the clip set" in out
+    assert "created study 'future-work' (open" in out
+    settings = Settings.from_env()
+    assert not (settings.clips_dir / "manifest.json").exists()  # the server's clip set was not needed
+    with cli._study_session(settings) as db:
+        study = service.get_study(db, "future-work")
+        content = stimulus_sets.content_of(study.stimulus_set)
+        assert {(c.animation, c.condition) for c in content.clips} == {
+            (a, c) for a in ("walk", "crouch") for c in ("keyframe", "hybrid0", "hybrid_ik0", "hybrid_c2_0")}
+        assert all(c.metrics and c.method for c in content.clips)  # from the clip set's manifest
+        assert stimulus_sets.missing(content, settings.media_dir) == []
+        assert content.render["width"] == 96
+    # A second study file over the same clip set: nothing to build or render.
+    second = tmp_path / "second.toml"
+    second.write_text(FUTURE_WORK.read_text().replace('slug = "future-work"', 'slug = "future-work-2"').replace(
+        'set = "../server/clipset/conditions16.toml"', f'set = "{FUTURE_WORK.parent}/../server/clipset/'
+                                                       'conditions16.toml"'))
+    assert cli.main(["study", "create", str(second)]) == 0
+    out = capsys.readouterr().out
+    assert "clips: all 8 the design needs are built" in out and ", 0 to render" in out

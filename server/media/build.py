@@ -419,9 +419,10 @@ class PeakMemory:
 def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
                  settings: RenderSettings | None = None, pairs: Sequence[tuple[str, str]] = (),
                  workers: int = 2, animations: Sequence[str] | None = None, every_clip: bool = True,
-                 progress: Callable[[str], None] = lambda _m: None) -> Path:
+                 progress: Callable[[str], None] = lambda _m: None, manifest_dir: Path | None = None) -> Path:
     """Render what is missing of :func:`plan` and write the manifest; returns the manifest path.  Nothing
-    rendered before is deleted or replaced (``animstudy gc`` collects what no study uses)."""
+    rendered before is deleted or replaced (``animstudy gc`` collects what no study uses).  The manifest goes
+    into ``manifest_dir`` (default ``out_dir``): the videos of several clip sets share one media directory."""
     settings = settings or RenderSettings()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -444,7 +445,9 @@ def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
                     results = [f.result() for f in as_completed(futures)]
         progress(f"rendered {sum(len(r) for r in results)} videos in {time.perf_counter() - started:.1f} s, "
                  f"peak memory {memory.peak_bytes / 2**20:.0f} MiB (all processes)")
-    path = write_render_manifest(out_dir, _manifest(p, settings))
+    manifest_dir = Path(manifest_dir or out_dir)
+    manifest_dir.mkdir(parents=True, exist_ok=True)
+    path = write_render_manifest(manifest_dir, _manifest(p, settings))
     # Videos not in this manifest stay: a study's pinned stimulus set may show them (server.stimuli); `animstudy
     # gc` removes the ones nothing uses.  Only leftovers of a killed render go.
     keep = {o.video for o in p.outputs} | {o.poster for o in p.outputs}

@@ -236,19 +236,23 @@ class Garbage:
     kept: int  # media files kept
 
 
-def garbage(session: Session, media_dir: Path) -> Garbage:
-    """The videos and posters of ``media_dir`` that neither a study's set nor the render manifest uses (temporary
-    files are a running render's; it removes them itself)."""
+def garbage(session: Session, media_dir: Path, manifest_dirs: Sequence[Path] = ()) -> Garbage:
+    """The videos and posters of ``media_dir`` that neither a study's set nor a render manifest (the one in
+    ``media_dir`` and those in ``manifest_dirs``) uses (temporary files are a running render's; it removes them
+    itself)."""
     keep = referenced(session) | rendered(media_dir)
+    for d in manifest_dirs:
+        keep |= rendered(d)
     files: Iterable[Path] = sorted(media_dir.iterdir()) if media_dir.is_dir() else []
     media = [f for f in files if MEDIA_NAME.match(f.name) and f.is_file()]
     unused = [f for f in media if f.name not in keep]
     return Garbage(unused, sum(f.stat().st_size for f in unused), len(media) - len(unused))
 
 
-def collect(session: Session, media_dir: Path, dry_run: bool = False) -> Garbage:
+def collect(session: Session, media_dir: Path, manifest_dirs: Sequence[Path] = (), dry_run: bool = False
+            ) -> Garbage:
     """Delete :func:`garbage` (unless ``dry_run``); returns what was (or would be) deleted."""
-    found = garbage(session, media_dir)
+    found = garbage(session, media_dir, manifest_dirs)
     if not dry_run:
         for f in found.files:
             f.unlink(missing_ok=True)
