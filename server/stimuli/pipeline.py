@@ -26,7 +26,8 @@ from pathlib import Path
 
 from sqlalchemy.orm import Session
 
-from anim_core.conditions import REFERENCE
+from anim_core.clipset import BuiltClip
+from anim_core.conditions import REFERENCE, Condition
 from server.clipset.config import ClipSetConfig, load_config
 from server.clipset.manifest import MANIFEST, ManifestError, read_clip_manifest
 from server.config import Settings
@@ -78,12 +79,41 @@ def needed_conditions(design: Design) -> list[str]:
                                                                         else [])]))
 
 
+class AnimationError(ValueError):
+    """Building one animation's clips failed; the message starts with its name."""
+
+    def __init__(self, animation: str, cause: Exception) -> None:
+        super().__init__(f"{animation!r}: {cause}")
+        self.animation = animation
+
+
+def build_animations(data_dir: Path, config: ClipSetConfig, wanted: dict[str, tuple[Condition, ...]],
+                     progress: Progress = lambda _m: None,
+                     each: Callable[[int, str], None] = lambda _k, _name: None) -> list[BuiltClip]:
+    """The clips of each animation of ``wanted`` in its conditions (the reference among them), on the character
+    of ``config``, loaded and verified once.  AssetError/ConfigError of the character as they are; of an
+    animation as :class:`AnimationError`.  Nothing is written."""
+    from server.clipset.build import animation_clips, load_character
+
+    progress("loading the character")
+    character, record = load_character(data_dir, config.character, progress)
+    built: list[BuiltClip] = []
+    for k, (name, conditions) in enumerate(wanted.items()):
+        each(k, name)
+        try:
+            built += animation_clips(data_dir, character, config.animations[name], config.fps, conditions,
+                                     config.relocate, progress)
+        except ValueError as exc:
+            raise AnimationError(name, exc) from None
+    # Every clip records the character it was built for; the manifest keeps it once.
+    return [dataclasses.replace(c, source={**c.source, "character": record}) for c in built]
+
+
 def build(data_dir: Path, config: ClipSetConfig, clips_dir: Path, design: Design,
           progress: Progress = lambda _m: None) -> int:
     """Build the clips of ``design`` that the clip set in ``clips_dir`` lacks, from ``config``; returns how many
     clips were built.  An animation is built with every condition it already had plus the ones needed (the
     reference first: the others are made from it).  422 naming what ``config`` does not have."""
-    from server.clipset.build import animation_clips, load_character
     from server.uploads.job import merge_clips
 
     conditions = needed_conditions(design)
@@ -105,16 +135,12 @@ def build(data_dir: Path, config: ClipSetConfig, clips_dir: Path, design: Design
     if not todo:
         progress(f"clips: all {len(design.animations) * len(conditions)} the design needs are built")
         return 0
-    progress("loading the character")
-    character, record = load_character(data_dir, config.character, progress)  # once for every animation
-    built = []
-    for k, name in enumerate(todo, 1):
-        wanted = have.get(name, set()) | set(conditions)
-        subset = tuple(c for c in config.conditions if c.id in wanted or c.method == REFERENCE)
-        progress(f"[{k}/{len(todo)}] {name}: building {len(subset)} clips")
-        built += animation_clips(data_dir, character, config.animations[name], config.fps, subset, config.relocate,
-                                 progress)
-    built = [dataclasses.replace(c, source={**c.source, "character": record}) for c in built]
+    wanted = {}
+    for name in todo:
+        keep = have.get(name, set()) | set(conditions)
+        wanted[name] = tuple(c for c in config.conditions if c.id in keep or c.method == REFERENCE)
+    built = build_animations(data_dir, config, wanted, progress, lambda k, name: progress(
+        f"[{k + 1}/{len(todo)}] {name}: building {len(wanted[name])} clips"))
     merge_clips(clips_dir, built)
     progress(f"clips: {len(built)} built into the clip set")
     return len(built)
@@ -134,13 +160,14 @@ def pairs(session: Session, place: Place, design: Design, media_dir: Path) -> li
 
 
 def render(settings: Settings, place: Place, wanted: list[tuple[str, str]], render_settings: RenderSettings,
-           progress: Progress = lambda _m: None, workers: int = 2) -> RenderManifest:
-    """Render what is missing of ``wanted`` (and the clips they show) into the media directory; the render
-    manifest of ``place``."""
+           progress: Progress = lambda _m: None, workers: int = 2, every_clip: bool = False) -> RenderManifest:
+    """Render what is missing of ``wanted`` and the clips they show (``every_clip``: every clip) into the media
+    directory; returns the render manifest of ``place``."""
     from server.media.build import render_media
 
     render_media(settings.data, place.clips_dir, settings.media_dir, settings.secret, render_settings,
-                 pairs=wanted, workers=workers, every_clip=False, progress=progress, manifest_dir=place.render_dir)
+                 pairs=wanted, workers=workers, every_clip=every_clip, progress=progress,
+                 manifest_dir=place.render_dir)
     return read_render_manifest(place.render_dir)
 
 

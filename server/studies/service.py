@@ -190,6 +190,8 @@ def update_study(session: Session, study: Study, changes: Mapping[str, Any],
         raise Conflict(f"study {study.slug!r} has been open: participants saw it as it is; create a new study")
     if "slug" in changes and changes["slug"] != study.slug:
         raise Conflict("a study's slug cannot change")
+    if changes.get("clips") is not None:
+        raise Unprocessable("clips: a study's clip set is chosen when it is created (`animstudy study create`)")
     current = definition(study).model_dump()
     for key, value in changes.items():
         merge = isinstance(current.get(key), dict) and isinstance(value, dict)
