@@ -340,6 +340,27 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
             elif command == "close":
                 study = service.set_state(session, service.get_study(session, args.slug), StudyState.closed)
                 print(f"study {study.slug!r} is {study.state}")
+            elif command == "export-archive":
+                from server.stimuli.archive import export_archive
+
+                study = service.get_study(session, args.slug)
+                out = export_archive(study, settings.media_dir, args.out or Path(f"{study.slug}.animstudy.zip"))
+                print(f"study {study.slug!r} with its stimulus set {study.stimulus_set.digest[:12]} "
+                      f"({len(study.stimulus_set.content['pairs'])} pair videos) -> {out} "
+                      f"({out.stat().st_size / 2**20:.1f} MiB)")
+            elif command == "import-archive":
+                from server.stimuli.archive import import_archive
+
+                owner = None
+                if args.owner:
+                    owner = session.scalar(select(Researcher).where(Researcher.email == normalize_email(args.owner)))
+                    if owner is None:
+                        return _fail(f"no researcher {args.owner!r} (create one with `animstudy researcher create`)")
+                study = import_archive(session, args.file, settings.media_dir, owner)
+                if args.open:
+                    service.open_study(session, study, settings.media_dir)
+                print(f"imported study {study.slug!r} ({study.state}) with its stimulus set "
+                      f"{study.stimulus_set.digest[:12]}; participant link: /s/{study.slug}")
             elif command == "export":
                 study = service.get_study(session, args.slug)
                 text = (service.export_csv(session, study) if args.format == "csv" else
@@ -635,6 +656,14 @@ def _main(argv: Sequence[str] | None = None) -> int:
     for name in ("open", "close"):
         so = st_sub.add_parser(name, help=f"{name} a study for participants")
         so.add_argument("slug")
+    sa = st_sub.add_parser("export-archive", help="one file with the study file, its pinned stimulus set and its "
+                           "videos, to rerun the study on another server")
+    sa.add_argument("slug")
+    sa.add_argument("--out", type=Path, default=None, help="archive file (default: <slug>.animstudy.zip)")
+    si = st_sub.add_parser("import-archive", help="recreate a study from its archive (same stimuli, byte for byte)")
+    si.add_argument("file", type=Path)
+    si.add_argument("--owner", default=None, help="e-mail of the researcher who owns it (default: none)")
+    si.add_argument("--open", action="store_true", help="open it for participants at once")
     se = st_sub.add_parser("export", help="a study's votes, one row per vote (see the data dictionary)")
     se.add_argument("slug")
     se.add_argument("--format", choices=("csv", "json"), default="csv")
