@@ -26,7 +26,7 @@ def dashboard_site(data, tmp_path_factory):
     engine = _fresh_engine("sqlite", tmp_path_factory)
     migrate(engine)
     with session_factory(engine)() as db:
-        simulate(db, make_study(db), n=20, seed=11)
+        simulate(db, make_study(db, clips_dir=settings.clips_dir), n=20, seed=11)
         create_researcher(db, "lead@example.org", "correct horse battery", admin=True)
     with live_server(create_app(settings, engine, run_migrations=False)) as base:
         yield base
