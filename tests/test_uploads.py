@@ -268,7 +268,7 @@ def test_the_clip_set_description_of_the_assets(tmp_path):
     """The job's clip-set description (typed, no file written to be read back): every condition of the richest
     shipped clip set (ints, floats, strings in params), the assets' kinds, absolute sources with spaces and
     frames, validated as a clip-set file is."""
-    from anim_core.clipset import ConfigError
+    from anim_core.clips.build import ConfigError
     from server.clipset.config import CharacterConfig, load_config
     from server.uploads.job import BaseClipSet, assets_config
 

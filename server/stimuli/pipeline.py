@@ -26,8 +26,8 @@ from pathlib import Path
 
 from sqlalchemy.orm import Session
 
-from anim_core.clipset import BuiltClip
-from anim_core.conditions import REFERENCE, Condition
+from anim_core.clips.record import BuiltClip
+from anim_core.methods.conditions import REFERENCE, Condition
 from server.clipset.config import ClipSetConfig, load_config
 from server.clipset.manifest import MANIFEST, ManifestError, read_clip_manifest
 from server.config import Settings
