@@ -33,7 +33,7 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None, r
     settings = settings or Settings()
     engine = engine or make_engine(settings.sqlalchemy_url)
     if run_migrations:
-        migrate(engine)
+        migrate(engine, media_dir=settings.media_dir, clips_dir=settings.clips_dir)
     # No trailing-slash redirects: Starlette builds their Location from the request's Host header.
     app = FastAPI(title="animstudy", version="0.1.0", redirect_slashes=False,
                   description="Side-by-side user studies of character animation: conditions against a reference.")

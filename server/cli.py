@@ -9,12 +9,9 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from .config import Settings
-
-if TYPE_CHECKING:
-    from .media.manifest import RenderManifest
 
 
 def _fail(message: str) -> int:
@@ -229,7 +226,7 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies
                 needed += required_pairs(design, clip_set_index(clips_dir))
             except Unprocessable as exc:
                 return _fail(f"{path}: {exc.detail}")
-        # The studies' own pairs too: rendering removes every video it was not asked for.
+        # The studies' own pairs too, so that the render manifest (what new studies are made over) lists them.
         pairs = list(dict.fromkeys([*needed, *_pairs_in_use(settings)]))
         render_media(settings.data, clips_dir, out, settings.secret,
                      RenderSettings(width=width, height=height, shadows=shadows), pairs=pairs,
@@ -241,25 +238,6 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies
     return 0
 
 
-def _render_for(settings: Settings, session: object, study_file: object) -> RenderManifest:
-    """Build the clip set if it is missing, render the videos ``study_file`` needs that are missing (keeping
-    every other study's), and return the render manifest."""
-    from server.clipset.build import build_clip_set
-    from server.clipset.manifest import MANIFEST, write_clip_set
-    from server.media.build import render_media, rendered_settings
-    from server.media.manifest import read_render_manifest
-    from server.studies.service import pairs_to_render
-
-    if not (settings.clips_dir / MANIFEST).is_file():
-        print(f"building the clip set in {settings.clips_dir}", flush=True)
-        write_clip_set(build_clip_set(settings.data, progress=lambda m: print(m, flush=True)), settings.clips_dir)
-    pairs = pairs_to_render(session, study_file.design, settings.clips_dir, settings.media_dir)  # type: ignore[arg-type, attr-defined]
-    render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret,
-                 rendered_settings(settings.media_dir), pairs=pairs, every_clip=False,
-                 progress=lambda m: print(m, flush=True))
-    return read_render_manifest(settings.media_dir)
-
-
 def _pairs_in_use(settings: Settings) -> list[tuple[str, str]]:
     """The pair videos the studies in the database show (none without a database)."""
     from server.db import make_engine, migrate, session_factory
@@ -267,7 +245,7 @@ def _pairs_in_use(settings: Settings) -> list[tuple[str, str]]:
 
     engine = make_engine(settings.sqlalchemy_url)
     try:
-        migrate(engine)
+        migrate(engine, media_dir=settings.media_dir, clips_dir=settings.clips_dir)
         with session_factory(engine)() as session:
             return pairs_in_use(session)
     finally:
@@ -279,16 +257,18 @@ def prepare_study(settings: Settings, session_factory: object) -> None:
     (studies/thesis.toml) needs (what is missing), then create and open it."""
     from sqlalchemy import select
 
-    from server.studies.models import Study, StudyState
-    from server.studies.service import create_study, set_state
+    from server.stimuli import pipeline
+    from server.studies.models import Study
+    from server.studies.service import create_study, open_study
     from server.studies.studyfile import thesis_study
 
     with session_factory() as session:  # type: ignore[operator]
         if session.scalar(select(Study.id).limit(1)) is not None:
             return
         study_file = thesis_study()
-        study = create_study(session, _render_for(settings, session, study_file), study_file)
-        set_state(session, study, StudyState.open)
+        media, place = pipeline.prepare(settings, session, study_file, progress=lambda m: print(m, flush=True))
+        study = create_study(session, media, study_file, media_dir=settings.media_dir, clips_dir=place.clips_dir)
+        open_study(session, study, settings.media_dir)
         print(f"created and opened study {study.slug!r} ({len(study.comparisons)} comparisons)", flush=True)
 
 
@@ -296,7 +276,7 @@ def _study_session(settings: Settings) -> object:
     from server.db import make_engine, migrate, session_factory
 
     engine = make_engine(settings.sqlalchemy_url)
-    migrate(engine)
+    migrate(engine, media_dir=settings.media_dir, clips_dir=settings.clips_dir)
     return session_factory(engine)()
 
 
@@ -309,8 +289,10 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
     from server.clipset.manifest import MANIFEST
     from server.errors import ServiceError
     from server.media.build import MediaError
+    from server.media.scene import RenderSettings
     from server.researchers.models import Researcher
     from server.researchers.service import normalize_email
+    from server.stimuli import pipeline
     from server.studies import service
     from server.studies.models import Study, StudyState
     from server.studies.router import summary
@@ -323,7 +305,16 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
     try:
         if command == "validate":
             study_file = load_study_file(args.file)
-            if (settings.clips_dir / MANIFEST).is_file():
+            if study_file.clips is not None:
+                config = pipeline.study_place(settings, study_file, args.file).config
+                assert config is not None
+                ids = {c.id for c in config.conditions}
+                lacking = [c for c in pipeline.needed_conditions(study_file.design) if c not in ids] + [
+                    a for a in study_file.design.animations if a not in config.animations]
+                if lacking:
+                    return _fail(f"{args.file}: {', '.join(lacking)} not in its clip set {study_file.clips.set}")
+                checked = f"; its animations and conditions are in its clip set {study_file.clips.set}"
+            elif (settings.clips_dir / MANIFEST).is_file():
                 service.check_known(study_file.design, service.clip_set_index(settings.clips_dir))
                 checked = f"; its animations and conditions are in the clip set {settings.clips_dir}"
             else:
@@ -341,12 +332,19 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                         return _fail(f"no researcher {args.owner!r} (create one with `animstudy researcher create`)")
                 if session.scalar(select(Study.id).where(Study.slug == study_file.slug)) is not None:
                     return _fail(f"a study with slug {study_file.slug!r} exists already")
-                study = service.create_study(session, _render_for(settings, session, study_file), study_file, owner)
+                size = None
+                if args.width or args.height or args.no_shadows:
+                    size = RenderSettings(width=args.width or 640, height=args.height or 480,
+                                          shadows=not args.no_shadows)
+                media, place = pipeline.prepare(settings, session, study_file, args.file, size,
+                                                progress=lambda m: print(m, flush=True))
+                study = service.create_study(session, media, study_file, owner, media_dir=settings.media_dir,
+                                             clips_dir=place.clips_dir)
                 if args.open:
-                    service.set_state(session, study, StudyState.open)
+                    service.open_study(session, study, settings.media_dir)
                 print(f"created study {study.slug!r} ({study.state}, {service.trials_total(study)} trials per "
                       f"participant); participant link: /s/{study.slug}")
-                for test, ref in service.identical_comparisons(study_file.design, settings.clips_dir):
+                for test, ref in service.identical_comparisons(study_file.design, place.clips_dir):
                     print(f"note: {test} is identical to {ref} (same arrays): that comparison shows one clip on "
                           "both sides, like a catch trial")
             elif command == "list":
@@ -354,10 +352,34 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                 print(f"{'slug':24} {'state':7} {'started':>7} {'completed':>9} {'votes':>6}  title")
                 for r in rows:
                     print(f"{r.slug:24} {r.state:7} {r.started:7d} {r.completed:9d} {r.votes:6d}  {r.title}")
-            elif command in ("open", "close"):
-                study = service.set_state(session, service.get_study(session, args.slug), StudyState(
-                    "open" if command == "open" else "closed"))
+            elif command == "open":
+                study = service.open_study(session, service.get_study(session, args.slug), settings.media_dir)
+                print(f"study {study.slug!r} is {study.state}; its stimulus set {study.stimulus_set.digest[:12]} "
+                      "is pinned")
+            elif command == "close":
+                study = service.set_state(session, service.get_study(session, args.slug), StudyState.closed)
                 print(f"study {study.slug!r} is {study.state}")
+            elif command == "export-archive":
+                from server.stimuli.archive import export_archive
+
+                study = service.get_study(session, args.slug)
+                out = export_archive(study, settings.media_dir, args.out or Path(f"{study.slug}.animstudy.zip"))
+                print(f"study {study.slug!r} with its stimulus set {study.stimulus_set.digest[:12]} "
+                      f"({len(study.stimulus_set.content['pairs'])} pair videos) -> {out} "
+                      f"({out.stat().st_size / 2**20:.1f} MiB)")
+            elif command == "import-archive":
+                from server.stimuli.archive import import_archive
+
+                owner = None
+                if args.owner:
+                    owner = session.scalar(select(Researcher).where(Researcher.email == normalize_email(args.owner)))
+                    if owner is None:
+                        return _fail(f"no researcher {args.owner!r} (create one with `animstudy researcher create`)")
+                study = import_archive(session, args.file, settings.media_dir, owner)
+                if args.open:
+                    service.open_study(session, study, settings.media_dir)
+                print(f"imported study {study.slug!r} ({study.state}) with its stimulus set "
+                      f"{study.stimulus_set.digest[:12]}; participant link: /s/{study.slug}")
             elif command == "export":
                 study = service.get_study(session, args.slug)
                 unfaithful = service.unfaithful_clips(settings.clips_dir)
@@ -378,6 +400,22 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
         return _fail(exc.detail)
     except (AssetError, ConfigError, MediaError, OSError) as exc:
         return _fail(str(exc))
+    return 0
+
+
+def gc(settings: Settings, dry_run: bool) -> int:
+    """``animstudy gc``: delete the videos and posters that neither a study's stimulus set nor the render manifest
+    uses (``--dry-run``: list them)."""
+    from server.stimuli.pipeline import render_manifest_dirs
+    from server.stimuli.service import collect
+
+    with _study_session(settings) as session:  # type: ignore[attr-defined]
+        found = collect(session, settings.media_dir, render_manifest_dirs(settings), dry_run=dry_run)
+    for f in found.files:
+        print(f.name)
+    verb = "would delete" if dry_run else "deleted"
+    print(f"{verb} {len(found.files)} unreferenced files ({found.size_bytes / 2**20:.1f} MiB); kept {found.kept} "
+          "that a study's stimulus set or the render manifest uses", file=sys.stderr)
     return 0
 
 
@@ -412,7 +450,7 @@ def serve(settings: Settings, host: str, port: int, workers: int) -> int:
 
     engine = make_engine(settings.sqlalchemy_url)
     try:
-        migrate(engine)
+        migrate(engine, media_dir=settings.media_dir, clips_dir=settings.clips_dir)
         factory = session_factory(engine)
         prepare_study(settings, factory)
         ensure_researcher(settings, factory)
@@ -435,7 +473,7 @@ def researcher_create(settings: Settings, email: str, password: str, admin: bool
     from server.researchers.service import create_researcher
 
     engine = make_engine(settings.sqlalchemy_url)
-    migrate(engine)
+    migrate(engine, media_dir=settings.media_dir, clips_dir=settings.clips_dir)
     try:
         with session_factory(engine)() as session:
             researcher = create_researcher(session, email, password, admin=admin)
@@ -650,20 +688,33 @@ def build_parser() -> argparse.ArgumentParser:
     st_sub.add_parser("schema", help="print the JSON Schema of study files")
     sv = st_sub.add_parser("validate", help="check a study file (every error with its field and line)")
     sv.add_argument("file", type=Path)
-    sc = st_sub.add_parser("create", help="render the videos a study file needs (what is missing) and create it "
-                           "as a draft")
+    sc = st_sub.add_parser("create", help="build the clips and render the videos a study file needs (what is "
+                           "missing; its [clips] set or the server's clip set) and create it as a draft")
     sc.add_argument("file", type=Path)
     sc.add_argument("--open", action="store_true", help="open it for participants at once")
     sc.add_argument("--owner", default=None, help="e-mail of the researcher who owns it (default: none; admins "
                     "manage it)")
+    sc.add_argument("--width", type=_even, default=None, help="video width when none were rendered before (640)")
+    sc.add_argument("--height", type=_even, default=None, help="video height (480)")
+    sc.add_argument("--no-shadows", action="store_true")
     st_sub.add_parser("list", help="every study with its state and counts")
     for name in ("open", "close"):
         so = st_sub.add_parser(name, help=f"{name} a study for participants")
         so.add_argument("slug")
+    sa = st_sub.add_parser("export-archive", help="one file with the study file, its pinned stimulus set and its "
+                           "videos, to rerun the study on another server")
+    sa.add_argument("slug")
+    sa.add_argument("--out", type=Path, default=None, help="archive file (default: <slug>.animstudy.zip)")
+    si = st_sub.add_parser("import-archive", help="recreate a study from its archive (same stimuli, byte for byte)")
+    si.add_argument("file", type=Path)
+    si.add_argument("--owner", default=None, help="e-mail of the researcher who owns it (default: none)")
+    si.add_argument("--open", action="store_true", help="open it for participants at once")
     se = st_sub.add_parser("export", help="a study's votes, one row per vote (see the data dictionary)")
     se.add_argument("slug")
     se.add_argument("--format", choices=("csv", "json"), default="csv")
     se.add_argument("--out", type=Path, default=None, help="file to write (default: standard output)")
+    gcp = sub.add_parser("gc", help="delete the videos no study's stimulus set (and not the render manifest) uses")
+    gcp.add_argument("--dry-run", action="store_true", help="list them, delete nothing")
     bn = sub.add_parser("bench", help="time pose evaluation of crowds, keyframe against every other condition")
     bn.add_argument("--json", type=Path, default=None, help="results file (default: <var dir>/benchmark/results.json)")
     bn.add_argument("--config", type=Path, default=None,
@@ -701,6 +752,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
         return researcher_create(settings, args.email, args.password, args.admin)
     if args.command == "study":
         return study_command(settings, args)
+    if args.command == "gc":
+        return gc(settings, args.dry_run)
     if args.command == "inspect":
         return inspect(settings.data)
     if args.command == "render":

@@ -216,7 +216,7 @@ def alembic_config(url: str | None = None) -> Config:
     return cfg
 
 
-def _alembic(engine: Engine, run: Callable[[Config], None]) -> None:
+def _alembic(engine: Engine, run: Callable[[Config], None], **attributes: object) -> None:
     """Run an Alembic command on one connection in one transaction.
 
     On SQLite foreign keys are off meanwhile (as SQLite's own procedure for schema changes says): batch mode
@@ -231,6 +231,7 @@ def _alembic(engine: Engine, run: Callable[[Config], None]) -> None:
             with connection.begin():
                 cfg = alembic_config()
                 cfg.attributes["connection"] = connection
+                cfg.attributes.update(attributes)
                 run(cfg)
                 if sqlite_db:
                     broken = connection.exec_driver_sql("PRAGMA foreign_key_check").all()
@@ -241,9 +242,11 @@ def _alembic(engine: Engine, run: Callable[[Config], None]) -> None:
                 connection.connection.dbapi_connection.execute("PRAGMA foreign_keys=ON")  # type: ignore[union-attr]
 
 
-def migrate(engine: Engine, revision: str = "head") -> None:
-    """Upgrade the database to ``revision`` (run at start-up)."""
-    _alembic(engine, lambda cfg: command.upgrade(cfg, revision))
+def migrate(engine: Engine, revision: str = "head", media_dir: Path | None = None,
+            clips_dir: Path | None = None) -> None:
+    """Upgrade the database to ``revision`` (run at start-up).  ``media_dir`` and ``clips_dir`` (the settings')
+    let migration 0007 record the files existing studies show (see its docstring)."""
+    _alembic(engine, lambda cfg: command.upgrade(cfg, revision), media_dir=media_dir, clips_dir=clips_dir)
 
 
 def downgrade(engine: Engine, revision: str = "base") -> None:

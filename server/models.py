@@ -3,8 +3,9 @@
 from server.db import Base
 from server.participants.models import ParticipantSession, PlaybackEvent, Trial, Vote
 from server.researchers.models import Researcher
+from server.stimuli.models import StimulusSet
 from server.studies.models import Comparison, Stimulus, Study
-from server.uploads.models import BuildJob, StudyAsset
+from server.uploads.models import AnimationShare, BuildJob, StudyAsset
 
-__all__ = ["Base", "BuildJob", "Comparison", "ParticipantSession", "PlaybackEvent", "Researcher", "Stimulus", "Study",
-           "StudyAsset", "Trial", "Vote"]
+__all__ = ["AnimationShare", "Base", "BuildJob", "Comparison", "ParticipantSession", "PlaybackEvent", "Researcher",
+           "Stimulus", "StimulusSet", "Study", "StudyAsset", "Trial", "Vote"]

@@ -53,6 +53,18 @@ def fake_media(design: Design | None = None) -> RenderManifest:
     return RenderManifest(clips=clips, pairs=pairs)
 
 
+def write_fake_media(media_dir: Path, media: RenderManifest | None = None) -> RenderManifest:
+    """Write ``media`` (default :func:`fake_media`) as the render manifest of ``media_dir`` with a small stand-in
+    file for each of its videos and posters (bytes: the name), so that stimulus sets over it are complete."""
+    media = media or fake_media()
+    media_dir.mkdir(parents=True, exist_ok=True)
+    for v in [*media.clips.values(), *media.pairs]:
+        for name in (v.video, v.poster):
+            (media_dir / name).write_bytes(f"stand-in for {name}\n".encode())
+    (media_dir / "manifest.json").write_text(media.model_dump_json())
+    return media
+
+
 def study_file(design: Design | None = None, slug: str = "thesis", **sections: object) -> StudyFile:
     """studies/thesis.toml with another design, slug or sections (given as dicts or models)."""
     base = thesis_study().model_dump()
@@ -63,8 +75,12 @@ def study_file(design: Design | None = None, slug: str = "thesis", **sections: o
 
 
 def make_study(db: Session, design: Design | None = None, slug: str = "thesis", state: StudyState = StudyState.open,
-               owner: object = None, **sections: object) -> Study:
-    study = create_study(db, fake_media(design), study_file(design, slug, **sections), owner=owner)  # type: ignore[arg-type]
+               owner: object = None, media_dir: Path | None = None, clips_dir: Path | None = None,
+               **sections: object) -> Study:
+    """A study over :func:`fake_media` (its stimulus set hashes the stand-in files of ``media_dir`` and takes the
+    clips' metrics from the clip set in ``clips_dir``, if given)."""
+    study = create_study(db, fake_media(design), study_file(design, slug, **sections), owner=owner,  # type: ignore[arg-type]
+                         media_dir=media_dir, clips_dir=clips_dir)
     return set_state(db, study, state)
 
 
@@ -82,8 +98,11 @@ def client(db, engine, tmp_path):
 
 
 @pytest.fixture
-def study(db):
-    return make_study(db)
+def study(db, tmp_path):
+    """The thesis study, open, over stand-in files in the media directory of :func:`client`'s settings."""
+    media_dir = tmp_path / "var" / "media"
+    write_fake_media(media_dir)
+    return make_study(db, media_dir=media_dir)
 
 
 @pytest.fixture

@@ -18,7 +18,7 @@ from server.studies import service
 from server.studies.design import Design, trial_order
 from server.studies.models import Study
 from server.studies.studyfile import THESIS_FILE, StudyFileError, parse_study_text, thesis_study
-from tests.server_fixtures import answer_all, fake_media, make_study, start, vote
+from tests.server_fixtures import answer_all, fake_media, make_study, start, vote, write_fake_media
 
 # The built-in default of revision 0003 (server/studies/service.py before this change), copied literally.
 OLD_TEXTS = {
@@ -73,8 +73,7 @@ GAIT = {
 def media_dir(client):
     """The render manifest the API creates studies over (fake, opaque names)."""
     media = client.app.state.settings.media_dir
-    media.mkdir(parents=True, exist_ok=True)
-    (media / "manifest.json").write_text(fake_media().model_dump_json())
+    write_fake_media(media)
     return media
 
 
@@ -371,7 +370,7 @@ def test_study_cli(tmp_path, monkeypatch, capsys):
     assert "(admin" in capsys.readouterr().out
     # A study in the CLI's database (the videos are fake: create needs the renderer, tested in the browser tests).
     with session_factory(engine)() as db:
-        service.create_study(db, fake_media(), thesis_study())
+        service.create_study(db, write_fake_media(settings.media_dir), thesis_study(), media_dir=settings.media_dir)
     engine.dispose()
     assert cli.main(["study", "list"]) == 0
     listed = capsys.readouterr().out
@@ -382,6 +381,7 @@ def test_study_cli(tmp_path, monkeypatch, capsys):
     assert cli.main(["study", "export", "thesis", "--format", "csv", "--out", str(out)]) == 0
     assert out.read_text().splitlines()[0].startswith("session_id,trial_index,practice,catch,animation")
     assert cli.main(["study", "export", "thesis", "--format", "json"]) == 0
-    assert json.loads(capsys.readouterr().out)["columns"][-13:] == [
+    assert json.loads(capsys.readouterr().out)["columns"][-17:] == [
         "answered_at", "consent_version", "session_state", "outcome", "viewport_width", "viewport_height",
-        "device_pixel_ratio", "video_scale", "video_scaled", "unfaithful", "PROLIFIC_PID", "STUDY_ID", "SESSION_ID"]
+        "device_pixel_ratio", "video_scale", "video_scaled", "unfaithful", "left_video", "right_video", "pair_video",
+        "stimulus_set", "PROLIFIC_PID", "STUDY_ID", "SESSION_ID"]

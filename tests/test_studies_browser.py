@@ -15,7 +15,7 @@ from server.participants.models import ParticipantSession
 from server.researchers.service import create_researcher
 from server.studies.models import Study
 from tests.conftest import _fresh_engine
-from tests.server_fixtures import fake_media, live_server, make_study
+from tests.server_fixtures import live_server, make_study, write_fake_media
 from tests.test_participant_page import ARGS, ARTIFACTS, CHROMIUM, wait_until
 
 REPO = Path(__file__).resolve().parents[1]
@@ -28,8 +28,7 @@ def site(tmp_path_factory):
     if not Path(CHROMIUM).exists():
         pytest.fail(f"{CHROMIUM} is missing: `make test` installs Debian's chromium")
     settings = Settings(var_dir=tmp_path_factory.mktemp("var"), secret_key="studies-browser-secret-0123456789abcd")
-    settings.media_dir.mkdir(parents=True)
-    (settings.media_dir / "manifest.json").write_text(fake_media().model_dump_json())
+    write_fake_media(settings.media_dir)
     engine = _fresh_engine("sqlite", tmp_path_factory)
     migrate(engine)
     factory = session_factory(engine)

@@ -134,7 +134,7 @@ def test_build_job_runs_to_completion(kind, tmp_path, tmp_path_factory, data):
             assert definition["design"]["animations"] == ["base", "sway_45", "mixamo_sway"]
             studies = client.get("/api/v1/studies", headers=headers).json()
             assert studies[0]["trials_total"] == 3 * 2 + 1
-            assert (settings.assets_dir / "1" / "clipset.toml").is_file()
+            assert not (settings.assets_dir / "1" / "clipset.toml").exists()  # typed, not written and parsed
     finally:
         engine.dispose()
 

@@ -202,6 +202,18 @@ def _conditions(raw: Any, path: Path) -> tuple[Condition, ...]:
     return tuple(out)
 
 
+def clip_set_config(animations: dict[str, dict[str, Any]], conditions: list[dict[str, Any]], fps: int,
+                    relocate: tuple[str, ...], character: CharacterConfig, where: str) -> ClipSetConfig:
+    """A clip-set description from its tables (``[animations.<name>]`` and ``[[conditions]]`` as dicts),
+    validated as a clip-set file's are (errors name ``where``): for code that describes a clip set itself, like
+    the build job of uploads, without writing a file to parse it again."""
+    if not animations:
+        raise ConfigError(f"{where}: no animation to build")
+    return ClipSetConfig(fps, tuple(relocate), {name: _animation(name, entry, f"{where} [animations.{name}]")
+                                                for name, entry in animations.items()},
+                         _conditions(conditions, Path(where)), character)
+
+
 def load_config(path: Path = DEFAULT_CONFIG) -> ClipSetConfig:
     """Read and validate a clip-set file."""
     path = Path(path)

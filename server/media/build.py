@@ -419,9 +419,10 @@ class PeakMemory:
 def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
                  settings: RenderSettings | None = None, pairs: Sequence[tuple[str, str]] = (),
                  workers: int = 2, animations: Sequence[str] | None = None, every_clip: bool = True,
-                 progress: Callable[[str], None] = lambda _m: None) -> Path:
-    """Render what is missing of :func:`plan`, write the manifest, remove stale media; returns the manifest
-    path."""
+                 progress: Callable[[str], None] = lambda _m: None, manifest_dir: Path | None = None) -> Path:
+    """Render what is missing of :func:`plan` and write the manifest; returns the manifest path.  Nothing
+    rendered before is deleted or replaced (``animstudy gc`` collects what no study uses).  The manifest goes
+    into ``manifest_dir`` (default ``out_dir``): the videos of several clip sets share one media directory."""
     settings = settings or RenderSettings()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -444,18 +445,21 @@ def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
                     results = [f.result() for f in as_completed(futures)]
         progress(f"rendered {sum(len(r) for r in results)} videos in {time.perf_counter() - started:.1f} s, "
                  f"peak memory {memory.peak_bytes / 2**20:.0f} MiB (all processes)")
-    path = write_render_manifest(out_dir, _manifest(p, settings))
+    manifest_dir = Path(manifest_dir or out_dir)
+    manifest_dir.mkdir(parents=True, exist_ok=True)
+    path = write_render_manifest(manifest_dir, _manifest(p, settings))
+    # Videos not in this manifest stay: a study's pinned stimulus set may show them (server.stimuli); `animstudy
+    # gc` removes the ones nothing uses.  Only leftovers of a killed render go.
     keep = {o.video for o in p.outputs} | {o.poster for o in p.outputs}
-    stale = [f for f in out_dir.iterdir() if (MEDIA_NAME.match(f.name) and f.name not in keep)
-             or f.name.endswith(".tmp")]
-    for f in stale:
-        f.unlink()
+    leftovers = [f for f in out_dir.iterdir() if f.name.endswith(".tmp")]
+    for f in leftovers:
+        f.unlink(missing_ok=True)
     from .video import FILE_TIME
 
     for name in keep:  # files from before FILE_TIME existed, or touched since, get it too
         if (out_dir / name).is_file():
             os.utime(out_dir / name, (FILE_TIME, FILE_TIME))
-    progress(f"done in {time.perf_counter() - started:.1f} s ({len(stale)} stale files removed) -> {path}")
+    progress(f"done in {time.perf_counter() - started:.1f} s -> {path}")
     return path
 
 

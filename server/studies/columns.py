@@ -59,6 +59,15 @@ COLUMNS: tuple[ExportColumn, ...] = (
     ExportColumn("unfaithful", "`true`, `false`", "whether a clip of the pair was built although it failed the "
                  "fidelity gate (`accept_unfaithful = true`; see the motion guide): what it shows is not faithful "
                  "to its motion file"),
+    ExportColumn("left_video", "string (64 hex) or empty", "sha256 of the video of the clip shown on the left (the "
+                 "clip's own video in the study's stimulus set; the side-by-side video shows the same frames); empty "
+                 "when the set did not record it (a file missing when migration 0007 pinned an older study)"),
+    ExportColumn("right_video", "string (64 hex) or empty", "the same for the clip shown on the right"),
+    ExportColumn("pair_video", "string (64 hex) or empty",
+                 "sha256 of the side-by-side video file the participant was played"),
+    ExportColumn("stimulus_set", "string (64 hex) or empty", "digest of the study's stimulus set (sha256 of its "
+                 "canonical JSON: clips, metrics, character, render settings, every file's sha256); the same for "
+                 "every row of a study once it has opened"),
 )
 
 EXPORT_COLUMNS: tuple[str, ...] = tuple(c.name for c in COLUMNS)

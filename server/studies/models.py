@@ -9,6 +9,7 @@ from sqlalchemy.orm import Mapped, mapped_column, relationship
 
 from server.db import Base, UTCDateTime, utcnow
 from server.researchers.models import Researcher
+from server.stimuli.models import StimulusSet
 
 
 class StudyState(StrEnum):
@@ -43,8 +44,12 @@ class Study(Base):
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     opened_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     closed_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    # What it shows (server.stimuli); NULL only for a study made over media without a manifest.  Pinned (never
+    # changed again) once it has opened.
+    stimulus_set_id: Mapped[int | None] = mapped_column(ForeignKey("stimulus_sets.id"), index=True)
 
     owner: Mapped[Researcher | None] = relationship()
+    stimulus_set: Mapped[StimulusSet | None] = relationship()
     stimuli: Mapped[list[Stimulus]] = relationship(back_populates="study", cascade="all, delete-orphan")
     comparisons: Mapped[list[Comparison]] = relationship(back_populates="study", cascade="all, delete-orphan",
                                                          order_by="Comparison.id")

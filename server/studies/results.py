@@ -12,9 +12,8 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from server.clipset.manifest import MANIFEST, ManifestError, read_clip_manifest
-from server.media.build import MediaError, identical_clips, read_clip_set
 from server.participants.models import ParticipantSession, SessionState, Vote
+from server.stimuli import service as stimulus_sets
 
 from .models import Study
 from .service import export_rows, failed_catch_trials, session_outcome
@@ -50,17 +49,7 @@ def _analyse_cached(votes: tuple[tuple[tuple[str, Any], ...], ...], counts: tupl
     return analyse([dict(v) for v in votes], dict(counts), questions)
 
 
-@lru_cache(maxsize=4)
-def _identical(clips_dir: Path, stamp: tuple[int, int]) -> dict[str, str]:
-    """Clip id -> the first clip with the same arrays, for the clip set whose manifest has ``stamp`` (mtime, size):
-    hashing every clip's arrays on each poll of the dashboard would cost more than the rest of the document."""
-    try:
-        return identical_clips(read_clip_set(clips_dir))
-    except MediaError:
-        return {}
-
-
-def study_results(session: Session, study: Study, clips_dir: Path, benchmark_path: Path) -> dict[str, Any]:
+def study_results(session: Session, study: Study, benchmark_path: Path) -> dict[str, Any]:
     """Everything the dashboard shows.  The statistics are cached on their input: scipy's exact Wilcoxon for
     up to 13 participants with ties enumerates sign patterns and takes seconds, and a dashboard polls."""
     votes = tuple(tuple(sorted(v.items())) for v in export_rows(session, study))
@@ -78,16 +67,12 @@ def study_results(session: Session, study: Study, clips_dir: Path, benchmark_pat
             ParticipantSession.study_id == study.id)) or 0,
         "median_completion_s": pystats.median(durations) if durations else None,
     }
-    try:
-        clips = read_clip_manifest(clips_dir).clips
-    except ManifestError:
-        clips = []  # the dashboard says there is no clip set
-    shown = {s.clip_id for s in study.stimuli}
-    stat = (clips_dir / MANIFEST).stat() if clips else None
-    same = _identical(clips_dir, (stat.st_mtime_ns, stat.st_size)) if stat else {}
+    # The clips of the study's stimulus set, as they were when the set was made: not the clip set on disk, which
+    # may have been rebuilt since (and holds other researchers' clips).
+    content = stimulus_sets.content_of(study.stimulus_set) if study.stimulus_set is not None else None
+    results["stimulus_set"] = study.stimulus_set.digest if study.stimulus_set is not None else None
     results["clips"] = [{"id": c.id, "animation": c.animation, "condition": c.condition, "method": c.method,
-                         "params": c.params, "key_count": c.key_count, "metrics": c.metrics, "shown": c.id in shown,
-                         "identical_to": same.get(c.id) if same.get(c.id, c.id) != c.id else None}
-                        for c in clips]
+                         "params": c.params, "key_count": c.key_count, "metrics": c.metrics, "shown": True,
+                         "identical_to": c.identical_to} for c in (content.clips if content else [])]
     results["benchmark"] = _read_json(benchmark_path)
     return results

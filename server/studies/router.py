@@ -13,7 +13,8 @@ from server.deps import ResearcherDep, SessionDep, SettingsDep
 from server.errors import Conflict, Unprocessable
 from server.media.manifest import ManifestError, RenderManifest, read_render_manifest
 from server.participants.models import ParticipantSession, Vote
-from server.uploads.service import remove_study_assets
+from server.researchers.models import Researcher
+from server.uploads.service import remove_study_assets, usable_animations
 
 from . import service
 from .columns import data_dictionary_markdown
@@ -54,12 +55,25 @@ def render_manifest(settings: Any) -> RenderManifest:
         raise Conflict(f"{exc}; `animstudy study create` renders what a study needs") from None
 
 
+def usable(session: Session, settings: Any, researcher: Researcher, media: RenderManifest) -> set[str]:
+    """The animations of the rendered videos ``researcher`` may use: another researcher's uploads are unknown to
+    them (unless shared), in errors too."""
+    return usable_animations(session, settings, researcher, sorted({a for a, _ in media.clip_index()}))
+
+
 @router.post("/studies", response_model=StudySummary, status_code=status.HTTP_201_CREATED)
 def create_study(body: StudyFile, session: SessionDep, settings: SettingsDep,
                  researcher: ResearcherDep) -> StudySummary:
     """A draft study from a study file's content (as JSON) over the rendered videos (``animstudy study create``
     renders what is missing; here the videos must exist)."""
-    return summary(session, service.create_study(session, render_manifest(settings), body, owner=researcher))
+    if body.clips is not None:
+        raise Unprocessable("clips.set: a study file that names its clip set is created with `animstudy study "
+                            "create FILE` on the server, which builds and renders its clips; through the API a "
+                            "study uses the server's clip set and its own uploads")
+    media = render_manifest(settings)
+    return summary(session, service.create_study(session, media, body, owner=researcher,
+                                                 media_dir=settings.media_dir, clips_dir=settings.clips_dir,
+                                                 animations=usable(session, settings, researcher, media)))
 
 
 async def study_file_text(request: Request) -> str:
@@ -101,7 +115,8 @@ def patch_study(slug: str, session: SessionDep, settings: SettingsDep, researche
     study = service.managed_study(session, slug, researcher)
     media = render_manifest(settings) if "design" in body else None
     try:
-        service.update_study(session, study, body, media)
+        service.update_study(session, study, body, media, settings.media_dir, settings.clips_dir,
+                             usable(session, settings, researcher, media) if media is not None else None)
     except ValidationError as exc:
         session.rollback()
         raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in exc.errors()]) from None
@@ -134,8 +149,9 @@ def read_study(slug: str, session: SessionDep) -> StudyPublic:
 
 
 @router.post("/studies/{slug}/open", response_model=StudyStateRead)
-def open_study(slug: str, session: SessionDep, researcher: ResearcherDep) -> StudyStateRead:
-    study = service.set_state(session, service.managed_study(session, slug, researcher), StudyState.open)
+def open_study(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep) -> StudyStateRead:
+    """Open the study once every file of its stimulus set is there (409 naming what is missing); pins the set."""
+    study = service.open_study(session, service.managed_study(session, slug, researcher), settings.media_dir)
     return StudyStateRead(slug=study.slug, state=study.state)
 
 
@@ -170,4 +186,4 @@ def data_dictionary() -> str:
 def results(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep) -> dict:
     """Progress and statistics (participants are the unit of analysis; see ``methods`` in the answer)."""
     study = service.managed_study(session, slug, researcher)
-    return study_results(session, study, settings.clips_dir, settings.benchmark_path)
+    return study_results(session, study, settings.benchmark_path)

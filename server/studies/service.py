@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import csv
 import io
-from collections.abc import Iterator, Mapping
+from collections.abc import Collection, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +18,7 @@ from server.media.build import identical_clips, read_clip_set, rendered_pairs
 from server.media.manifest import RenderManifest
 from server.participants.models import ParticipantSession, SessionState, Trial, Vote
 from server.researchers.models import Researcher
+from server.stimuli import service as stimulus_sets
 
 from .columns import EXPORT_COLUMNS, QUESTIONS_BEFORE
 from .design import ComparisonIds, Design
@@ -94,30 +95,43 @@ def definition(study: Study) -> StudyFile:
 
 
 def create_study(session: Session, media: RenderManifest, study_file: StudyFile,
-                 owner: Researcher | None = None) -> Study:
-    """A draft study over the videos of a render manifest (``server.media.build``), which must hold its pairs."""
+                 owner: Researcher | None = None, media_dir: Path | None = None,
+                 clips_dir: Path | None = None, animations: Collection[str] | None = None,
+                 stimulus_set: stimulus_sets.SetContent | None = None) -> Study:
+    """A draft study over the videos of a render manifest (``server.media.build``), which must hold its pairs;
+    its stimulus set (:mod:`server.stimuli`) hashes the files in ``media_dir`` and takes the clips' metrics from
+    the clip set in ``clips_dir`` (or is ``stimulus_set``, the set ``media`` was made from: an imported study's).
+    ``animations``: the ones its owner may use (default: all; the others are unknown to them, see
+    ``server.uploads.service.usable_animations``)."""
     if session.scalar(select(Study.id).where(Study.slug == study_file.slug)) is not None:
         raise Conflict(f"a study with slug {study_file.slug!r} exists already")
     study = Study(slug=study_file.slug, state=StudyState.draft, owner_id=owner.id if owner else None,
                   **_columns(study_file))
-    _build_comparisons(study, media, study_file.design)
+    _build_comparisons(session, study, media, study_file.design, media_dir, clips_dir, animations, stimulus_set)
     session.add(study)
     session.commit()
     return study
 
 
-def _build_comparisons(study: Study, media: RenderManifest, design: Design) -> None:
-    """The study's stimuli and comparisons for ``design`` (replacing any it had)."""
-    clips = media.clip_index()
+def _build_comparisons(session: Session, study: Study, media: RenderManifest, design: Design,
+                       media_dir: Path | None, clips_dir: Path | None,
+                       animations: Collection[str] | None = None,
+                       given: stimulus_sets.SetContent | None = None) -> None:
+    """The study's stimuli, comparisons and stimulus set for ``design`` (replacing any it had), from the clips of
+    ``animations`` (default: all)."""
+    if study.opened_at is not None:  # its set is pinned
+        raise Conflict(f"study {study.slug!r} has been open: what it shows is pinned")
+    clips = {k: v for k, v in media.clip_index().items() if animations is None or k[0] in animations}
     pair_videos = media.pair_videos()
-    missing = [p for p in required_pairs(design, clips) if p not in pair_videos]
+    needed = required_pairs(design, clips)
+    missing = [p for p in needed if p not in pair_videos]
     if missing:
-        raise Conflict(f"the rendered videos lack the pairs {missing}; render them first")
+        raise Conflict(f"the rendered videos lack {len(missing)} of the pairs the design shows; "
+                       "`animstudy study create` renders them")
     if study.comparisons or study.stimuli:
         study.comparisons.clear()
         study.stimuli.clear()
-        session = object_session(study)
-        if session is not None:  # delete the old rows before the new ones meet the unique constraint
+        if object_session(study) is not None:  # delete the old rows before the new ones meet the unique constraint
             session.flush()
     stimuli: dict[StimulusKey, Stimulus] = {}
 
@@ -134,6 +148,9 @@ def _build_comparisons(study: Study, media: RenderManifest, design: Design) -> N
         study.comparisons.append(Comparison(kind=kind, reference=stimulus(ref), test=stimulus(test),
                                             video_reference_left=pair_videos[(r, t)],
                                             video_reference_right=pair_videos[(t, r)]))
+    content = given or stimulus_sets.make_content(media, [s.clip_id for s in study.stimuli], needed, media_dir,
+                                                  clips_dir)
+    study.stimulus_set = stimulus_sets.store(session, content)
 
 
 def get_study(session: Session, slug: str) -> Study:
@@ -178,7 +195,8 @@ def default_study(session: Session) -> Study | None:
 
 
 def update_study(session: Session, study: Study, changes: Mapping[str, Any],
-                 media: RenderManifest | None = None) -> Study:
+                 media: RenderManifest | None = None, media_dir: Path | None = None,
+                 clips_dir: Path | None = None, animations: Collection[str] | None = None) -> Study:
     """Apply a partial study file (sections are merged into the current ones): ``title``, ``texts``, ``scale``,
     ``questions`` and ``recruitment`` until the study first opens; ``design`` only while it is a draft that never
     opened (its comparisons are rebuilt over ``media``, the render manifest).  Otherwise 409: participants saw it
@@ -187,6 +205,8 @@ def update_study(session: Session, study: Study, changes: Mapping[str, Any],
         raise Conflict(f"study {study.slug!r} has been open: participants saw it as it is; create a new study")
     if "slug" in changes and changes["slug"] != study.slug:
         raise Conflict("a study's slug cannot change")
+    if changes.get("clips") is not None:
+        raise Unprocessable("clips: a study's clip set is chosen when it is created (`animstudy study create`)")
     current = definition(study).model_dump()
     for key, value in changes.items():
         merge = isinstance(current.get(key), dict) and isinstance(value, dict)
@@ -195,7 +215,7 @@ def update_study(session: Session, study: Study, changes: Mapping[str, Any],
     if updated.design.model_dump() != study.design:
         if study.state != StudyState.draft or media is None:
             raise Conflict("the design can change only while the study is a draft")
-        _build_comparisons(study, media, updated.design)
+        _build_comparisons(session, study, media, updated.design, media_dir, clips_dir, animations)
     for key, value in _columns(updated).items():
         setattr(study, key, value)
     session.commit()
@@ -220,6 +240,19 @@ def comparison_ids(study: Study) -> ComparisonIds:
 
 def trials_total(study: Study) -> int:
     return Design.model_validate(study.design).trials_total()
+
+
+def open_study(session: Session, study: Study, media_dir: Path) -> Study:
+    """Open ``study`` for participants once every file of its stimulus set is in ``media_dir`` with the bytes
+    the set records (409 naming what is missing otherwise); from then on the set is pinned."""
+    if study.stimulus_set is None:
+        raise Conflict(f"study {study.slug!r} has no stimulus set; create it again with `animstudy study create`")
+    lacking = stimulus_sets.missing(stimulus_sets.content_of(study.stimulus_set), media_dir)
+    if lacking:
+        shown = "; ".join(lacking[:10]) + (f"; and {len(lacking) - 10} more" if len(lacking) > 10 else "")
+        raise Conflict(f"study {study.slug!r} cannot open: its stimulus set is incomplete ({shown}); "
+                       "`animstudy study create` renders what is missing")
+    return set_state(session, study, StudyState.open)
 
 
 def set_state(session: Session, study: Study, state: StudyState) -> Study:
@@ -348,7 +381,8 @@ def export_rows(session: Session, study: Study, unfaithful: frozenset[str] = fro
     parameters = list(study.recruitment["parameters"])
     rows = session.execute(
         select(Vote, Trial, ParticipantSession, Comparison.kind, reference.animation, reference.condition,
-               test.condition, reference.clip_id, test.clip_id)
+               test.condition, reference.clip_id, test.clip_id, reference.video, test.video,
+               Comparison.video_reference_left, Comparison.video_reference_right)
         .join(Trial, Vote.trial_id == Trial.id)
         .join(ParticipantSession, Trial.session_id == ParticipantSession.id)
         .join(Comparison, Trial.comparison_id == Comparison.id)
@@ -358,7 +392,12 @@ def export_rows(session: Session, study: Study, unfaithful: frozenset[str] = fro
         .order_by(ParticipantSession.created_at, ParticipantSession.id, Trial.index)
     )
     failed = failed_catch_trials(session, study)
-    for vote, trial, ps, kind, animation, ref_condition, test_condition, ref_clip, test_clip in rows:
+    pinned = study.stimulus_set
+    hashes = stimulus_sets.content_of(pinned).hashes() if pinned is not None else {}
+    for (vote, trial, ps, kind, animation, ref_condition, test_condition, ref_clip, test_clip, ref_video, test_video,
+         pair_ref_left, pair_ref_right) in rows:
+        left, right = (ref_video, test_video) if trial.reference_side == "left" else (test_video, ref_video)
+        pair = pair_ref_left if trial.reference_side == "left" else pair_ref_right
         answers, external, device = ps.answers or {}, ps.external or {}, ps.device or {}
         yield {
             "session_id": ps.id, "trial_index": trial.index, "practice": trial.practice,
@@ -372,6 +411,8 @@ def export_rows(session: Session, study: Study, unfaithful: frozenset[str] = fro
             "viewport_height": device.get("viewport_height"), "device_pixel_ratio": device.get("device_pixel_ratio"),
             "video_scale": device.get("scale"), "video_scaled": device.get("scaled"),
             "unfaithful": ref_clip in unfaithful or test_clip in unfaithful,
+            "left_video": hashes.get(left), "right_video": hashes.get(right), "pair_video": hashes.get(pair),
+            "stimulus_set": pinned.digest if pinned is not None else None,
             **{p: external.get(p) for p in parameters},
         }
 

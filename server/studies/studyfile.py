@@ -200,6 +200,15 @@ def template_problem(url: str, fields: set[str]) -> str | None:
     return None
 
 
+class Clips(_Strict):
+    """The clip set a study's clips come from (``[clips]``): ``set``, a clip-set file (README "Clip-set file"),
+    relative to the study file.  `animstudy study create` builds the clips of it the study needs and renders
+    their videos; without ``[clips]`` the study uses the server's clip set."""
+
+    set: str = Field(min_length=1, max_length=500, pattern=r"\.toml$",
+                     description="clip-set file (TOML), relative to the study file")
+
+
 class StudyFile(_Strict):
     """A study: what it shows, what it says, what it asks and where participants go at the end."""
 
@@ -214,6 +223,7 @@ class StudyFile(_Strict):
     design: Design = Field(default_factory=Design)
     recruitment: Recruitment = Field(default_factory=Recruitment)
     page: Page = Field(default_factory=Page, description="the page's language, its own wording and the device gate")
+    clips: Clips | None = Field(None, description="the clip set its clips come from (default: the server's)")
 
     @model_validator(mode="after")
     def unique_questions(self) -> Self:

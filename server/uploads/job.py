@@ -3,17 +3,16 @@
 
 Stages (``build_jobs.stage``; ``done``/``total`` count each stage's steps):
 
-1. ``building``: one step per asset.  The job writes the clip-set file of the assets,
-   ``<assets dir>/<study id>/clipset.toml`` (each asset an ``[animations.<name>]`` entry with its kind, absolute
-   source path and frames; the ``fps``, character and ``[[conditions]]`` of the clip set in the var directory,
-   or of the default clip-set file when there is none), reads it with
-   :func:`server.clipset.config.load_config` and builds each animation with
-   :func:`server.clipset.build.build_clip_set` (any common rig, BVH or glTF, as ``clips build`` does); the
-   clips are merged into the clip set (an asset's clips replace its earlier ones; the manifest is replaced last,
-   in one step).
+1. ``building``: one step per asset.  The job describes the assets as a clip set (:func:`assets_config`: each
+   asset an animation with its kind, source file and frames; the ``fps``, character and conditions of the clip
+   set in the var directory, or of the default clip-set file when there is none), validated as a clip-set file
+   is, and builds each animation through the stimulus pipeline
+   (:func:`server.stimuli.pipeline.build_animations`: the character loaded and verified once; any common rig,
+   BVH or glTF, as ``clips build`` does); the clips are merged into the clip set (an asset's clips replace its
+   earlier ones; the manifest is replaced last, in one step).
 2. ``rendering``: one step per video missing: every clip's and the pairs the study's design (with the new
    animations) and every other study show, with the size and shadows the videos have already
-   (:func:`server.media.build.rendered_settings`, :func:`server.media.build.render_media`, one worker process
+   (:func:`server.media.build.rendered_settings`, :func:`server.stimuli.pipeline.render`, one worker process
    so the server keeps a core).
 3. ``study``: the assets' animations are added to the study's design (its comparisons rebuilt over the videos).
 4. ``done`` (state ``done``), or state ``failed`` with ``error`` at the stage where it failed.
@@ -26,14 +25,14 @@ from __future__ import annotations
 
 import fcntl
 import json
-import math
 import os
+import re
 import resource
 import sys
 import threading
 import traceback
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -59,9 +58,10 @@ class BuildError(Exception):
 class Progress:
     """Writes the job's progress to its row (one short transaction per update)."""
 
-    def __init__(self, factory: sessionmaker[Session], job_id: int) -> None:
+    def __init__(self, factory: sessionmaker[Session], job_id: int, settings: Settings | None = None) -> None:
         self.factory = factory
         self.job_id = job_id
+        self.settings = settings
         self._lock = threading.Lock()
 
     def __call__(self, stage: str | None = None, done: int | None = None, total: int | None = None,
@@ -69,6 +69,9 @@ class Progress:
         changes = {k: v for k, v in (("stage", stage), ("done", done), ("total", total), ("message", message))
                    if v is not None}
         changes.update(values)
+        for key in ("message", "error"):
+            if key in changes and self.settings is not None:
+                changes[key] = scrub(str(changes[key]), self.settings)
         if "message" in changes:
             changes["message"] = str(changes["message"])[-2000:]
         with self._lock, self.factory() as session:
@@ -77,28 +80,7 @@ class Progress:
             session.commit()
 
 
-# --- the clip-set file of the assets ---------------------------------------------------------------------------
-
-def _toml_value(value: Any) -> str:
-    """A TOML value for the few types a clip-set file holds (JSON strings are TOML basic strings; finite floats'
-    ``repr`` is TOML)."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if not math.isfinite(value):
-            raise BuildError(f"a condition parameter is {value}, which a clip-set file cannot hold")
-        return repr(value)
-    if isinstance(value, str):
-        return json.dumps(value)
-    if isinstance(value, list | tuple):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    if isinstance(value, dict):  # TOML has no null: a parameter left unset (None) is left out
-        return "{ " + ", ".join(f"{json.dumps(str(k))} = {_toml_value(v)}" for k, v in value.items()
-                                if v is not None) + " }"
-    raise BuildError(f"cannot write {value!r} into a clip-set file")
-
+# --- the clip-set description of the assets ---------------------------------------------------------------
 
 def current_clip_set(clips_dir: Path) -> Any:
     """The manifest of the clip set in ``clips_dir``, None if there is none; one that cannot be read stops the
@@ -142,35 +124,33 @@ def base_clip_set(data_dir: Path, clips_dir: Path) -> BaseClipSet:
     return BaseClipSet(fps, default.relocate, character, conditions)
 
 
-def write_clip_set_file(path: Path, assets: Sequence[StudyAsset], asset_file: Callable[[StudyAsset], Path],
-                        base: BaseClipSet) -> Path:
-    """The clip-set file (docs/motion/clip-sets.md, *Clip-set file*) of ``assets``, through a temporary file."""
-    body = {k: v for k, v in asdict(base.character).items() if v is not None}
-    lines = ["# written by the build job of the study's uploaded assets (server/uploads/job.py)",
-             f"fps = {base.fps}", "", "[character]", f"relocate = {_toml_value(list(base.relocate))}",
-             *(f"{k} = {_toml_value(v)}" for k, v in body.items()), ""]
-    for a in assets:
-        lines += [f"[animations.{a.name}]", f"kind = {_toml_value(a.kind)}",
-                  f"source = {_toml_value(str(asset_file(a)))}",
-                  f"frames = {_toml_value([a.first_frame, a.last_frame])}"]
-        options = (a.report or {}).get("options", {})  # how the researcher said to read the file
-        lines += [f"{key} = {_toml_value(options[key])}" for key in ("units", "up_axis") if options.get(key)]
-        if options.get("mapping"):
-            mapping = path.with_name(f"{a.name}.mapping.json")
-            mapping.write_text(json.dumps(options["mapping"]), encoding="utf-8")
-            lines.append(f"mapping = {_toml_value(str(mapping))}")
-        if (a.report or {}).get("accept_unfaithful"):
-            lines.append("accept_unfaithful = true")
-        lines.append("")
-    for cid, method, params in base.conditions:
-        lines += ["[[conditions]]", f"id = {_toml_value(cid)}", f"method = {_toml_value(method)}"]
-        if params:
-            lines.append(f"params = {_toml_value(params)}")
-        lines.append("")
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text("\n".join(lines), encoding="utf-8")
-    tmp.replace(path)
-    return path
+def assets_config(assets: Sequence[StudyAsset], asset_file: Callable[[StudyAsset], Path],
+                  base: BaseClipSet) -> Any:
+    """The clip-set description (:class:`server.clipset.config.ClipSetConfig`) of ``assets``: each an animation
+    with its kind, source file and frames, on the fps, character and conditions of ``base``; validated as a
+    clip-set file is (ConfigError names the asset)."""
+    from server.clipset.config import clip_set_config
+
+    animations = {a.name: {"kind": a.kind, "source": str(asset_file(a)), "frames": [a.first_frame, a.last_frame],
+                           **_reading(a, asset_file(a))} for a in assets}
+    conditions = [{"id": cid, "method": method, **({"params": params} if params else {})}
+                  for cid, method, params in base.conditions]
+    return clip_set_config(animations, conditions, base.fps, base.relocate, base.character, "the study's assets")
+
+
+def _reading(asset: StudyAsset, path: Path) -> dict[str, Any]:
+    """How the researcher said to read the asset's file (units, up axis, a joint mapping, build in spite of the
+    fidelity gate), as clip-set animation fields; a mapping is written beside the file (the clip set names files)."""
+    report = asset.report or {}
+    options = report.get("options", {})
+    fields: dict[str, Any] = {key: options[key] for key in ("units", "up_axis") if options.get(key)}
+    if options.get("mapping"):
+        mapping = path.with_name(f"{asset.name}.mapping.json")
+        mapping.write_text(json.dumps(options["mapping"]), encoding="utf-8")
+        fields["mapping"] = str(mapping)
+    if report.get("accept_unfaithful"):
+        fields["accept_unfaithful"] = True
+    return fields
 
 
 # --- merging into the clip set -----------------------------------------------------------------------------------
@@ -183,8 +163,9 @@ def check_names(clips_dir: Path, assets: Sequence[StudyAsset], asset_file: Calla
     sources = {c.animation: str(c.source.get("file")) for c in manifest.clips}
     for a in assets:
         if a.name in sources and sources[a.name] != str(asset_file(a)):
-            raise BuildError(f"asset {a.filename!r}: the clip set has an animation {a.name!r} already (from "
-                             f"{sources[a.name]}); delete the asset and upload it again with another name")
+            # Not where it comes from: that may be another researcher's upload.
+            raise BuildError(f"asset {a.filename!r}: the server has an animation {a.name!r} already; delete the "
+                             "asset and upload it again with another name")
 
 
 def merge_clips(clips_dir: Path, built: list[Any]) -> Path:
@@ -216,9 +197,18 @@ def merge_clips(clips_dir: Path, built: list[Any]) -> Path:
 
 # --- the job ---------------------------------------------------------------------------------------------------
 
+def scrub(message: str, settings: Settings) -> str:
+    """``message`` as a researcher may read it: no server path (an asset file by its name alone, the var and data
+    directories by name)."""
+    message = re.sub(re.escape(str(settings.assets_dir)) + r"/\d+/", "", message)
+    for path, name in ((settings.var, "<var dir>"), (settings.data, "<data dir>")):
+        message = message.replace(str(path), name)
+    return message
+
+
 def run(settings: Settings, factory: sessionmaker[Session], job_id: int) -> None:
     """Run the job ``job_id`` to its end; every failure is stored in the job (never raised)."""
-    progress = Progress(factory, job_id)
+    progress = Progress(factory, job_id, settings)
     lock_path = settings.assets_dir / ".build.lock"
     lock_path.parent.mkdir(parents=True, exist_ok=True)
     with lock_path.open("w") as lock:
@@ -255,12 +245,13 @@ def draft(session: Session, study_id: int) -> Study:
 
 
 def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progress: Progress) -> None:
-    from server.clipset.build import build_clip_set
-    from server.clipset.config import load_config
-    from server.media.build import plan, render_media, rendered_settings
-    from server.media.manifest import read_render_manifest
+    from server.media.build import plan, rendered_settings
+    from server.stimuli import pipeline
+    from server.stimuli.pipeline import AnimationError, build_animations
     from server.studies.design import Design
-    from server.studies.service import pairs_to_render, update_study
+    from server.studies.service import update_study
+
+    place = pipeline.server_place(settings)
 
     with factory() as session:
         job = session.get(BuildJob, job_id)
@@ -279,21 +270,21 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
 
     missing = [a.filename for a in assets if not asset_file(a).is_file()]
     if missing:
-        raise BuildError(f"the asset files {', '.join(missing)} are missing from {settings.assets_dir}")
+        raise BuildError(f"the asset files {', '.join(missing)} are missing on the server; upload them again")
     check_names(settings.clips_dir, assets, asset_file)
-    config_path = write_clip_set_file(settings.assets_dir / str(study.id) / "clipset.toml", assets, asset_file,
-                                      base_clip_set(settings.data, settings.clips_dir))
-    config = load_config(config_path)
+    try:
+        config = assets_config(assets, asset_file, base_clip_set(settings.data, settings.clips_dir))
+    except ValueError as exc:  # ConfigError: names the asset and the field
+        raise BuildError(str(exc)) from None
 
-    built = []
-    for k, (name, cfg) in enumerate(config.animations.items()):
+    def each(k: int, name: str) -> None:
         progress(stage="building", done=k, total=len(assets), message=f"{name}: building its clips")
-        one = replace(config, animations={name: cfg})  # the same character, fps, conditions
-        try:
-            built += build_clip_set(settings.data, one,
-                                    progress=lambda m, name=name: progress(message=f"{name}: {m.strip()}"))
-        except ValueError as exc:  # ConfigError, AssetError: they name the entry and the file
-            raise BuildError(f"asset {name!r}: {exc}") from None
+
+    try:
+        built = build_animations(settings.data, config, dict.fromkeys(config.animations, config.conditions),
+                                 lambda m: progress(message=m.strip()), each)
+    except AnimationError as exc:  # ConfigError, AssetError of an asset: they name the field and the file
+        raise BuildError(f"asset {exc}") from None
     merge_clips(settings.clips_dir, built)
     progress(stage="building", done=len(assets), total=len(assets), message=f"{len(built)} clips built")
 
@@ -303,7 +294,7 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
         animations = list(dict.fromkeys([*design.animations, *(a.name for a in assets)]))
         new_design = design.model_copy(update={"animations": animations})
         Design.model_validate(new_design.model_dump())
-        pairs = pairs_to_render(session, new_design, settings.clips_dir, settings.media_dir)
+        pairs = pipeline.pairs(session, place, new_design, settings.media_dir)
     render = rendered_settings(settings.media_dir)
     todo = [o for j in plan(settings.data, settings.clips_dir, settings.media_dir, render, settings.secret,
                             pairs).jobs for o in j.outputs]
@@ -317,9 +308,9 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
 
     watcher = threading.Thread(target=watch, daemon=True)
     watcher.start()
-    try:
-        render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret, render, pairs=pairs,
-                     workers=1, progress=lambda m: progress(message=m))
+    try:  # one worker process: the server keeps a core
+        media = pipeline.render(settings, place, pairs, render, lambda m: progress(message=m), workers=1,
+                                every_clip=True)
     finally:
         stop.set()
         watcher.join()
@@ -328,7 +319,8 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
     progress(stage="study", done=0, total=1, message="adding the animations to the study's design")
     with factory() as session:
         study = draft(session, study.id)
-        update_study(session, study, {"design": new_design.model_dump()}, read_render_manifest(settings.media_dir))
+        update_study(session, study, {"design": new_design.model_dump()}, media, settings.media_dir,
+                     settings.clips_dir)
     progress(stage="study", done=1, total=1, message=f"the design shows {', '.join(animations)}")
 
 

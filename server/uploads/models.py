@@ -60,3 +60,19 @@ class BuildJob(Base):
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+
+
+class AnimationShare(Base):
+    """The animation ``animation`` built from an upload of study ``study_id`` may be used by researcher
+    ``researcher_id`` too (besides the study's owner and admins): sharing is explicit, one named researcher at a
+    time."""
+
+    __tablename__ = "animation_shares"
+    __table_args__ = (UniqueConstraint("study_id", "animation", "researcher_id",
+                                       name="uq_animation_shares_study_id"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    study_id: Mapped[int] = mapped_column(ForeignKey("studies.id", ondelete="CASCADE"), index=True)
+    animation: Mapped[str] = mapped_column(String(32))
+    researcher_id: Mapped[int] = mapped_column(ForeignKey("researchers.id", ondelete="CASCADE"), index=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)

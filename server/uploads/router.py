@@ -150,6 +150,37 @@ def delete_asset(slug: str, name: str, session: SessionDep, settings: SettingsDe
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
+class ShareRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    email: str = Field(min_length=3, max_length=254)
+
+
+@router.get("/studies/{slug}/assets/{name}/shares")
+def read_shares(slug: str, name: str, session: SessionDep, settings: SettingsDep,
+                researcher: ResearcherDep) -> dict[str, Any]:
+    """Who besides the study's owner (and admins) may use the animation built from this upload."""
+    study = managed_study(session, slug, researcher)
+    service.check_animation_of(session, settings, study, name)
+    return {"animation": name, "shared_with": service.shared_with(session, study, name)}
+
+
+@router.post("/studies/{slug}/assets/{name}/shares")
+def share(slug: str, name: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep,
+          body: Annotated[ShareRequest, Body()]) -> dict[str, Any]:
+    """Share the animation built from this upload with one named researcher (explicit; nobody else sees it)."""
+    study = managed_study(session, slug, researcher)
+    return {"animation": name, "shared_with": service.share_animation(session, settings, study, name, body.email)}
+
+
+@router.delete("/studies/{slug}/assets/{name}/shares/{email}")
+def unshare(slug: str, name: str, email: str, session: SessionDep, settings: SettingsDep,
+            researcher: ResearcherDep) -> dict[str, Any]:
+    """Stop sharing it with that researcher (their studies keep what they pinned)."""
+    study = managed_study(session, slug, researcher)
+    return {"animation": name, "shared_with": service.unshare_animation(session, settings, study, name, email)}
+
+
 @router.post("/studies/{slug}/assets/build", status_code=status.HTTP_202_ACCEPTED)
 def start_build(slug: str, request: Request, session: SessionDep, settings: SettingsDep,
                 researcher: ResearcherDep) -> dict[str, Any]:

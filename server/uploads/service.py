@@ -33,7 +33,7 @@ from server.researchers.models import Researcher
 from server.studies.models import Study, StudyState
 from server.studies.service import managed_study
 
-from .models import BuildJob, BuildState, StudyAsset
+from .models import AnimationShare, BuildJob, BuildState, StudyAsset
 
 #: What an upload may be: a motion file :func:`~anim_core.clips.sources.inspect_source` reads.  No ``.bvh.gz``: a
 #: compressed file could unpack to far more than the size limit allows.
@@ -290,6 +290,93 @@ def delete_asset(session: Session, settings: Settings, study: Study, asset: Stud
     session.delete(asset)
     session.commit()
     path.unlink(missing_ok=True)
+
+
+# --- who may use an uploaded animation ---------------------------------------------------------------------------
+
+def animation_origins(settings: Settings, clips_dir: Path | None = None) -> dict[str, int]:
+    """Animation of the clip set -> the id of the study whose upload it was built from (the build job names the
+    asset file ``<assets dir>/<study id>/<file>`` as its source).  Animations from anywhere else (the data
+    directory, a clip-set file of the operator) are absent: every researcher may use them."""
+    from server.clipset.manifest import ManifestError, read_clip_manifest
+
+    try:
+        clips = read_clip_manifest(clips_dir or settings.clips_dir).clips
+    except ManifestError:
+        return {}
+    assets = settings.assets_dir.resolve()
+    out = {}
+    for c in clips:
+        source = Path(str(c.source.get("file", "")))
+        if source.is_absolute() and source.is_relative_to(assets):
+            parts = source.relative_to(assets).parts
+            if len(parts) == 2 and parts[0].isdigit():
+                out[c.animation] = int(parts[0])
+    return out
+
+
+def usable_animations(session: Session, settings: Settings, researcher: Researcher,
+                      animations: set[str] | list[str]) -> set[str]:
+    """Those of ``animations`` that ``researcher`` may use: every one for an admin; otherwise the ones not built
+    from an upload, the ones from uploads into their own studies, and the ones shared with them.  (An upload of a
+    deleted study: admins only.)"""
+    if researcher.is_admin:
+        return set(animations)
+    origins = animation_origins(settings)
+    private = {a: origins[a] for a in animations if a in origins}
+    if not private:
+        return set(animations)
+    owners = dict(session.execute(select(Study.id, Study.owner_id).where(Study.id.in_(set(private.values())))).all())
+    shared = set(session.execute(select(AnimationShare.study_id, AnimationShare.animation).where(
+        AnimationShare.researcher_id == researcher.id)).all())
+    return {a for a in animations if a not in private or owners.get(private[a]) == researcher.id
+            or (private[a], a) in shared}
+
+
+def check_animation_of(session: Session, settings: Settings, study: Study, name: str) -> str:
+    """``name`` if it is an asset of ``study`` or an animation built from one (404 otherwise)."""
+    has_asset = session.scalar(select(StudyAsset.id).where(StudyAsset.study_id == study.id,
+                                                          StudyAsset.name == name)) is not None
+    if not has_asset and animation_origins(settings).get(name) != study.id:
+        raise NotFound(f"study {study.slug!r} has no asset {name!r}")
+    return name
+
+
+def share_animation(session: Session, settings: Settings, study: Study, name: str, email: str) -> list[str]:
+    """Let the researcher ``email`` use the animation ``name`` of ``study``'s uploads in their studies; returns
+    everyone it is shared with."""
+    from server.researchers.service import normalize_email
+
+    check_animation_of(session, settings, study, name)
+    other = session.scalar(select(Researcher).where(Researcher.email == normalize_email(email)))
+    if other is None:
+        raise Unprocessable(f"email: no researcher account {email!r}")
+    if other.id != study.owner_id and session.scalar(select(AnimationShare.id).where(
+            AnimationShare.study_id == study.id, AnimationShare.animation == name,
+            AnimationShare.researcher_id == other.id)) is None:
+        session.add(AnimationShare(study_id=study.id, animation=name, researcher_id=other.id))
+        session.commit()
+    return shared_with(session, study, name)
+
+
+def unshare_animation(session: Session, settings: Settings, study: Study, name: str, email: str) -> list[str]:
+    """Stop sharing (studies the other researcher made with it keep their pinned stimuli)."""
+    from server.researchers.service import normalize_email
+
+    check_animation_of(session, settings, study, name)
+    other = session.scalar(select(Researcher.id).where(Researcher.email == normalize_email(email)))
+    for share in session.scalars(select(AnimationShare).where(
+            AnimationShare.study_id == study.id, AnimationShare.animation == name,
+            AnimationShare.researcher_id == other)):
+        session.delete(share)
+    session.commit()
+    return shared_with(session, study, name)
+
+
+def shared_with(session: Session, study: Study, name: str) -> list[str]:
+    return list(session.scalars(select(Researcher.email).join(
+        AnimationShare, AnimationShare.researcher_id == Researcher.id).where(
+        AnimationShare.study_id == study.id, AnimationShare.animation == name).order_by(Researcher.email)))
 
 
 def remove_study_assets(settings: Settings, study_id: int) -> None:

@@ -1,0 +1,199 @@
+"""From a clip-set description to a study's stimuli, in one way: build → pairs → render → pin.
+
+- **build** (:func:`build`): the clips a design needs that the clip set lacks, from a typed
+  :class:`~server.clipset.config.ClipSetConfig`; the character is loaded and verified once per build; the clips
+  are merged into the clip set (files under temporary names, the manifest replaced last).
+- **pairs** (:func:`pairs`): the side-by-side videos the design shows (and the ones rendered before, so the
+  render manifest keeps listing them).
+- **render** (:func:`render`): the missing videos, into the one media directory shared by every clip set (names
+  are hashes of what decides the pixels, so clip sets never collide), the render manifest into the clip set's
+  own folder.
+- **pin**: :func:`server.studies.service.create_study` makes the study's stimulus set from the render manifest
+  and :func:`server.studies.service.open_study` pins it.
+
+A study file without ``[clips]`` uses the server's clip set (``<var>/clips``, its render manifest in
+``<var>/media``); one with ``[clips] set = "file.toml"`` gets the clip set of that file, kept in
+``<var>/clipsets/<key>/`` (``key``: a hash of the file's path and content, so an edited file is another clip set).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from sqlalchemy.orm import Session
+
+from anim_core.clips.record import BuiltClip
+from anim_core.methods.conditions import REFERENCE, Condition
+from server.clipset.config import ClipSetConfig, load_config
+from server.clipset.manifest import MANIFEST, ManifestError, read_clip_manifest
+from server.config import Settings
+from server.errors import Unprocessable
+from server.media.build import rendered_pairs, rendered_settings
+from server.media.manifest import RenderManifest, read_render_manifest
+from server.media.scene import RenderSettings
+from server.studies.design import Design
+from server.studies.studyfile import StudyFile
+
+Progress = Callable[[str], None]
+CLIPSETS = "clipsets"
+
+
+@dataclass(frozen=True)
+class Place:
+    """Where one clip set lives: its clips and the folder of its render manifest (the videos are in the media
+    directory)."""
+
+    clips_dir: Path
+    render_dir: Path
+    config: ClipSetConfig | None = None  # None: the server's clip set (built from the default file if missing)
+
+
+def server_place(settings: Settings) -> Place:
+    return Place(settings.clips_dir, settings.media_dir)
+
+
+def file_place(settings: Settings, config_path: Path) -> Place:
+    """The place of the clip set of ``config_path`` (read and validated here; ConfigError names the file)."""
+    path = Path(config_path).resolve()
+    config = load_config(path)
+    key = hashlib.sha256(str(path).encode() + b"\0" + path.read_bytes()).hexdigest()[:16]
+    base = settings.var / CLIPSETS / key
+    return Place(base / "clips", base / "render", config)
+
+
+def study_place(settings: Settings, study_file: StudyFile, study_path: Path | None) -> Place:
+    """The clip set ``study_file`` uses: its ``[clips] set`` (relative to ``study_path``'s folder) or the
+    server's."""
+    if study_file.clips is None:
+        return server_place(settings)
+    base = Path(study_path).parent if study_path is not None else Path.cwd()
+    return file_place(settings, base / study_file.clips.set)
+
+
+def needed_conditions(design: Design) -> list[str]:
+    return list(dict.fromkeys([design.reference, *design.conditions, *([design.practice] if design.practice
+                                                                        else [])]))
+
+
+class AnimationError(ValueError):
+    """Building one animation's clips failed; the message starts with its name."""
+
+    def __init__(self, animation: str, cause: Exception) -> None:
+        super().__init__(f"{animation!r}: {cause}")
+        self.animation = animation
+
+
+def build_animations(data_dir: Path, config: ClipSetConfig, wanted: dict[str, tuple[Condition, ...]],
+                     progress: Progress = lambda _m: None,
+                     each: Callable[[int, str], None] = lambda _k, _name: None) -> list[BuiltClip]:
+    """The clips of each animation of ``wanted`` in its conditions (the reference among them), on the character
+    of ``config``, loaded and verified once.  AssetError/ConfigError of the character as they are; of an
+    animation as :class:`AnimationError`.  Nothing is written."""
+    from server.clipset.build import animation_clips, load_character
+
+    progress("loading the character")
+    character, record = load_character(data_dir, config.character, progress)
+    built: list[BuiltClip] = []
+    for k, (name, conditions) in enumerate(wanted.items()):
+        each(k, name)
+        try:
+            built += animation_clips(data_dir, character, config.animations[name], config.fps, conditions,
+                                     config.relocate, progress)
+        except ValueError as exc:
+            raise AnimationError(name, exc) from None
+    # Every clip records the character it was built for; the manifest keeps it once.
+    return [dataclasses.replace(c, source={**c.source, "character": record}) for c in built]
+
+
+def build(data_dir: Path, config: ClipSetConfig, clips_dir: Path, design: Design,
+          progress: Progress = lambda _m: None) -> int:
+    """Build the clips of ``design`` that the clip set in ``clips_dir`` lacks, from ``config``; returns how many
+    clips were built.  An animation is built with every condition it already had plus the ones needed (the
+    reference first: the others are made from it).  422 naming what ``config`` does not have."""
+    from server.uploads.job import merge_clips
+
+    conditions = needed_conditions(design)
+    by_id = {c.id: c for c in config.conditions}
+    if unknown := [c for c in conditions if c not in by_id]:
+        raise Unprocessable(f"design: condition(s) {', '.join(unknown)} are not in the clip-set file (it has "
+                            f"{', '.join(by_id)})")
+    if unknown := [a for a in design.animations if a not in config.animations]:
+        raise Unprocessable(f"design.animations: {', '.join(unknown)} are not in the clip-set file (it has "
+                            f"{', '.join(config.animations)})")
+    try:
+        current = read_clip_manifest(clips_dir).clips if (clips_dir / MANIFEST).is_file() else []
+    except ManifestError:
+        current = []  # unreadable: built again from scratch
+    have: dict[str, set[str]] = {}
+    for c in current:
+        have.setdefault(c.animation, set()).add(c.condition)
+    todo = [a for a in design.animations if not set(conditions) <= have.get(a, set())]
+    if not todo:
+        progress(f"clips: all {len(design.animations) * len(conditions)} the design needs are built")
+        return 0
+    wanted = {}
+    for name in todo:
+        keep = have.get(name, set()) | set(conditions)
+        wanted[name] = tuple(c for c in config.conditions if c.id in keep or c.method == REFERENCE)
+    built = build_animations(data_dir, config, wanted, progress, lambda k, name: progress(
+        f"[{k + 1}/{len(todo)}] {name}: building {len(wanted[name])} clips"))
+    merge_clips(clips_dir, built)
+    progress(f"clips: {len(built)} built into the clip set")
+    return len(built)
+
+
+def pairs(session: Session, place: Place, design: Design, media_dir: Path) -> list[tuple[str, str]]:
+    """The pair videos to have: the design's, and the ones this clip set's render manifest has already (so that
+    adding a study removes nothing from it); for the server's clip set every study's too."""
+    from server.studies.service import clip_set_index, pairs_to_render, required_pairs
+
+    if place.config is None:
+        return pairs_to_render(session, design, place.clips_dir, media_dir)
+    index = clip_set_index(place.clips_dir)
+    ids = set(index.values())
+    before = [p for p in rendered_pairs(place.render_dir) if set(p) <= ids]
+    return list(dict.fromkeys([*before, *required_pairs(design, index)]))
+
+
+def render(settings: Settings, place: Place, wanted: list[tuple[str, str]], render_settings: RenderSettings,
+           progress: Progress = lambda _m: None, workers: int = 2, every_clip: bool = False) -> RenderManifest:
+    """Render what is missing of ``wanted`` and the clips they show (``every_clip``: every clip) into the media
+    directory; returns the render manifest of ``place``."""
+    from server.media.build import render_media
+
+    render_media(settings.data, place.clips_dir, settings.media_dir, settings.secret, render_settings,
+                 pairs=wanted, workers=workers, every_clip=every_clip, progress=progress,
+                 manifest_dir=place.render_dir)
+    return read_render_manifest(place.render_dir)
+
+
+def prepare(settings: Settings, session: Session, study_file: StudyFile, study_path: Path | None = None,
+            render_settings: RenderSettings | None = None, progress: Progress = lambda _m: None,
+            workers: int = 2) -> tuple[RenderManifest, Place]:
+    """Build and render what ``study_file`` needs that is missing; returns the render manifest to create it over
+    and the place of its clip set (pass ``place.clips_dir`` to ``create_study``)."""
+    from server.clipset.build import build_clip_set
+    from server.clipset.manifest import write_clip_set
+
+    place = study_place(settings, study_file, study_path)
+    if place.config is None:
+        if not (place.clips_dir / MANIFEST).is_file():
+            progress(f"building the server's clip set in {place.clips_dir}")
+            write_clip_set(build_clip_set(settings.data, progress=progress), place.clips_dir)
+    else:
+        progress(f"clip set {study_file.clips.set if study_file.clips else ''} -> {place.clips_dir}")
+        build(settings.data, place.config, place.clips_dir, study_file.design, progress)
+    # The size and shadows of the videos there already, so that a study's videos look alike.
+    before = place.render_dir if (place.render_dir / MANIFEST).is_file() else settings.media_dir
+    chosen = render_settings or rendered_settings(before)
+    return render(settings, place, pairs(session, place, study_file.design, settings.media_dir), chosen, progress,
+                  workers), place
+
+
+def render_manifest_dirs(settings: Settings) -> list[Path]:
+    """Every render manifest's folder: the media directory and each clip set's (``gc`` keeps what they list)."""
+    return [settings.media_dir, *sorted(p / "render" for p in (settings.var / CLIPSETS).glob("*") if p.is_dir())]
