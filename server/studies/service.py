@@ -34,7 +34,8 @@ def clip_set_index(clips_dir: Path) -> dict[StimulusKey, str]:
 
 def needed_stimuli(design: Design) -> list[tuple[ComparisonKind, StimulusKey, StimulusKey]]:
     """(kind, reference, test) of every comparison of the design, in the order they are created."""
-    out = [(ComparisonKind.test, (a, design.reference), (a, c)) for a in design.animations for c in design.conditions]
+    out = [(ComparisonKind.test, (a, first), (a, second))
+           for a in design.animations for first, second in design.pairs()]
     out += [(ComparisonKind.catch, (a, design.reference), (a, design.reference))
             for a in design.animations[: design.catch_trials]]
     if design.practice:
