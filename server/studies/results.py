@@ -46,8 +46,8 @@ def _read_json(path: Path) -> Any:
 
 @lru_cache(maxsize=16)
 def _analyse_cached(votes: tuple[tuple[tuple[str, Any], ...], ...], counts: tuple[tuple[str, int], ...],
-                    questions: tuple[str, ...]) -> dict[str, Any]:
-    return analyse([dict(v) for v in votes], dict(counts), questions)
+                    questions: tuple[str, ...], anchor: str | None = None) -> dict[str, Any]:
+    return analyse([dict(v) for v in votes], dict(counts), questions, anchor)
 
 
 @lru_cache(maxsize=4)
@@ -66,7 +66,7 @@ def study_results(session: Session, study: Study, clips_dir: Path, benchmark_pat
     votes = tuple(tuple(sorted(v.items())) for v in export_rows(session, study))
     counts = tuple(sorted(participant_counts(session, study).items()))
     questions = tuple(q["id"] for q in study.questions)
-    results = copy.deepcopy(_analyse_cached(votes, counts, questions))
+    results = copy.deepcopy(_analyse_cached(votes, counts, questions, study.design["reference"]))
     durations = [(ps.completed_at - ps.created_at).total_seconds() for ps in session.scalars(
         select(ParticipantSession).where(ParticipantSession.study_id == study.id,
                                          ParticipantSession.state == SessionState.completed))]

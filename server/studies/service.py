@@ -255,7 +255,8 @@ def session_outcome(study: Study, state: str, failed_catch: int) -> str | None:
 EXPORT_COLUMNS = ("session_id", "trial_index", "practice", "catch", "animation", "reference_condition",
                   "test_condition", "reference_side", "test_side", "choice", "score", "rt_ms", "answered_at",
                   "consent_version", "session_state", "outcome", "viewport_width", "viewport_height",
-                  "device_pixel_ratio", "video_scale", "video_scaled")
+                  "device_pixel_ratio", "video_scale", "video_scaled", "design_mode", "left_condition",
+                  "right_condition")
 
 
 def export_columns(study: Study) -> list[str]:
@@ -338,7 +339,10 @@ def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
         .order_by(ParticipantSession.created_at, ParticipantSession.id, Trial.index)
     )
     failed = failed_catch_trials(session, study)
+    mode = study.design.get("mode", "reference")  # designs stored before issue 27 have no mode
     for vote, trial, ps, kind, animation, ref_condition, test_condition in rows:
+        left, right = ((ref_condition, test_condition) if trial.reference_side == "left"
+                       else (test_condition, ref_condition))
         answers, external, device = ps.answers or {}, ps.external or {}, ps.device or {}
         yield {
             "session_id": ps.id, "trial_index": trial.index, "practice": trial.practice,
@@ -351,6 +355,7 @@ def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
             "viewport_width": device.get("viewport_width"),
             "viewport_height": device.get("viewport_height"), "device_pixel_ratio": device.get("device_pixel_ratio"),
             "video_scale": device.get("scale"), "video_scaled": device.get("scaled"),
+            "design_mode": mode, "left_condition": left, "right_condition": right,
             **{p: external.get(p) for p in parameters},
         }
 

@@ -149,8 +149,10 @@ def _summary(x: Sequence[float]) -> dict[str, Any]:
 
 
 def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
-            questions: Sequence[str] = ()) -> dict[str, Any]:
-    """The results document of a study from its votes (export rows), participant counts and question ids."""
+            questions: Sequence[str] = (), anchor: str | None = None) -> dict[str, Any]:
+    """The results document of a study from its votes (export rows), participant counts and question ids;
+    ``anchor``: the condition at 0 of the scales (the study's reference; needed when pairs have several first
+    conditions, as in all-pairs designs)."""
     analysed = [v for v in votes if not v["practice"] and not v["catch"] and v["outcome"] != "screened_out"]
     by_comparison: dict[tuple[str, str, str], dict[str, list[tuple[int, int, str]]]] = defaultdict(
         lambda: defaultdict(list))
@@ -185,8 +187,9 @@ def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
     # All conditions of an animation on one scale (the reference at 0), from every graded vote.
     rankings = []
     for animation in sorted({v["animation"] for v in analysed}):
-        ranking = rank_conditions(GradedComparison(v["session_id"], v["reference_condition"], v["test_condition"],
-                                                   v["score"]) for v in analysed if v["animation"] == animation)
+        ranking = rank_conditions((GradedComparison(v["session_id"], v["reference_condition"], v["test_condition"],
+                                                    v["score"]) for v in analysed if v["animation"] == animation),
+                                  anchor=anchor)
         rankings.append({"animation": animation, "conditions": [asdict(c) for c in ranking.conditions],
                          "fit": asdict(ranking.fit)})
 

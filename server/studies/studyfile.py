@@ -25,7 +25,8 @@ THESIS_FILE = REPO_STUDIES / "thesis.toml"
 RESERVED_IDS = frozenset({
     "session_id", "trial_index", "practice", "catch", "animation", "reference_condition", "test_condition",
     "reference_side", "test_side", "choice", "score", "rt_ms", "answered_at", "consent_version", "session_state",
-    "outcome", "viewport_width", "viewport_height", "device_pixel_ratio", "video_scale", "video_scaled"})
+    "outcome", "viewport_width", "viewport_height", "device_pixel_ratio", "video_scale", "video_scaled",
+    "design_mode", "left_condition", "right_condition"})
 # A URL parameter must not shadow an export column either (question ids are lower case, so they never meet).
 
 Slug = Annotated[str, StringConstraints(pattern=r"^[a-z0-9][a-z0-9-]{0,63}$")]
