@@ -123,3 +123,31 @@ def test_adaptive_choice_depends_on_the_votes(db):
     assert (0, 1) not in informed.pairs and (2, 3) not in informed.pairs
     assert informed != empty or (0, 1) not in empty.pairs
     assert next_batch(posterior(votes, conditions), seed=5) == informed  # reproducible
+
+
+def test_results_show_the_scale_pair_counts_and_adaptive_rounds(client, db, researcher_headers):
+    make_study(db, _design("adaptive"), slug="adaptive")
+    for i in range(3):
+        sid, headers = start(client, "adaptive")
+        answer_all(client, sid, headers, ("right_much", "right_slightly", "left_slightly")[i])
+    res = client.get("/api/v1/studies/adaptive/results", headers=researcher_headers)
+    assert res.status_code == 200, res.text
+    body = res.json()
+    assert body["overview"]["design_mode"] == "adaptive"
+    assert [s["animation"] for s in body["scale"]] == ["run", "walk"]
+    walk = body["scale"][1]
+    assert walk["conditions"] == ["keyframe", *FOUR] and walk["value"][0] == 0
+    assert sum(map(sum, walk["pair_counts"])) == 2 * 3 * 3 * 2  # 3 sessions x 3 pairs x 2 sides, both halves
+    assert [r["round"] for r in body["adaptive_rounds"]] == [1, 2, 3]
+    assert [r["votes_before"] for r in body["adaptive_rounds"]] == [0, 12, 24]
+    # For the thesis design the scale's values are the ranking's (one model, one number).
+    thesis = make_study(db)
+    sid, headers = start(client)
+    answer_all(client, sid, headers, "left_slightly")
+    sid, headers = start(client)
+    answer_all(client, sid, headers, "right_slightly")
+    body = client.get(f"/api/v1/studies/{thesis.slug}/results", headers=researcher_headers).json()
+    assert body["adaptive_rounds"] is None and body["overview"]["design_mode"] == "reference"
+    for scale, ranking in zip(body["scale"], body["rankings"], strict=True):
+        values = {c["condition"]: c["value"] for c in ranking["conditions"]}
+        assert dict(zip(scale["conditions"], scale["value"], strict=True)) == pytest.approx(values)

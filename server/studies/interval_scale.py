@@ -21,7 +21,7 @@ here "preferred" is a non-tie answer in its favour, from the fitted cut points:
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 from scipy import optimize
@@ -141,3 +141,15 @@ def animation_scale(animation: str, votes: Sequence[GradedComparison], condition
         tuple(None if v is None or jnd is None else v / jnd for v in value), jnd,
         tuple(tuple(row) for row in p_better), tuple(tuple(int(c) for c in row) for row in counts),
         len(people), n_boot, ranking.fit.status, ranking.fit.message)
+
+
+def study_scales(rows: Sequence[dict], conditions: Sequence[str], n_boot: int = N_BOOT) -> list[dict]:
+    """The scale of every animation from a study's export rows (practice, catch and screened-out participants'
+    votes left out, as in the statistics); ``conditions``: the design's, the reference first."""
+    analysed = [r for r in rows if not r["practice"] and not r["catch"] and r["outcome"] != "screened_out"]
+    out = []
+    for animation in sorted({r["animation"] for r in analysed}):
+        votes = [GradedComparison(r["session_id"], r["reference_condition"], r["test_condition"], r["score"])
+                 for r in analysed if r["animation"] == animation]
+        out.append(asdict(animation_scale(animation, votes, conditions, n_boot=n_boot)))
+    return out

@@ -16,6 +16,8 @@ from server.clipset.manifest import MANIFEST, ManifestError, read_clip_manifest
 from server.media.build import MediaError, identical_clips, read_clip_set
 from server.participants.models import ParticipantSession, SessionState, Vote
 
+from .assign import session_batches
+from .interval_scale import study_scales
 from .models import Study
 from .service import export_rows, failed_catch_trials, session_outcome
 from .statistics import analyse
@@ -48,6 +50,28 @@ def _read_json(path: Path) -> Any:
 def _analyse_cached(votes: tuple[tuple[tuple[str, Any], ...], ...], counts: tuple[tuple[str, int], ...],
                     questions: tuple[str, ...], anchor: str | None = None) -> dict[str, Any]:
     return analyse([dict(v) for v in votes], dict(counts), questions, anchor)
+
+
+@lru_cache(maxsize=16)
+def _scales_cached(votes: tuple[tuple[tuple[str, Any], ...], ...], conditions: tuple[str, ...]) -> list[dict]:
+    return study_scales([dict(v) for v in votes], conditions)
+
+
+# (study id, sessions, votes) -> the adaptive rounds: replaying every round refits the model once per session.
+_ROUNDS: dict[tuple[int, int, int], list[dict[str, Any]]] = {}
+
+
+def adaptive_rounds(session: Session, study: Study, n_votes: int) -> list[dict[str, Any]]:
+    """Per session of an adaptive study, in order: the votes before it and the information its batch promised."""
+    sessions = session.scalar(select(func.count()).select_from(ParticipantSession).where(
+        ParticipantSession.study_id == study.id)) or 0
+    key = (study.id, sessions, n_votes)
+    if key not in _ROUNDS:
+        if len(_ROUNDS) > 16:
+            _ROUNDS.clear()
+        _ROUNDS[key] = [{"round": i + 1, "votes_before": r.votes_before, "information": r.information,
+                         "pairs": r.pairs} for i, r in enumerate(session_batches(session, study))]
+    return copy.deepcopy(_ROUNDS[key])
 
 
 @lru_cache(maxsize=4)
@@ -90,4 +114,9 @@ def study_results(session: Session, study: Study, clips_dir: Path, benchmark_pat
                          "identical_to": same.get(c.id) if same.get(c.id, c.id) != c.id else None}
                         for c in clips]
     results["benchmark"] = _read_json(benchmark_path)
+    mode = study.design.get("mode", "reference")
+    results["overview"]["design_mode"] = mode
+    results["scale"] = copy.deepcopy(_scales_cached(votes, (study.design["reference"], *study.design["conditions"])))
+    results["adaptive_rounds"] = (adaptive_rounds(session, study, results["overview"]["votes"]) if mode == "adaptive"
+                                  else None)
     return results
