@@ -8,7 +8,9 @@ information gain, so that one round links every condition and spends its trials 
 Here the model is the ordinal Bradley-Terry model of :mod:`server.studies.ranking` (the cumulative logit model of
 the 5-point answers, the anchor condition at 0).  The posterior of the scale values is its Laplace approximation:
 the maximum a posteriori values under a weak normal prior (``PRIOR_SD`` logit units, which keeps them finite
-with few or one-sided answers) and the inverse Hessian of the log posterior.  A pair's expected information
+with few or one-sided answers) and the inverse of the posterior precision, estimated as the prior precision plus
+the outer product of the per-vote scores (the BHHH estimate of the Fisher information: one pass over the votes,
+where a numerical Hessian would take one per parameter).  A pair's expected information
 gain is the mutual information between the next answer to it and the scale difference of its two conditions
 (``H(E p) - E H(p)``, by Gauss-Hermite quadrature over the posterior of the difference), the cut points held at
 their estimates.
@@ -26,7 +28,6 @@ from itertools import combinations
 import numpy as np
 from scipy import optimize
 from scipy.sparse.csgraph import minimum_spanning_tree
-from statsmodels.tools.numdiff import approx_fprime
 
 from .ranking import GradedComparison, _cdf_pdf, _cuts, _scores
 
@@ -74,8 +75,10 @@ def posterior(votes: Sequence[GradedComparison], conditions: Sequence[str]) -> P
         return value, grad
 
     opt = optimize.minimize(objective, prior_mean, jac=True, method="BFGS", options={"gtol": 1e-7})
-    hessian = approx_fprime(opt.x, lambda p: objective(p)[1], centered=True)
-    hessian = (hessian + hessian.T) / 2
+    hessian = np.diag(prior_precision)
+    if used:
+        per_vote = _scores(opt.x, x, y, False, n, "logit")[1]
+        hessian = hessian + per_vote.T @ per_vote
     try:
         full = np.linalg.inv(hessian)
     except np.linalg.LinAlgError:  # cannot happen with the prior's precision on the diagonal; be safe anyway

@@ -100,3 +100,67 @@ def simulate(design: Design, truth: dict[str, float], participants: int, seed: i
         taus.append(float(stats.kendalltau(ranked, [mu[c] for c in conditions]).statistic))
     return SimulatedStudy(trials, dict(votes), estimate, float(np.sqrt(np.mean(np.square(errors)))) if errors
                           else math.nan, float(np.mean(taus)), failed)
+
+
+def even_truth(design: Design, span: float = 2.5) -> dict[str, float]:
+    """The default truth: the conditions in the design's order (the reference first) evenly spaced over
+    0..``span`` logit units."""
+    conditions = design.all_conditions()
+    return {c: span * i / max(len(conditions) - 1, 1) for i, c in enumerate(conditions)}
+
+
+@dataclass(frozen=True)
+class Summary:
+    participants: int
+    seeds: int
+    trials_per_study: int
+    rmse: float  # mean over seeds
+    kendall_tau: float  # mean over seeds
+    tau_at_least_09: float  # share of seeds with Kendall tau >= 0.9
+    failed: int  # conditions without a finite value, over all seeds
+
+
+def summarise(design: Design, truth: dict[str, float], participants: int, seeds: int,
+              observers: Observers = Observers()) -> Summary:
+    runs = [simulate(design, truth, participants, seed=s, observers=observers) for s in range(seeds)]
+    return Summary(participants, seeds, runs[0].trials, float(np.nanmean([r.rmse for r in runs])),
+                   float(np.mean([r.kendall_tau for r in runs])),
+                   float(np.mean([r.kendall_tau >= 0.9 for r in runs])), sum(r.failed for r in runs))
+
+
+def power(design: Design, effect: float, participants: int, seeds: int,
+          observers: Observers = Observers()) -> float:
+    """The share of simulated studies in which the 95 % interval (cluster-robust, ``ranking``) of the first
+    condition excludes the reference, every condition ``effect`` logit units above the reference."""
+    truth = {c: 0.0 if c == design.reference else effect for c in design.all_conditions()}
+    first = design.conditions[0]
+    hits = 0
+    for s in range(seeds):
+        run = simulate(design, truth, participants, seed=s, observers=observers)
+        scale = {c.condition: c for c in rank_conditions(run.votes.get(design.animations[0], []),
+                                                         anchor=design.reference,
+                                                         conditions=design.all_conditions()).conditions}
+        ci = scale[first].ci95
+        hits += bool((ci is not None and (ci[0] > 0 or ci[1] < 0)) or scale[first].bound is not None)
+    return hits / seeds
+
+
+def plan(design: Design, effect: float, target: float = 0.8, seeds: int = 100, most: int = 1000,
+         observers: Observers = Observers()) -> tuple[int | None, float]:
+    """The fewest participants (2..``most``) with simulated power at least ``target`` for ``effect`` (see
+    :func:`power`), and that power; ``(None, power at most)`` if even ``most`` are not enough."""
+    low, high = 1, 2
+    high_power = power(design, effect, high, seeds, observers)
+    while high_power < target:
+        if high >= most:
+            return None, high_power
+        low, high = high, min(high * 2, most)
+        high_power = power(design, effect, high, seeds, observers)
+    while high - low > 1:
+        mid = (low + high) // 2
+        mid_power = power(design, effect, mid, seeds, observers)
+        if mid_power >= target:
+            high, high_power = mid, mid_power
+        else:
+            low = mid
+    return high, high_power
