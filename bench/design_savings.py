@@ -54,12 +54,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=20)
     parser.add_argument("--base", type=int, default=10, help="participants of the all-pairs design")
     parser.add_argument("--sizes", type=int, nargs="+", default=[4, 6, 8])
+    parser.add_argument("--span", type=float, default=SPAN, help="logit units from the worst to the best condition")
     parser.add_argument("--json", type=str, default=None)
     args = parser.parse_args(argv)
     rows = []
     for n in args.sizes:
         names = [f"c{i}" for i in range(n)]
-        truth = {c: SPAN * i / (n - 1) for i, c in enumerate(names)}
+        truth = {c: args.span * i / (n - 1) for i, c in enumerate(names)}
         designs = {mode: Design(mode=mode, reference="c0", conditions=names[1:], animations=["walk"])
                    for mode in ("all-pairs", "incomplete", "adaptive")}
         started = time.perf_counter()
@@ -78,6 +79,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"N={n} {mode}: {participants} participants, {trials} trials, RMSE {rmse:.3f}, "
                   f"{100 * (1 - trials / base_trials):.0f} % fewer trials than all-pairs", flush=True)
         print(f"  ({time.perf_counter() - started:.0f} s)", flush=True)
+    print(f"\nspan {args.span:g} logit units, {args.seeds} seeds, all-pairs with {args.base} participants")
     print("\n| conditions | design | participants | trials | RMSE (logit) | trials saved vs all-pairs |")
     print("|---|---|---|---|---|---|")
     for r in rows:
@@ -85,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{100 * r['saved']:.0f} % |")
     if args.json:
         with open(args.json, "w", encoding="utf-8") as f:
-            json.dump({"seeds": args.seeds, "base": args.base, "span": SPAN, "rows": rows}, f, indent=1)
+            json.dump({"seeds": args.seeds, "base": args.base, "span": args.span, "rows": rows}, f, indent=1)
     return 0
 
 

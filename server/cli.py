@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -302,6 +303,8 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
         print(json.dumps(StudyFile.model_json_schema(), indent=2))
         return 0
     try:
+        if command in ("simulate", "plan"):
+            return _simulate_or_plan(args, load_study_file(args.file).design)
         if command == "validate":
             study_file = load_study_file(args.file)
             if (settings.clips_dir / MANIFEST).is_file():
@@ -358,6 +361,53 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
         return _fail(exc.detail)
     except (AssetError, ConfigError, MediaError, OSError) as exc:
         return _fail(str(exc))
+    return 0
+
+
+def _read_truth(path: Path, conditions: list[str]) -> dict[str, float]:
+    """condition -> value from a TOML or JSON table; every condition of the design must have a number."""
+    import tomllib
+
+    text = path.read_text(encoding="utf-8")
+    try:
+        raw = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
+    except (ValueError, tomllib.TOMLDecodeError) as exc:
+        raise ValueError(f"{path}: not valid {'JSON' if path.suffix == '.json' else 'TOML'}: {exc}") from None
+    missing = [c for c in conditions if c not in raw]
+    wrong = [c for c in conditions if c in raw and (isinstance(raw[c], bool) or not isinstance(raw[c], int | float)
+                                                    or not math.isfinite(raw[c]))]
+    if missing or wrong:
+        raise ValueError(f"{path}: needs a number for every condition of the design "
+                         f"({', '.join(conditions)}); missing: {', '.join(missing) or '-'}; not a number: "
+                         f"{', '.join(wrong) or '-'}")
+    return {c: float(raw[c]) for c in conditions}
+
+
+def _simulate_or_plan(args: argparse.Namespace, design: Any) -> int:
+    from server.studies import simulate as sim
+
+    if args.study_command == "simulate":
+        try:
+            truth = (_read_truth(args.truth, design.all_conditions()) if args.truth else sim.even_truth(design))
+        except (OSError, UnicodeDecodeError, ValueError) as exc:
+            return _fail(str(exc))
+        print(f"{design.mode} design, {len(design.all_conditions())} conditions, {len(design.animations)} "
+              f"animation(s); truth: " + ", ".join(f"{c} {v:g}" for c, v in truth.items()), flush=True)
+        summary = sim.summarise(design, truth, args.participants, args.seeds)
+        print(f"{args.participants} participants x {args.seeds} simulated studies: {summary.trials_per_study} "
+              f"trials per study; scale error (RMSE, logit units) {summary.rmse:.3f}; Kendall tau "
+              f"{summary.kendall_tau:.3f} (>= 0.9 in {100 * summary.tau_at_least_09:.0f} % of studies)"
+              + (f"; {summary.failed} condition values infinite (one-sided answers)" if summary.failed else ""))
+        return 0
+    if not 0 < args.power < 1 or not math.isfinite(args.effect) or args.effect == 0:
+        return _fail("--power must be between 0 and 1 and --effect a non-zero number")
+    print(f"{design.mode} design: simulating {args.seeds} studies per participant count "
+          f"(effect {args.effect:g} logit units, power {args.power:g}) ...", flush=True)
+    needed, achieved = sim.plan(design, args.effect, args.power, args.seeds)
+    if needed is None:
+        return _fail(f"even 1000 participants give only {100 * achieved:.0f} % power")
+    trials = needed * design.trials_total()
+    print(f"{needed} participants ({trials} trials; simulated power {100 * achieved:.0f} %)")
     return 0
 
 
@@ -542,6 +592,16 @@ def _stages(text: str) -> list[str]:
     return stages
 
 
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if not 1 <= value <= 100_000:
+        raise argparse.ArgumentTypeError(f"must be 1..100000, got {value}")
+    return value
+
+
 def _even(text: str) -> int:
     value = int(text)
     if value < 16 or value % 2:
@@ -615,6 +675,20 @@ def _main(argv: Sequence[str] | None = None) -> int:
     for name in ("open", "close"):
         so = st_sub.add_parser(name, help=f"{name} a study for participants")
         so.add_argument("slug")
+    sm = st_sub.add_parser("simulate", help="simulated observers through a study file's design: scale error and "
+                           "rank correlation (docs/designs.md)")
+    sm.add_argument("file", type=Path)
+    sm.add_argument("--participants", type=_positive, required=True)
+    sm.add_argument("--truth", type=Path, default=None, help="TOML or JSON table: condition = true scale value "
+                    "(logit units); default: the design's conditions evenly spaced over 0..2.5 in their order")
+    sm.add_argument("--seeds", type=_positive, default=20, help="simulated studies (default 20)")
+    sp = st_sub.add_parser("plan", help="participants needed to detect a difference from the reference, by "
+                           "simulation (docs/designs.md)")
+    sp.add_argument("file", type=Path)
+    sp.add_argument("--effect", type=float, required=True, help="the difference to detect, logit units of the "
+                    "scale (every condition that far above the reference)")
+    sp.add_argument("--power", type=float, default=0.8)
+    sp.add_argument("--seeds", type=_positive, default=100, help="simulated studies per participant count")
     se = st_sub.add_parser("export", help="a study's votes, one row per vote (see the data dictionary)")
     se.add_argument("slug")
     se.add_argument("--format", choices=("csv", "json"), default="csv")

@@ -44,7 +44,7 @@ class Posterior:
 
     conditions: tuple[str, ...]
     mean: np.ndarray  # (N,) logit units, mean[0] == 0
-    cov: np.ndarray  # (N, N), row and column 0 zero
+    cov: np.ndarray  # (N, N) of the values before the anchor is subtracted (only differences matter)
     cuts: np.ndarray  # (4,) the cut points -b, -a, a, b
     n_votes: int
 
@@ -55,13 +55,13 @@ def posterior(votes: Sequence[GradedComparison], conditions: Sequence[str]) -> P
     names = list(conditions)
     index = {c: i for i, c in enumerate(names)}
     used = [v for v in votes if v.reference != v.test and v.reference in index and v.test in index]
-    n = len(names) - 1
+    # Every condition has the same prior, the anchor too, so that no pair looks more or less certain because of
+    # which condition is called the origin; the values are moved to the anchor's origin afterwards.
+    n = len(names)
     x = np.zeros((len(used), n))
     for row, v in enumerate(used):
-        if index[v.test]:
-            x[row, index[v.test] - 1] += 1
-        if index[v.reference]:
-            x[row, index[v.reference] - 1] -= 1
+        x[row, index[v.test]] += 1
+        x[row, index[v.reference]] -= 1
     y = np.array([v.score + 2 for v in used], dtype=int)
     prior_mean = np.concatenate([np.zeros(n), CUT_PRIOR])
     prior_precision = np.concatenate([np.full(n, 1 / PRIOR_SD**2), np.ones(CUT_PRIOR.size)])
@@ -83,8 +83,7 @@ def posterior(votes: Sequence[GradedComparison], conditions: Sequence[str]) -> P
         full = np.linalg.inv(hessian)
     except np.linalg.LinAlgError:  # cannot happen with the prior's precision on the diagonal; be safe anyway
         full = np.diag(1 / prior_precision)
-    mean, cov = np.zeros(n + 1), np.zeros((n + 1, n + 1))
-    mean[1:], cov[1:, 1:] = opt.x[:n], full[:n, :n]
+    mean, cov = opt.x[:n] - opt.x[0], full[:n, :n]
     cuts, _ = _cuts(opt.x[n:], False)
     return Posterior(tuple(names), mean, cov, cuts, len(used))
 
