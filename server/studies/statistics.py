@@ -138,8 +138,10 @@ def participants_needed(x: Sequence[float], power: float = 0.8, alpha: float = 0
     if x.size < 2 or float(x.std(ddof=1)) == 0 or float(x.mean()) == 0:
         return None
     d = abs(float(x.mean()) / float(x.std(ddof=1)))
-    n_t = TTestPower().solve_power(effect_size=d, power=power, alpha=alpha, alternative="two-sided")
-    return math.ceil(float(n_t) / WILCOXON_ARE)
+    n_t = float(TTestPower().solve_power(effect_size=d, power=power, alpha=alpha, alternative="two-sided"))
+    # statsmodels' root finder returns NaN (with a warning) for very large effects: 2 participants already
+    # suffice there, and a NaN must not reach the results document.
+    return math.ceil(n_t / WILCOXON_ARE) if math.isfinite(n_t) else None
 
 
 def _summary(x: Sequence[float]) -> dict[str, Any]:
