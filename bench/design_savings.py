@@ -22,13 +22,17 @@ import time
 import numpy as np
 
 from server.studies.design import Design
-from server.studies.simulate import simulate
+from server.studies.simulate import Observers, simulate
 
 SPAN = 2.5
 
 
+OBSERVERS = Observers()
+
+
 def error(design: Design, truth: dict[str, float], participants: int, seeds: int) -> float:
-    return float(np.mean([simulate(design, truth, participants, seed=s).rmse for s in range(seeds)]))
+    return float(np.mean([simulate(design, truth, participants, seed=s, observers=OBSERVERS).rmse
+                          for s in range(seeds)]))
 
 
 def needed(design: Design, truth: dict[str, float], target: float, seeds: int, start: int) -> tuple[int, float]:
@@ -55,8 +59,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--base", type=int, default=10, help="participants of the all-pairs design")
     parser.add_argument("--sizes", type=int, nargs="+", default=[4, 6, 8])
     parser.add_argument("--span", type=float, default=SPAN, help="logit units from the worst to the best condition")
+    parser.add_argument("--taste-sd", type=float, default=Observers.taste_sd,
+                        help="sd of each observer's own offset per condition (0: all observers alike)")
     parser.add_argument("--json", type=str, default=None)
     args = parser.parse_args(argv)
+    global OBSERVERS
+    OBSERVERS = Observers(taste_sd=args.taste_sd)
     rows = []
     for n in args.sizes:
         names = [f"c{i}" for i in range(n)]
@@ -79,7 +87,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"N={n} {mode}: {participants} participants, {trials} trials, RMSE {rmse:.3f}, "
                   f"{100 * (1 - trials / base_trials):.0f} % fewer trials than all-pairs", flush=True)
         print(f"  ({time.perf_counter() - started:.0f} s)", flush=True)
-    print(f"\nspan {args.span:g} logit units, {args.seeds} seeds, all-pairs with {args.base} participants")
+    print(f"\nspan {args.span:g} logit units, observers {OBSERVERS}, {args.seeds} seeds, all-pairs with "
+          f"{args.base} participants")
     print("\n| conditions | design | participants | trials | RMSE (logit) | trials saved vs all-pairs |")
     print("|---|---|---|---|---|---|")
     for r in rows:
