@@ -393,7 +393,8 @@ def _simulate_or_plan(args: argparse.Namespace, design: Any) -> int:
             return _fail(str(exc))
         print(f"{design.mode} design, {len(design.all_conditions())} conditions, {len(design.animations)} "
               f"animation(s); truth: " + ", ".join(f"{c} {v:g}" for c, v in truth.items()), flush=True)
-        summary = sim.summarise(design, truth, args.participants, args.seeds)
+        summary = sim.summarise(design, truth, args.participants, args.seeds, progress=lambda done: print(
+            f"  simulated study {done} of {args.seeds}", file=sys.stderr, flush=True))
         print(f"{args.participants} participants x {args.seeds} simulated studies: {summary.trials_per_study} "
               f"trials per study; scale error (RMSE, logit units) {summary.rmse:.3f}; Kendall tau "
               f"{summary.kendall_tau:.3f} (>= 0.9 in {100 * summary.tau_at_least_09:.0f} % of studies)"
@@ -403,7 +404,8 @@ def _simulate_or_plan(args: argparse.Namespace, design: Any) -> int:
         return _fail("--power must be between 0 and 1 and --effect a non-zero number")
     print(f"{design.mode} design: simulating {args.seeds} studies per participant count "
           f"(effect {args.effect:g} logit units, power {args.power:g}) ...", flush=True)
-    needed, achieved = sim.plan(design, args.effect, args.power, args.seeds)
+    needed, achieved = sim.plan(design, args.effect, args.power, args.seeds, progress=lambda n, value: print(
+        f"  {n} participants: power {100 * value:.0f} %", file=sys.stderr, flush=True))
     if needed is None:
         return _fail(f"even 1000 participants give only {100 * achieved:.0f} % power")
     trials = needed * design.trials_total()

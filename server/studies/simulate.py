@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -121,8 +122,13 @@ class Summary:
 
 
 def summarise(design: Design, truth: dict[str, float], participants: int, seeds: int,
-              observers: Observers = Observers()) -> Summary:
-    runs = [simulate(design, truth, participants, seed=s, observers=observers) for s in range(seeds)]
+              observers: Observers = Observers(), progress: Callable[[int], None] | None = None) -> Summary:
+    """``seeds`` simulated studies; ``progress(done)`` after each."""
+    runs = []
+    for s in range(seeds):
+        runs.append(simulate(design, truth, participants, seed=s, observers=observers))
+        if progress:
+            progress(s + 1)
     return Summary(participants, seeds, runs[0].trials, float(np.nanmean([r.rmse for r in runs])),
                    float(np.mean([r.kendall_tau for r in runs])),
                    float(np.mean([r.kendall_tau >= 0.9 for r in runs])), sum(r.failed for r in runs))
@@ -146,19 +152,28 @@ def power(design: Design, effect: float, participants: int, seeds: int,
 
 
 def plan(design: Design, effect: float, target: float = 0.8, seeds: int = 100, most: int = 1000,
-         observers: Observers = Observers()) -> tuple[int | None, float]:
+         observers: Observers = Observers(),
+         progress: Callable[[int, float], None] | None = None) -> tuple[int | None, float]:
     """The fewest participants (2..``most``) with simulated power at least ``target`` for ``effect`` (see
-    :func:`power`), and that power; ``(None, power at most)`` if even ``most`` are not enough."""
+    :func:`power`), and that power; ``(None, power at most)`` if even ``most`` are not enough.
+    ``progress(participants, power)`` after each count tried."""
+
+    def power_of(participants: int) -> float:
+        value = power(design, effect, participants, seeds, observers)
+        if progress:
+            progress(participants, value)
+        return value
+
     low, high = 1, 2
-    high_power = power(design, effect, high, seeds, observers)
+    high_power = power_of(high)
     while high_power < target:
         if high >= most:
             return None, high_power
         low, high = high, min(high * 2, most)
-        high_power = power(design, effect, high, seeds, observers)
+        high_power = power_of(high)
     while high - low > 1:
         mid = (low + high) // 2
-        mid_power = power(design, effect, mid, seeds, observers)
+        mid_power = power_of(mid)
         if mid_power >= target:
             high, high_power = mid, mid_power
         else:
