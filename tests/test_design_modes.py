@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 from collections import Counter
+from pathlib import Path
 
 import pytest
 from pydantic import ValidationError
@@ -151,3 +152,42 @@ def test_results_show_the_scale_pair_counts_and_adaptive_rounds(client, db, rese
     for scale, ranking in zip(body["scale"], body["rankings"], strict=True):
         values = {c["condition"]: c["value"] for c in ranking["conditions"]}
         assert dict(zip(scale["conditions"], scale["value"], strict=True)) == pytest.approx(values)
+
+
+def test_a_draft_stored_before_the_modes_can_still_be_edited(db):
+    """Designs stored before issue 27 have no mode: they read as reference designs and editing another section of
+    such a draft is not taken for a design change."""
+    from server.studies.models import StudyState
+    from server.studies.service import definition, update_study
+
+    study = make_study(db, state=StudyState.draft)
+    study.design = {k: v for k, v in study.design.items() if k not in ("mode", "pairs_per_session")}
+    db.commit()
+    assert definition(study).design.mode == "reference"
+    update_study(db, study, {"title": "Renamed"})  # no render manifest given: a design change would be refused
+    assert study.title == "Renamed"
+
+
+def test_simulate_and_plan_commands(tmp_path, capsys):
+    from server import cli
+
+    study = tmp_path / "s.toml"
+    text = (Path(__file__).resolve().parents[1] / "studies" / "adaptive-walk.toml").read_text(encoding="utf-8")
+    study.write_text(text.replace('mode = "adaptive"', 'mode = "all-pairs"').replace(
+        '"hybrid0", "hybrid_ik0", "hybrid_c2_0", "reduced2", "quantized12"', '"hybrid0", "reduced2"'),
+        encoding="utf-8")
+    truth = tmp_path / "truth.toml"
+    truth.write_text("keyframe = 0\nhybrid0 = -1.5\nreduced2 = -3\n", encoding="utf-8")
+    assert cli.main(["study", "simulate", str(study), "--participants", "12", "--seeds", "3",
+                     "--truth", str(truth)]) == 0
+    out = capsys.readouterr()
+    assert "truth: keyframe 0, hybrid0 -1.5, reduced2 -3" in out.out
+    assert "3 simulated studies: 72 trials per study" in out.out  # 12 participants x 3 pairs x 2 sides
+    assert "simulated study 3 of 3" in out.err
+    truth.write_text("keyframe = 0\nhybrid0 = true\n", encoding="utf-8")
+    assert cli.main(["study", "simulate", str(study), "--participants", "2", "--truth", str(truth)]) == 2
+    err = capsys.readouterr().err
+    assert "missing: reduced2" in err and "not a number: hybrid0" in err
+    assert cli.main(["study", "plan", str(study), "--effect", "3", "--seeds", "4"]) == 0
+    out = capsys.readouterr()
+    assert "participants (" in out.out and "power" in out.err
