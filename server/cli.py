@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -303,6 +304,8 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
         print(json.dumps(StudyFile.model_json_schema(), indent=2))
         return 0
     try:
+        if command in ("simulate", "plan"):
+            return _simulate_or_plan(args, load_study_file(args.file).design)
         if command == "validate":
             study_file = load_study_file(args.file)
             if study_file.clips is not None:
@@ -416,6 +419,55 @@ def gc(settings: Settings, dry_run: bool) -> int:
     verb = "would delete" if dry_run else "deleted"
     print(f"{verb} {len(found.files)} unreferenced files ({found.size_bytes / 2**20:.1f} MiB); kept {found.kept} "
           "that a study's stimulus set or the render manifest uses", file=sys.stderr)
+    return 0
+
+
+def _read_truth(path: Path, conditions: list[str]) -> dict[str, float]:
+    """condition -> value from a TOML or JSON table; every condition of the design must have a number."""
+    import tomllib
+
+    text = path.read_text(encoding="utf-8")
+    try:
+        raw = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
+    except (ValueError, tomllib.TOMLDecodeError) as exc:
+        raise ValueError(f"{path}: not valid {'JSON' if path.suffix == '.json' else 'TOML'}: {exc}") from None
+    missing = [c for c in conditions if c not in raw]
+    wrong = [c for c in conditions if c in raw and (isinstance(raw[c], bool) or not isinstance(raw[c], int | float)
+                                                    or not math.isfinite(raw[c]))]
+    if missing or wrong:
+        raise ValueError(f"{path}: needs a number for every condition of the design "
+                         f"({', '.join(conditions)}); missing: {', '.join(missing) or '-'}; not a number: "
+                         f"{', '.join(wrong) or '-'}")
+    return {c: float(raw[c]) for c in conditions}
+
+
+def _simulate_or_plan(args: argparse.Namespace, design: Any) -> int:
+    from server.studies import simulate as sim
+
+    if args.study_command == "simulate":
+        try:
+            truth = (_read_truth(args.truth, design.all_conditions()) if args.truth else sim.even_truth(design))
+        except (OSError, UnicodeDecodeError, ValueError) as exc:
+            return _fail(str(exc))
+        print(f"{design.mode} design, {len(design.all_conditions())} conditions, {len(design.animations)} "
+              f"animation(s); truth: " + ", ".join(f"{c} {v:g}" for c, v in truth.items()), flush=True)
+        summary = sim.summarise(design, truth, args.participants, args.seeds, progress=lambda done: print(
+            f"  simulated study {done} of {args.seeds}", file=sys.stderr, flush=True))
+        print(f"{args.participants} participants x {args.seeds} simulated studies: {summary.trials_per_study} "
+              f"trials per study; scale error (RMSE, logit units) {summary.rmse:.3f}; Kendall tau "
+              f"{summary.kendall_tau:.3f} (>= 0.9 in {100 * summary.tau_at_least_09:.0f} % of studies)"
+              + (f"; {summary.failed} condition values infinite (one-sided answers)" if summary.failed else ""))
+        return 0
+    if not 0 < args.power < 1 or not math.isfinite(args.effect) or args.effect == 0:
+        return _fail("--power must be between 0 and 1 and --effect a non-zero number")
+    print(f"{design.mode} design: simulating {args.seeds} studies per participant count "
+          f"(effect {args.effect:g} logit units, power {args.power:g}) ...", flush=True)
+    needed, achieved = sim.plan(design, args.effect, args.power, args.seeds, progress=lambda n, value: print(
+        f"  {n} participants: power {100 * value:.0f} %", file=sys.stderr, flush=True))
+    if needed is None:
+        return _fail(f"even 1000 participants give only {100 * achieved:.0f} % power")
+    trials = needed * design.trials_total()
+    print(f"{needed} participants ({trials} trials; simulated power {100 * achieved:.0f} %)")
     return 0
 
 
@@ -602,6 +654,16 @@ def _stages(text: str) -> list[str]:
     return stages
 
 
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if not 1 <= value <= 100_000:
+        raise argparse.ArgumentTypeError(f"must be 1..100000, got {value}")
+    return value
+
+
 def _even(text: str) -> int:
     value = int(text)
     if value < 16 or value % 2:
@@ -709,6 +771,20 @@ def build_parser() -> argparse.ArgumentParser:
     si.add_argument("file", type=Path)
     si.add_argument("--owner", default=None, help="e-mail of the researcher who owns it (default: none)")
     si.add_argument("--open", action="store_true", help="open it for participants at once")
+    sm = st_sub.add_parser("simulate", help="simulated observers through a study file's design: scale error and "
+                           "rank correlation (docs/designs.md)")
+    sm.add_argument("file", type=Path)
+    sm.add_argument("--participants", type=_positive, required=True)
+    sm.add_argument("--truth", type=Path, default=None, help="TOML or JSON table: condition = true scale value "
+                    "(logit units); default: the design's conditions evenly spaced over 0..2.5 in their order")
+    sm.add_argument("--seeds", type=_positive, default=20, help="simulated studies (default 20)")
+    sp = st_sub.add_parser("plan", help="participants needed to detect a difference from the reference, by "
+                           "simulation (docs/designs.md)")
+    sp.add_argument("file", type=Path)
+    sp.add_argument("--effect", type=float, required=True, help="the difference to detect, logit units of the "
+                    "scale (every condition that far above the reference)")
+    sp.add_argument("--power", type=float, default=0.8)
+    sp.add_argument("--seeds", type=_positive, default=100, help="simulated studies per participant count")
     se = st_sub.add_parser("export", help="a study's votes, one row per vote (see the data dictionary)")
     se.add_argument("slug")
     se.add_argument("--format", choices=("csv", "json"), default="csv")

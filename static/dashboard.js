@@ -110,6 +110,7 @@
           (res.rankings || []).flatMap((r) => r.conditions.map((c) => [
             r.animation, c.condition, c.value == null ? (c.bound ? `${c.bound} all others` : "–") : fmt(c.value, 2),
             c.ci95 ? `${fmt(c.ci95[0], 2)} … ${fmt(c.ci95[1], 2)}` : "–", c.votes, r.fit.status])));
+    renderScale(res);
     renderQuestions(res, comps);
     // The clips of the study's stimulus set, with the metrics they had when it was made (pinned when it opened).
     $("stimulus-set").textContent = res.stimulus_set
@@ -118,6 +119,45 @@
       : "";
     renderMetrics(res.clips);
     renderBenchmark(res.benchmark);
+  }
+
+  // One scale per animation (every design mode), its P(better) and pair-count matrices, and for adaptive designs
+  // the information each round promised.
+  function renderScale(res) {
+    const scales = res.scale || [];
+    const rows = scales.flatMap((s) => s.conditions.map((c, i) => ({
+      label: `${s.animation}, ${c}`, value: s.value[i], ci: s.ci95[i] })));
+    const values = rows.flatMap((r) => (r.ci ? r.ci : [r.value])).filter((v) => v !== null && v !== undefined);
+    const lo = Math.floor(Math.min(0, ...values) * 2) / 2, hi = Math.ceil(Math.max(0, ...values) * 2) / 2;
+    $("chart-scale").replaceChildren(Charts.forest(rows, lo, Math.max(hi, lo + 0.5), "Scale per animation"));
+    table($("table-scale"), ["animation", "condition", "scale value", "95 % CI", "JND", "participants", "fit"],
+          scales.flatMap((s) => s.conditions.map((c, i) => [
+            s.animation, c, fmt(s.value[i], 2), s.ci95[i] ? `${fmt(s.ci95[i][0], 2)} … ${fmt(s.ci95[i][1], 2)}` : "–",
+            fmt(s.value_jnd[i], 2), s.participants, s.status])));
+    const matrix = (cell) => scales.flatMap((s) => s.conditions.map((c, i) => [
+      `${s.animation}, ${c}`, ...s.conditions.map((_, j) => cell(s, i, j))]));
+    const width = Math.max(0, ...scales.map((s) => s.conditions.length));
+    const header = ["", ...Array.from({ length: width }, (_, j) => scales[0] ? (scales[0].conditions[j] ?? "") : "")];
+    table($("table-pbetter"), header, matrix((s, i, j) => {
+      const v = s.p_better[i][j];
+      return v === null || v === undefined ? "–" : `${v.toFixed(2)}${v < 0.025 || v > 0.975 ? " *" : ""}`;
+    }));
+    table($("table-pairs"), header, matrix((s, i, j) => (i === j ? "–" : String(s.pair_counts[i][j]))));
+    const rounds = res.adaptive_rounds;
+    $("adaptive-panel").hidden = !rounds;
+    if (!rounds) return;
+    const animations = rounds.length ? Object.keys(rounds[0].information) : [];
+    if (rounds.length) {
+      $("chart-rounds").replaceChildren(Charts.lines(animations.map((a, k) => ({
+        label: a, color: colour(k), points: rounds.map((r) => [r.round, r.information[a]]) })),
+        "Information per round", "round (participant)", "nats"));
+    } else {
+      $("chart-rounds").replaceChildren();
+    }
+    table($("table-rounds"), ["round", "votes before", ...animations.map((a) => `${a}: nats`),
+                              ...animations.map((a) => `${a}: pairs`)],
+          rounds.map((r) => [r.round, r.votes_before, ...animations.map((a) => fmt(r.information[a], 3)),
+                             ...animations.map((a) => r.pairs[a].map((p) => p.join("–")).join(", "))]));
   }
 
   // One panel per question of the study: the mean score of each comparison for each answer.

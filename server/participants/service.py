@@ -16,10 +16,11 @@ from sqlalchemy.orm import Session, joinedload
 
 from server.db import utcnow
 from server.errors import Conflict, Forbidden, NotFound, TooManyRequests, Unauthorized
+from server.studies.assign import session_comparisons
 from server.studies.design import Design, trial_order
 from server.studies.models import Study, StudyState
 from server.studies.scale import score
-from server.studies.service import comparison_ids, failed_catch_trials, recruitment, session_outcome
+from server.studies.service import failed_catch_trials, recruitment, session_outcome
 
 from .models import ParticipantSession, PlaybackEvent, SessionState, Trial, Vote
 
@@ -43,11 +44,13 @@ def start_session(session: Session, study: Study, external: dict[str, str] | Non
     seed = secrets.randbits(63)
     accepted = recruitment(study).parameters  # only the study's accepted URL parameters are kept
     kept = {k: v for k, v in (external or {}).items() if k in accepted}
-    ps = ParticipantSession(id=uuid.uuid4().hex, study=study, token_hash=_hash(token), seed=seed,
-                            state=SessionState.active, consent_at=utcnow(), consent_version=study.consent_version,
+    now = utcnow()
+    ps = ParticipantSession(id=uuid.uuid4().hex, study=study, token_hash=_hash(token), seed=seed, created_at=now,
+                            state=SessionState.active, consent_at=now, consent_version=study.consent_version,
                             external=kept or None, device=device)
     design = Design.model_validate(study.design)
-    for index, planned in enumerate(trial_order(comparison_ids(study), design.repeats, seed)):
+    chosen = session_comparisons(session, study, seed, now)  # by the design's mode
+    for index, planned in enumerate(trial_order(chosen, design.repeats, seed)):
         ps.trials.append(Trial(index=index, comparison_id=planned.comparison_id,
                                reference_side=planned.reference_side, practice=planned.practice))
     ps.trials_total = len(ps.trials)

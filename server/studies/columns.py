@@ -68,6 +68,12 @@ COLUMNS: tuple[ExportColumn, ...] = (
     ExportColumn("stimulus_set", "string (64 hex) or empty", "digest of the study's stimulus set (sha256 of its "
                  "canonical JSON: clips, metrics, character, render settings, every file's sha256); the same for "
                  "every row of a study once it has opened"),
+    ExportColumn("design_mode", "`reference`, `all-pairs`, `incomplete`, `adaptive`", "the study's `[design] mode` "
+                 "(see the designs page); in the modes other than `reference`, `reference_condition` and "
+                 "`test_condition` are the first and second condition of the pair (in `[design]` order, the "
+                 "reference first), not necessarily the study's reference"),
+    ExportColumn("left_condition", "condition id", "the condition shown on the left"),
+    ExportColumn("right_condition", "condition id", "the condition shown on the right"),
 )
 
 EXPORT_COLUMNS: tuple[str, ...] = tuple(c.name for c in COLUMNS)

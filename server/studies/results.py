@@ -15,6 +15,8 @@ from sqlalchemy.orm import Session
 from server.participants.models import ParticipantSession, SessionState, Vote
 from server.stimuli import service as stimulus_sets
 
+from .assign import session_batches
+from .interval_scale import study_scales
 from .models import Study
 from .service import export_rows, failed_catch_trials, session_outcome
 from .statistics import analyse
@@ -45,8 +47,30 @@ def _read_json(path: Path) -> Any:
 
 @lru_cache(maxsize=16)
 def _analyse_cached(votes: tuple[tuple[tuple[str, Any], ...], ...], counts: tuple[tuple[str, int], ...],
-                    questions: tuple[str, ...]) -> dict[str, Any]:
-    return analyse([dict(v) for v in votes], dict(counts), questions)
+                    questions: tuple[str, ...], anchor: str | None = None) -> dict[str, Any]:
+    return analyse([dict(v) for v in votes], dict(counts), questions, anchor)
+
+
+@lru_cache(maxsize=16)
+def _scales_cached(votes: tuple[tuple[tuple[str, Any], ...], ...], conditions: tuple[str, ...]) -> list[dict]:
+    return study_scales([dict(v) for v in votes], conditions)
+
+
+# (study id, sessions, votes) -> the adaptive rounds: replaying every round refits the model once per session.
+_ROUNDS: dict[tuple[int, int, int], list[dict[str, Any]]] = {}
+
+
+def adaptive_rounds(session: Session, study: Study, n_votes: int) -> list[dict[str, Any]]:
+    """Per session of an adaptive study, in order: the votes before it and the information its batch promised."""
+    sessions = session.scalar(select(func.count()).select_from(ParticipantSession).where(
+        ParticipantSession.study_id == study.id)) or 0
+    key = (study.id, sessions, n_votes)
+    if key not in _ROUNDS:
+        if len(_ROUNDS) > 16:
+            _ROUNDS.clear()
+        _ROUNDS[key] = [{"round": i + 1, "votes_before": r.votes_before, "information": r.information,
+                         "pairs": r.pairs} for i, r in enumerate(session_batches(session, study))]
+    return copy.deepcopy(_ROUNDS[key])
 
 
 def study_results(session: Session, study: Study, benchmark_path: Path) -> dict[str, Any]:
@@ -55,7 +79,7 @@ def study_results(session: Session, study: Study, benchmark_path: Path) -> dict[
     votes = tuple(tuple(sorted(v.items())) for v in export_rows(session, study))
     counts = tuple(sorted(participant_counts(session, study).items()))
     questions = tuple(q["id"] for q in study.questions)
-    results = copy.deepcopy(_analyse_cached(votes, counts, questions))
+    results = copy.deepcopy(_analyse_cached(votes, counts, questions, study.design["reference"]))
     durations = [(ps.completed_at - ps.created_at).total_seconds() for ps in session.scalars(
         select(ParticipantSession).where(ParticipantSession.study_id == study.id,
                                          ParticipantSession.state == SessionState.completed))]
@@ -75,4 +99,9 @@ def study_results(session: Session, study: Study, benchmark_path: Path) -> dict[
                          "params": c.params, "key_count": c.key_count, "metrics": c.metrics, "shown": True,
                          "identical_to": c.identical_to} for c in (content.clips if content else [])]
     results["benchmark"] = _read_json(benchmark_path)
+    mode = study.design.get("mode", "reference")
+    results["overview"]["design_mode"] = mode
+    results["scale"] = copy.deepcopy(_scales_cached(votes, (study.design["reference"], *study.design["conditions"])))
+    results["adaptive_rounds"] = (adaptive_rounds(session, study, results["overview"]["votes"]) if mode == "adaptive"
+                                  else None)
     return results

@@ -36,7 +36,8 @@ def clip_set_index(clips_dir: Path) -> dict[StimulusKey, str]:
 
 def needed_stimuli(design: Design) -> list[tuple[ComparisonKind, StimulusKey, StimulusKey]]:
     """(kind, reference, test) of every comparison of the design, in the order they are created."""
-    out = [(ComparisonKind.test, (a, design.reference), (a, c)) for a in design.animations for c in design.conditions]
+    out = [(ComparisonKind.test, (a, first), (a, second))
+           for a in design.animations for first, second in design.pairs()]
     out += [(ComparisonKind.catch, (a, design.reference), (a, design.reference))
             for a in design.animations[: design.catch_trials]]
     if design.practice:
@@ -212,7 +213,7 @@ def update_study(session: Session, study: Study, changes: Mapping[str, Any],
         merge = isinstance(current.get(key), dict) and isinstance(value, dict)
         current[key] = {**current[key], **value} if merge else value
     updated = StudyFile.model_validate(current)
-    if updated.design.model_dump() != study.design:
+    if updated.design != Design.model_validate(study.design):  # designs stored before a field existed compare equal
         if study.state != StudyState.draft or media is None:
             raise Conflict("the design can change only while the study is a draft")
         _build_comparisons(session, study, media, updated.design, media_dir, clips_dir, animations)
@@ -394,9 +395,12 @@ def export_rows(session: Session, study: Study, unfaithful: frozenset[str] = fro
     failed = failed_catch_trials(session, study)
     pinned = study.stimulus_set
     hashes = stimulus_sets.content_of(pinned).hashes() if pinned is not None else {}
+    mode = study.design.get("mode", "reference")  # designs stored before issue 27 have no mode
     for (vote, trial, ps, kind, animation, ref_condition, test_condition, ref_clip, test_clip, ref_video, test_video,
          pair_ref_left, pair_ref_right) in rows:
         left, right = (ref_video, test_video) if trial.reference_side == "left" else (test_video, ref_video)
+        left_condition, right_condition = ((ref_condition, test_condition) if trial.reference_side == "left"
+                                           else (test_condition, ref_condition))
         pair = pair_ref_left if trial.reference_side == "left" else pair_ref_right
         answers, external, device = ps.answers or {}, ps.external or {}, ps.device or {}
         yield {
@@ -413,6 +417,8 @@ def export_rows(session: Session, study: Study, unfaithful: frozenset[str] = fro
             "unfaithful": ref_clip in unfaithful or test_clip in unfaithful,
             "left_video": hashes.get(left), "right_video": hashes.get(right), "pair_video": hashes.get(pair),
             "stimulus_set": pinned.digest if pinned is not None else None,
+            "design_mode": mode, "left_condition": left_condition,
+            "right_condition": right_condition,
             **{p: external.get(p) for p in parameters},
         }
 

@@ -138,8 +138,10 @@ def participants_needed(x: Sequence[float], power: float = 0.8, alpha: float = 0
     if x.size < 2 or float(x.std(ddof=1)) == 0 or float(x.mean()) == 0:
         return None
     d = abs(float(x.mean()) / float(x.std(ddof=1)))
-    n_t = TTestPower().solve_power(effect_size=d, power=power, alpha=alpha, alternative="two-sided")
-    return math.ceil(float(n_t) / WILCOXON_ARE)
+    n_t = float(TTestPower().solve_power(effect_size=d, power=power, alpha=alpha, alternative="two-sided"))
+    # statsmodels' root finder returns NaN (with a warning) for very large effects: 2 participants already
+    # suffice there, and a NaN must not reach the results document.
+    return math.ceil(n_t / WILCOXON_ARE) if math.isfinite(n_t) else None
 
 
 def _summary(x: Sequence[float]) -> dict[str, Any]:
@@ -149,8 +151,10 @@ def _summary(x: Sequence[float]) -> dict[str, Any]:
 
 
 def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
-            questions: Sequence[str] = ()) -> dict[str, Any]:
-    """The results document of a study from its votes (export rows), participant counts and question ids."""
+            questions: Sequence[str] = (), anchor: str | None = None) -> dict[str, Any]:
+    """The results document of a study from its votes (export rows), participant counts and question ids;
+    ``anchor``: the condition at 0 of the scales (the study's reference; needed when pairs have several first
+    conditions, as in all-pairs designs)."""
     analysed = [v for v in votes if not v["practice"] and not v["catch"] and v["outcome"] != "screened_out"]
     by_comparison: dict[tuple[str, str, str], dict[str, list[tuple[int, int, str]]]] = defaultdict(
         lambda: defaultdict(list))
@@ -185,8 +189,9 @@ def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
     # All conditions of an animation on one scale (the reference at 0), from every graded vote.
     rankings = []
     for animation in sorted({v["animation"] for v in analysed}):
-        ranking = rank_conditions(GradedComparison(v["session_id"], v["reference_condition"], v["test_condition"],
-                                                   v["score"]) for v in analysed if v["animation"] == animation)
+        ranking = rank_conditions((GradedComparison(v["session_id"], v["reference_condition"], v["test_condition"],
+                                                    v["score"]) for v in analysed if v["animation"] == animation),
+                                  anchor=anchor)
         rankings.append({"animation": animation, "conditions": [asdict(c) for c in ranking.conditions],
                          "fit": asdict(ranking.fit)})
 

@@ -1,0 +1,141 @@
+"""Choosing the next pairs to show from the answers so far (ASAP-style active sampling).
+
+Mikhailiuk, Wilmot, Perez-Ortiz, Yue, Mantiuk (2021), "Active sampling for pairwise comparisons via approximate
+message passing and information gain maximization" (ASAP): a round shows a batch of N-1 pairs of the N
+conditions, the minimum spanning tree of the comparison graph weighted by the inverse of each pair's expected
+information gain, so that one round links every condition and spends its trials where they tell most.
+
+Here the model is the ordinal Bradley-Terry model of :mod:`server.studies.ranking` (the cumulative logit model of
+the 5-point answers, the anchor condition at 0).  The posterior of the scale values is its Laplace approximation:
+the maximum a posteriori values under a weak normal prior (``PRIOR_SD`` logit units, which keeps them finite
+with few or one-sided answers) and the inverse of the posterior precision, estimated as the prior precision plus
+the outer product of the per-vote scores (the BHHH estimate of the Fisher information: one pass over the votes,
+where a numerical Hessian would take one per parameter).  A pair's expected information
+gain is the mutual information between the next answer to it and the scale difference of its two conditions
+(``H(E p) - E H(p)``, by Gauss-Hermite quadrature over the posterior of the difference), the cut points held at
+their estimates.
+
+Everything here is a pure function of the votes and a seed: the pairs a session was given can be recomputed from
+the study's vote log (the votes answered before the session started) and the session's stored seed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from itertools import combinations
+
+import numpy as np
+from scipy import optimize
+from scipy.sparse.csgraph import minimum_spanning_tree
+
+from .ranking import GradedComparison, _cdf_pdf, _cuts, _scores
+
+PRIOR_SD = 2.0  # logit units: a weak prior, a 2-point difference is 'much better' most of the time
+# Prior of the log-increments of the positive cut points (a ~ 0.5, b ~ 2 logit units), sd 1.
+CUT_PRIOR = np.log([0.5, 1.5])
+_NODES, _WEIGHTS = np.polynomial.hermite_e.hermegauss(24)
+_WEIGHTS = _WEIGHTS / _WEIGHTS.sum()
+
+
+@dataclass(frozen=True)
+class Posterior:
+    """Laplace approximation of the scale values of ``conditions`` (``conditions[0]`` is the anchor, at 0)."""
+
+    conditions: tuple[str, ...]
+    mean: np.ndarray  # (N,) logit units, mean[0] == 0
+    cov: np.ndarray  # (N, N) of the values before the anchor is subtracted (only differences matter)
+    cuts: np.ndarray  # (4,) the cut points -b, -a, a, b
+    n_votes: int
+
+
+def posterior(votes: Sequence[GradedComparison], conditions: Sequence[str]) -> Posterior:
+    """The posterior of the scale values of ``conditions`` (the first is the anchor) given ``votes``; votes of
+    other conditions and catch votes (a condition against itself) are ignored."""
+    names = list(conditions)
+    index = {c: i for i, c in enumerate(names)}
+    used = [v for v in votes if v.reference != v.test and v.reference in index and v.test in index]
+    # Every condition has the same prior, the anchor too, so that no pair looks more or less certain because of
+    # which condition is called the origin; the values are moved to the anchor's origin afterwards.
+    n = len(names)
+    x = np.zeros((len(used), n))
+    for row, v in enumerate(used):
+        x[row, index[v.test]] += 1
+        x[row, index[v.reference]] -= 1
+    y = np.array([v.score + 2 for v in used], dtype=int)
+    prior_mean = np.concatenate([np.zeros(n), CUT_PRIOR])
+    prior_precision = np.concatenate([np.full(n, 1 / PRIOR_SD**2), np.ones(CUT_PRIOR.size)])
+
+    def objective(params: np.ndarray) -> tuple[float, np.ndarray]:
+        diff = params - prior_mean
+        value, grad = 0.5 * float(diff @ (prior_precision * diff)), prior_precision * diff
+        if used:
+            loglik, per_vote = _scores(params, x, y, False, n, "logit")
+            value, grad = value - float(loglik.sum()), grad - per_vote.sum(axis=0)
+        return value, grad
+
+    opt = optimize.minimize(objective, prior_mean, jac=True, method="BFGS", options={"gtol": 1e-7})
+    hessian = np.diag(prior_precision)
+    if used:
+        per_vote = _scores(opt.x, x, y, False, n, "logit")[1]
+        hessian = hessian + per_vote.T @ per_vote
+    try:
+        full = np.linalg.inv(hessian)
+    except np.linalg.LinAlgError:  # cannot happen with the prior's precision on the diagonal; be safe anyway
+        full = np.diag(1 / prior_precision)
+    mean, cov = opt.x[:n] - opt.x[0], full[:n, :n]
+    cuts, _ = _cuts(opt.x[n:], False)
+    return Posterior(tuple(names), mean, cov, cuts, len(used))
+
+
+def _answer_probabilities(delta: np.ndarray, cuts: np.ndarray) -> np.ndarray:
+    """P(answer = -2..+2 | delta), shape (len(delta), 5)."""
+    cdf, _ = _cdf_pdf(cuts[None, :] - delta[:, None], "logit")
+    ext = np.concatenate([np.zeros((delta.size, 1)), cdf, np.ones((delta.size, 1))], axis=1)
+    return np.clip(np.diff(ext, axis=1), 1e-300, 1.0)
+
+
+def information_gain(post: Posterior, first: int, second: int) -> float:
+    """Expected information (nats) the next answer to ``first`` against ``second`` gives about their scale
+    difference."""
+    m = post.mean[second] - post.mean[first]
+    var = post.cov[first, first] + post.cov[second, second] - 2 * post.cov[first, second]
+    p = _answer_probabilities(m + np.sqrt(max(var, 0.0)) * _NODES, post.cuts)
+    marginal = _WEIGHTS @ p
+    conditional = -(p * np.log(p)).sum(axis=1)
+    return float(-(marginal * np.log(marginal)).sum() - _WEIGHTS @ conditional)
+
+
+def gain_matrix(post: Posterior) -> np.ndarray:
+    """(N, N) symmetric: the expected information gain of every pair (0 on the diagonal)."""
+    n = len(post.conditions)
+    gains = np.zeros((n, n))
+    for i, j in combinations(range(n), 2):
+        gains[i, j] = gains[j, i] = information_gain(post, i, j)
+    return gains
+
+
+@dataclass(frozen=True)
+class Batch:
+    """One round: the N-1 pairs to show (indices into the conditions, first < second) and their gains."""
+
+    pairs: tuple[tuple[int, int], ...]
+    gains: tuple[float, ...]
+
+    @property
+    def information(self) -> float:
+        return float(sum(self.gains))
+
+
+def next_batch(post: Posterior, seed: int) -> Batch:
+    """The minimum spanning tree over 1 / expected information gain (ASAP's batch of N-1 pairs).  Equal gains
+    (e.g. before any vote) are ordered by a tiny seeded perturbation, so the seed decides among equal trees."""
+    n = len(post.conditions)
+    if n < 2:
+        return Batch((), ())
+    gains = gain_matrix(post)
+    jitter = np.random.default_rng(seed).uniform(0, 1e-6, (n, n))
+    weights = np.triu(1 / np.maximum(gains, 1e-12) * (1 + jitter + jitter.T), 1)
+    tree = minimum_spanning_tree(weights).tocoo()
+    pairs = sorted((min(int(i), int(j)), max(int(i), int(j))) for i, j in zip(tree.row, tree.col, strict=True))
+    return Batch(tuple(pairs), tuple(float(gains[i, j]) for i, j in pairs))

@@ -1,0 +1,110 @@
+"""Issue 27's "done when": a six-condition study (issue 16's conditions of the walk, studies/adaptive-walk.toml)
+runs adaptively in the browser with simulated and real votes, and the dashboard shows the scale with intervals.
+
+The clip set of server/clipset/conditions16.toml is built and the study's videos rendered small (160 x 120, no
+shadows) with the real commands; simulated participants vote through the service layer (the same code the API
+calls), then a participant in Chromium gets the batch the adaptive design chooses from those votes, watches every
+video and votes; the dashboard then shows the scale of the six conditions with intervals.  Screenshots go to
+var/test-artifacts/browser/.
+"""
+
+from __future__ import annotations
+
+import random
+import tomllib
+from pathlib import Path
+
+import pytest
+from playwright.sync_api import sync_playwright
+from sqlalchemy import select
+
+from server.app import create_app
+from server.config import Settings
+from server.db import make_engine, session_factory
+from server.participants import service
+from server.participants.models import ParticipantSession
+from server.researchers.service import create_researcher
+from server.studies.assign import session_batches
+from server.studies.models import Study
+from server.studies.scale import CHOICES
+from tests.server_fixtures import live_server
+from tests.test_participant_page import ARGS, ARTIFACTS, CHROMIUM, wait_until
+from tests.test_studies16_browser import CLIP_SET, RESEARCHER, run, walk_through
+
+REPO = Path(__file__).resolve().parents[1]
+STUDY = REPO / "studies" / "adaptive-walk.toml"
+SIMULATED = 6
+
+
+@pytest.fixture(scope="module")
+def site(data, tmp_path_factory):
+    if not Path(CHROMIUM).exists():
+        pytest.fail(f"{CHROMIUM} is missing: `make test` installs Debian's chromium")
+    var = tmp_path_factory.mktemp("var")
+    env = {"ANIMSTUDY_VAR_DIR": str(var), "ANIMSTUDY_DATA_DIR": str(data),
+           "ANIMSTUDY_SECRET_KEY": "adaptive-test-secret-0123456789abcdef"}
+    with pytest.MonkeyPatch.context() as mp:
+        for key, value in env.items():
+            mp.setenv(key, value)
+        mp.delenv("DATABASE_URL", raising=False)
+        run("clips", "build", "--config", str(CLIP_SET))
+        run("render", "--width", "160", "--height", "120", "--no-shadows", "--study", str(STUDY))
+        run("study", "create", str(STUDY), "--open")
+        settings = Settings()
+    engine = make_engine(settings.sqlalchemy_url)
+    factory = session_factory(engine)
+    rng = random.Random(27)
+    design = tomllib.loads(STUDY.read_text(encoding="utf-8"))["design"]
+    # Simulated participants: the keyframe best, the others worse in the order listed, with noise.
+    quality = {c: -0.6 * i for i, c in enumerate([design["reference"], *design["conditions"]])}
+    with factory() as db:
+        create_researcher(db, *RESEARCHER, admin=True)
+        study = db.scalar(select(Study).where(Study.slug == "adaptive-walk"))
+        for _ in range(SIMULATED):
+            ps = service.start_session(db, study, None).session
+            service.set_answers(db, ps, {"gamer": "no", "tech_savvy": "yes"})
+            for trial in ps.trials:
+                c = trial.comparison
+                delta = quality[c.test.condition] - quality[c.reference.condition] + rng.gauss(0, 0.7)
+                score = 0 if c.test_id == c.reference_id else max(-2, min(2, round(delta)))
+                raw = score if trial.reference_side == "right" else -score  # left = +2
+                service.cast_vote(db, ps, trial, CHOICES[2 - raw], 1200, f"k{trial.id}", {})
+    with live_server(create_app(settings, engine, run_migrations=False)) as base:
+        yield base, factory
+    engine.dispose()
+
+
+def test_six_conditions_run_adaptively_in_the_browser(site):
+    base, factory = site
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        context = browser.new_context(viewport={"width": 1280, "height": 720})
+        page = context.new_page()
+        errors = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        assert walk_through(page, base, "adaptive-walk") == 5 * 2 + 1  # a spanning tree of 6, both sides, 1 catch
+        with factory() as db:
+            study = db.scalar(select(Study).where(Study.slug == "adaptive-walk"))
+            rounds = session_batches(db, study)
+            assert len(rounds) == SIMULATED + 1 and rounds[-1].votes_before == SIMULATED * 10
+            real = db.scalar(select(ParticipantSession).where(ParticipantSession.id == rounds[-1].session_id))
+            assert real.state == "completed"
+            shown = {(t.comparison.reference.condition, t.comparison.test.condition) for t in real.trials
+                     if t.comparison.reference_id != t.comparison.test_id}
+            assert shown == set(rounds[-1].pairs["walk"])  # the batch the votes before chose, replayed from the log
+        page.goto(f"{base}/dashboard?study=adaptive-walk")
+        page.fill("#email", RESEARCHER[0])
+        page.fill("#password", RESEARCHER[1])
+        page.click("#login-form button")
+        page.wait_for_selector("#dashboard:not([hidden])")
+        wait_until(page, "document.querySelectorAll('#chart-scale svg circle').length === 6")
+        cells = page.eval_on_selector_all("#table-scale tbody tr", "rs => rs.map(r => [...r.cells].map(c => "
+                                          "c.textContent))")
+        assert len(cells) == 6 and all("…" in r[3] for r in cells), cells  # every condition with an interval
+        assert page.eval_on_selector_all("#table-rounds tbody tr", "rs => rs.length") == SIMULATED + 1
+        page.locator("#scale-panel").screenshot(path=str(ARTIFACTS / "adaptive-walk-scale.png"))
+        page.locator("#adaptive-panel").screenshot(path=str(ARTIFACTS / "adaptive-walk-rounds.png"))
+        context.close()
+        browser.close()
+        assert not errors, errors

@@ -1,0 +1,193 @@
+"""Design modes (issue 27): all-pairs, incomplete and adaptive studies through the real session code."""
+
+from __future__ import annotations
+
+import itertools
+from collections import Counter
+from pathlib import Path
+
+import pytest
+from pydantic import ValidationError
+
+from server.participants.service import start_session
+from server.studies.assign import pair_comparisons, session_batches
+from server.studies.design import Design
+from server.studies.service import export_rows
+from tests.server_fixtures import answer_all, make_study, start
+from tests.test_design import _old_trial_order
+
+FOUR = ["hybrid0", "hybrid1", "hybrid2"]  # with the reference keyframe: 4 conditions, 6 pairs
+
+
+def _design(mode: str, **fields: object) -> Design:
+    return Design(mode=mode, conditions=FOUR, animations=["walk", "run"], **fields)
+
+
+def _shown(ps) -> Counter:
+    return Counter((t.comparison.reference.animation, t.comparison.reference.condition, t.comparison.test.condition,
+                    t.reference_side) for t in ps.trials if not t.practice)
+
+
+def test_design_validation():
+    assert _design("all-pairs").trials_total() == 2 * 6 * 2
+    assert _design("incomplete").trials_total() == 2 * 3 * 2  # default N - 1 pairs per animation
+    assert _design("incomplete", pairs_per_session=4, repeats=2).trials_total() == 2 * 4 * 2 * 2
+    assert _design("adaptive").trials_total() == 2 * 3 * 2
+    assert Design().mode == "reference" and Design().trials_total() == 16
+    with pytest.raises(ValidationError, match="incomplete"):
+        _design("all-pairs", pairs_per_session=2)
+    with pytest.raises(ValidationError, match="exceeds the 6 pairs"):
+        _design("incomplete", pairs_per_session=7)
+    with pytest.raises(ValidationError, match="more than 2600"):
+        Design(mode="all-pairs", conditions=[f"c{i}" for i in range(16)], animations=["a", "b"], repeats=5)
+    with pytest.raises(ValidationError, match="twice in a row"):  # one pair per session: always repeated
+        Design(mode="adaptive", conditions=["b"], animations=["walk"])
+
+
+def test_reference_sessions_keep_the_old_trials(db):
+    study = make_study(db)
+    for _ in range(20):
+        ps = start_session(db, study, None).session
+        ids = sorted(c.id for c in study.comparisons)
+        from server.studies.design import ComparisonIds
+        old = _old_trial_order(ComparisonIds(ids), 1, ps.seed)
+        assert [(t.comparison_id, t.reference_side) for t in ps.trials] == [
+            (t.comparison_id, t.reference_side) for t in old]
+
+
+def test_all_pairs_shows_every_pair_on_both_sides(db):
+    study = make_study(db, _design("all-pairs"), slug="allpairs")
+    assert len(pair_comparisons(study)) == 12
+    ps = start_session(db, study, None).session
+    shown = _shown(ps)
+    pairs = list(itertools.combinations(["keyframe", *FOUR], 2))
+    assert shown == Counter({(a, x, y, s): 1 for a in ("walk", "run") for x, y in pairs for s in ("left", "right")})
+    assert all(a.comparison_id != b.comparison_id for a, b in itertools.pairwise(ps.trials))
+
+
+def test_incomplete_balances_pairs_over_participants(db):
+    study = make_study(db, _design("incomplete", pairs_per_session=4), slug="incomplete")
+    totals = Counter()
+    for _ in range(3):  # 3 sessions x 4 pairs = 2 x 6 pairs per animation
+        shown = _shown(start_session(db, study, None).session)
+        assert len({k[:3] for k in shown}) == 8 and set(shown.values()) == {1}
+        totals.update({k[:3] for k in shown})
+    assert len(totals) == 12 and set(totals.values()) == {2}
+
+
+def test_adaptive_sessions_are_spanning_trees_reproducible_from_the_vote_log(client, db):
+    study = make_study(db, _design("adaptive", catch_trials=1), slug="adaptive")
+    conditions = ["keyframe", *FOUR]
+    for i in range(4):
+        sid, headers = start(client, "adaptive")
+        # A consistent observer: the later condition of the list is better, much better for far-apart ones.
+        trials = answer_all(client, sid, headers, "left_much" if i % 2 else "right_slightly")
+        assert len(trials) == 2 * 3 * 2 + 1
+    rounds = session_batches(db, study)
+    assert [r.votes_before for r in rounds] == [0, 13 - 1, 2 * 12, 3 * 12]  # catch votes are not test votes
+    from server.participants.models import ParticipantSession
+    for r in rounds:
+        ps = db.get(ParticipantSession, r.session_id)
+        shown = {k[:3] for k in _shown(ps)}
+        for animation in ("walk", "run"):
+            edges = [(x, y) for a, x, y in shown if a == animation and x != y]
+            assert sorted(edges) == sorted(r.pairs[animation])  # recomputed from the log = what was shown
+            # N - 1 edges linking all N conditions: a spanning tree
+            linked, grew = {conditions[0]}, True
+            while grew:
+                grew = False
+                for x, y in edges:
+                    if (x in linked) != (y in linked):
+                        linked |= {x, y}
+                        grew = True
+            assert len(edges) == 3 and linked == set(conditions)
+            assert r.information[animation] > 0
+    rows = list(export_rows(db, study))
+    assert {r["design_mode"] for r in rows} == {"adaptive"}
+    for r in rows:
+        left, right = ((r["reference_condition"], r["test_condition"]) if r["reference_side"] == "left"
+                       else (r["test_condition"], r["reference_condition"]))
+        assert (r["left_condition"], r["right_condition"]) == (left, right)
+
+
+def test_adaptive_choice_depends_on_the_votes(db):
+    """Equal seeds, different vote logs: the batch follows the information, not a fixed pattern."""
+    from server.studies.adaptive import next_batch, posterior
+    from server.studies.ranking import GradedComparison
+
+    conditions = ["keyframe", *FOUR]
+    empty = next_batch(posterior([], conditions), seed=5)
+    # Many votes on keyframe-hybrid0 and hybrid1-hybrid2: those pairs are known, the others are not.
+    votes = [GradedComparison(str(p), x, y, s) for p in range(30)
+             for x, y, s in (("keyframe", "hybrid0", 1), ("hybrid1", "hybrid2", -1))]
+    informed = next_batch(posterior(votes, conditions), seed=5)
+    assert (0, 1) not in informed.pairs and (2, 3) not in informed.pairs
+    assert informed != empty or (0, 1) not in empty.pairs
+    assert next_batch(posterior(votes, conditions), seed=5) == informed  # reproducible
+
+
+def test_results_show_the_scale_pair_counts_and_adaptive_rounds(client, db, researcher_headers):
+    make_study(db, _design("adaptive"), slug="adaptive")
+    for i in range(3):
+        sid, headers = start(client, "adaptive")
+        answer_all(client, sid, headers, ("right_much", "right_slightly", "left_slightly")[i])
+    res = client.get("/api/v1/studies/adaptive/results", headers=researcher_headers)
+    assert res.status_code == 200, res.text
+    body = res.json()
+    assert body["overview"]["design_mode"] == "adaptive"
+    assert [s["animation"] for s in body["scale"]] == ["run", "walk"]
+    walk = body["scale"][1]
+    assert walk["conditions"] == ["keyframe", *FOUR] and walk["value"][0] == 0
+    assert sum(map(sum, walk["pair_counts"])) == 2 * 3 * 3 * 2  # 3 sessions x 3 pairs x 2 sides, both halves
+    assert [r["round"] for r in body["adaptive_rounds"]] == [1, 2, 3]
+    assert [r["votes_before"] for r in body["adaptive_rounds"]] == [0, 12, 24]
+    # For the thesis design the scale's values are the ranking's (one model, one number).
+    thesis = make_study(db)
+    sid, headers = start(client)
+    answer_all(client, sid, headers, "left_slightly")
+    sid, headers = start(client)
+    answer_all(client, sid, headers, "right_slightly")
+    body = client.get(f"/api/v1/studies/{thesis.slug}/results", headers=researcher_headers).json()
+    assert body["adaptive_rounds"] is None and body["overview"]["design_mode"] == "reference"
+    for scale, ranking in zip(body["scale"], body["rankings"], strict=True):
+        values = {c["condition"]: c["value"] for c in ranking["conditions"]}
+        assert dict(zip(scale["conditions"], scale["value"], strict=True)) == pytest.approx(values)
+
+
+def test_a_draft_stored_before_the_modes_can_still_be_edited(db):
+    """Designs stored before issue 27 have no mode: they read as reference designs and editing another section of
+    such a draft is not taken for a design change."""
+    from server.studies.models import StudyState
+    from server.studies.service import definition, update_study
+
+    study = make_study(db, state=StudyState.draft)
+    study.design = {k: v for k, v in study.design.items() if k not in ("mode", "pairs_per_session")}
+    db.commit()
+    assert definition(study).design.mode == "reference"
+    update_study(db, study, {"title": "Renamed"})  # no render manifest given: a design change would be refused
+    assert study.title == "Renamed"
+
+
+def test_simulate_and_plan_commands(tmp_path, capsys):
+    from server import cli
+
+    study = tmp_path / "s.toml"
+    text = (Path(__file__).resolve().parents[1] / "studies" / "adaptive-walk.toml").read_text(encoding="utf-8")
+    study.write_text(text.replace('mode = "adaptive"', 'mode = "all-pairs"').replace(
+        '"hybrid0", "hybrid_ik0", "hybrid_c2_0", "reduced2", "quantized12"', '"hybrid0", "reduced2"'),
+        encoding="utf-8")
+    truth = tmp_path / "truth.toml"
+    truth.write_text("keyframe = 0\nhybrid0 = -1.5\nreduced2 = -3\n", encoding="utf-8")
+    assert cli.main(["study", "simulate", str(study), "--participants", "12", "--seeds", "3",
+                     "--truth", str(truth)]) == 0
+    out = capsys.readouterr()
+    assert "truth: keyframe 0, hybrid0 -1.5, reduced2 -3" in out.out
+    assert "3 simulated studies: 72 trials per study" in out.out  # 12 participants x 3 pairs x 2 sides
+    assert "simulated study 3 of 3" in out.err
+    truth.write_text("keyframe = 0\nhybrid0 = true\n", encoding="utf-8")
+    assert cli.main(["study", "simulate", str(study), "--participants", "2", "--truth", str(truth)]) == 2
+    err = capsys.readouterr().err
+    assert "missing: reduced2" in err and "not a number: hybrid0" in err
+    assert cli.main(["study", "plan", str(study), "--effect", "3", "--seeds", "4"]) == 0
+    out = capsys.readouterr()
+    assert "participants (" in out.out and "power" in out.err
