@@ -155,7 +155,8 @@ def bt500(x: np.ndarray, ratio: float = 0.05, balance: float = 0.3) -> tuple[np.
         if present.size == 0:
             continue
         mu, sigma = float(present.mean()), float(present.std())
-        with np.errstate(invalid="ignore", divide="ignore"):
+        with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # unanimous votes: NaN, hence the sqrt(20) branch
             kurt = float(stats.kurtosis(present, fisher=False))
         k = 2.0 if 2 <= kurt <= 4 else math.sqrt(20)
         with np.errstate(invalid="ignore"):
