@@ -3,7 +3,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Depends, Request, status
+from fastapi import APIRouter, Body, Depends, Query, Request, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import PlainTextResponse, Response
 from pydantic import ValidationError
@@ -26,12 +26,13 @@ from .studyfile import StudyFile, StudyFileError, parse_study_text
 router = APIRouter(prefix="/api/v1", tags=["studies"])
 DATA_DICTIONARY = Path(__file__).with_name("DATA_DICTIONARY.md")
 MAX_STUDY_FILE_BYTES = 200_000
+PilotQuery = Annotated[bool, Query(description="include the researcher's pilot (preview) sessions")]
 
 
 def summary(session: Session, study: Study) -> StudySummary:
     counts = participant_counts(session, study)
     votes = session.scalar(select(func.count(Vote.id)).join(ParticipantSession).where(
-        ParticipantSession.study_id == study.id)) or 0
+        ParticipantSession.study_id == study.id, ParticipantSession.pilot.is_(False))) or 0
     never_opened = study.opened_at is None
     return StudySummary(slug=study.slug, title=study.title, state=study.state,
                         owner=study.owner.email if study.owner else None, started=counts["started"],
@@ -148,15 +149,15 @@ def close_study(slug: str, session: SessionDep, researcher: ResearcherDep) -> St
 
 @router.get("/studies/{slug}/export.csv", response_class=Response,
             responses={200: {"content": {"text/csv": {}}}})
-def export_csv(slug: str, session: SessionDep, researcher: ResearcherDep) -> Response:
+def export_csv(slug: str, session: SessionDep, researcher: ResearcherDep, pilot: PilotQuery = False) -> Response:
     study = service.managed_study(session, slug, researcher)
-    return Response(service.export_csv(session, study), media_type="text/csv; charset=utf-8",
+    return Response(service.export_csv(session, study, pilot), media_type="text/csv; charset=utf-8",
                     headers={"Content-Disposition": f'attachment; filename="{study.slug}-votes.csv"'})
 
 
 @router.get("/studies/{slug}/export.json", response_model=ExportJson)
-def export_json(slug: str, session: SessionDep, researcher: ResearcherDep) -> ExportJson:
-    return ExportJson(**service.export_document(session, service.managed_study(session, slug, researcher)))
+def export_json(slug: str, session: SessionDep, researcher: ResearcherDep, pilot: PilotQuery = False) -> ExportJson:
+    return ExportJson(**service.export_document(session, service.managed_study(session, slug, researcher), pilot))
 
 
 @router.get("/data-dictionary", response_class=PlainTextResponse)
@@ -166,7 +167,9 @@ def data_dictionary() -> str:
 
 
 @router.get("/studies/{slug}/results")
-def results(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep) -> dict:
-    """Progress and statistics (participants are the unit of analysis; see ``methods`` in the answer)."""
+def results(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep,
+            pilot: PilotQuery = False) -> dict:
+    """Progress and statistics (participants are the unit of analysis; see ``methods`` in the answer), with the
+    study's screening rules applied and, beside them, ``without_screening``."""
     study = service.managed_study(session, slug, researcher)
-    return study_results(session, study, settings.clips_dir, settings.benchmark_path)
+    return study_results(session, study, settings.clips_dir, settings.benchmark_path, include_pilot=pilot)

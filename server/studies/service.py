@@ -22,6 +22,7 @@ from server.researchers.models import Researcher
 from .design import ComparisonIds, Design
 from .models import Comparison, ComparisonKind, Stimulus, Study, StudyState
 from .scale import other_side
+from .screening import ParticipantScreening, Screening, screen
 from .studyfile import Recruitment, StudyFile, Texts
 
 StimulusKey = tuple[str, str]  # (animation, condition)
@@ -81,7 +82,7 @@ def _columns(definition: StudyFile) -> dict[str, Any]:
     return {"title": definition.title, "consent_version": texts.pop("consent_version"), "texts": texts,
             "scale": definition.scale.model_dump(), "questions": [q.model_dump() for q in definition.questions],
             "design": definition.design.model_dump(), "recruitment": definition.recruitment.model_dump(),
-            "page": definition.page.model_dump()}
+            "page": definition.page.model_dump(), "screening": definition.screening.model_dump()}
 
 
 def definition(study: Study) -> StudyFile:
@@ -89,7 +90,7 @@ def definition(study: Study) -> StudyFile:
     return StudyFile.model_validate({
         "slug": study.slug, "title": study.title, "texts": {**study.texts, "consent_version": study.consent_version},
         "scale": study.scale, "questions": study.questions, "design": study.design, "recruitment": study.recruitment,
-        "page": study.page or {}})
+        "page": study.page or {}, "screening": study.screening or {}})
 
 
 def create_study(session: Session, media: RenderManifest, study_file: StudyFile,
@@ -168,12 +169,14 @@ def default_study(session: Session) -> Study | None:
 
 def update_study(session: Session, study: Study, changes: Mapping[str, Any],
                  media: RenderManifest | None = None) -> Study:
-    """Apply a partial study file (sections are merged into the current ones): ``title``, ``texts``, ``scale``,
+    """Apply a partial study file (sections are merged into the current ones): ``screening`` at any time (it
+    changes the analysis, not what participants see); ``title``, ``texts``, ``scale``,
     ``questions`` and ``recruitment`` until the study first opens; ``design`` only while it is a draft that never
     opened (its comparisons are rebuilt over ``media``, the render manifest).  Otherwise 409: participants saw it
     as it is.  An invalid result raises pydantic's ValidationError (the API answers 422)."""
-    if study.opened_at is not None:
-        raise Conflict(f"study {study.slug!r} has been open: participants saw it as it is; create a new study")
+    if study.opened_at is not None and set(changes) - {"screening"}:
+        raise Conflict(f"study {study.slug!r} has been open: participants saw it as it is; create a new study "
+                       "(only [screening], which participants never see, can still change)")
     if "slug" in changes and changes["slug"] != study.slug:
         raise Conflict("a study's slug cannot change")
     current = definition(study).model_dump()
@@ -244,17 +247,21 @@ def failed_catch_trials(session: Session, study: Study, session_id: str | None =
 
 
 def session_outcome(study: Study, state: str, failed_catch: int) -> str | None:
-    """``completed``, or ``screened_out`` when more catch trials were failed than the study allows; None for a
-    session that has not finished."""
+    """What a finished session's participant is told (and which completion code or link they get):
+    ``completed``, or ``screened_out`` when the study screens by catch trials (``[screening] rules``) and more
+    were failed than it allows; None for a session that has not finished.  The other rules are applied to the
+    results and exports only: most compare a participant with the panel, which grows after they leave."""
     if state != SessionState.completed:
         return None
+    if "catch" not in screening_rules(study).rules:
+        return "completed"
     return "screened_out" if failed_catch > recruitment(study).catch_failures_allowed else "completed"
 
 
 EXPORT_COLUMNS = ("session_id", "trial_index", "practice", "catch", "animation", "reference_condition",
                   "test_condition", "reference_side", "test_side", "choice", "score", "rt_ms", "answered_at",
                   "consent_version", "session_state", "outcome", "viewport_width", "viewport_height",
-                  "device_pixel_ratio", "video_scale", "video_scaled")
+                  "device_pixel_ratio", "video_scale", "video_scaled", "screened_by", "pilot")
 
 
 def export_columns(study: Study) -> list[str]:
@@ -282,23 +289,23 @@ def csv_cell(value: object) -> object:
     return value
 
 
-def export_csv(session: Session, study: Study) -> str:
+def export_csv(session: Session, study: Study, include_pilot: bool = False) -> str:
     """The export as CSV (cells as :func:`csv_cell` writes them)."""
     buffer = io.StringIO()
     # RFC 4180 line ends: with "\n" alone the csv module would not quote a value holding a bare "\r", and every
     # reader would split the row there.
     writer = csv.DictWriter(buffer, fieldnames=export_columns(study), lineterminator="\r\n")
     writer.writeheader()
-    for row in export_rows(session, study):
+    for row in export_rows(session, study, include_pilot):
         writer.writerow({k: csv_cell(v) for k, v in row.items()})
     return buffer.getvalue()
 
 
-def export_document(session: Session, study: Study) -> dict[str, Any]:
+def export_document(session: Session, study: Study, include_pilot: bool = False) -> dict[str, Any]:
     """The export as one JSON document: the study, the columns, the rows."""
     return {"study": {"slug": study.slug, "title": study.title, "state": study.state, "design": study.design,
                       "consent_version": study.consent_version, "questions": study.questions},
-            "columns": export_columns(study), "votes": list(export_rows(session, study))}
+            "columns": export_columns(study), "votes": list(export_rows(session, study, include_pilot))}
 
 
 def pairs_in_use(session: Session) -> list[tuple[str, str]]:
@@ -320,14 +327,21 @@ def pairs_to_render(session: Session, design: Design, clips_dir: Path, media_dir
     return list(dict.fromkeys([*pairs_in_use(session), *before, *required_pairs(design, index)]))
 
 
-def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
-    """One row per vote (withdrawn participants' votes no longer exist), in session and trial order."""
+def screening_rules(study: Study) -> Screening:
+    """The study's ``[screening]`` (NULL before migration 0009: the catch-trial rule alone)."""
+    return Screening.model_validate(study.screening or {})
+
+
+def screened_rows(session: Session, study: Study, include_pilot: bool = False
+                  ) -> tuple[list[dict[str, Any]], dict[str, ParticipantScreening]]:
+    """The export rows (see :func:`export_rows`) and every completed participant's screening record, by the
+    study's ``[screening]`` rules (``screening.screen``).  Pilot sessions only with ``include_pilot``."""
     reference, test = aliased(Stimulus), aliased(Stimulus)
     questions = [q["id"] for q in study.questions]
     parameters = list(study.recruitment["parameters"])
-    rows = session.execute(
+    query = (
         select(Vote, Trial, ParticipantSession, Comparison.kind, reference.animation, reference.condition,
-               test.condition)
+               test.condition, reference.frames, reference.fps, test.frames, test.fps)
         .join(Trial, Vote.trial_id == Trial.id)
         .join(ParticipantSession, Trial.session_id == ParticipantSession.id)
         .join(Comparison, Trial.comparison_id == Comparison.id)
@@ -336,20 +350,40 @@ def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
         .where(ParticipantSession.study_id == study.id)
         .order_by(ParticipantSession.created_at, ParticipantSession.id, Trial.index)
     )
-    failed = failed_catch_trials(session, study)
-    for vote, trial, ps, kind, animation, ref_condition, test_condition in rows:
+    if not include_pilot:
+        query = query.where(ParticipantSession.pilot.is_(False))
+    rows: list[dict[str, Any]] = []
+    playback: dict[tuple[str, str, str], float] = {}
+    for (vote, trial, ps, kind, animation, ref_condition, test_condition, ref_frames, ref_fps, test_frames,
+         test_fps) in session.execute(query):
+        # one playback of the pair video: until the longer of its two clips has ended
+        playback[(animation, ref_condition, test_condition)] = 1000 * max(ref_frames / ref_fps,
+                                                                          test_frames / test_fps)
         answers, external, device = ps.answers or {}, ps.external or {}, ps.device or {}
-        yield {
+        rows.append({
             "session_id": ps.id, "trial_index": trial.index, "practice": trial.practice,
             "catch": kind == ComparisonKind.catch, "animation": animation, "reference_condition": ref_condition,
             "test_condition": test_condition, "reference_side": trial.reference_side,
             "test_side": other_side(trial.reference_side), "choice": vote.choice, "score": vote.score,
             "rt_ms": vote.rt_ms, **{q: answers.get(q) for q in questions},
             "answered_at": vote.answered_at.isoformat(), "consent_version": ps.consent_version,
-            "session_state": ps.state, "outcome": session_outcome(study, ps.state, failed.get(ps.id, 0)),
+            "session_state": ps.state, "outcome": None,
             "viewport_width": device.get("viewport_width"),
             "viewport_height": device.get("viewport_height"), "device_pixel_ratio": device.get("device_pixel_ratio"),
             "video_scale": device.get("scale"), "video_scaled": device.get("scaled"),
+            "screened_by": None, "pilot": ps.pilot,
             **{p: external.get(p) for p in parameters},
-        }
+        })
+    records = screen(rows, screening_rules(study), recruitment(study).catch_failures_allowed, playback)
+    for row in rows:
+        record = records.get(row["session_id"])
+        if record is not None:  # a completed session
+            row["outcome"] = "screened_out" if record.screened_out else "completed"
+            row["screened_by"] = ";".join(record.flagged_by) or None
+    return rows, records
 
+
+def export_rows(session: Session, study: Study, include_pilot: bool = False) -> Iterator[dict[str, Any]]:
+    """One row per vote (withdrawn participants' votes no longer exist), in session and trial order; ``outcome``
+    and ``screened_by`` by the study's screening rules; pilot sessions only with ``include_pilot``."""
+    yield from screened_rows(session, study, include_pilot)[0]

@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, StringConstraints, Validation
 from .design import Design
 from .page import Page
 from .scale import DEFAULT_LABELS, DEFAULT_QUESTION
+from .screening import Screening
 
 REPO_STUDIES = Path(__file__).resolve().parents[2] / "studies"
 THESIS_FILE = REPO_STUDIES / "thesis.toml"
@@ -25,7 +26,8 @@ THESIS_FILE = REPO_STUDIES / "thesis.toml"
 RESERVED_IDS = frozenset({
     "session_id", "trial_index", "practice", "catch", "animation", "reference_condition", "test_condition",
     "reference_side", "test_side", "choice", "score", "rt_ms", "answered_at", "consent_version", "session_state",
-    "outcome", "viewport_width", "viewport_height", "device_pixel_ratio", "video_scale", "video_scaled"})
+    "outcome", "viewport_width", "viewport_height", "device_pixel_ratio", "video_scale", "video_scaled",
+    "screened_by", "pilot"})
 # A URL parameter must not shadow an export column either (question ids are lower case, so they never meet).
 
 Slug = Annotated[str, StringConstraints(pattern=r"^[a-z0-9][a-z0-9-]{0,63}$")]
@@ -166,6 +168,8 @@ class StudyFile(_Strict):
     design: Design = Field(default_factory=Design)
     recruitment: Recruitment = Field(default_factory=Recruitment)
     page: Page = Field(default_factory=Page, description="the page's language, its own wording and the device gate")
+    screening: Screening = Field(default_factory=Screening, description="the observer-screening rules the results "
+                                 "and exports apply (docs/screening.md); the default: failed catch trials")
 
     @model_validator(mode="after")
     def unique_questions(self) -> Self:
