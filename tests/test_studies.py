@@ -382,6 +382,7 @@ def test_study_cli(tmp_path, monkeypatch, capsys):
     assert cli.main(["study", "export", "thesis", "--format", "csv", "--out", str(out)]) == 0
     assert out.read_text().splitlines()[0].startswith("session_id,trial_index,practice,catch,animation")
     assert cli.main(["study", "export", "thesis", "--format", "json"]) == 0
-    assert json.loads(capsys.readouterr().out)["columns"][-12:] == [
+    assert json.loads(capsys.readouterr().out)["columns"][-14:] == [
         "answered_at", "consent_version", "session_state", "outcome", "viewport_width", "viewport_height",
-        "device_pixel_ratio", "video_scale", "video_scaled", "PROLIFIC_PID", "STUDY_ID", "SESSION_ID"]
+        "device_pixel_ratio", "video_scale", "video_scaled", "screened_by", "pilot", "PROLIFIC_PID", "STUDY_ID",
+        "SESSION_ID"]
