@@ -5,7 +5,9 @@
 
 (() => {
   const slug = decodeURIComponent(location.pathname.split("/").filter(Boolean).pop() || "");
-  const storeKey = `animstudy:${slug}`;
+  // A researcher's preview link (?preview=<token>): a pilot run, kept apart from a real session in this browser.
+  const preview = new URLSearchParams(location.search).get("preview");
+  const storeKey = preview ? `animstudy-pilot:${slug}` : `animstudy:${slug}`;
   const $ = (id) => document.getElementById(id);
   const sleep = (ms) => new Promise((resolve) => setTimeout(resolve, ms));
   const PAGES = ["info", "consent", "demographics", "instructions", "trial", "thanks", "withdrawn", "message"];
@@ -171,7 +173,9 @@
     buildQuestions(study.questions);
     checkGate();
     if (creds) { await resume(); return; }
-    if (study.state !== "open") { message(t("closed_title"), t("closed_text")); return; }
+    if (study.state !== "open" && !(preview && study.state === "draft")) {
+      message(t("closed_title"), t("closed_text")); return;
+    }
     show("info");
   }
 
@@ -213,7 +217,8 @@
     const params = new URLSearchParams(location.search);
     const external = {};
     for (const name of study.parameters) if (params.get(name)) external[name] = params.get(name).slice(0, 200);
-    const body = { consent: true, external: Object.keys(external).length ? external : null, device: measureDevice() };
+    const body = { consent: true, external: Object.keys(external).length ? external : null, device: measureDevice(),
+                   ...(preview ? { preview } : {}) };
     const r = await persist(() => api("POST", `/studies/${encodeURIComponent(slug)}/sessions`, body));
     if (r.status !== 201) { message(t("cannot_start_title"), t("closed_text")); return; }
     const created = await r.json();

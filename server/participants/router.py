@@ -16,9 +16,10 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Path, Response, status
 from fastapi.exceptions import RequestValidationError
 
-from server.deps import ParticipantTokenDep, SessionDep, limit_new_sessions
+from server.deps import ParticipantTokenDep, SessionDep, SettingsDep, limit_new_sessions
 from server.participants import service
 from server.studies import service as studies_service
+from server.studies.pilot import check_preview
 from server.studies.service import get_study
 
 from .models import ParticipantSession, SessionState, Trial
@@ -45,10 +46,13 @@ def media_url(name: str) -> str:
 
 @router.post("/studies/{slug}/sessions", status_code=status.HTTP_201_CREATED, response_model=SessionCreated,
              dependencies=[Depends(limit_new_sessions)])
-async def create_session(slug: str, body: SessionCreate, session: SessionDep) -> SessionCreated:
+async def create_session(slug: str, body: SessionCreate, session: SessionDep,
+                         settings: SettingsDep) -> SessionCreated:
     study = get_study(session, slug)
+    if body.preview is not None:
+        check_preview(study, body.preview, settings.secret)
     new = service.start_session(session, study, body.external,
-                                body.device.model_dump() if body.device else None)
+                                body.device.model_dump() if body.device else None, pilot=body.preview is not None)
     return SessionCreated(session_id=new.session.id, token=new.token, trials_total=new.session.trials_total)
 
 

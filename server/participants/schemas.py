@@ -39,6 +39,8 @@ class SessionCreate(BaseModel):
     external: dict[str, str] | None = Field(default=None, description="ids from a recruiting platform, e.g. "
                                             "PROLIFIC_PID, STUDY_ID, SESSION_ID")
     device: DeviceReport | None = None
+    preview: str | None = Field(default=None, max_length=2000, description="the token of a researcher's preview "
+                                "link: the session is a pilot run (draft or open study)")
 
     @field_validator("consent")
     @classmethod

@@ -35,9 +35,10 @@ class NewSession:
 
 
 def start_session(session: Session, study: Study, external: dict[str, str] | None,
-                  device: dict[str, Any] | None = None) -> NewSession:
-    """A session with its trials drawn in a seeded random order; the token is returned once, stored hashed."""
-    if study.state != StudyState.open:
+                  device: dict[str, Any] | None = None, pilot: bool = False) -> NewSession:
+    """A session with its trials drawn in a seeded random order; the token is returned once, stored hashed.
+    ``pilot``: a researcher's preview run (the caller checked the preview link), allowed on a draft too."""
+    if not pilot and study.state != StudyState.open:
         raise Conflict(f"study {study.slug!r} is not open for participants")
     token = secrets.token_urlsafe(32)
     seed = secrets.randbits(63)
@@ -45,7 +46,7 @@ def start_session(session: Session, study: Study, external: dict[str, str] | Non
     kept = {k: v for k, v in (external or {}).items() if k in accepted}
     ps = ParticipantSession(id=uuid.uuid4().hex, study=study, token_hash=_hash(token), seed=seed,
                             state=SessionState.active, consent_at=utcnow(), consent_version=study.consent_version,
-                            external=kept or None, device=device)
+                            external=kept or None, device=device, pilot=pilot)
     design = Design.model_validate(study.design)
     for index, planned in enumerate(trial_order(comparison_ids(study), design.repeats, seed)):
         ps.trials.append(Trial(index=index, comparison_id=planned.comparison_id,

@@ -16,7 +16,7 @@ from server.media.manifest import ManifestError, RenderManifest, read_render_man
 from server.participants.models import ParticipantSession, Vote
 from server.uploads.service import remove_study_assets
 
-from . import service
+from . import pilot, service
 from .models import Study, StudyState
 from .page import Page
 from .results import participant_counts, study_results
@@ -158,6 +158,23 @@ def export_csv(slug: str, session: SessionDep, researcher: ResearcherDep, pilot:
 @router.get("/studies/{slug}/export.json", response_model=ExportJson)
 def export_json(slug: str, session: SessionDep, researcher: ResearcherDep, pilot: PilotQuery = False) -> ExportJson:
     return ExportJson(**service.export_document(session, service.managed_study(session, slug, researcher), pilot))
+
+
+@router.post("/studies/{slug}/preview")
+def preview(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep) -> dict[str, Any]:
+    """A preview link for a pilot run of the study (draft or open): its sessions are marked pilot and left out
+    of results and exports unless asked for."""
+    study = service.managed_study(session, slug, researcher)
+    if study.state not in pilot.PREVIEW_STATES:
+        raise Conflict(f"study {slug!r} is {study.state}: pilot runs work while it is a draft or open")
+    link = pilot.preview_link(study, settings.secret)
+    return {"url": link.url, "expires_at": link.expires_at.isoformat(), **pilot.pilot_counts(session, study)}
+
+
+@router.delete("/studies/{slug}/pilot-sessions")
+def delete_pilot_sessions(slug: str, session: SessionDep, researcher: ResearcherDep) -> dict[str, int]:
+    """Delete every pilot session of the study with every row it made; answers what was deleted."""
+    return pilot.delete_pilot_sessions(session, service.managed_study(session, slug, researcher))
 
 
 @router.get("/data-dictionary", response_class=PlainTextResponse)

@@ -21,6 +21,7 @@ from server.researchers.models import Researcher
 
 from .design import ComparisonIds, Design
 from .models import Comparison, ComparisonKind, Stimulus, Study, StudyState
+from .pilot import delete_pilot_sessions
 from .scale import other_side
 from .screening import ParticipantScreening, Screening, screen
 from .studyfile import Recruitment, StudyFile, Texts
@@ -187,6 +188,7 @@ def update_study(session: Session, study: Study, changes: Mapping[str, Any],
     if updated.design.model_dump() != study.design:
         if study.state != StudyState.draft or media is None:
             raise Conflict("the design can change only while the study is a draft")
+        delete_pilot_sessions(session, study, commit=False)  # their trials show the old comparisons
         _build_comparisons(study, media, updated.design)
     for key, value in _columns(updated).items():
         setattr(study, key, value)
@@ -197,6 +199,7 @@ def update_study(session: Session, study: Study, changes: Mapping[str, Any],
 def delete_study(session: Session, study: Study) -> None:
     if study.state != StudyState.draft or study.opened_at is not None:
         raise Conflict(f"study {study.slug!r} is {study.state}; only a draft that never opened can be deleted")
+    delete_pilot_sessions(session, study, commit=False)  # a draft's only sessions; their trials hold comparisons
     session.delete(study)
     session.commit()
 
