@@ -30,7 +30,7 @@ class ParticipantSession(Base):
     state: Mapped[str] = mapped_column(String(16), default=SessionState.active)
     consent_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     consent_version: Mapped[str | None] = mapped_column(String(40))
-    answers: Mapped[dict[str, str] | None] = mapped_column(JSON)  # question id -> choice id
+    answers: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # question id -> answer (studyfile.Question)
     external: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # the study's accepted URL parameters
     device: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # schemas.DeviceReport at the start (0005)
     # A researcher's preview run (0009): left out of results and exports unless asked for, deletable at once.

@@ -11,7 +11,7 @@ The researcher endpoints, which can compute for seconds, stay in the thread pool
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Path, Response, status
 from fastapi.exceptions import RequestValidationError
@@ -58,8 +58,9 @@ async def create_session(slug: str, body: SessionCreate, session: SessionDep,
 
 @router.put("/sessions/{session_id}/demographics", response_model=Answers)
 async def put_demographics(session_id: str, body: Answers, token: ParticipantTokenDep,
-                           session: SessionDep) -> dict[str, str]:
-    """The answers to the study's questions, ``{question id: choice id}`` (every question, once)."""
+                           session: SessionDep) -> dict[str, Any]:
+    """The answers to the study's questions, ``{question id: answer}`` (every question, once): a choice id, a
+    number, a text or a Likert point 1..n, as the question's type asks."""
     ps = service.authorize(session, session_id, token, lock="update")
     errors = service.answer_errors(ps.study, body)
     if errors:

@@ -4,7 +4,18 @@ import json
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictFloat,
+    StrictInt,
+    StrictStr,
+    StringConstraints,
+    field_validator,
+    model_validator,
+)
 
 from server.studies.scale import Choice
 
@@ -65,7 +76,11 @@ class SessionCreated(BaseModel):
 
 Key = Annotated[str, StringConstraints(min_length=1, max_length=32)]
 # The answers to the study's questions: question id -> choice id (checked against the study by the endpoint).
-Answers = Annotated[dict[Key, Key], Field(max_length=10)]
+# A choice id, a number or a short text, as the question's type asks: checked against the study's questions by
+# service.answer_errors, which names the question and what it wants (so a JSON true or null gets there too;
+# strict: true is not the number 1).
+AnswerValue = StrictBool | StrictInt | StrictFloat | Annotated[StrictStr, StringConstraints(max_length=1000)] | None
+Answers = Annotated[dict[Key, AnswerValue], Field(max_length=10)]
 
 
 class SessionRead(BaseModel):

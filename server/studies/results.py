@@ -7,6 +7,7 @@ import json
 import statistics as pystats
 from collections.abc import Mapping
 from functools import lru_cache
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -115,6 +116,39 @@ def _analysed_tests(rows: list[dict[str, Any]]) -> tuple[tuple[tuple[str, Any], 
                  if not v["practice"] and not v["catch"] and v["outcome"] != "screened_out")
 
 
+NUMBER_BINS = 4
+
+
+def number_bins(values: list[float], unit: str | None = None, bins: int = NUMBER_BINS) -> list[tuple[float, float,
+                                                                                                        str]]:
+    """Up to ``bins`` bins of about equal count (quantiles of the participants' answers): (low, high, label);
+    the last bin includes its upper edge."""
+    if not values:
+        return []
+    edges = list(np.unique(np.quantile(values, np.linspace(0, 1, bins + 1))))
+    if len(edges) == 1:
+        edges = edges * 2
+    suffix = f" {unit}" if unit else ""
+    return [(lo, hi, f"{lo:g}–{hi:g}{suffix}") for lo, hi in pairwise(edges)]
+
+
+def demographic_rows(rows: list[dict[str, Any]], questions: list[dict[str, Any]]
+                     ) -> tuple[list[dict[str, Any]], tuple[str, ...]]:
+    """The rows with each number answer replaced by its bin's label (``number_bins`` over the participants) and
+    the question ids to break the results down by: every question but free text."""
+    out = [dict(r) for r in rows]
+    for q in questions:
+        if q.get("type", "choice") != "number":
+            continue
+        per_participant = {r["session_id"]: r[q["id"]] for r in rows if r.get(q["id"]) is not None}
+        bins = number_bins(list(per_participant.values()), q.get("unit"))
+        for r in out:
+            value = r.get(q["id"])
+            if value is not None:
+                r[q["id"]] = next((label for lo, hi, label in bins if lo <= value < hi), bins[-1][2])
+    return out, tuple(q["id"] for q in questions if q.get("type", "choice") != "text")
+
+
 def study_results(session: Session, study: Study, clips_dir: Path, benchmark_path: Path,
                   include_pilot: bool = False) -> dict[str, Any]:
     """Everything the dashboard shows.  The statistics are cached on their input: scipy's exact Wilcoxon for
@@ -124,11 +158,11 @@ def study_results(session: Session, study: Study, clips_dir: Path, benchmark_pat
     finished participant counted, and ``screening`` every participant's record.  Pilot sessions are left out
     unless ``include_pilot``."""
     rows, records = screened_rows(session, study, include_pilot)
-    votes = tuple(tuple(sorted(v.items())) for v in rows)
-    unscreened = [{**v, "outcome": "completed" if v["outcome"] else None, "screened_by": None} for v in rows]
+    binned, questions = demographic_rows(rows, study.questions)
+    votes = tuple(tuple(sorted(v.items())) for v in binned)
+    unscreened = [{**v, "outcome": "completed" if v["outcome"] else None, "screened_by": None} for v in binned]
     counts_map = participant_counts(session, study, include_pilot, records)
     counts = tuple(sorted(counts_map.items()))
-    questions = tuple(q["id"] for q in study.questions)
     results = copy.deepcopy(_analyse_cached(votes, counts, questions))
     plain = _analyse_cached(tuple(tuple(sorted(v.items())) for v in unscreened),
                             tuple(sorted({**counts_map, "screened_out": 0}.items())), questions)
@@ -151,7 +185,7 @@ def study_results(session: Session, study: Study, clips_dir: Path, benchmark_pat
     results["overview"] = {
         "slug": study.slug, "title": study.title, "state": study.state,
         "reference": study.design["reference"], "conditions": study.design["conditions"],
-        "questions": [{"id": q["id"], "text": q["text"]} for q in study.questions],
+        "questions": [{"id": q["id"], "text": q["text"], "type": q.get("type", "choice")} for q in study.questions],
         "votes": len(rows),
         "median_completion_s": pystats.median(durations) if durations else None,
     }
