@@ -102,3 +102,45 @@ def test_study_file_screening_section():
         parse_study_text(text + '\n[screening]\nrules = ["catch", "psychic"]\n')
     assert any(e.startswith("screening.rules[1] (line") for e in err.value.errors), err.value.errors
     assert {"screened_by", "pilot"} <= set(EXPORT_COLUMNS)
+
+
+def test_sureal_export_reads_into_sureal_and_gives_the_dashboards_subject_model(client, db, researcher_headers,
+                                                                                 tmp_path):
+    """The sureal dataset, read by sureal's own JSON reader and fitted by sureal's MLE, gives the numbers of the
+    results' subject model; the pwcmp table has one row per non-equal analysed vote, left/right conditions."""
+    import contextlib
+    import json
+    import warnings
+
+    import numpy as np
+    from sureal.dataset_reader import RawDatasetReader
+    from sureal.subjective_model import MaximumLikelihoodEstimationModel
+    from sureal.tools.misc import import_json_file
+
+    study = make_study(db, Design(catch_trials=2), screening=RULES)
+    run_panel(db, study, {"g1": "good", "g2": "good", "g3": "good", "s": "straight"})
+    r = client.get("/api/v1/studies/thesis/export.sureal.json", headers=researcher_headers)
+    assert r.status_code == 200 and "attachment" in r.headers["content-disposition"]
+    path = tmp_path / "thesis.json"
+    path.write_text(r.text)
+    with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        theirs = MaximumLikelihoodEstimationModel(RawDatasetReader(import_json_file(str(path)))).run_modeling()
+    ours = client.get("/api/v1/studies/thesis/results", headers=researcher_headers).json()["subject_model"]
+    dataset = json.loads(r.text)
+    assert len(dataset["dis_videos"]) == 8 and all(len(v["os"]) == 3 for v in dataset["dis_videos"])  # 3 kept
+    by_key = {(c["animation"], c["condition"]): c["score"] for c in ours["comparisons"]}
+    np.testing.assert_allclose([by_key[(v["animation"], v["test_condition"])] for v in dataset["dis_videos"]],
+                               theirs["quality_scores"], atol=1e-9)
+
+    rows = list(csv.reader(io.StringIO(client.get("/api/v1/studies/thesis/export.pwcmp.csv",
+                                                  headers=researcher_headers).text)))
+    assert rows[0] == ["observer", "session", "scene", "cond1", "cond2", "selection"]
+    votes = [v for v in export(client, researcher_headers)
+             if v["outcome"] == "completed" and v["catch"] == "false" and v["choice"] != "equal"]
+    assert len(rows) - 1 == len(votes)
+    for row, v in zip(rows[1:], votes, strict=True):
+        left = v["reference_condition"] if v["reference_side"] == "left" else v["test_condition"]
+        right = v["test_condition"] if v["reference_side"] == "left" else v["reference_condition"]
+        selection = "1" if v["choice"].startswith("left") else "2"
+        assert row == [v["session_id"], "1", v["animation"], left, right, selection]

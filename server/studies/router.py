@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -158,6 +159,24 @@ def export_csv(slug: str, session: SessionDep, researcher: ResearcherDep, pilot:
 @router.get("/studies/{slug}/export.json", response_model=ExportJson)
 def export_json(slug: str, session: SessionDep, researcher: ResearcherDep, pilot: PilotQuery = False) -> ExportJson:
     return ExportJson(**service.export_document(session, service.managed_study(session, slug, researcher), pilot))
+
+
+@router.get("/studies/{slug}/export.sureal.json")
+def export_sureal(slug: str, session: SessionDep, researcher: ResearcherDep, pilot: PilotQuery = False) -> Response:
+    """The analysed votes as a dataset for Netflix's sureal (``sureal --dataset FILE.json --models MLE ...``)."""
+    study = service.managed_study(session, slug, researcher)
+    return Response(json.dumps(service.export_sureal(session, study, pilot), indent=1),
+                    media_type="application/json",
+                    headers={"Content-Disposition": f'attachment; filename="{study.slug}-sureal.json"'})
+
+
+@router.get("/studies/{slug}/export.pwcmp.csv", response_class=Response,
+            responses={200: {"content": {"text/csv": {}}}})
+def export_pwcmp(slug: str, session: SessionDep, researcher: ResearcherDep, pilot: PilotQuery = False) -> Response:
+    """The analysed votes as pairwise comparisons for pwcmp (observer, session, scene, cond1, cond2, selection)."""
+    study = service.managed_study(session, slug, researcher)
+    return Response(service.export_pwcmp_csv(session, study, pilot), media_type="text/csv; charset=utf-8",
+                    headers={"Content-Disposition": f'attachment; filename="{study.slug}-pwcmp.csv"'})
 
 
 @router.post("/studies/{slug}/preview")

@@ -22,7 +22,7 @@ from server.researchers.models import Researcher
 from .design import ComparisonIds, Design
 from .models import Comparison, ComparisonKind, Stimulus, Study, StudyState
 from .pilot import delete_pilot_sessions
-from .scale import other_side
+from .scale import CHOICE_SCORES, other_side
 from .screening import ParticipantScreening, Screening, screen
 from .studyfile import Recruitment, StudyFile, Texts
 
@@ -390,3 +390,52 @@ def export_rows(session: Session, study: Study, include_pilot: bool = False) -> 
     """One row per vote (withdrawn participants' votes no longer exist), in session and trial order; ``outcome``
     and ``screened_by`` by the study's screening rules; pilot sessions only with ``include_pilot``."""
     yield from screened_rows(session, study, include_pilot)[0]
+
+
+def _analysed_test_rows(session: Session, study: Study, include_pilot: bool) -> list[dict[str, Any]]:
+    """The rows the statistics use: test trials of participants not screened out."""
+    rows, _ = screened_rows(session, study, include_pilot)
+    return [r for r in rows if not r["practice"] and not r["catch"] and r["outcome"] != "screened_out"]
+
+
+def export_sureal(session: Session, study: Study, include_pilot: bool = False) -> dict[str, Any]:
+    """The analysed test votes as a ``sureal`` dataset (its JSON form: ``sureal --dataset FILE.json``, or
+    ``sureal.tools.misc.import_json_file``): a comparison (animation, reference, test condition) is a distorted
+    video, its animation the content, each participant's side-swapped showings the repetitions of their score;
+    scores -2..+2 from the test condition's point of view."""
+    rows = _analysed_test_rows(session, study, include_pilot)
+    comparisons = sorted({(r["animation"], r["reference_condition"], r["test_condition"]) for r in rows})
+    animations = sorted({a for a, _, _ in comparisons})
+    scores: dict[tuple[str, str, str], dict[str, list[int]]] = {c: {} for c in comparisons}
+    for r in rows:
+        key = (r["animation"], r["reference_condition"], r["test_condition"])
+        scores[key].setdefault(r["session_id"], []).append(r["score"])
+    return {
+        "dataset_name": study.slug,
+        "ref_videos": [{"content_id": i, "content_name": a, "path": a} for i, a in enumerate(animations)],
+        "dis_videos": [{"asset_id": i, "content_id": animations.index(a), "path": f"{a}/{test}-vs-{ref}",
+                        "animation": a, "reference_condition": ref, "test_condition": test,
+                        "os": scores[(a, ref, test)]}
+                       for i, (a, ref, test) in enumerate(comparisons)],
+    }
+
+
+PWCMP_COLUMNS = ("observer", "session", "scene", "cond1", "cond2", "selection")
+
+
+def export_pwcmp_csv(session: Session, study: Study, include_pilot: bool = False) -> str:
+    """The analysed test votes as pairwise comparisons in pwcmp's table (observer, session, scene, cond1, cond2,
+    selection): cond1 the condition shown left, cond2 the one shown right, selection 1 or 2 for the side the
+    participant preferred (slightly or much); "equal" answers are left out, as pwcmp models a forced choice.
+    Works for any design: it reads each trial's two conditions."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\r\n")
+    writer.writerow(PWCMP_COLUMNS)
+    for r in _analysed_test_rows(session, study, include_pilot):
+        left, right = ((r["reference_condition"], r["test_condition"]) if r["reference_side"] == "left"
+                       else (r["test_condition"], r["reference_condition"]))
+        raw = CHOICE_SCORES[r["choice"]]
+        if raw:
+            writer.writerow([csv_cell(v) for v in (r["session_id"], 1, r["animation"], left, right,
+                                                   1 if raw > 0 else 2)])
+    return buffer.getvalue()
