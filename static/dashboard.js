@@ -40,7 +40,7 @@
       slug = studies[0].slug;
     }
     $("participant-link").href = `/s/${encodeURIComponent(slug)}`;
-    const r = await api(`/studies/${encodeURIComponent(slug)}/results`);
+    const r = await api(`/studies/${encodeURIComponent(slug)}/results${DashboardScreening.query()}`);
     if (!r.ok) { $("status").textContent = `Cannot load the results (HTTP ${r.status}).`; return; }
     results = await r.json();
     render(results);
@@ -111,6 +111,7 @@
             r.animation, c.condition, c.value == null ? (c.bound ? `${c.bound} all others` : "–") : fmt(c.value, 2),
             c.ci95 ? `${fmt(c.ci95[0], 2)} … ${fmt(c.ci95[1], 2)}` : "–", c.votes, r.fit.status])));
     renderQuestions(res, comps);
+    DashboardScreening.render(res);
     renderMetrics(res.clips);
     renderBenchmark(res.benchmark);
   }
@@ -120,6 +121,7 @@
     const box = $("question-panels");
     box.replaceChildren();
     for (const q of res.overview.questions) {
+      if (q.type === "text") continue; // free text has no groups to compare
       const groups = res.demographics[q.id] || {};
       const rows = comps.map((c) => {
         const key = `${c.animation}-${c.condition}`;
@@ -252,6 +254,9 @@
   }
   $("export-csv").addEventListener("click", () => download("csv"));
   $("export-json").addEventListener("click", () => download("json"));
+  $("export-sureal").addEventListener("click", () => download("sureal.json"));
+  $("export-pwcmp").addEventListener("click", () => download("pwcmp.csv"));
+  DashboardScreening.start(() => slug, refresh);
 
   Researcher.start(open, () => { clearInterval(timer); $("dashboard").hidden = true; });
 })();

@@ -90,8 +90,9 @@ def _number(value: float) -> float | None:
 
 @lru_cache(maxsize=16)
 def _subject_model_cached(votes: tuple[tuple[tuple[str, Any], ...], ...]) -> dict[str, Any]:
-    """The P.910/P.913 subject model (``subject_model.fit``) of the analysed test votes: comparisons are the
-    stimuli, their showings the repetitions, animations the contents."""
+    """The P.910/P.913 subject model (``subject_model.fit``) of the test votes of the participants who finished
+    and were not screened out: comparisons are the stimuli, their showings the repetitions, animations the
+    contents."""
     x, comparisons, subjects = opinion_array([dict(v) for v in votes])
     if len(subjects) < 2 or len(comparisons) < 2:
         return {"status": "too_few", "note": "needs at least two participants and two comparisons"}
@@ -113,7 +114,7 @@ def _subject_model_cached(votes: tuple[tuple[tuple[str, Any], ...], ...]) -> dic
 
 def _analysed_tests(rows: list[dict[str, Any]]) -> tuple[tuple[tuple[str, Any], ...], ...]:
     return tuple(tuple(sorted(v.items())) for v in rows
-                 if not v["practice"] and not v["catch"] and v["outcome"] != "screened_out")
+                 if not v["practice"] and not v["catch"] and v["outcome"] == "completed")
 
 
 NUMBER_BINS = 4
@@ -164,8 +165,11 @@ def study_results(session: Session, study: Study, clips_dir: Path, benchmark_pat
     counts_map = participant_counts(session, study, include_pilot, records)
     counts = tuple(sorted(counts_map.items()))
     results = copy.deepcopy(_analyse_cached(votes, counts, questions))
-    plain = _analyse_cached(tuple(tuple(sorted(v.items())) for v in unscreened),
-                            tuple(sorted({**counts_map, "screened_out": 0}.items())), questions)
+    if any(r.screened_out for r in records.values()):  # else the same numbers: spare the (slow) exact tests
+        plain = _analyse_cached(tuple(tuple(sorted(v.items())) for v in unscreened),
+                                tuple(sorted({**counts_map, "screened_out": 0}.items())), questions)
+    else:
+        plain = results
     results["without_screening"] = copy.deepcopy({k: plain[k] for k in ("participants", "comparisons", "overall",
                                                                        "side_bias", "krippendorff_alpha_ordinal")})
     rules = screening_rules(study)

@@ -393,9 +393,9 @@ def export_rows(session: Session, study: Study, include_pilot: bool = False) -> 
 
 
 def _analysed_test_rows(session: Session, study: Study, include_pilot: bool) -> list[dict[str, Any]]:
-    """The rows the statistics use: test trials of participants not screened out."""
+    """Test trials of the participants who finished and were not screened out (the subject model's input)."""
     rows, _ = screened_rows(session, study, include_pilot)
-    return [r for r in rows if not r["practice"] and not r["catch"] and r["outcome"] != "screened_out"]
+    return [r for r in rows if not r["practice"] and not r["catch"] and r["outcome"] == "completed"]
 
 
 def export_sureal(session: Session, study: Study, include_pilot: bool = False) -> dict[str, Any]:
