@@ -72,3 +72,37 @@ def panel(seed: int, good: int = 36, bad: tuple[str, ...] = ("random", "straight
 
 
 PLAYBACK = {key: PLAYBACK_MS for key in [*TRUE_QUALITY, *[(a, REFERENCE, REFERENCE) for a in ANIMATIONS]]}
+
+
+MEANT = {"random": "correlation", "straight": "straight_lining", "inverted": "correlation", "fast": "fast"}
+
+
+def main(panels: int) -> None:
+    """Every rule on ``panels`` simulated panels (seeds 0..panels-1): the seed-0 table, then how often good
+    observers were flagged and bad ones missed."""
+    from collections import Counter
+
+    from server.studies.screening import Screening, screen
+
+    false_flags, missed, by_rule = Counter(), [], Counter()
+    for seed in range(panels):
+        rows, kinds = panel(seed)
+        got = screen(rows, Screening(rules="all"), 0, PLAYBACK)
+        if seed == 0:
+            for sid, kind in kinds.items():
+                if kind != "good":
+                    print(f"seed 0  {kind:9} flagged by {', '.join(got[sid].flagged_by) or '-'}")
+            good = [s for s, k in kinds.items() if k == "good" and got[s].flagged_by]
+            print(f"seed 0  good      {len(good)} of 36 flagged: {[got[s].flagged_by for s in good]}")
+        good = [s for s, k in kinds.items() if k == "good" and got[s].flagged_by]
+        false_flags[len(good)] += 1
+        by_rule.update(r for s in good for r in got[s].flagged_by)
+        missed += [(seed, k) for s, k in kinds.items() if k != "good" and MEANT[k] not in got[s].flagged_by]
+    print(f"{panels} panels: good observers flagged per panel {dict(sorted(false_flags.items()))}, "
+          f"by rule {dict(by_rule)}; bad observers missed by their rule: {missed}")
+
+
+if __name__ == "__main__":
+    import sys
+
+    main(int(sys.argv[1]) if len(sys.argv) > 1 else 100)

@@ -10,10 +10,8 @@ import pytest
 from pydantic import ValidationError
 
 from server.studies.screening import RULES, Screening, bt500, screen
-from tests.screening_sim import PLAYBACK, panel
+from tests.screening_sim import MEANT, PLAYBACK, panel
 from tests.test_subject_model import dataset, sureal_run
-
-MEANT = {"random": "correlation", "straight": "straight_lining", "inverted": "correlation", "fast": "fast"}
 
 
 def vote(sid: str, animation: str, test: str, score: int, index: int, *, choice: str | None = None,
