@@ -385,13 +385,14 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                       f"{study.stimulus_set.digest[:12]}; participant link: /s/{study.slug}")
             elif command == "export":
                 study = service.get_study(session, args.slug)
-                unfaithful = service.unfaithful_clips(settings.clips_dir)
-                text = (service.export_csv(session, study, unfaithful) if args.format == "csv" else
-                        json.dumps(service.export_document(session, study, unfaithful), indent=1) + "\n")
+                text = {"csv": lambda: service.export_csv(session, study),
+                        "json": lambda: json.dumps(service.export_document(session, study), indent=1) + "\n",
+                        "sureal": lambda: json.dumps(service.export_sureal(session, study), indent=1) + "\n",
+                        "pwcmp": lambda: service.export_pwcmp_csv(session, study)}[args.format]()
                 if args.out:
                     args.out.write_text(text, encoding="utf-8")
-                    print(f"{text.count(chr(10)) - 1 if args.format == 'csv' else 'the'} rows of {study.slug!r} "
-                          f"-> {args.out}", file=sys.stderr)
+                    rows = text.count(chr(10)) - 1 if args.format in ("csv", "pwcmp") else "the"
+                    print(f"{rows} rows of {study.slug!r} -> {args.out}", file=sys.stderr)
                 else:
                     sys.stdout.write(text)
     except StudyFileError as exc:
@@ -787,7 +788,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--seeds", type=_positive, default=100, help="simulated studies per participant count")
     se = st_sub.add_parser("export", help="a study's votes, one row per vote (see the data dictionary)")
     se.add_argument("slug")
-    se.add_argument("--format", choices=("csv", "json"), default="csv")
+    se.add_argument("--format", choices=("csv", "json", "sureal", "pwcmp"), default="csv",
+                    help="csv/json: one row per vote; sureal: a sureal dataset (JSON); pwcmp: pairwise CSV")
     se.add_argument("--out", type=Path, default=None, help="file to write (default: standard output)")
     gcp = sub.add_parser("gc", help="delete the videos no study's stimulus set (and not the render manifest) uses")
     gcp.add_argument("--dry-run", action="store_true", help="list them, delete nothing")

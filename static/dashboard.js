@@ -40,7 +40,7 @@
       slug = studies[0].slug;
     }
     $("participant-link").href = `/s/${encodeURIComponent(slug)}`;
-    const r = await api(`/studies/${encodeURIComponent(slug)}/results`);
+    const r = await api(`/studies/${encodeURIComponent(slug)}/results${DashboardScreening.query()}`);
     if (!r.ok) { $("status").textContent = `Cannot load the results (HTTP ${r.status}).`; return; }
     results = await r.json();
     render(results);
@@ -117,6 +117,7 @@
       ? `The study's stimulus set ${res.stimulus_set.slice(0, 12)}: its clips as they were when the set was made ` +
         `(pinned when the study opened; exports name it in the column stimulus_set).`
       : "";
+    DashboardScreening.render(res);
     renderMetrics(res.clips);
     renderBenchmark(res.benchmark);
   }
@@ -165,6 +166,7 @@
     const box = $("question-panels");
     box.replaceChildren();
     for (const q of res.overview.questions) {
+      if (q.type === "text") continue; // free text has no groups to compare
       const groups = res.demographics[q.id] || {};
       const rows = comps.map((c) => {
         const key = `${c.animation}-${c.condition}`;
@@ -306,6 +308,9 @@
   }
   $("export-csv").addEventListener("click", () => download("csv"));
   $("export-json").addEventListener("click", () => download("json"));
+  $("export-sureal").addEventListener("click", () => download("sureal.json"));
+  $("export-pwcmp").addEventListener("click", () => download("pwcmp.csv"));
+  DashboardScreening.start(() => slug, refresh);
 
   Researcher.start(open, () => { clearInterval(timer); $("dashboard").hidden = true; });
 })();

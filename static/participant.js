@@ -5,7 +5,9 @@
 
 (() => {
   const slug = decodeURIComponent(location.pathname.split("/").filter(Boolean).pop() || "");
-  const storeKey = `animstudy:${slug}`;
+  // A researcher's preview link (?preview=<token>): a pilot run, kept apart from a real session in this browser.
+  const preview = new URLSearchParams(location.search).get("preview");
+  const storeKey = preview ? `animstudy-pilot:${slug}` : `animstudy:${slug}`;
   const $ = (id) => document.getElementById(id);
   const sleep = (ms) => new Promise((resolve) => setTimeout(resolve, ms));
   const PAGES = ["info", "consent", "demographics", "instructions", "trial", "thanks", "withdrawn", "message"];
@@ -171,38 +173,62 @@
     buildQuestions(study.questions);
     checkGate();
     if (creds) { await resume(); return; }
-    if (study.state !== "open") { message(t("closed_title"), t("closed_text")); return; }
+    if (study.state !== "open" && !(preview && study.state === "draft")) {
+      message(t("closed_title"), t("closed_text")); return;
+    }
     show("info");
   }
 
-  // The study's questions, one fieldset each (radio buttons named by the question id, valued by the choice id).
+  // The study's questions, one fieldset each: radio buttons for a choice (valued by the choice id) or a Likert
+  // scale (valued 1..n), a number field (with its range and unit) or a short text field, named by the question id.
   function buildQuestions(questions) {
     const form = $("demographics-form");
     form.querySelectorAll("fieldset").forEach((f) => f.remove());
     for (const q of questions) {
       const set = document.createElement("fieldset");
+      set.dataset.type = q.type || "choice";
       const legend = document.createElement("legend");
       legend.textContent = q.text;
+      legend.id = `q-${q.id}-legend`;
       set.append(legend);
-      q.choices.forEach((c, i) => {
+      const type = q.type || "choice";
+      if (type === "choice" || type === "likert") {
+        const options = type === "choice" ? q.choices.map((c) => [c.id, c.label])
+                                          : q.labels.map((label, i) => [String(i + 1), label]);
+        if (type === "likert") set.classList.add("likert");
+        options.forEach(([value, text], i) => {
+          const label = document.createElement("label");
+          const input = Object.assign(document.createElement("input"), { type: "radio", name: q.id, value,
+                                                                           required: i === 0 });
+          label.append(input, ` ${text}`);
+          set.append(label);
+        });
+      } else {
         const label = document.createElement("label");
-        const input = Object.assign(document.createElement("input"), { type: "radio", name: q.id, value: c.id,
-                                                                         required: i === 0 });
-        label.append(input, ` ${c.label}`);
+        const input = document.createElement("input");
+        Object.assign(input, { name: q.id, required: true });
+        input.setAttribute("aria-labelledby", legend.id);
+        if (type === "number") {
+          Object.assign(input, { type: "number", step: q.integer ? "1" : "any", inputMode: q.integer ? "numeric" : "decimal" });
+          if (q.min !== null && q.min !== undefined) input.min = String(q.min);
+          if (q.max !== null && q.max !== undefined) input.max = String(q.max);
+        } else {
+          Object.assign(input, { type: "text", maxLength: q.max_length, autocomplete: "off" });
+        }
+        label.append(input);
+        if (type === "number" && q.unit) label.append(` ${q.unit}`);
         set.append(label);
-      });
+      }
       form.insertBefore(set, form.querySelector("button"));
     }
   }
 
-  async function resume() {
-    const r = await persist(() => api("GET", `/sessions/${creds.session_id}`));
-    if ([401, 403, 404].includes(r.status)) { clearCreds(); await start(); return; }
-    const state = await r.json();
-    if (state.state === "completed") { thanks(state); return; }
-    if (!state.demographics_given) { show("demographics"); return; }
-    if (!creds.instructed) { show("instructions"); return; }
-    await nextTrial();
+  // A form value as the question's type wants it: a number for number and Likert questions.
+  function answerValue(q, raw) {
+    if (raw === null || raw === "") return null;
+    const type = q.type || "choice";
+    if (type === "number" || type === "likert") return Number(raw);
+    return type === "text" ? String(raw).trim() || null : raw;
   }
 
   $("info-next").addEventListener("click", () => show("consent"));
@@ -213,7 +239,8 @@
     const params = new URLSearchParams(location.search);
     const external = {};
     for (const name of study.parameters) if (params.get(name)) external[name] = params.get(name).slice(0, 200);
-    const body = { consent: true, external: Object.keys(external).length ? external : null, device: measureDevice() };
+    const body = { consent: true, external: Object.keys(external).length ? external : null, device: measureDevice(),
+                   ...(preview ? { preview } : {}) };
     const r = await persist(() => api("POST", `/studies/${encodeURIComponent(slug)}/sessions`, body));
     if (r.status !== 201) { message(t("cannot_start_title"), t("closed_text")); return; }
     const created = await r.json();
@@ -225,11 +252,22 @@
   $("demographics-form").addEventListener("submit", async (e) => {
     e.preventDefault();
     const form = new FormData(e.target);
-    const body = Object.fromEntries(study.questions.map((q) => [q.id, form.get(q.id)]));
-    if (Object.values(body).some((v) => !v)) return;
+    const body = Object.fromEntries(study.questions.map((q) => [q.id, answerValue(q, form.get(q.id))]));
+    if (Object.values(body).some((v) => v === null || Number.isNaN(v))) return;
     const r = await persist(() => api("PUT", `/sessions/${creds.session_id}/demographics`, body));
     if (r.ok) show("instructions");
     else if (r.status === 401) { clearCreds(); await start(); }
+    else if (r.status === 422) { // the server's checks: shown on the field, as the browser's own would be
+      const detail = (await r.json().catch(() => ({}))).detail || [];
+      for (const d of Array.isArray(detail) ? detail : []) {
+        const input = e.target.querySelector(`[name="${CSS.escape(String((d.loc || [])[1]))}"]`);
+        if (!input) continue;
+        input.setCustomValidity(d.msg);
+        input.reportValidity();
+        input.addEventListener("input", () => input.setCustomValidity(""), { once: true });
+        break;
+      }
+    }
   });
 
   // The study may ask for full screen; the request must come from this click (a user gesture). Leaving full

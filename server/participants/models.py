@@ -5,7 +5,7 @@ from datetime import datetime
 from enum import StrEnum
 from typing import Any
 
-from sqlalchemy import JSON, BigInteger, ForeignKey, String, UniqueConstraint
+from sqlalchemy import JSON, BigInteger, ForeignKey, String, UniqueConstraint, false
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
 from server.db import Base, UTCDateTime, utcnow
@@ -31,9 +31,11 @@ class ParticipantSession(Base):
     state: Mapped[str] = mapped_column(String(16), default=SessionState.active)
     consent_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     consent_version: Mapped[str | None] = mapped_column(String(40))
-    answers: Mapped[dict[str, str] | None] = mapped_column(JSON)  # question id -> choice id
+    answers: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # question id -> answer (studyfile.Question)
     external: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # the study's accepted URL parameters
     device: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # schemas.DeviceReport at the start (0005)
+    # A researcher's preview run (0009): left out of results and exports unless asked for, deletable at once.
+    pilot: Mapped[bool] = mapped_column(default=False, server_default=false())
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     completed_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     withdrawn_at: Mapped[datetime | None] = mapped_column(UTCDateTime)

@@ -11,16 +11,17 @@ The researcher endpoints, which can compute for seconds, stay in the thread pool
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Path, Request, Response, status
 from fastapi.exceptions import RequestValidationError
 
-from server.deps import ParticipantTokenDep, SessionDep, limit_new_sessions
+from server.deps import ParticipantTokenDep, SessionDep, SettingsDep, limit_new_sessions
 from server.errors import PayloadTooLarge
 from server.participants import service
 from server.studies import service as studies_service
-from server.studies.service import public_study
+from server.studies.pilot import check_preview
+from server.studies.service import get_study, public_study
 
 from .models import ParticipantSession, SessionState, Trial
 from .schemas import (
@@ -47,17 +48,23 @@ def media_url(name: str) -> str:
 
 @router.post("/studies/{slug}/sessions", status_code=status.HTTP_201_CREATED, response_model=SessionCreated,
              dependencies=[Depends(limit_new_sessions)])
-async def create_session(slug: str, body: SessionCreate, session: SessionDep) -> SessionCreated:
-    study = public_study(session, slug)
+async def create_session(slug: str, body: SessionCreate, session: SessionDep,
+                         settings: SettingsDep) -> SessionCreated:
+    if body.preview is not None:  # a researcher's pilot run: draft studies too
+        study = get_study(session, slug)
+        check_preview(study, body.preview, settings.secret)
+    else:
+        study = public_study(session, slug)
     new = service.start_session(session, study, body.external,
-                                body.device.model_dump() if body.device else None)
+                                body.device.model_dump() if body.device else None, pilot=body.preview is not None)
     return SessionCreated(session_id=new.session.id, token=new.token, trials_total=new.session.trials_total)
 
 
 @router.put("/sessions/{session_id}/demographics", response_model=Answers)
 async def put_demographics(session_id: str, body: Answers, token: ParticipantTokenDep,
-                           session: SessionDep) -> dict[str, str]:
-    """The answers to the study's questions, ``{question id: choice id}`` (every question, once)."""
+                           session: SessionDep) -> dict[str, Any]:
+    """The answers to the study's questions, ``{question id: answer}`` (every question, once): a choice id, a
+    number, a text or a Likert point 1..n, as the question's type asks."""
     ps = service.authorize(session, session_id, token, lock="update")
     errors = service.answer_errors(ps.study, body)
     if errors:

@@ -10,6 +10,10 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    StrictBool,
+    StrictFloat,
+    StrictInt,
+    StrictStr,
     StringConstraints,
     field_validator,
     model_validator,
@@ -63,6 +67,8 @@ class SessionCreate(BaseModel):
     external: dict[str, str] | None = Field(default=None, description="ids from a recruiting platform, e.g. "
                                             "PROLIFIC_PID, STUDY_ID, SESSION_ID")
     device: DeviceReport | None = None
+    preview: str | None = Field(default=None, max_length=2000, description="the token of a researcher's preview "
+                                "link: the session is a pilot run (draft or open study)")
 
     @field_validator("consent")
     @classmethod
@@ -87,7 +93,11 @@ class SessionCreated(BaseModel):
 
 Key = Annotated[str, StringConstraints(min_length=1, max_length=32)]
 # The answers to the study's questions: question id -> choice id (checked against the study by the endpoint).
-Answers = Annotated[dict[Key, Key], Field(max_length=10)]
+# A choice id, a number or a short text, as the question's type asks: checked against the study's questions by
+# service.answer_errors, which names the question and what it wants (so a JSON true or null gets there too;
+# strict: true is not the number 1).
+AnswerValue = StrictBool | StrictInt | StrictFloat | Annotated[StrictStr, StringConstraints(max_length=1000)] | None
+Answers = Annotated[dict[Key, AnswerValue], Field(max_length=10)]
 
 
 class SessionRead(BaseModel):

@@ -21,6 +21,7 @@ from server.studies.design import Design, trial_order
 from server.studies.models import Study, StudyState
 from server.studies.scale import score
 from server.studies.service import failed_catch_trials, recruitment, session_outcome
+from server.studies.studyfile import Question
 
 from .models import ParticipantSession, PlaybackEvent, SessionState, Trial, Vote
 
@@ -36,9 +37,10 @@ class NewSession:
 
 
 def start_session(session: Session, study: Study, external: dict[str, str] | None,
-                  device: dict[str, Any] | None = None) -> NewSession:
-    """A session with its trials drawn in a seeded random order; the token is returned once, stored hashed."""
-    if study.state != StudyState.open:
+                  device: dict[str, Any] | None = None, pilot: bool = False) -> NewSession:
+    """A session with its trials drawn in a seeded random order; the token is returned once, stored hashed.
+    ``pilot``: a researcher's preview run (the caller checked the preview link), allowed on a draft too."""
+    if not pilot and study.state != StudyState.open:
         raise Conflict(f"study {study.slug!r} is not open for participants")
     token = secrets.token_urlsafe(32)
     seed = secrets.randbits(63)
@@ -47,7 +49,7 @@ def start_session(session: Session, study: Study, external: dict[str, str] | Non
     now = utcnow()
     ps = ParticipantSession(id=uuid.uuid4().hex, study=study, token_hash=_hash(token), seed=seed, created_at=now,
                             state=SessionState.active, consent_at=now, consent_version=study.consent_version,
-                            external=kept or None, device=device)
+                            external=kept or None, device=device, pilot=pilot)
     design = Design.model_validate(study.design)
     chosen = session_comparisons(session, study, seed, now)  # by the design's mode
     for index, planned in enumerate(trial_order(chosen, design.repeats, seed)):
@@ -113,22 +115,23 @@ def _checked(session: Session, ps: ParticipantSession | None, token: str | None)
     raise Unauthorized("invalid or withdrawn token")
 
 
-def answer_errors(study: Study, answers: dict[str, str]) -> list[tuple[str, str]]:
-    """(question id, message) for every question of ``study`` unanswered or answered with an unknown choice, and
-    every answer to a question the study does not ask."""
+def answer_errors(study: Study, answers: dict[str, Any]) -> list[tuple[str, str]]:
+    """(question id, message) for every question of ``study`` unanswered or answered with something its type
+    does not accept (``studyfile.Question.answer_error``), and every answer to a question the study does not
+    ask."""
     errors = []
     for q in study.questions:
-        choices = [c["id"] for c in q["choices"]]
+        question = Question.model_validate(q)
         if q["id"] not in answers:
             errors.append((q["id"], "Field required"))
-        elif answers[q["id"]] not in choices:
-            errors.append((q["id"], f"Input should be {', '.join(repr(c) for c in choices)}"))
+        elif (error := question.answer_error(answers[q["id"]])) is not None:
+            errors.append((q["id"], error))
     asked = {q["id"] for q in study.questions}
     errors += [(k, "this study asks no such question") for k in answers if k not in asked]
     return errors
 
 
-def set_answers(session: Session, ps: ParticipantSession, answers: dict[str, str]) -> ParticipantSession:
+def set_answers(session: Session, ps: ParticipantSession, answers: dict[str, Any]) -> ParticipantSession:
     """Store (or correct) the answers to the study's questions (checked with :func:`answer_errors` first) while
     the session is active; a finished session's data is final."""
     if ps.state != SessionState.active:

@@ -46,9 +46,10 @@ COLUMNS: tuple[ExportColumn, ...] = (
     ExportColumn("consent_version", "string", "version of the consent text the participant agreed to"),
     ExportColumn("session_state", "`active`, `completed`", "whether the participant finished all trials"),
     ExportColumn("outcome", "`completed`, `screened_out`, or empty", "for a finished session: `screened_out` when "
-                 "the participant failed more catch trials (a 'significantly better' answer with the same clip on "
-                 "both sides) than `[recruitment] catch_failures_allowed`; the statistics leave every vote of a "
-                 "screened-out participant out; empty while the session is active"),
+                 "one of the study's screening rules (`[screening] rules`, see `screened_by`; the default: more "
+                 "failed catch trials — a 'significantly better' answer with the same clip on both sides — than "
+                 "`[recruitment] catch_failures_allowed`) flagged the participant; the statistics leave every vote "
+                 "of a screened-out participant out; empty while the session is active"),
     ExportColumn("viewport_width", "integer (CSS px)", "width of the browser window when the participant started "
                  "(empty for sessions before migration 0005)"),
     ExportColumn("viewport_height", "integer (CSS px)", "its height"),
@@ -74,15 +75,26 @@ COLUMNS: tuple[ExportColumn, ...] = (
                  "reference first), not necessarily the study's reference"),
     ExportColumn("left_condition", "condition id", "the condition shown on the left"),
     ExportColumn("right_condition", "condition id", "the condition shown on the right"),
+    ExportColumn("screened_by", "rule names, `;`-separated, or empty", "the screening rules that flagged this "
+                 "participant (`catch`, `straight_lining`, `z_outlier`, `bt500`, `correlation`, `fast`; see the "
+                 "screening page), among the study's chosen ones; empty for a participant no rule flagged and while "
+                 "the session is active. The panel-relative rules (`z_outlier`, `bt500`, `correlation`) can change "
+                 "as participants are added"),
+    ExportColumn("pilot", "`true`, `false`", "a researcher's pilot run (preview link); pilot sessions are in an "
+                 "export only when asked for (`?pilot=true`)"),
 )
 
 EXPORT_COLUMNS: tuple[str, ...] = tuple(c.name for c in COLUMNS)
 # The study's question columns go in front of this one, its URL-parameter columns at the end.
 QUESTIONS_BEFORE = "answered_at"
 
-_QUESTION_ROW = ("*question id*", "a choice id of that question, or empty", "one column per question of the study "
-                 "(`[[questions]]`), named by its `id`; the thesis: `gamer` (\"Do you consider yourself a gamer?\") "
-                 "and `tech_savvy` (\"Do you consider yourself tech-savvy?\"), each `yes`, `no` or `dont_know`")
+_QUESTION_ROW = ("*question id*", "by the question's `type`: `choice` (the default): a choice id; `number`: a "
+                 "number (in the question's `unit`, within its `min`/`max`); `text`: the participant's text (at most "
+                 "`max_length` characters); `likert`: the position of the chosen label, 1 (the first) … n (the "
+                 "last); empty if unanswered", "one column per question of the study (`[[questions]]`), named by its "
+                 "`id`; the study's `questions` (in the JSON export's `study`) hold each one's type, text, choices, "
+                 "unit and labels; the thesis: `gamer` (\"Do you consider yourself a gamer?\") and `tech_savvy` "
+                 "(\"Do you consider yourself tech-savvy?\"), each `yes`, `no` or `dont_know`")
 _PARAMETER_ROW = ("*URL parameter*", "string or empty", "one column per accepted URL parameter of the study "
                   "(`[recruitment] parameters`, e.g. `PROLIFIC_PID`, `STUDY_ID`, `SESSION_ID`; MTurk `workerId`, "
                   "`assignmentId`, `hitId`), as given in the participant link (supplied by the participant's "

@@ -39,6 +39,7 @@ class Study(Base):
     design: Mapped[dict[str, Any]] = mapped_column(JSON)
     recruitment: Mapped[dict[str, Any]] = mapped_column(JSON)
     page: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # studyfile.Page; NULL (before 0005): the defaults
+    screening: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # screening.Screening; NULL (before 0009): catch
     owner_id: Mapped[int | None] = mapped_column(ForeignKey("researchers.id", ondelete="SET NULL"), index=True)
     state: Mapped[str] = mapped_column(String(16), default=StudyState.draft)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)

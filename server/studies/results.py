@@ -5,37 +5,61 @@ from __future__ import annotations
 import copy
 import json
 import statistics as pystats
+from collections.abc import Mapping
 from functools import lru_cache
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from server.participants.models import ParticipantSession, SessionState, Vote
+from server.participants.models import ParticipantSession, SessionState
 from server.stimuli import service as stimulus_sets
 
 from .assign import session_batches
 from .interval_scale import study_scales
 from .models import Study
-from .service import export_rows, failed_catch_trials, session_outcome
+from .screening import ParticipantScreening, flagged_counts, opinion_array
+from .service import failed_catch_trials, screened_rows, screening_rules, session_outcome
 from .statistics import analyse
+from .subject_model import fit
 
 
-def participant_counts(session: Session, study: Study) -> dict[str, int]:
+def participant_counts(session: Session, study: Study, include_pilot: bool = False,
+                       records: Mapping[str, ParticipantScreening] | None = None) -> dict[str, int]:
     """``started``: every session created (withdrawn included); ``completed``: finished and not withdrawn;
-    ``screened_out``: of those, the ones whose votes are not analysed (too many failed catch trials)."""
-    rows = session.execute(select(ParticipantSession.state, func.count()).where(
-        ParticipantSession.study_id == study.id).group_by(ParticipantSession.state)).all()
-    by_state = {state: n for state, n in rows}
-    failed = failed_catch_trials(session, study)
-    completed = session.scalars(select(ParticipantSession.id).where(
-        ParticipantSession.study_id == study.id, ParticipantSession.state == SessionState.completed,
-        ParticipantSession.id.in_(failed))) if failed else []
-    screened = sum(session_outcome(study, SessionState.completed, failed[sid]) == "screened_out" for sid in completed)
+    ``screened_out``: of those, the ones whose votes are not analysed (by the study's screening rules; ``records``
+    if the caller has them); ``pilot``: the researcher's preview sessions, which count in the others only with
+    ``include_pilot``."""
+    query = select(ParticipantSession.state, ParticipantSession.pilot, func.count()).where(
+        ParticipantSession.study_id == study.id).group_by(ParticipantSession.state, ParticipantSession.pilot)
+    by_state: dict[str, int] = {}
+    pilot = 0
+    for state, is_pilot, n in session.execute(query).all():
+        pilot += n if is_pilot else 0
+        if include_pilot or not is_pilot:
+            by_state[state] = by_state.get(state, 0) + n
+    if records is None:
+        rules = screening_rules(study).rules
+        if rules == ["catch"]:  # the cheap count, without reading every vote
+            failed = failed_catch_trials(session, study)
+            query = select(ParticipantSession.id).where(
+                ParticipantSession.study_id == study.id, ParticipantSession.state == SessionState.completed,
+                ParticipantSession.id.in_(failed))
+            if not include_pilot:
+                query = query.where(ParticipantSession.pilot.is_(False))
+            completed = session.scalars(query) if failed else []
+            screened = sum(session_outcome(study, SessionState.completed, failed[sid]) == "screened_out"
+                           for sid in completed)
+        else:
+            records = screened_rows(session, study, include_pilot)[1]
+    if records is not None:
+        screened = sum(r.screened_out for r in records.values())
     return {"started": sum(by_state.values()), "completed": by_state.get(SessionState.completed, 0),
             "screened_out": screened, "withdrawn": by_state.get(SessionState.withdrawn, 0),
-            "active": by_state.get(SessionState.active, 0)}
+            "active": by_state.get(SessionState.active, 0), "pilot": pilot}
 
 
 def _read_json(path: Path) -> Any:
@@ -73,22 +97,114 @@ def adaptive_rounds(session: Session, study: Study, n_votes: int) -> list[dict[s
     return copy.deepcopy(_ROUNDS[key])
 
 
-def study_results(session: Session, study: Study, benchmark_path: Path) -> dict[str, Any]:
+def _number(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
+
+
+@lru_cache(maxsize=16)
+def _subject_model_cached(votes: tuple[tuple[tuple[str, Any], ...], ...]) -> dict[str, Any]:
+    """The P.910/P.913 subject model (``subject_model.fit``) of the test votes of the participants who finished
+    and were not screened out: comparisons are the stimuli, their showings the repetitions, animations the
+    contents."""
+    x, comparisons, subjects = opinion_array([dict(v) for v in votes])
+    if len(subjects) < 2 or len(comparisons) < 2:
+        return {"status": "too_few", "note": "needs at least two participants and two comparisons"}
+    animations = sorted({a for a, _, _ in comparisons})
+    model = fit(x, [animations.index(a) for a, _, _ in comparisons])
+    return {
+        "status": "ok" if model.converged else "not_converged", "iterations": model.iterations,
+        "comparisons": [{"animation": a, "reference": r, "condition": t, "score": _number(model.quality[e]),
+                         "ci95": [_number(v) for v in model.quality_ci95[e]]}
+                        for e, (a, r, t) in enumerate(comparisons)],
+        "participants": [{"session_id": sid, "bias": _number(model.bias[s]),
+                          "bias_ci95": [_number(v) for v in model.bias_ci95[s]],
+                          "inconsistency": _number(model.inconsistency[s]),
+                          "inconsistency_ci95": [_number(v) for v in model.inconsistency_ci95[s]]}
+                         for s, sid in enumerate(subjects)],
+        "animations": [{"animation": a, "ambiguity": _number(model.ambiguity[c])} for c, a in enumerate(animations)],
+    }
+
+
+def _analysed_tests(rows: list[dict[str, Any]]) -> tuple[tuple[tuple[str, Any], ...], ...]:
+    return tuple(tuple(sorted(v.items())) for v in rows
+                 if not v["practice"] and not v["catch"] and v["outcome"] == "completed")
+
+
+NUMBER_BINS = 4
+
+
+def number_bins(values: list[float], unit: str | None = None, bins: int = NUMBER_BINS) -> list[tuple[float, float,
+                                                                                                        str]]:
+    """Up to ``bins`` bins of about equal count (quantiles of the participants' answers): (low, high, label);
+    the last bin includes its upper edge."""
+    if not values:
+        return []
+    edges = list(np.unique(np.quantile(values, np.linspace(0, 1, bins + 1))))
+    if len(edges) == 1:
+        edges = edges * 2
+    suffix = f" {unit}" if unit else ""
+    return [(lo, hi, f"{lo:g}–{hi:g}{suffix}") for lo, hi in pairwise(edges)]
+
+
+def demographic_rows(rows: list[dict[str, Any]], questions: list[dict[str, Any]]
+                     ) -> tuple[list[dict[str, Any]], tuple[str, ...]]:
+    """The rows with each number answer replaced by its bin's label (``number_bins`` over the participants) and
+    the question ids to break the results down by: every question but free text."""
+    out = [dict(r) for r in rows]
+    for q in questions:
+        if q.get("type", "choice") != "number":
+            continue
+        per_participant = {r["session_id"]: r[q["id"]] for r in rows if r.get(q["id"]) is not None}
+        bins = number_bins(list(per_participant.values()), q.get("unit"))
+        for r in out:
+            value = r.get(q["id"])
+            if value is not None:
+                r[q["id"]] = next((label for lo, hi, label in bins if lo <= value < hi), bins[-1][2])
+    return out, tuple(q["id"] for q in questions if q.get("type", "choice") != "text")
+
+
+def study_results(session: Session, study: Study, benchmark_path: Path,
+                  include_pilot: bool = False) -> dict[str, Any]:
     """Everything the dashboard shows.  The statistics are cached on their input: scipy's exact Wilcoxon for
-    up to 13 participants with ties enumerates sign patterns and takes seconds, and a dashboard polls."""
-    votes = tuple(tuple(sorted(v.items())) for v in export_rows(session, study))
-    counts = tuple(sorted(participant_counts(session, study).items()))
-    questions = tuple(q["id"] for q in study.questions)
+    up to 13 participants with ties enumerates sign patterns and takes seconds, and a dashboard polls.
+
+    The statistics apply the study's screening rules; ``without_screening`` has the same statistics with every
+    finished participant counted, and ``screening`` every participant's record.  Pilot sessions are left out
+    unless ``include_pilot``."""
+    rows, records = screened_rows(session, study, include_pilot)
+    binned, questions = demographic_rows(rows, study.questions)
+    votes = tuple(tuple(sorted(v.items())) for v in binned)
+    unscreened = [{**v, "outcome": "completed" if v["outcome"] else None, "screened_by": None} for v in binned]
+    counts_map = participant_counts(session, study, include_pilot, records)
+    counts = tuple(sorted(counts_map.items()))
     results = copy.deepcopy(_analyse_cached(votes, counts, questions, study.design["reference"]))
+    if any(r.screened_out for r in records.values()):  # else the same numbers: spare the (slow) exact tests
+        plain = _analyse_cached(tuple(tuple(sorted(v.items())) for v in unscreened),
+                                tuple(sorted({**counts_map, "screened_out": 0}.items())), questions,
+                                study.design["reference"])
+    else:
+        plain = results
+    results["without_screening"] = copy.deepcopy({k: plain[k] for k in ("participants", "comparisons", "overall",
+                                                                       "side_bias", "krippendorff_alpha_ordinal")})
+    rules = screening_rules(study)
+    results["screening"] = {
+        "rules": rules.rules, "settings": rules.model_dump(exclude={"rules"}),
+        "catch_failures_allowed": study.recruitment.get("catch_failures_allowed", 0),
+        "flagged": flagged_counts(records.values(), rules.rules),
+        "excluded": [r.as_dict() for r in records.values() if r.screened_out],
+        "participants": [r.as_dict() for r in records.values()],
+    }
+    results["subject_model"] = copy.deepcopy(_subject_model_cached(_analysed_tests(rows)))
+    results["pilot_included"] = include_pilot
     durations = [(ps.completed_at - ps.created_at).total_seconds() for ps in session.scalars(
         select(ParticipantSession).where(ParticipantSession.study_id == study.id,
-                                         ParticipantSession.state == SessionState.completed))]
+                                         ParticipantSession.state == SessionState.completed,
+                                         *([] if include_pilot else [ParticipantSession.pilot.is_(False)])))]
     results["overview"] = {
         "slug": study.slug, "title": study.title, "state": study.state,
         "reference": study.design["reference"], "conditions": study.design["conditions"],
-        "questions": [{"id": q["id"], "text": q["text"]} for q in study.questions],
-        "votes": session.scalar(select(func.count(Vote.id)).join(ParticipantSession).where(
-            ParticipantSession.study_id == study.id)) or 0,
+        "questions": [{"id": q["id"], "text": q["text"], "type": q.get("type", "choice")} for q in study.questions],
+        "votes": len(rows),
         "median_completion_s": pystats.median(durations) if durations else None,
     }
     # The clips of the study's stimulus set, as they were when the set was made: not the clip set on disk, which

@@ -1,8 +1,9 @@
 from __future__ import annotations
 
+import json
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Depends, Request, status
+from fastapi import APIRouter, Body, Depends, Query, Request, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import PlainTextResponse, Response
 from pydantic import ValidationError
@@ -16,7 +17,7 @@ from server.participants.models import ParticipantSession, Vote
 from server.researchers.models import Researcher
 from server.uploads.service import remove_study_assets, usable_animations
 
-from . import service
+from . import pilot, service
 from .columns import data_dictionary_markdown
 from .models import Study, StudyState
 from .page import Page
@@ -26,12 +27,13 @@ from .studyfile import StudyFile, StudyFileError, parse_study_text
 
 router = APIRouter(prefix="/api/v1", tags=["studies"])
 MAX_STUDY_FILE_BYTES = 200_000
+PilotQuery = Annotated[bool, Query(description="include the researcher's pilot (preview) sessions")]
 
 
 def summary(session: Session, study: Study) -> StudySummary:
     counts = participant_counts(session, study)
     votes = session.scalar(select(func.count(Vote.id)).join(ParticipantSession).where(
-        ParticipantSession.study_id == study.id)) or 0
+        ParticipantSession.study_id == study.id, ParticipantSession.pilot.is_(False))) or 0
     never_opened = study.opened_at is None
     return StudySummary(slug=study.slug, title=study.title, state=study.state,
                         owner=study.owner.email if study.owner else None, started=counts["started"],
@@ -163,17 +165,50 @@ def close_study(slug: str, session: SessionDep, researcher: ResearcherDep) -> St
 
 @router.get("/studies/{slug}/export.csv", response_class=Response,
             responses={200: {"content": {"text/csv": {}}}})
-def export_csv(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep) -> Response:
+def export_csv(slug: str, session: SessionDep, researcher: ResearcherDep, pilot: PilotQuery = False) -> Response:
     study = service.managed_study(session, slug, researcher)
-    unfaithful = service.unfaithful_clips(settings.clips_dir)
-    return Response(service.export_csv(session, study, unfaithful), media_type="text/csv; charset=utf-8",
+    return Response(service.export_csv(session, study, pilot), media_type="text/csv; charset=utf-8",
                     headers={"Content-Disposition": f'attachment; filename="{study.slug}-votes.csv"'})
 
 
 @router.get("/studies/{slug}/export.json", response_model=ExportJson)
-def export_json(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep) -> ExportJson:
-    return ExportJson(**service.export_document(session, service.managed_study(session, slug, researcher),
-                                                service.unfaithful_clips(settings.clips_dir)))
+def export_json(slug: str, session: SessionDep, researcher: ResearcherDep, pilot: PilotQuery = False) -> ExportJson:
+    return ExportJson(**service.export_document(session, service.managed_study(session, slug, researcher), pilot))
+
+
+@router.get("/studies/{slug}/export.sureal.json")
+def export_sureal(slug: str, session: SessionDep, researcher: ResearcherDep, pilot: PilotQuery = False) -> Response:
+    """The analysed votes as a dataset for Netflix's sureal (``sureal --dataset FILE.json --models MLE ...``)."""
+    study = service.managed_study(session, slug, researcher)
+    return Response(json.dumps(service.export_sureal(session, study, pilot), indent=1),
+                    media_type="application/json",
+                    headers={"Content-Disposition": f'attachment; filename="{study.slug}-sureal.json"'})
+
+
+@router.get("/studies/{slug}/export.pwcmp.csv", response_class=Response,
+            responses={200: {"content": {"text/csv": {}}}})
+def export_pwcmp(slug: str, session: SessionDep, researcher: ResearcherDep, pilot: PilotQuery = False) -> Response:
+    """The analysed votes as pairwise comparisons for pwcmp (observer, session, scene, cond1, cond2, selection)."""
+    study = service.managed_study(session, slug, researcher)
+    return Response(service.export_pwcmp_csv(session, study, pilot), media_type="text/csv; charset=utf-8",
+                    headers={"Content-Disposition": f'attachment; filename="{study.slug}-pwcmp.csv"'})
+
+
+@router.post("/studies/{slug}/preview")
+def preview(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep) -> dict[str, Any]:
+    """A preview link for a pilot run of the study (draft or open): its sessions are marked pilot and left out
+    of results and exports unless asked for."""
+    study = service.managed_study(session, slug, researcher)
+    if study.state not in pilot.PREVIEW_STATES:
+        raise Conflict(f"study {slug!r} is {study.state}: pilot runs work while it is a draft or open")
+    link = pilot.preview_link(study, settings.secret)
+    return {"url": link.url, "expires_at": link.expires_at.isoformat(), **pilot.pilot_counts(session, study)}
+
+
+@router.delete("/studies/{slug}/pilot-sessions")
+def delete_pilot_sessions(slug: str, session: SessionDep, researcher: ResearcherDep) -> dict[str, int]:
+    """Delete every pilot session of the study with every row it made; answers what was deleted."""
+    return pilot.delete_pilot_sessions(session, service.managed_study(session, slug, researcher))
 
 
 @router.get("/data-dictionary", response_class=PlainTextResponse)
@@ -183,7 +218,9 @@ def data_dictionary() -> str:
 
 
 @router.get("/studies/{slug}/results")
-def results(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep) -> dict:
-    """Progress and statistics (participants are the unit of analysis; see ``methods`` in the answer)."""
+def results(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep,
+            pilot: PilotQuery = False) -> dict:
+    """Progress and statistics (participants are the unit of analysis; see ``methods`` in the answer), with the
+    study's screening rules applied and, beside them, ``without_screening``."""
     study = service.managed_study(session, slug, researcher)
-    return study_results(session, study, settings.benchmark_path)
+    return study_results(session, study, settings.benchmark_path, include_pilot=pilot)

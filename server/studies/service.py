@@ -23,7 +23,9 @@ from server.stimuli import service as stimulus_sets
 from .columns import EXPORT_COLUMNS, QUESTIONS_BEFORE
 from .design import ComparisonIds, Design
 from .models import Comparison, ComparisonKind, Stimulus, Study, StudyState
-from .scale import other_side
+from .pilot import delete_pilot_sessions
+from .scale import CHOICE_SCORES, other_side
+from .screening import ParticipantScreening, Screening, screen
 from .studyfile import Recruitment, StudyFile, Texts
 
 StimulusKey = tuple[str, str]  # (animation, condition)
@@ -84,7 +86,7 @@ def _columns(definition: StudyFile) -> dict[str, Any]:
     return {"title": definition.title, "consent_version": texts.pop("consent_version"), "texts": texts,
             "scale": definition.scale.model_dump(), "questions": [q.model_dump() for q in definition.questions],
             "design": definition.design.model_dump(), "recruitment": definition.recruitment.model_dump(),
-            "page": definition.page.model_dump()}
+            "page": definition.page.model_dump(), "screening": definition.screening.model_dump()}
 
 
 def definition(study: Study) -> StudyFile:
@@ -92,7 +94,7 @@ def definition(study: Study) -> StudyFile:
     return StudyFile.model_validate({
         "slug": study.slug, "title": study.title, "texts": {**study.texts, "consent_version": study.consent_version},
         "scale": study.scale, "questions": study.questions, "design": study.design, "recruitment": study.recruitment,
-        "page": study.page or {}})
+        "page": study.page or {}, "screening": study.screening or {}})
 
 
 def create_study(session: Session, media: RenderManifest, study_file: StudyFile,
@@ -198,12 +200,14 @@ def default_study(session: Session) -> Study | None:
 def update_study(session: Session, study: Study, changes: Mapping[str, Any],
                  media: RenderManifest | None = None, media_dir: Path | None = None,
                  clips_dir: Path | None = None, animations: Collection[str] | None = None) -> Study:
-    """Apply a partial study file (sections are merged into the current ones): ``title``, ``texts``, ``scale``,
+    """Apply a partial study file (sections are merged into the current ones): ``screening`` at any time (it
+    changes the analysis, not what participants see); ``title``, ``texts``, ``scale``,
     ``questions`` and ``recruitment`` until the study first opens; ``design`` only while it is a draft that never
     opened (its comparisons are rebuilt over ``media``, the render manifest).  Otherwise 409: participants saw it
     as it is.  An invalid result raises pydantic's ValidationError (the API answers 422)."""
-    if study.opened_at is not None:
-        raise Conflict(f"study {study.slug!r} has been open: participants saw it as it is; create a new study")
+    if study.opened_at is not None and set(changes) - {"screening"}:
+        raise Conflict(f"study {study.slug!r} has been open: participants saw it as it is; create a new study "
+                       "(only [screening], which participants never see, can still change)")
     if "slug" in changes and changes["slug"] != study.slug:
         raise Conflict("a study's slug cannot change")
     if changes.get("clips") is not None:
@@ -216,6 +220,7 @@ def update_study(session: Session, study: Study, changes: Mapping[str, Any],
     if updated.design != Design.model_validate(study.design):  # designs stored before a field existed compare equal
         if study.state != StudyState.draft or media is None:
             raise Conflict("the design can change only while the study is a draft")
+        delete_pilot_sessions(session, study, commit=False)  # their trials show the old comparisons
         _build_comparisons(session, study, media, updated.design, media_dir, clips_dir, animations)
     for key, value in _columns(updated).items():
         setattr(study, key, value)
@@ -226,6 +231,7 @@ def update_study(session: Session, study: Study, changes: Mapping[str, Any],
 def delete_study(session: Session, study: Study) -> None:
     if study.state != StudyState.draft or study.opened_at is not None:
         raise Conflict(f"study {study.slug!r} is {study.state}; only a draft that never opened can be deleted")
+    delete_pilot_sessions(session, study, commit=False)  # a draft's only sessions; their trials hold comparisons
     session.delete(study)
     session.commit()
 
@@ -290,10 +296,14 @@ def failed_catch_trials(session: Session, study: Study, session_id: str | None =
 
 
 def session_outcome(study: Study, state: str, failed_catch: int) -> str | None:
-    """``completed``, or ``screened_out`` when more catch trials were failed than the study allows; None for a
-    session that has not finished."""
+    """What a finished session's participant is told (and which completion code or link they get):
+    ``completed``, or ``screened_out`` when the study screens by catch trials (``[screening] rules``) and more
+    were failed than it allows; None for a session that has not finished.  The other rules are applied to the
+    results and exports only: most compare a participant with the panel, which grows after they leave."""
     if state != SessionState.completed:
         return None
+    if "catch" not in screening_rules(study).rules:
+        return "completed"
     return "screened_out" if failed_catch > recruitment(study).catch_failures_allowed else "completed"
 
 
@@ -324,35 +334,23 @@ def csv_cell(value: object) -> object:
     return value
 
 
-def unfaithful_clips(clips_dir: Path) -> frozenset[str]:
-    """Ids of the clips built although the fidelity gate failed (``accept_unfaithful``; docs/motion-from-the-wild.md);
-    none if there is no readable clip set."""
-    from server.clipset.manifest import ManifestError, read_clip_manifest
-
-    try:
-        manifest = read_clip_manifest(clips_dir)
-    except (ManifestError, OSError, ValueError):
-        return frozenset()
-    return frozenset(c.id for c in manifest.clips if c.metrics.get("unfaithful"))
-
-
-def export_csv(session: Session, study: Study, unfaithful: frozenset[str] = frozenset()) -> str:
-    """The export as CSV (cells as :func:`csv_cell` writes them); ``unfaithful``: :func:`unfaithful_clips`."""
+def export_csv(session: Session, study: Study, include_pilot: bool = False) -> str:
+    """The export as CSV (cells as :func:`csv_cell` writes them)."""
     buffer = io.StringIO()
     # RFC 4180 line ends: with "\n" alone the csv module would not quote a value holding a bare "\r", and every
     # reader would split the row there.
     writer = csv.DictWriter(buffer, fieldnames=export_columns(study), lineterminator="\r\n")
     writer.writeheader()
-    for row in export_rows(session, study, unfaithful):
+    for row in export_rows(session, study, include_pilot):
         writer.writerow({k: csv_cell(v) for k, v in row.items()})
     return buffer.getvalue()
 
 
-def export_document(session: Session, study: Study, unfaithful: frozenset[str] = frozenset()) -> dict[str, Any]:
-    """The export as one JSON document: the study, the columns, the rows (``unfaithful``: :func:`unfaithful_clips`)."""
+def export_document(session: Session, study: Study, include_pilot: bool = False) -> dict[str, Any]:
+    """The export as one JSON document: the study, the columns, the rows."""
     return {"study": {"slug": study.slug, "title": study.title, "state": study.state, "design": study.design,
                       "consent_version": study.consent_version, "questions": study.questions},
-            "columns": export_columns(study), "votes": list(export_rows(session, study, unfaithful))}
+            "columns": export_columns(study), "votes": list(export_rows(session, study, include_pilot))}
 
 
 def pairs_in_use(session: Session) -> list[tuple[str, str]]:
@@ -374,16 +372,23 @@ def pairs_to_render(session: Session, design: Design, clips_dir: Path, media_dir
     return list(dict.fromkeys([*pairs_in_use(session), *before, *required_pairs(design, index)]))
 
 
-def export_rows(session: Session, study: Study, unfaithful: frozenset[str] = frozenset()) -> Iterator[dict[str, Any]]:
-    """One row per vote (withdrawn participants' votes no longer exist), in session and trial order; ``unfaithful``:
-    the clip ids built in spite of the fidelity gate (:func:`unfaithful_clips`), which mark a vote on them."""
+def screening_rules(study: Study) -> Screening:
+    """The study's ``[screening]`` (NULL before migration 0009: the catch-trial rule alone)."""
+    return Screening.model_validate(study.screening or {})
+
+
+def screened_rows(session: Session, study: Study, include_pilot: bool = False
+                  ) -> tuple[list[dict[str, Any]], dict[str, ParticipantScreening]]:
+    """The export rows (see :func:`export_rows`) and every completed participant's screening record, by the
+    study's ``[screening]`` rules (``screening.screen``).  Pilot sessions only with ``include_pilot``."""
     reference, test = aliased(Stimulus), aliased(Stimulus)
     questions = [q["id"] for q in study.questions]
     parameters = list(study.recruitment["parameters"])
-    rows = session.execute(
+    query = (
         select(Vote, Trial, ParticipantSession, Comparison.kind, reference.animation, reference.condition,
                test.condition, reference.clip_id, test.clip_id, reference.video, test.video,
-               Comparison.video_reference_left, Comparison.video_reference_right)
+               Comparison.video_reference_left, Comparison.video_reference_right, reference.frames,
+               reference.fps, test.frames, test.fps)
         .join(Trial, Vote.trial_id == Trial.id)
         .join(ParticipantSession, Trial.session_id == ParticipantSession.id)
         .join(Comparison, Trial.comparison_id == Comparison.id)
@@ -392,25 +397,34 @@ def export_rows(session: Session, study: Study, unfaithful: frozenset[str] = fro
         .where(ParticipantSession.study_id == study.id)
         .order_by(ParticipantSession.created_at, ParticipantSession.id, Trial.index)
     )
-    failed = failed_catch_trials(session, study)
+    if not include_pilot:
+        query = query.where(ParticipantSession.pilot.is_(False))
     pinned = study.stimulus_set
-    hashes = stimulus_sets.content_of(pinned).hashes() if pinned is not None else {}
+    content = stimulus_sets.content_of(pinned) if pinned is not None else None
+    hashes = content.hashes() if content is not None else {}
+    # clips built in spite of the fidelity gate (accept_unfaithful) mark every vote on them
+    unfaithful = {c.id for c in content.clips if c.metrics.get("unfaithful")} if content is not None else set()
     mode = study.design.get("mode", "reference")  # designs stored before issue 27 have no mode
+    rows: list[dict[str, Any]] = []
+    playback: dict[tuple[str, str, str], float] = {}
     for (vote, trial, ps, kind, animation, ref_condition, test_condition, ref_clip, test_clip, ref_video, test_video,
-         pair_ref_left, pair_ref_right) in rows:
+         pair_ref_left, pair_ref_right, ref_frames, ref_fps, test_frames, test_fps) in session.execute(query):
+        # one playback of the pair video: until the longer of its two clips has ended
+        playback[(animation, ref_condition, test_condition)] = 1000 * max(ref_frames / ref_fps,
+                                                                          test_frames / test_fps)
         left, right = (ref_video, test_video) if trial.reference_side == "left" else (test_video, ref_video)
         left_condition, right_condition = ((ref_condition, test_condition) if trial.reference_side == "left"
                                            else (test_condition, ref_condition))
         pair = pair_ref_left if trial.reference_side == "left" else pair_ref_right
         answers, external, device = ps.answers or {}, ps.external or {}, ps.device or {}
-        yield {
+        rows.append({
             "session_id": ps.id, "trial_index": trial.index, "practice": trial.practice,
             "catch": kind == ComparisonKind.catch, "animation": animation, "reference_condition": ref_condition,
             "test_condition": test_condition, "reference_side": trial.reference_side,
             "test_side": other_side(trial.reference_side), "choice": vote.choice, "score": vote.score,
             "rt_ms": vote.rt_ms, **{q: answers.get(q) for q in questions},
             "answered_at": vote.answered_at.isoformat(), "consent_version": ps.consent_version,
-            "session_state": ps.state, "outcome": session_outcome(study, ps.state, failed.get(ps.id, 0)),
+            "session_state": ps.state, "outcome": None,
             "viewport_width": device.get("viewport_width"),
             "viewport_height": device.get("viewport_height"), "device_pixel_ratio": device.get("device_pixel_ratio"),
             "video_scale": device.get("scale"), "video_scaled": device.get("scaled"),
@@ -419,6 +433,68 @@ def export_rows(session: Session, study: Study, unfaithful: frozenset[str] = fro
             "stimulus_set": pinned.digest if pinned is not None else None,
             "design_mode": mode, "left_condition": left_condition,
             "right_condition": right_condition,
+            "screened_by": None, "pilot": ps.pilot,
             **{p: external.get(p) for p in parameters},
-        }
+        })
+    records = screen(rows, screening_rules(study), recruitment(study).catch_failures_allowed, playback)
+    for row in rows:
+        record = records.get(row["session_id"])
+        if record is not None:  # a completed session
+            row["outcome"] = "screened_out" if record.screened_out else "completed"
+            row["screened_by"] = ";".join(record.flagged_by) or None
+    return rows, records
 
+
+def export_rows(session: Session, study: Study, include_pilot: bool = False) -> Iterator[dict[str, Any]]:
+    """One row per vote (withdrawn participants' votes no longer exist), in session and trial order; ``outcome``
+    and ``screened_by`` by the study's screening rules; pilot sessions only with ``include_pilot``."""
+    yield from screened_rows(session, study, include_pilot)[0]
+
+
+def _analysed_test_rows(session: Session, study: Study, include_pilot: bool) -> list[dict[str, Any]]:
+    """Test trials of the participants who finished and were not screened out (the subject model's input)."""
+    rows, _ = screened_rows(session, study, include_pilot)
+    return [r for r in rows if not r["practice"] and not r["catch"] and r["outcome"] == "completed"]
+
+
+def export_sureal(session: Session, study: Study, include_pilot: bool = False) -> dict[str, Any]:
+    """The analysed test votes as a ``sureal`` dataset (its JSON form: ``sureal --dataset FILE.json``, or
+    ``sureal.tools.misc.import_json_file``): a comparison (animation, reference, test condition) is a distorted
+    video, its animation the content, each participant's side-swapped showings the repetitions of their score;
+    scores -2..+2 from the test condition's point of view."""
+    rows = _analysed_test_rows(session, study, include_pilot)
+    comparisons = sorted({(r["animation"], r["reference_condition"], r["test_condition"]) for r in rows})
+    animations = sorted({a for a, _, _ in comparisons})
+    scores: dict[tuple[str, str, str], dict[str, list[int]]] = {c: {} for c in comparisons}
+    for r in rows:
+        key = (r["animation"], r["reference_condition"], r["test_condition"])
+        scores[key].setdefault(r["session_id"], []).append(r["score"])
+    return {
+        "dataset_name": study.slug,
+        "ref_videos": [{"content_id": i, "content_name": a, "path": a} for i, a in enumerate(animations)],
+        "dis_videos": [{"asset_id": i, "content_id": animations.index(a), "path": f"{a}/{test}-vs-{ref}",
+                        "animation": a, "reference_condition": ref, "test_condition": test,
+                        "os": scores[(a, ref, test)]}
+                       for i, (a, ref, test) in enumerate(comparisons)],
+    }
+
+
+PWCMP_COLUMNS = ("observer", "session", "scene", "cond1", "cond2", "selection")
+
+
+def export_pwcmp_csv(session: Session, study: Study, include_pilot: bool = False) -> str:
+    """The analysed test votes as pairwise comparisons in pwcmp's table (observer, session, scene, cond1, cond2,
+    selection): cond1 the condition shown left, cond2 the one shown right, selection 1 or 2 for the side the
+    participant preferred (slightly or much); "equal" answers are left out, as pwcmp models a forced choice.
+    Works for any design: it reads each trial's two conditions."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\r\n")
+    writer.writerow(PWCMP_COLUMNS)
+    for r in _analysed_test_rows(session, study, include_pilot):
+        left, right = ((r["reference_condition"], r["test_condition"]) if r["reference_side"] == "left"
+                       else (r["test_condition"], r["reference_condition"]))
+        raw = CHOICE_SCORES[r["choice"]]
+        if raw:
+            writer.writerow([csv_cell(v) for v in (r["session_id"], 1, r["animation"], left, right,
+                                                   1 if raw > 0 else 2)])
+    return buffer.getvalue()

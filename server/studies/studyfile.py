@@ -6,11 +6,13 @@ file and reports every error with its field path and, where it can be found, its
 
 from __future__ import annotations
 
+import math
 import re
 import string
 import tomllib
+import unicodedata
 from pathlib import Path
-from typing import Annotated, Any, Self
+from typing import Annotated, Any, Literal, Self
 from urllib.parse import quote, urlsplit
 
 from pydantic import (
@@ -30,6 +32,7 @@ from .columns import EXPORT_COLUMNS
 from .design import Design
 from .page import Page
 from .scale import DEFAULT_LABELS, DEFAULT_QUESTION
+from .screening import Screening
 
 # Package data (pyproject.toml), so an installed animstudy has its default study: in the checkout a link to
 # studies/thesis.toml, in a built wheel a copy of it.
@@ -83,12 +86,30 @@ class Choice(_Strict):
     label: str = Field(min_length=1, max_length=120)
 
 
+QuestionType = Literal["choice", "number", "text", "likert"]
+Label = Annotated[str, StringConstraints(min_length=1, max_length=120)]
+
+
 class Question(_Strict):
-    """A demographic or screening question: one answer from ``choices``; an export column named ``id``."""
+    """A demographic or screening question; an export column named ``id``.  ``type``:
+
+    - ``choice`` (the default): one answer from ``choices``, exported as the choice's id;
+    - ``number``: a number between ``min`` and ``max`` (whole if ``integer``), e.g. an age, in ``unit``;
+    - ``text``: a short free text of at most ``max_length`` characters;
+    - ``likert``: one point of a scale with 3 to 11 ``labels`` (first to last), exported as its position 1..n.
+    """
 
     id: Key
     text: str = Field(min_length=1, max_length=300)
-    choices: list[Choice] = Field(min_length=2, max_length=12)
+    type: QuestionType = "choice"
+    choices: list[Choice] | None = Field(None, min_length=2, max_length=12, description="choice: the answers")
+    min: float | None = Field(None, description="number: the least accepted answer")
+    max: float | None = Field(None, description="number: the largest accepted answer")
+    integer: bool = Field(False, description="number: whole numbers only")
+    unit: str | None = Field(None, min_length=1, max_length=20, description="number: shown beside the field, "
+                             "e.g. years")
+    max_length: int = Field(200, ge=1, le=1000, description="text: the most characters")
+    labels: list[Label] | None = Field(None, min_length=3, max_length=11, description="likert: the points' labels")
 
     @field_validator("id")
     @classmethod
@@ -98,11 +119,50 @@ class Question(_Strict):
         return value
 
     @model_validator(mode="after")
-    def unique_choices(self) -> Self:
-        ids = [c.id for c in self.choices]
-        if len(set(ids)) != len(ids):
-            raise ValueError(f"question {self.id!r} lists a choice id more than once")
+    def fits_its_type(self) -> Self:
+        if (self.type == "choice") != (self.choices is not None):
+            raise ValueError(f"question {self.id!r}: choices are required for type 'choice' and only for it")
+        if (self.type == "likert") != (self.labels is not None):
+            raise ValueError(f"question {self.id!r}: labels are required for type 'likert' and only for it")
+        if self.type != "number" and (self.min is not None or self.max is not None or self.unit or self.integer):
+            raise ValueError(f"question {self.id!r}: min, max, integer and unit are for type 'number' only")
+        for bound in (self.min, self.max):
+            if bound is not None and not math.isfinite(bound):
+                raise ValueError(f"question {self.id!r}: min and max must be finite numbers")
+        if self.min is not None and self.max is not None and self.min >= self.max:
+            raise ValueError(f"question {self.id!r}: min must be less than max")
+        if self.choices is not None:
+            ids = [c.id for c in self.choices]
+            if len(set(ids)) != len(ids):
+                raise ValueError(f"question {self.id!r} lists a choice id more than once")
         return self
+
+    def answer_error(self, value: object) -> str | None:
+        """Why ``value`` (as JSON decoded it) is not an answer to this question; None if it is."""
+        if self.type == "choice":
+            ids = [c.id for c in self.choices or []]
+            return None if isinstance(value, str) and value in ids else f"Input should be {', '.join(map(repr, ids))}"
+        if self.type == "likert":
+            n = len(self.labels or [])
+            ok = isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= n
+            return None if ok else f"Input should be a whole number from 1 to {n}"
+        if self.type == "text":
+            if not isinstance(value, str) or not value.strip():
+                return "Input should be a non-empty text"
+            if len(value) > self.max_length:
+                return f"Input should have at most {self.max_length} characters"
+            if any(unicodedata.category(ch) == "Cc" and ch not in "\n\t" for ch in value):
+                return "Input should not contain control characters"
+            return None
+        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+            return "Input should be a number"
+        if self.integer and value != int(value):
+            return "Input should be a whole number"
+        if (self.min is not None and value < self.min) or (self.max is not None and value > self.max):
+            low = "" if self.min is None else f" from {self.min:g}"
+            high = "" if self.max is None else f" to {self.max:g}"
+            return f"Input should be a number{low}{high}"
+        return None
 
 
 _YES_NO = [Choice(id="yes", label="Yes"), Choice(id="no", label="No"), Choice(id="dont_know", label="Don't know")]
@@ -224,6 +284,8 @@ class StudyFile(_Strict):
     recruitment: Recruitment = Field(default_factory=Recruitment)
     page: Page = Field(default_factory=Page, description="the page's language, its own wording and the device gate")
     clips: Clips | None = Field(None, description="the clip set its clips come from (default: the server's)")
+    screening: Screening = Field(default_factory=Screening, description="the observer-screening rules the results "
+                                 "and exports apply (docs/screening.md); the default: failed catch trials")
 
     @model_validator(mode="after")
     def unique_questions(self) -> Self:

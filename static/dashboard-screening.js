@@ -1,0 +1,90 @@
+// The dashboard's screening and pilot panel (issue 28): the statistics with and without the study's screening
+// rules side by side, the excluded participants with the rules that flagged them and by how much, the subject
+// model (P.910/P.913) per comparison and participant, and the pilot runs (preview link, include, delete).
+"use strict";
+
+window.DashboardScreening = (() => {
+  const $ = (id) => document.getElementById(id);
+  const fmt = (v, digits = 2) => (v === null || v === undefined ? "–" : Number(v).toFixed(digits));
+  const p = (v) => (v === null || v === undefined ? "–" : v < 0.001 ? "< 0.001" : v.toFixed(3));
+  const interval = (ci) => (ci && ci[0] !== null ? `${fmt(ci[0])} … ${fmt(ci[1])}` : "–");
+  const short = (sid) => sid.slice(0, 8);
+  const RULE_NAMES = {
+    catch: "failed catch trials", straight_lining: "answer variance", z_outlier: "share of |z| outlier votes",
+    bt500: "BT.500 (P+Q)/(J·R)", correlation: "correlation with the panel", fast: "share answered before one playback",
+  };
+
+  function table(container, header, rows) {
+    const { table: t, body } = Researcher.newTable(header);
+    for (const row of rows) {
+      const tr = body.insertRow();
+      for (const cell of row) tr.insertCell().textContent = cell;
+    }
+    container.replaceChildren(t);
+  }
+
+  function render(res) {
+    const s = res.screening;
+    if (!s) return;
+    const flagged = Object.entries(s.flagged).map(([rule, n]) => `${rule} ${n}`).join(", ") || "none";
+    $("screening-summary").textContent =
+      `Rules: ${s.rules.join(", ")}. Flagged per rule: ${flagged}. Screened out: ${res.participants.screened_out} ` +
+      `of ${res.participants.completed} who finished.`;
+    const without = new Map(res.without_screening.comparisons.map((c) => [`${c.animation}|${c.condition}`, c]));
+    const rows = res.comparisons.map((c) => {
+      const w = without.get(`${c.animation}|${c.condition}`) || {};
+      return [`${c.animation}, ${c.condition}`, c.n_participants, fmt(c.mean_score), interval(c.ci95), p(c.p_holm),
+              w.n_participants ?? "–", fmt(w.mean_score), interval(w.ci95), p(w.p_holm)];
+    });
+    const o = res.overall, wo = res.without_screening.overall;
+    rows.push(["all comparisons", o.n_participants, fmt(o.mean_score), interval(o.ci95), p(o.wilcoxon_p),
+               wo.n_participants, fmt(wo.mean_score), interval(wo.ci95), p(wo.wilcoxon_p)]);
+    table($("table-screening"), ["comparison", "n (screened)", "mean", "95 % CI", "Holm p", "n (everyone)", "mean",
+                                 "95 % CI", "Holm p"], rows);
+    table($("table-excluded"), ["participant", "screened by", "measures (value / threshold)"],
+          s.excluded.map((e) => [short(e.session_id), e.screened_by.join(", "),
+                                 Object.entries(e.rules).filter(([, r]) => r.flagged)
+                                   .map(([rule, r]) => `${RULE_NAMES[rule] || rule}: ${fmt(r.value)} / ${fmt(r.threshold)}`)
+                                   .join("; ")]));
+    $("excluded-empty").hidden = s.excluded.length > 0;
+    const m = res.subject_model;
+    if (m && m.status !== "too_few") {
+      table($("table-subject-comparisons"), ["comparison", "modelled score", "95 % CI"],
+            m.comparisons.map((c) => [`${c.animation}, ${c.condition}`, fmt(c.score), interval(c.ci95)]));
+      table($("table-subject-participants"), ["participant", "bias", "95 % CI", "inconsistency", "95 % CI"],
+            m.participants.map((q) => [short(q.session_id), fmt(q.bias), interval(q.bias_ci95), fmt(q.inconsistency),
+                                       interval(q.inconsistency_ci95)]));
+      $("subject-model-note").textContent = `Maximum likelihood, ${m.iterations} iterations (${m.status}).`;
+    } else {
+      $("table-subject-comparisons").replaceChildren();
+      $("table-subject-participants").replaceChildren();
+      $("subject-model-note").textContent = m ? m.note : "";
+    }
+    $("pilot-count").textContent = `${res.participants.pilot} pilot session(s)` +
+      (res.pilot_included ? ", included in everything above." : ", left out of everything above.");
+  }
+
+  // `slug()`: the study shown; `refresh()`: reloads the results.
+  function start(slug, refresh) {
+    $("include-pilot").addEventListener("change", () => refresh());
+    $("preview-link").addEventListener("click", async () => {
+      const r = await Researcher.api(`/studies/${encodeURIComponent(slug())}/preview`, { method: "POST" });
+      const body = await r.json().catch(() => ({}));
+      if (!r.ok) { $("pilot-message").textContent = body.detail || `HTTP ${r.status}`; return; }
+      const link = Object.assign(document.createElement("a"), { href: body.url, target: "_blank", rel: "noopener",
+                                                                textContent: `${location.origin}${body.url}` });
+      $("pilot-message").replaceChildren("Preview link (until ", body.expires_at.slice(0, 10), "): ", link);
+    });
+    $("delete-pilot").addEventListener("click", async () => {
+      if (!confirm("Delete every pilot session of this study, with all its answers?")) return;
+      const r = await Researcher.api(`/studies/${encodeURIComponent(slug())}/pilot-sessions`, { method: "DELETE" });
+      const body = await r.json().catch(() => ({}));
+      $("pilot-message").textContent = r.ok ? `Deleted ${body.sessions} pilot session(s) and ${body.votes} vote(s).`
+                                            : `Delete failed (HTTP ${r.status}).`;
+      await refresh();
+    });
+  }
+
+  const query = () => ($("include-pilot").checked ? "?pilot=true" : "");
+  return { render, start, query };
+})();

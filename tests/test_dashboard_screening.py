@@ -1,0 +1,75 @@
+"""The dashboard's screening panel in Chromium: statistics with and without screening side by side, the excluded
+list with its reasons, the subject model, and the pilot controls (issue 28)."""
+
+import pytest
+from playwright.sync_api import sync_playwright
+
+from server.app import create_app
+from server.config import Settings
+from server.db import migrate, session_factory
+from server.participants import service
+from server.researchers.service import create_researcher
+from tests.conftest import _fresh_engine
+from tests.server_fixtures import live_server, make_study
+from tests.test_participant_page import ARGS, CHROMIUM, wait_until
+from tests.test_results import simulate
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    settings = Settings(var_dir=tmp_path_factory.mktemp("var"), secret_key="dashboard-test-secret-0123456789abcdef")
+    engine = _fresh_engine("sqlite", tmp_path_factory)
+    migrate(engine)
+    with session_factory(engine)() as db:
+        study = make_study(db, screening={"rules": ["catch", "straight_lining"]})
+        simulate(db, study, n=16, seed=5)  # > 13 complete: scipy's quick Wilcoxon
+        straight = service.start_session(db, study, None).session
+        for trial in straight.trials:
+            service.cast_vote(db, straight, trial, "equal", 3000, f"s{trial.id}", {})
+        pilot = service.start_session(db, study, None, pilot=True).session
+        for trial in pilot.trials:
+            service.cast_vote(db, pilot, trial, "left_much", 3000, f"p{trial.id}", {})
+        create_researcher(db, "lead@example.org", "correct horse battery", admin=True)
+        ids = straight.id, pilot.id
+    with live_server(create_app(settings, engine, run_migrations=False)) as base:
+        yield base, ids
+    engine.dispose()
+
+
+def rows(page, selector):
+    return page.eval_on_selector(selector, "e => [...e.querySelectorAll('tbody tr')].map(r => r.innerText)")
+
+
+def test_screening_panel(site):
+    base, (straight, _pilot) = site
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        page = browser.new_page(viewport={"width": 1280, "height": 720})
+        errors = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.on("dialog", lambda d: d.accept())
+        page.goto(f"{base}/dashboard")
+        page.fill("#email", "lead@example.org")
+        page.fill("#password", "correct horse battery")
+        page.click("#login-form button")
+        page.wait_for_selector("#dashboard:not([hidden])")
+        wait_until(page, "document.querySelectorAll('#table-screening tbody tr').length === 9")
+        assert "straight_lining" in page.inner_text("#screening-summary")
+        excluded = rows(page, "#table-excluded")
+        assert any(r.startswith(straight[:8]) and "straight_lining" in r and "answer variance: 0.00 / 0.15" in r
+                   for r in excluded), excluded
+        # the side by side: everyone who finished (the straight-liner among them) against those kept
+        first = rows(page, "#table-screening")[0].split("\t")
+        assert int(first[5]) == int(first[1]) + len(excluded)
+        assert len(rows(page, "#table-subject-comparisons")) == 8
+        assert len(rows(page, "#table-subject-participants")) == int(first[1])
+        assert "1 pilot session(s), left out" in page.inner_text("#pilot-count")
+        page.check("#include-pilot")
+        wait_until(page, "document.getElementById('pilot-count').textContent.includes('included')")
+        page.click("#preview-link")
+        wait_until(page, "document.getElementById('pilot-message').textContent.includes('?preview=')")
+        page.click("#delete-pilot")
+        wait_until(page, "document.getElementById('pilot-message').textContent.startsWith('Deleted 1 pilot')")
+        wait_until(page, "document.getElementById('pilot-count').textContent.startsWith('0 pilot')")
+        browser.close()
+        assert not errors, errors

@@ -1,0 +1,126 @@
+"""The P.910/P.913 subject model (server/studies/subject_model.py) against Netflix's sureal 0.9.0.
+
+Datasets: sureal's own examples, copied as JSON into tests/reference/sureal/ (see "source" in each file):
+``NFLX_dataset_public_raw`` (79 stimuli, 26 subjects, 9 contents; sureal's test suite's main dataset) and
+``VQEGHD3_dataset_raw`` (72 stimuli, 24 subjects, 8 contents), and NFLX with holes and repetitions made here.
+Tolerances: sureal's published numbers (its test suite, test_observer_content_aware_subjective_model) to 4
+decimals, as sureal checks itself; sureal run here, element by element, to 1e-9 (measured: <= 2e-15, 8e-10 for the
+inconsistency's standard error).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import types
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from server.studies.subject_model import fit
+
+SUREAL_DIR = Path(__file__).parent / "reference" / "sureal"
+
+
+def dataset(name: str) -> tuple[np.ndarray, list[int]]:
+    data = json.loads((SUREAL_DIR / f"{name}.json").read_text())
+    x = np.array([[[np.nan if v is None else v for v in row] for row in e] for e in data["scores"]], dtype=float)
+    assert list(x.shape) == data["shape"]
+    return x, data["content"]
+
+
+def sureal_run(model: str, x: np.ndarray, content: list[int], **kwargs) -> dict:
+    """sureal's ``model`` (a class of sureal.subjective_model) on x[e, s, r], through a dataset in sureal's
+    dictionary form."""
+    from sureal import subjective_model
+    from sureal.dataset_reader import RawDatasetReader
+
+    n_e, n_s, _n_r = x.shape
+    ds = types.SimpleNamespace(
+        dataset_name="t", yuv_fmt="yuv420p", width=1, height=1, ref_score=5.0,
+        ref_videos=[{"content_id": c, "content_name": f"c{c}", "path": f"r{c}"} for c in range(max(content) + 1)],
+        dis_videos=[{"asset_id": e, "content_id": content[e], "path": f"d{e}",
+                     "os": {f"s{s:02d}": [float(v) for v in x[e, s] if not np.isnan(v)]
+                            for s in range(n_s) if not np.all(np.isnan(x[e, s]))}} for e in range(n_e)])
+    with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():  # sureal prints every iteration
+        warnings.simplefilter("ignore")
+        return getattr(subjective_model, model)(RawDatasetReader(ds)).run_modeling(**kwargs)
+
+
+def test_published_numbers_of_sureal_on_its_nflx_dataset():
+    x, content = dataset("NFLX_dataset_public_raw")
+    m = fit(x, content, force_bias_zero_mean=False)
+    assert m.converged
+    # sureal 0.9.0 test/subjective_model_test.py::test_observer_content_aware_subjective_model (places=4)
+    assert np.sum(m.ambiguity) == pytest.approx(3.8972884776604402, abs=1e-4)
+    assert np.var(m.ambiguity) == pytest.approx(0.0041122094732031289, abs=1e-4)
+    assert np.sum(m.bias) == pytest.approx(-0.055712761348815837, abs=1e-4)
+    assert np.var(m.bias) == pytest.approx(0.085842891905121704, abs=1e-4)
+    assert np.sum(m.inconsistency) == pytest.approx(10.164665557559516, abs=1e-4)
+    assert np.var(m.inconsistency) == pytest.approx(0.028749990587721687, abs=1e-4)
+    assert np.sum(m.quality) == pytest.approx(280.20774261173619, abs=1e-4)
+    assert np.var(m.quality) == pytest.approx(1.4351342153719635, abs=1e-4)
+    assert np.sum(m.ambiguity_std) == pytest.approx(0.30465244947706538, abs=1e-4)
+    assert np.sum(m.bias_std) == pytest.approx(1.7392847550878989, abs=1e-4)
+    assert np.sum(m.inconsistency_std) == pytest.approx(22.108576292956428, abs=1e-4)
+    assert np.sum(m.quality_std) == pytest.approx(8.8863877635750423, abs=1e-4)
+    assert m.loglikelihood == pytest.approx(-0.8897673811562866, abs=1e-6)
+
+
+def _holes_and_repeats() -> tuple[np.ndarray, list[int]]:
+    """NFLX with a second repetition (the first plus or minus one, clipped) and 15 % of the scores missing."""
+    x, content = dataset("NFLX_dataset_public_raw")
+    rng = np.random.default_rng(7)
+    second = np.clip(x[:, :, :1] + rng.integers(-1, 2, size=x[:, :, :1].shape), 1, 5)
+    x = np.concatenate([x, second], axis=2)
+    x[rng.random(x.shape) < 0.15] = np.nan
+    return x, content
+
+
+# NFLX itself is pinned by the published numbers above (sureal takes 10 s on it).
+@pytest.mark.parametrize("name", ["VQEGHD3_dataset_raw", "holes_and_repeats"])
+def test_same_as_sureal_element_by_element(name):
+    x, content = _holes_and_repeats() if name == "holes_and_repeats" else dataset(name)
+    ours = fit(x, content)
+    theirs = sureal_run("MaximumLikelihoodEstimationModel", x, content)
+    assert ours.iterations == theirs["num_iter"]
+    for mine, key in [(ours.quality, "quality_scores"), (ours.quality_std, "quality_scores_std"),
+                      (ours.bias, "observer_bias"), (ours.bias_std, "observer_bias_std"),
+                      (ours.inconsistency, "observer_inconsistency"),
+                      (ours.inconsistency_std, "observer_inconsistency_std"),
+                      (ours.ambiguity, "content_ambiguity"), (ours.ambiguity_std, "content_ambiguity_std")]:
+        np.testing.assert_allclose(mine, theirs[key], rtol=0, atol=1e-9, err_msg=key)
+    np.testing.assert_allclose(ours.quality_ci95[:, 1] - ours.quality, theirs["quality_scores_ci95"][1], atol=1e-9)
+    np.testing.assert_allclose(ours.inconsistency - ours.inconsistency_ci95[:, 0],
+                               theirs["observer_inconsistency_ci95"][0], atol=1e-9)
+    np.testing.assert_allclose(ours.inconsistency_ci95[:, 1] - ours.inconsistency,
+                               theirs["observer_inconsistency_ci95"][1], atol=1e-9)
+    assert ours.loglikelihood == pytest.approx(theirs["loglikelihood"], abs=1e-9)
+
+
+def test_recovers_a_planted_biased_and_an_inconsistent_subject():
+    rng = np.random.default_rng(3)
+    truth = np.linspace(-1.5, 1.5, 12)
+    bias = np.zeros(20)
+    bias[0] = 0.8
+    spread = np.full(20, 0.3)
+    spread[1] = 1.2
+    x = truth[:, None, None] + bias[None, :, None] + rng.normal(0, 1, (12, 20, 2)) * spread[None, :, None]
+    m = fit(x, [e % 4 for e in range(12)])
+    assert int(np.argmax(m.bias)) == 0 and m.bias_ci95[0, 0] > 0.4
+    assert int(np.argmax(m.inconsistency)) == 1 and m.inconsistency_ci95[1, 0] > 0.6
+    assert np.max(np.abs(m.quality - truth - np.mean(bias))) < 0.25
+
+
+def test_refuses_what_it_cannot_fit():
+    with pytest.raises(ValueError, match="shape"):
+        fit(np.zeros((3, 4)), [0, 0, 0])
+    with pytest.raises(ValueError, match="one entry per stimulus"):
+        fit(np.zeros((3, 4, 1)), [0, 0])
+    x = np.ones((3, 4, 1))
+    x[:, 2] = np.nan
+    with pytest.raises(ValueError, match="at least one score"):
+        fit(x, [0, 0, 0])
