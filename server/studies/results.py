@@ -16,6 +16,7 @@ from server.clipset.manifest import MANIFEST, ManifestError, read_clip_manifest
 from server.media.build import MediaError, identical_clips, read_clip_set
 from server.participants.models import ParticipantSession, SessionState, Vote
 
+from . import scale
 from .models import Study
 from .service import export_rows, failed_catch_trials, session_outcome
 from .statistics import analyse
@@ -90,4 +91,5 @@ def study_results(session: Session, study: Study, clips_dir: Path, benchmark_pat
                          "identical_to": same.get(c.id) if same.get(c.id, c.id) != c.id else None}
                         for c in clips]
     results["benchmark"] = _read_json(benchmark_path)
+    results["scale"] = scale.describe()
     return results

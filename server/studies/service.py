@@ -21,7 +21,7 @@ from server.researchers.models import Researcher
 
 from .design import ComparisonIds, Design
 from .models import Comparison, ComparisonKind, Stimulus, Study, StudyState
-from .scale import other_side
+from .scale import MAX_SCORE, other_side
 from .studyfile import Recruitment, StudyFile, Texts
 
 StimulusKey = tuple[str, str]  # (animation, condition)
@@ -237,7 +237,7 @@ def failed_catch_trials(session: Session, study: Study, session_id: str | None =
     query = (select(Trial.session_id, func.count(Vote.id)).join(Vote, Vote.trial_id == Trial.id)
              .join(Comparison, Trial.comparison_id == Comparison.id)
              .where(Comparison.study_id == study.id, Comparison.kind == ComparisonKind.catch,
-                    func.abs(Vote.score) == 2).group_by(Trial.session_id))
+                    func.abs(Vote.score) == MAX_SCORE).group_by(Trial.session_id))
     if session_id is not None:
         query = query.where(Trial.session_id == session_id)
     return {sid: n for sid, n in session.execute(query).all()}
