@@ -18,24 +18,8 @@ from server.participants.models import ParticipantSession, SessionState, Vote
 
 from . import scale
 from .models import Study
-from .service import export_rows, failed_catch_trials, session_outcome
+from .service import export_rows, participant_counts
 from .statistics import analyse
-
-
-def participant_counts(session: Session, study: Study) -> dict[str, int]:
-    """``started``: every session created (withdrawn included); ``completed``: finished and not withdrawn;
-    ``screened_out``: of those, the ones whose votes are not analysed (too many failed catch trials)."""
-    rows = session.execute(select(ParticipantSession.state, func.count()).where(
-        ParticipantSession.study_id == study.id).group_by(ParticipantSession.state)).all()
-    by_state = {state: n for state, n in rows}
-    failed = failed_catch_trials(session, study)
-    completed = session.scalars(select(ParticipantSession.id).where(
-        ParticipantSession.study_id == study.id, ParticipantSession.state == SessionState.completed,
-        ParticipantSession.id.in_(failed))) if failed else []
-    screened = sum(session_outcome(study, SessionState.completed, failed[sid]) == "screened_out" for sid in completed)
-    return {"started": sum(by_state.values()), "completed": by_state.get(SessionState.completed, 0),
-            "screened_out": screened, "withdrawn": by_state.get(SessionState.withdrawn, 0),
-            "active": by_state.get(SessionState.active, 0)}
 
 
 def _read_json(path: Path) -> Any:

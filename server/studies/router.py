@@ -7,19 +7,16 @@ from fastapi import APIRouter, Body, Depends, Request, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import PlainTextResponse, Response
 from pydantic import ValidationError
-from sqlalchemy import func, select
-from sqlalchemy.orm import Session
 
 from server.deps import ResearcherDep, SessionDep, SettingsDep
 from server.errors import Conflict, Unprocessable
 from server.media.manifest import ManifestError, RenderManifest, read_render_manifest
-from server.participants.models import ParticipantSession, Vote
 from server.uploads.service import remove_study_assets
 
 from . import service
-from .models import Study, StudyState
+from .models import StudyState
 from .page import Page
-from .results import participant_counts, study_results
+from .results import study_results
 from .schemas import ExportJson, StudyPublic, StudyStateRead, StudySummary
 from .studyfile import StudyFile, StudyFileError, parse_study_text
 
@@ -28,23 +25,10 @@ DATA_DICTIONARY = Path(__file__).with_name("DATA_DICTIONARY.md")
 MAX_STUDY_FILE_BYTES = 200_000
 
 
-def summary(session: Session, study: Study) -> StudySummary:
-    counts = participant_counts(session, study)
-    votes = session.scalar(select(func.count(Vote.id)).join(ParticipantSession).where(
-        ParticipantSession.study_id == study.id)) or 0
-    never_opened = study.opened_at is None
-    return StudySummary(slug=study.slug, title=study.title, state=study.state,
-                        owner=study.owner.email if study.owner else None, started=counts["started"],
-                        completed=counts["completed"], votes=votes, trials_total=service.trials_total(study),
-                        participant_url=f"/s/{study.slug}",
-                        editable={"texts": never_opened, "recruitment": never_opened,
-                                  "design": never_opened and study.state == StudyState.draft})
-
-
 @router.get("/studies", response_model=list[StudySummary])
 def list_studies(session: SessionDep, researcher: ResearcherDep) -> list[StudySummary]:
     """The researcher's studies (an admin's: every study), with their participant counts."""
-    return [summary(session, s) for s in service.visible_studies(session, researcher)]
+    return [service.study_summary(session, s) for s in service.visible_studies(session, researcher)]
 
 
 def render_manifest(settings: Any) -> RenderManifest:
@@ -60,7 +44,8 @@ def create_study(body: StudyFile, session: SessionDep, settings: SettingsDep,
                  researcher: ResearcherDep) -> StudySummary:
     """A draft study from a study file's content (as JSON) over the rendered videos (``animstudy study create``
     renders what is missing; here the videos must exist)."""
-    return summary(session, service.create_study(session, render_manifest(settings), body, owner=researcher))
+    study = service.create_study(session, render_manifest(settings), body, owner=researcher)
+    return service.study_summary(session, study)
 
 
 async def study_file_text(request: Request) -> str:
@@ -106,7 +91,7 @@ def patch_study(slug: str, session: SessionDep, settings: SettingsDep, researche
     except ValidationError as exc:
         session.rollback()
         raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in exc.errors()]) from None
-    return summary(session, study)
+    return service.study_summary(session, study)
 
 
 @router.delete("/studies/{slug}", status_code=status.HTTP_204_NO_CONTENT)

@@ -22,6 +22,7 @@ from server.researchers.models import Researcher
 from .design import ComparisonIds, Design
 from .models import Comparison, ComparisonKind, Stimulus, Study, StudyState
 from .scale import MAX_SCORE, other_side
+from .schemas import StudySummary
 from .studyfile import Recruitment, StudyFile, Texts
 
 StimulusKey = tuple[str, str]  # (animation, condition)
@@ -353,3 +354,33 @@ def export_rows(session: Session, study: Study) -> Iterator[dict[str, Any]]:
             **{p: external.get(p) for p in parameters},
         }
 
+
+def participant_counts(session: Session, study: Study) -> dict[str, int]:
+    """``started``: every session created (withdrawn included); ``completed``: finished and not withdrawn;
+    ``screened_out``: of those, the ones whose votes are not analysed (too many failed catch trials)."""
+    rows = session.execute(select(ParticipantSession.state, func.count()).where(
+        ParticipantSession.study_id == study.id).group_by(ParticipantSession.state)).all()
+    by_state = {state: n for state, n in rows}
+    failed = failed_catch_trials(session, study)
+    completed = session.scalars(select(ParticipantSession.id).where(
+        ParticipantSession.study_id == study.id, ParticipantSession.state == SessionState.completed,
+        ParticipantSession.id.in_(failed))) if failed else []
+    screened = sum(session_outcome(study, SessionState.completed, failed[sid]) == "screened_out" for sid in completed)
+    return {"started": sum(by_state.values()), "completed": by_state.get(SessionState.completed, 0),
+            "screened_out": screened, "withdrawn": by_state.get(SessionState.withdrawn, 0),
+            "active": by_state.get(SessionState.active, 0)}
+
+
+def study_summary(session: Session, study: Study) -> StudySummary:
+    """The study as its list and the command line show it: state, owner, participant and vote counts, what may
+    still be edited."""
+    counts = participant_counts(session, study)
+    votes = session.scalar(select(func.count(Vote.id)).join(ParticipantSession).where(
+        ParticipantSession.study_id == study.id)) or 0
+    never_opened = study.opened_at is None
+    return StudySummary(slug=study.slug, title=study.title, state=study.state,
+                        owner=study.owner.email if study.owner else None, started=counts["started"],
+                        completed=counts["completed"], votes=votes, trials_total=trials_total(study),
+                        participant_url=f"/s/{study.slug}",
+                        editable={"texts": never_opened, "recruitment": never_opened,
+                                  "design": never_opened and study.state == StudyState.draft})
