@@ -11,7 +11,6 @@ from pydantic import ValidationError
 from server.deps import ResearcherDep, SessionDep, SettingsDep
 from server.errors import Conflict, Unprocessable
 from server.media.manifest import ManifestError, RenderManifest, read_render_manifest
-from server.uploads.service import remove_study_assets
 
 from . import service
 from .models import StudyState
@@ -96,10 +95,7 @@ def patch_study(slug: str, session: SessionDep, settings: SettingsDep, researche
 
 @router.delete("/studies/{slug}", status_code=status.HTTP_204_NO_CONTENT)
 def delete_study(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep) -> Response:
-    study = service.managed_study(session, slug, researcher)
-    study_id = study.id
-    service.delete_study(session, study)
-    remove_study_assets(settings, study_id)  # its asset rows went with it
+    service.delete_study(session, service.managed_study(session, slug, researcher), settings)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 

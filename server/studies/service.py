@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import io
+import shutil
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -12,6 +13,7 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, aliased, object_session
 
+from server.config import Settings
 from server.db import utcnow
 from server.errors import Conflict, Forbidden, NotFound, Unprocessable
 from server.media.build import identical_clips, read_clip_set, rendered_pairs
@@ -192,11 +194,14 @@ def update_study(session: Session, study: Study, changes: Mapping[str, Any],
     return study
 
 
-def delete_study(session: Session, study: Study) -> None:
+def delete_study(session: Session, study: Study, settings: Settings) -> None:
+    """A draft that never opened, with its uploaded files (their rows go with the study)."""
     if study.state != StudyState.draft or study.opened_at is not None:
         raise Conflict(f"study {study.slug!r} is {study.state}; only a draft that never opened can be deleted")
+    study_id = study.id
     session.delete(study)
     session.commit()
+    shutil.rmtree(settings.study_assets_dir(study_id), ignore_errors=True)
 
 
 def comparison_ids(study: Study) -> ComparisonIds:

@@ -271,7 +271,7 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
     if missing:
         raise BuildError(f"the asset files {', '.join(missing)} are missing from {settings.assets_dir}")
     check_names(settings.clips_dir, assets, asset_file)
-    config_path = write_clip_set_file(settings.assets_dir / str(study.id) / "clipset.toml", assets, asset_file,
+    config_path = write_clip_set_file(settings.study_assets_dir(study.id) / "clipset.toml", assets, asset_file,
                                       base_clip_set(settings.data, settings.clips_dir))
     config = load_config(config_path)
 
