@@ -296,7 +296,6 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
     from server.stimuli import pipeline
     from server.studies import service
     from server.studies.models import Study, StudyState
-    from server.studies.router import summary
     from server.studies.studyfile import StudyFile, StudyFileError, load_study_file
 
     command = args.study_command
@@ -351,7 +350,7 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                     print(f"note: {test} is identical to {ref} (same arrays): that comparison shows one clip on "
                           "both sides, like a catch trial")
             elif command == "list":
-                rows = [summary(session, s) for s in session.scalars(select(Study).order_by(Study.id))]
+                rows = [service.study_summary(session, s) for s in session.scalars(select(Study).order_by(Study.id))]
                 print(f"{'slug':24} {'state':7} {'started':>7} {'completed':>9} {'votes':>6}  title")
                 for r in rows:
                     print(f"{r.slug:24} {r.state:7} {r.started:7d} {r.completed:9d} {r.votes:6d}  {r.title}")

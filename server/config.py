@@ -92,6 +92,10 @@ class Settings(BaseSettings):
         """Uploaded motion files, ``<study id>/<file name>``; uploads arrive in ``.incoming/`` beside them."""
         return self.var / "assets"
 
+    def study_assets_dir(self, study_id: int) -> Path:
+        """One study's uploaded files, its asset clip set and its build log (deleted with the study)."""
+        return self.assets_dir / str(study_id)
+
     @property
     def benchmark_path(self) -> Path:
         """Results of ``animstudy benchmark`` (shown on the dashboard when present)."""

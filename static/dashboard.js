@@ -5,14 +5,15 @@
   const $ = (id) => document.getElementById(id);
   const params = new URLSearchParams(location.search);
   let slug = params.get("study"); // none: the first study the researcher may see
-  // Scores are from the test condition's point of view; the labels name the study's reference.
-  const scoreLegend = (ref) => [
-    { key: "-2", label: `${ref} significantly better`, color: "#b2182b" },
-    { key: "-1", label: `${ref} slightly better`, color: "#ef8a62" },
-    { key: "0", label: "equal", color: "#cfcfcf" },
-    { key: "1", label: "test slightly better", color: "#67a9cf" },
-    { key: "2", label: "test significantly better", color: "#2166ac" },
-  ];
+  // Scores are from the test condition's point of view; the labels name the study's reference.  The scores come
+  // from the API (results.answer_scale, server/studies/scale.py): -max is the reference much better, +max the test.
+  const SCORE_COLOURS = { strong: ["#b2182b", "#2166ac"], weak: ["#ef8a62", "#67a9cf"], none: "#cfcfcf" };
+  const scoreLegend = (ref, scale) => scale.scores.map((s) => {
+    const strength = Math.abs(s) === scale.max ? "significantly" : "slightly";
+    if (s === 0) return { key: "0", label: "equal", color: SCORE_COLOURS.none };
+    const colours = Math.abs(s) === scale.max ? SCORE_COLOURS.strong : SCORE_COLOURS.weak;
+    return { key: String(s), label: `${s < 0 ? ref : "test"} ${strength} better`, color: colours[s < 0 ? 0 : 1] };
+  });
   // Enough distinct colours for any number of answers or conditions (cycled, then lightened).
   const PALETTE = ["#2166ac", "#ef8a62", "#4d9221", "#762a83", "#b2182b", "#67a9cf", "#e08214", "#9e9e9e"];
   const colour = (i) => PALETTE[i % PALETTE.length];
@@ -83,7 +84,7 @@
     const ref = o.reference;
     document.querySelectorAll(".reference-name").forEach((el) => { el.textContent = ref; });
     $("chart-distribution").replaceChildren(Charts.diverging(
-      comps.map((c) => ({ label: label(c), counts: c.counts })), scoreLegend(ref), "Answers per comparison"));
+      comps.map((c) => ({ label: label(c), counts: c.counts })), scoreLegend(ref, res.answer_scale), "Answers per comparison"));
     $("chart-thesis").replaceChildren(Charts.stacked(
       comps.map((c) => ({ label: label(c), positive: c.positive, negative: c.negative })),
       [{ key: "positive", label: "positive", color: "#4d9221" }, { key: "negative", label: "negative", color: "#c51b7d" }],
@@ -94,7 +95,8 @@
        { key: "reference", label: `${ref} better`, color: "#b2182b" }], "Neutral split"));
     $("chart-means").replaceChildren(Charts.forest(
       [...comps.map((c) => ({ label: label(c), value: c.mean_score, ci: c.ci95 })),
-       { label: "all comparisons", value: res.overall.mean_score, ci: res.overall.ci95 }], -2, 2, "Mean preference"));
+       { label: "all comparisons", value: res.overall.mean_score, ci: res.overall.ci95 }], res.answer_scale.min, res.answer_scale.max,
+      "Mean preference"));
     table($("table-stats"), ["comparison", "n", "mean", "95 % CI", "Wilcoxon p", "Holm p", "sign test p",
                              "rank-biserial", "n for 80 % power"],
           comps.map((c) => [label(c), c.n_participants, fmt(c.mean_score, 2),
@@ -184,7 +186,7 @@
       const chart = document.createElement("div");
       chart.className = "chart";
       chart.id = `chart-q-${q.id}`;
-      chart.append(Charts.groupedSigned(rows, present, -2, 2, `Mean score by ${q.id}`));
+      chart.append(Charts.groupedSigned(rows, present, res.answer_scale.min, res.answer_scale.max, `Mean score by ${q.id}`));
       panel.append(h, chart);
       box.append(panel);
     }

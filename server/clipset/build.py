@@ -15,6 +15,7 @@ from anim_core.clips.record import BuiltClip
 from anim_core.clips.sources import read_motions
 from anim_core.methods.conditions import Condition
 from anim_core.rig.character import Character
+from anim_core.rig.gltf_character import MappedCharacter
 from anim_core.rig.rigmap import Normalized, read_mapping_file
 from server import assets
 from server.assets import AssetError
@@ -30,14 +31,22 @@ def character_files(data_dir: Path, config: CharacterConfig) -> dict[str, str]:
     return {name: assets.sha256(assets.user_file(data_dir, name, what)) for name, what in names.items()}
 
 
+def configured_character(data_dir: Path, config: CharacterConfig) -> Character | MappedCharacter:
+    """The character a ``[character]`` section names: the MakeHuman one of the data directory (``gltf`` None), or
+    the glTF file mapped onto the canonical skeleton; every error names the file."""
+    if config.gltf is None:
+        return assets.character(data_dir)
+    return assets.gltf_character(data_dir, config.gltf, config.mapping, config.units, config.up_axis)
+
+
 def load_character(data_dir: Path, config: CharacterConfig,
                    progress: Callable[[str], None] = lambda _msg: None) -> tuple[Character, dict[str, Any]]:
     """The clip set's character and its record for the clip manifest (``character`` there: which files, with
     their checksums, the clips were built for; :func:`record_config` reads it back)."""
     files = character_files(data_dir, config)
-    if config.gltf is None:
-        return assets.character(data_dir), {"files": files}
-    mapped = assets.gltf_character(data_dir, config.gltf, config.mapping, config.units, config.up_axis)
+    mapped = configured_character(data_dir, config)
+    if not isinstance(mapped, MappedCharacter):
+        return mapped, {"files": files}
     folded = sorted(set(mapped.folded.values()))
     progress(f"character {config.gltf}: {mapped.mapping.convention} names, {mapped.units}, {mapped.up_axis} up; "
              f"{len(mapped.mapping.unmapped)} joints unmapped" + (f", their weights folded into {', '.join(folded)}"

@@ -26,9 +26,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from server import assets
+from anim_core.rig.gltf_character import MappedCharacter
 from server.assets import AssetError
-from server.clipset.build import record_config
+from server.clipset.build import configured_character, record_config
 from server.clipset.config import CharacterConfig
 from server.clipset.manifest import ManifestError, read_clip_manifest
 
@@ -268,9 +268,8 @@ def _release_memory() -> None:
 @functools.cache
 def _character(data_dir: Path, config: CharacterConfig) -> Character:
     """The clip set's character, once per worker process, not per job."""
-    if config.gltf is None:
-        return assets.character(data_dir)
-    return assets.gltf_character(data_dir, config.gltf, config.mapping, config.units, config.up_axis).character
+    made = configured_character(data_dir, config)
+    return made.character if isinstance(made, MappedCharacter) else made
 
 
 def run_job(job: AnimationJob) -> list[tuple[str, float]]:

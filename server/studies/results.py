@@ -5,7 +5,6 @@ from __future__ import annotations
 import copy
 import json
 import statistics as pystats
-from collections.abc import Mapping
 from functools import lru_cache
 from itertools import pairwise
 from pathlib import Path
@@ -18,48 +17,14 @@ from sqlalchemy.orm import Session
 from server.participants.models import ParticipantSession, SessionState
 from server.stimuli import service as stimulus_sets
 
+from . import scale
 from .assign import session_batches
 from .interval_scale import study_scales
 from .models import Study
-from .screening import ParticipantScreening, flagged_counts, opinion_array
-from .service import failed_catch_trials, screened_rows, screening_rules, session_outcome
+from .screening import flagged_counts, opinion_array
+from .service import participant_counts, screened_rows, screening_rules
 from .statistics import analyse
 from .subject_model import fit
-
-
-def participant_counts(session: Session, study: Study, include_pilot: bool = False,
-                       records: Mapping[str, ParticipantScreening] | None = None) -> dict[str, int]:
-    """``started``: every session created (withdrawn included); ``completed``: finished and not withdrawn;
-    ``screened_out``: of those, the ones whose votes are not analysed (by the study's screening rules; ``records``
-    if the caller has them); ``pilot``: the researcher's preview sessions, which count in the others only with
-    ``include_pilot``."""
-    query = select(ParticipantSession.state, ParticipantSession.pilot, func.count()).where(
-        ParticipantSession.study_id == study.id).group_by(ParticipantSession.state, ParticipantSession.pilot)
-    by_state: dict[str, int] = {}
-    pilot = 0
-    for state, is_pilot, n in session.execute(query).all():
-        pilot += n if is_pilot else 0
-        if include_pilot or not is_pilot:
-            by_state[state] = by_state.get(state, 0) + n
-    if records is None:
-        rules = screening_rules(study).rules
-        if rules == ["catch"]:  # the cheap count, without reading every vote
-            failed = failed_catch_trials(session, study)
-            query = select(ParticipantSession.id).where(
-                ParticipantSession.study_id == study.id, ParticipantSession.state == SessionState.completed,
-                ParticipantSession.id.in_(failed))
-            if not include_pilot:
-                query = query.where(ParticipantSession.pilot.is_(False))
-            completed = session.scalars(query) if failed else []
-            screened = sum(session_outcome(study, SessionState.completed, failed[sid]) == "screened_out"
-                           for sid in completed)
-        else:
-            records = screened_rows(session, study, include_pilot)[1]
-    if records is not None:
-        screened = sum(r.screened_out for r in records.values())
-    return {"started": sum(by_state.values()), "completed": by_state.get(SessionState.completed, 0),
-            "screened_out": screened, "withdrawn": by_state.get(SessionState.withdrawn, 0),
-            "active": by_state.get(SessionState.active, 0), "pilot": pilot}
 
 
 def _read_json(path: Path) -> Any:
@@ -220,4 +185,5 @@ def study_results(session: Session, study: Study, benchmark_path: Path,
     results["scale"] = copy.deepcopy(_scales_cached(votes, (study.design["reference"], *study.design["conditions"])))
     results["adaptive_rounds"] = (adaptive_rounds(session, study, results["overview"]["votes"]) if mode == "adaptive"
                                   else None)
+    results["answer_scale"] = scale.describe()
     return results

@@ -7,21 +7,19 @@ from fastapi import APIRouter, Body, Depends, Query, Request, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import PlainTextResponse, Response
 from pydantic import ValidationError
-from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from server.deps import ResearcherDep, SessionDep, SettingsDep
 from server.errors import Conflict, Unprocessable
 from server.media.manifest import ManifestError, RenderManifest, read_render_manifest
-from server.participants.models import ParticipantSession, Vote
 from server.researchers.models import Researcher
-from server.uploads.service import remove_study_assets, usable_animations
+from server.uploads.service import usable_animations
 
 from . import pilot, service
 from .columns import data_dictionary_markdown
-from .models import Study, StudyState
+from .models import StudyState
 from .page import Page
-from .results import participant_counts, study_results
+from .results import study_results
 from .schemas import ExportJson, StudyPublic, StudyStateRead, StudySummary
 from .studyfile import StudyFile, StudyFileError, parse_study_text
 
@@ -30,23 +28,10 @@ MAX_STUDY_FILE_BYTES = 200_000
 PilotQuery = Annotated[bool, Query(description="include the researcher's pilot (preview) sessions")]
 
 
-def summary(session: Session, study: Study) -> StudySummary:
-    counts = participant_counts(session, study)
-    votes = session.scalar(select(func.count(Vote.id)).join(ParticipantSession).where(
-        ParticipantSession.study_id == study.id, ParticipantSession.pilot.is_(False))) or 0
-    never_opened = study.opened_at is None
-    return StudySummary(slug=study.slug, title=study.title, state=study.state,
-                        owner=study.owner.email if study.owner else None, started=counts["started"],
-                        completed=counts["completed"], votes=votes, trials_total=service.trials_total(study),
-                        participant_url=f"/s/{study.slug}",
-                        editable={"texts": never_opened, "recruitment": never_opened,
-                                  "design": never_opened and study.state == StudyState.draft})
-
-
 @router.get("/studies", response_model=list[StudySummary])
 def list_studies(session: SessionDep, researcher: ResearcherDep) -> list[StudySummary]:
     """The researcher's studies (an admin's: every study), with their participant counts."""
-    return [summary(session, s) for s in service.visible_studies(session, researcher)]
+    return [service.study_summary(session, s) for s in service.visible_studies(session, researcher)]
 
 
 def render_manifest(settings: Any) -> RenderManifest:
@@ -73,7 +58,7 @@ def create_study(body: StudyFile, session: SessionDep, settings: SettingsDep,
                             "create FILE` on the server, which builds and renders its clips; through the API a "
                             "study uses the server's clip set and its own uploads")
     media = render_manifest(settings)
-    return summary(session, service.create_study(session, media, body, owner=researcher,
+    return service.study_summary(session, service.create_study(session, media, body, owner=researcher,
                                                  media_dir=settings.media_dir, clips_dir=settings.clips_dir,
                                                  animations=usable(session, settings, researcher, media)))
 
@@ -122,15 +107,12 @@ def patch_study(slug: str, session: SessionDep, settings: SettingsDep, researche
     except ValidationError as exc:
         session.rollback()
         raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in exc.errors()]) from None
-    return summary(session, study)
+    return service.study_summary(session, study)
 
 
 @router.delete("/studies/{slug}", status_code=status.HTTP_204_NO_CONTENT)
 def delete_study(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep) -> Response:
-    study = service.managed_study(session, slug, researcher)
-    study_id = study.id
-    service.delete_study(session, study)
-    remove_study_assets(settings, study_id)  # its asset rows went with it
+    service.delete_study(session, service.managed_study(session, slug, researcher), settings)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 

@@ -8,14 +8,18 @@ significantly better.  (The thesis: hybrid = test, keyframe = reference.)
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal, get_args
 
+#: The answers' ids, from the left animation much better to the right one much better (the only place they are
+#: spelled; the participant page's form sends them).
 Choice = Literal["left_much", "left_slightly", "equal", "right_slightly", "right_much"]
 Side = Literal["left", "right"]
-CHOICES: tuple[str, ...] = ("left_much", "left_slightly", "equal", "right_slightly", "right_much")
-# The raw answer, left = +2 ... right = -2, whatever is shown where (used for the side bias).
-CHOICE_SCORES = {"left_much": 2, "left_slightly": 1, "equal": 0, "right_slightly": -1, "right_much": -2}
-SCORES = (-2, -1, 0, 1, 2)
+CHOICES: tuple[str, ...] = get_args(Choice)
+#: The strongest preference either way: scores run from -MAX_SCORE to +MAX_SCORE.
+MAX_SCORE = (len(CHOICES) - 1) // 2
+SCORES = tuple(range(-MAX_SCORE, MAX_SCORE + 1))
+# The raw answer, left = +MAX_SCORE ... right = -MAX_SCORE, whatever is shown where (used for the side bias).
+CHOICE_SCORES = dict(zip(CHOICES, reversed(SCORES), strict=True))
 # The thesis wording of the five answers, in the order of CHOICES.
 DEFAULT_LABELS = ("Left animation is significantly better than the right animation",
                   "Left animation is slightly better than the right animation",
@@ -23,6 +27,12 @@ DEFAULT_LABELS = ("Left animation is significantly better than the right animati
                   "Right animation is slightly better than the left animation",
                   "Right animation is significantly better than the left animation")
 DEFAULT_QUESTION = "Which animation looks better?"
+
+
+def describe() -> dict[str, Any]:
+    """The scale as the API gives it (the dashboard draws its axes and legends from it)."""
+    return {"choices": list(CHOICES), "scores": list(SCORES), "min": -MAX_SCORE, "max": MAX_SCORE,
+            "choice_scores": CHOICE_SCORES}
 
 
 def other_side(side: str) -> str:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import io
+import shutil
 from collections.abc import Collection, Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -12,6 +13,7 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, aliased, object_session
 
+from server.config import Settings
 from server.db import utcnow
 from server.errors import Conflict, NotFound, Unprocessable
 from server.media.build import identical_clips, read_clip_set, rendered_pairs
@@ -24,7 +26,8 @@ from .columns import EXPORT_COLUMNS, QUESTIONS_BEFORE
 from .design import ComparisonIds, Design
 from .models import Comparison, ComparisonKind, Stimulus, Study, StudyState
 from .pilot import delete_pilot_sessions
-from .scale import CHOICE_SCORES, other_side
+from .scale import CHOICE_SCORES, MAX_SCORE, other_side
+from .schemas import StudySummary
 from .screening import ParticipantScreening, Screening, screen
 from .studyfile import Recruitment, StudyFile, Texts
 
@@ -228,12 +231,15 @@ def update_study(session: Session, study: Study, changes: Mapping[str, Any],
     return study
 
 
-def delete_study(session: Session, study: Study) -> None:
+def delete_study(session: Session, study: Study, settings: Settings) -> None:
+    """A draft that never opened, with its uploaded files (their rows go with the study)."""
     if study.state != StudyState.draft or study.opened_at is not None:
         raise Conflict(f"study {study.slug!r} is {study.state}; only a draft that never opened can be deleted")
+    study_id = study.id
     delete_pilot_sessions(session, study, commit=False)  # a draft's only sessions; their trials hold comparisons
     session.delete(study)
     session.commit()
+    shutil.rmtree(settings.study_assets_dir(study_id), ignore_errors=True)
 
 
 def comparison_ids(study: Study) -> ComparisonIds:
@@ -289,7 +295,7 @@ def failed_catch_trials(session: Session, study: Study, session_id: str | None =
     query = (select(Trial.session_id, func.count(Vote.id)).join(Vote, Vote.trial_id == Trial.id)
              .join(Comparison, Trial.comparison_id == Comparison.id)
              .where(Comparison.study_id == study.id, Comparison.kind == ComparisonKind.catch,
-                    func.abs(Vote.score) == 2).group_by(Trial.session_id))
+                    func.abs(Vote.score) == MAX_SCORE).group_by(Trial.session_id))
     if session_id is not None:
         query = query.where(Trial.session_id == session_id)
     return {sid: n for sid, n in session.execute(query).all()}
@@ -498,3 +504,53 @@ def export_pwcmp_csv(session: Session, study: Study, include_pilot: bool = False
             writer.writerow([csv_cell(v) for v in (r["session_id"], 1, r["animation"], left, right,
                                                    1 if raw > 0 else 2)])
     return buffer.getvalue()
+
+
+def participant_counts(session: Session, study: Study, include_pilot: bool = False,
+                       records: Mapping[str, ParticipantScreening] | None = None) -> dict[str, int]:
+    """``started``: every session created (withdrawn included); ``completed``: finished and not withdrawn;
+    ``screened_out``: of those, the ones whose votes are not analysed (by the study's screening rules; ``records``
+    if the caller has them); ``pilot``: the researcher's preview sessions, which count in the others only with
+    ``include_pilot``."""
+    query = select(ParticipantSession.state, ParticipantSession.pilot, func.count()).where(
+        ParticipantSession.study_id == study.id).group_by(ParticipantSession.state, ParticipantSession.pilot)
+    by_state: dict[str, int] = {}
+    pilot = 0
+    for state, is_pilot, n in session.execute(query).all():
+        pilot += n if is_pilot else 0
+        if include_pilot or not is_pilot:
+            by_state[state] = by_state.get(state, 0) + n
+    if records is None:
+        rules = screening_rules(study).rules
+        if rules == ["catch"]:  # the cheap count, without reading every vote
+            failed = failed_catch_trials(session, study)
+            query = select(ParticipantSession.id).where(
+                ParticipantSession.study_id == study.id, ParticipantSession.state == SessionState.completed,
+                ParticipantSession.id.in_(failed))
+            if not include_pilot:
+                query = query.where(ParticipantSession.pilot.is_(False))
+            completed = session.scalars(query) if failed else []
+            screened = sum(session_outcome(study, SessionState.completed, failed[sid]) == "screened_out"
+                           for sid in completed)
+        else:
+            records = screened_rows(session, study, include_pilot)[1]
+    if records is not None:
+        screened = sum(r.screened_out for r in records.values())
+    return {"started": sum(by_state.values()), "completed": by_state.get(SessionState.completed, 0),
+            "screened_out": screened, "withdrawn": by_state.get(SessionState.withdrawn, 0),
+            "active": by_state.get(SessionState.active, 0), "pilot": pilot}
+
+
+def study_summary(session: Session, study: Study) -> StudySummary:
+    """The study as its list and the command line show it: state, owner, participant and vote counts, what may
+    still be edited."""
+    counts = participant_counts(session, study)
+    votes = session.scalar(select(func.count(Vote.id)).join(ParticipantSession).where(
+        ParticipantSession.study_id == study.id, ParticipantSession.pilot.is_(False))) or 0
+    never_opened = study.opened_at is None
+    return StudySummary(slug=study.slug, title=study.title, state=study.state,
+                        owner=study.owner.email if study.owner else None, started=counts["started"],
+                        completed=counts["completed"], votes=votes, trials_total=trials_total(study),
+                        participant_url=f"/s/{study.slug}",
+                        editable={"texts": never_opened, "recruitment": never_opened,
+                                  "design": never_opened and study.state == StudyState.draft})

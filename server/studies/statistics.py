@@ -23,7 +23,7 @@ from statsmodels.stats.multitest import multipletests
 from statsmodels.stats.power import TTestPower
 
 from .ranking import GradedComparison, rank_conditions
-from .scale import CHOICE_SCORES, SCORES
+from .scale import CHOICE_SCORES, MAX_SCORE, SCORES
 
 WILCOXON_ARE = 3 / math.pi  # asymptotic relative efficiency of Wilcoxon against t for a normal parent
 
@@ -169,9 +169,9 @@ def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
                  if len(showings) == 2]
         counts = {str(s): scores.count(s) for s in SCORES}
         entry = {"animation": animation, "condition": condition, "reference": reference, **_summary(means),
-                 "counts": counts, "votes": len(scores), "positive": sum(s > -2 for s in scores),
-                 "negative": scores.count(-2), "test_better": sum(s > 0 for s in scores), "equal": scores.count(0),
-                 "reference_better": sum(s < 0 for s in scores),
+                 "counts": counts, "votes": len(scores), "positive": sum(s > -MAX_SCORE for s in scores),
+                 "negative": scores.count(-MAX_SCORE), "test_better": sum(s > 0 for s in scores),
+                 "equal": scores.count(0), "reference_better": sum(s < 0 for s in scores),
                  "participants_for_80_power": participants_needed(means)}
         comparisons.append(entry)
     for entry, p in zip(comparisons, holm([c["wilcoxon_p"] for c in comparisons]), strict=True):

@@ -120,7 +120,7 @@ def discard(path: Path) -> None:
 
 
 def asset_path(settings: Settings, asset: StudyAsset) -> Path:
-    return settings.assets_dir / str(asset.study_id) / asset.filename
+    return settings.study_assets_dir(asset.study_id) / asset.filename
 
 
 def report_json(report: Any, motions: list[str]) -> dict[str, Any]:
@@ -379,11 +379,6 @@ def shared_with(session: Session, study: Study, name: str) -> list[str]:
         AnimationShare.study_id == study.id, AnimationShare.animation == name).order_by(Researcher.email)))
 
 
-def remove_study_assets(settings: Settings, study_id: int) -> None:
-    """The asset files of a deleted study (its rows went with it)."""
-    shutil.rmtree(settings.assets_dir / str(study_id), ignore_errors=True)
-
-
 # --- the build job --------------------------------------------------------------------------------------------
 
 def _alive(pid: int | None) -> bool:
@@ -453,7 +448,7 @@ def start_build(session: Session, settings: Settings, engine: Engine, study: Stu
     job = BuildJob(study_id=study.id, state=BuildState.queued, stage="queued", message="starting")
     session.add(job)
     session.commit()
-    log_path = settings.assets_dir / str(study.id) / "build.log"
+    log_path = settings.study_assets_dir(study.id) / "build.log"
     log_path.parent.mkdir(parents=True, exist_ok=True)
     try:
         with log_path.open("w", encoding="utf-8") as log:
