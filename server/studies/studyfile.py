@@ -176,8 +176,8 @@ class Outcome(_Strict):
     """What a participant gets at the end: a code to paste and/or a link back to the recruiting platform."""
 
     code: str | None = Field(None, min_length=1, max_length=64)
-    url: str | None = Field(None, max_length=2000, description="http(s) URL; may use {code} and the accepted "
-                            "URL parameters, e.g. {PROLIFIC_PID}")
+    url: str | None = Field(None, max_length=2000, description="an https://host/ URL; its path and query may use "
+                            "plain {code} and {<accepted URL parameter>} placeholders, e.g. {PROLIFIC_PID}")
 
 
 class Recruitment(_Strict):
