@@ -57,7 +57,7 @@ def test_pilot_sessions_stay_out_of_results_and_exports_unless_asked_and_are_del
         sid, headers = r.json()["session_id"], {"Authorization": f"Bearer {r.json()['token']}"}
         answer_all(client, sid, headers, choice)
         assert client.post(f"/api/v1/sessions/{sid}/events", headers=headers,
-                           json={"kind": "load_failure", "detail": {"why": "test"}}).status_code == 201
+                           json={"kind": "load_failure", "detail": {"error": "test"}}).status_code == 201
         pilots.append(sid)
     unfinished = start_pilot(client, token).json()["session_id"]
     pilots.append(unfinished)

@@ -26,4 +26,4 @@ def test_the_dashboard_takes_its_score_bounds_from_the_api():
     js = (STATIC / "dashboard.js").read_text(encoding="utf-8")
     assert not re.search(r"-2,\s*2\b", js), "a chart's score bounds are written in dashboard.js"
     assert not re.search(r'key: "-?[12]"', js), "a legend's scores are written in dashboard.js"
-    assert "res.scale.min, res.scale.max" in js
+    assert "res.answer_scale.min, res.answer_scale.max" in js
