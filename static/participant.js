@@ -5,7 +5,7 @@
 
 (() => {
   const slug = decodeURIComponent(location.pathname.split("/").filter(Boolean).pop() || "");
-  // A researcher's preview link (?preview=<token>): a pilot run, kept apart from a real session in this browser.
+  // A researcher's preview link (?preview=<token>): a pilot session, kept apart from a real one in this browser.
   const preview = new URLSearchParams(location.search).get("preview");
   const storeKey = preview ? `animstudy-pilot:${slug}` : `animstudy:${slug}`;
   const $ = (id) => document.getElementById(id);
