@@ -33,8 +33,8 @@ def _source_options(parser: argparse.ArgumentParser) -> None:
 
 def clips_inspect(path: Path, mapping: Path | None, units: str | None, up_axis: str | None) -> int:
     """Print what a BVH or glTF file holds and how it maps onto the character (``animstudy clips inspect``)."""
-    from anim_core.rigmap import read_mapping_file
-    from anim_core.sourceinfo import format_report, inspect_source
+    from anim_core.clips.sources import format_report, inspect_source
+    from anim_core.rig.rigmap import read_mapping_file
 
     if not path.is_file():
         return _fail(f"{path}: no such file")
@@ -50,8 +50,8 @@ def clips_inspect(path: Path, mapping: Path | None, units: str | None, up_axis: 
 def clips_convert(data_dir: Path, path: Path, out: Path, mapping: Path | None, units: str | None,
                   up_axis: str | None) -> int:
     """Write a BVH/glTF motion retargeted onto the character as .glb/.gltf or .bvh (``animstudy clips convert``)."""
-    from anim_core.rigmap import read_mapping_file
-    from anim_core.sourceinfo import export_on_character, inspect_source
+    from anim_core.clips.sources import export_on_character, inspect_source
+    from anim_core.rig.rigmap import read_mapping_file
     from server.assets import character as load_character
 
     if not path.is_file():
@@ -70,9 +70,9 @@ def clips_export(data_dir: Path, clips_dir: Path, clip_id: str, out: Path) -> in
     """Write one clip of a built clip set on the character as .glb/.gltf or .bvh (``animstudy clips export``)."""
     import numpy as np
 
-    from anim_core.character import bind_mesh
-    from anim_core.skeleton import Skeleton
-    from anim_core.sourceinfo import write_motion
+    from anim_core.clips.sources import write_motion
+    from anim_core.math.skeleton import Skeleton
+    from anim_core.rig.character import bind_mesh
     from server.clipset.build import load_character, record_config
     from server.clipset.manifest import read_clip, read_clip_manifest
 
@@ -101,9 +101,8 @@ def inspect(data_dir: Path) -> int:
     """Print what the motion-capture files in the data directory hold."""
     import numpy as np
 
-    from anim_core.bvh import BvhError, read_bvh
-    from anim_core.clip import clip_from_bvh
-    from anim_core.clipset import METRES_PER_CMU_UNIT
+    from anim_core.clips.build import METRES_PER_CMU_UNIT
+    from anim_core.io.bvh import BvhError, clip_from_bvh, read_bvh
 
     paths = sorted(data_dir.glob("mocap/**/*.bvh*"))
     if not paths:
@@ -131,8 +130,8 @@ def _fmt(value: float | None, digits: int) -> str:
 
 def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
     """Build the clip set, write it to ``out`` and print its metric table."""
-    from anim_core.clipmetrics import clip_warnings
-    from anim_core.clipset import ConfigError
+    from anim_core.clips.build import ConfigError
+    from anim_core.clips.measure import clip_warnings
     from server.assets import AssetError
     from server.clipset.build import build_clip_set
     from server.clipset.config import load_config
@@ -182,7 +181,7 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies
     """Render the clip set's videos into ``out`` (building the clip set first if it is missing): the pairs the
     ``studies`` files (default: the thesis study file) show, the pairs of every study in the database, and the
     clips of those pairs (``every_clip``: every clip)."""
-    from anim_core.clipset import ConfigError
+    from anim_core.clips.build import ConfigError
     from server.assets import AssetError
     from server.clipset.build import build_clip_set
     from server.clipset.manifest import MANIFEST, write_clip_set
@@ -285,7 +284,7 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
     """``animstudy study ...``: schema, validate, create, list, open, close, export."""
     from sqlalchemy import select
 
-    from anim_core.clipset import ConfigError
+    from anim_core.clips.build import ConfigError
     from server.assets import AssetError
     from server.clipset.manifest import MANIFEST
     from server.errors import ServiceError
@@ -386,7 +385,7 @@ def serve(settings: Settings, host: str, port: int, workers: int) -> int:
     """Migrate, prepare the default study if there is none, and serve."""
     import uvicorn
 
-    from anim_core.clipset import ConfigError
+    from anim_core.clips.build import ConfigError
     from server.assets import AssetError
     from server.db import make_engine, migrate, session_factory
     from server.errors import ServiceError
@@ -432,8 +431,8 @@ def bench(settings: Settings, json_path: Path, characters: list[int], stages: li
     # One thread for numpy/BLAS in the main figures (the compiled kernel's threads are a separate figure).
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
-    from anim_core import benchmark
-    from anim_core.clipset import ConfigError
+    from anim_core.bench import suite as benchmark
+    from anim_core.clips.build import ConfigError
     from server.assets import AssetError
     from server.clipset.build import build_clip_set
     from server.clipset.config import load_config
@@ -515,7 +514,7 @@ QUICK_BENCH = "--characters 10,1000 --stages pose --frames 50 --variants keys"
 
 
 def _variants(text: str) -> list[str]:
-    from anim_core.benchmark import VARIANTS
+    from anim_core.bench.suite import VARIANTS
 
     chosen = [v.strip() for v in text.split(",") if v.strip()]
     if not chosen or any(v not in VARIANTS for v in chosen):
@@ -637,7 +636,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     settings = Settings.from_env()
     if args.command == "bench":
-        from anim_core.benchmark import DEFAULT_CHARACTERS, VARIANTS
+        from anim_core.bench.suite import DEFAULT_CHARACTERS, VARIANTS
 
         quick = args.quick
         return bench(settings, args.json or settings.benchmark_path,

@@ -11,8 +11,8 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session
 
-from anim_core.bvh import format_bvh, read_bvh
-from anim_core.clipset import METRES_PER_CMU_UNIT
+from anim_core.clips.build import METRES_PER_CMU_UNIT
+from anim_core.io.bvh import format_bvh, read_bvh
 from server.app import create_app
 from server.assets import character as load_makehuman
 from server.clipset.build import build_clip_set

@@ -9,10 +9,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from anim_core.clip import PLAYBACK_MODES
-from anim_core.clipset import DEFAULT_TOLERANCE_MM, AnimationConfig, ConfigError
-from anim_core.conditions import KINDS, REFERENCE, Condition, ConditionError
-from anim_core.rigmap import UNITS
+from anim_core.clips.build import DEFAULT_TOLERANCE_MM, AnimationConfig, ConfigError
+from anim_core.math.clip import PLAYBACK_MODES
+from anim_core.methods.conditions import KINDS, REFERENCE, Condition, ConditionError
+from anim_core.rig.rigmap import UNITS
 
 DEFAULT_CONFIG = Path(__file__).with_name("thesis.toml")
 #: Animation names and condition ids: a clip's id is ``<animation>-<condition>``, so neither holds a "-".

@@ -178,7 +178,7 @@ def check_names(clips_dir: Path, assets: Sequence[StudyAsset], asset_file: Calla
 
 
 def merge_clips(clips_dir: Path, built: list[Any]) -> Path:
-    """Add built clips (:class:`anim_core.clipset.BuiltClip`) to the clip set in ``clips_dir``, replacing the
+    """Add built clips (:class:`anim_core.clips.build.BuiltClip`) to the clip set in ``clips_dir``, replacing the
     clips of the same animations; each ``.npz`` is written under a temporary name and renamed, the manifest last,
     so readers see the old clip set or the new one."""
     from server.clipset.manifest import MANIFEST, CharacterEntry, ClipManifest, entry, write_json

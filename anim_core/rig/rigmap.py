@@ -35,9 +35,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from .bvh import Bvh, BvhError, bvh_from_poses
-from .quat import identity, quat_conj, quat_from_axis_angle, quat_mul, rotate
-from .skeleton import Skeleton
+from ..io.bvh import Bvh, BvhError, bvh_from_poses
+from ..math.quat import identity, quat_conj, quat_from_axis_angle, quat_mul, rotate
+from ..math.skeleton import Skeleton
 
 Array = NDArray[np.float64]
 

@@ -1,6 +1,6 @@
 """Analytic two-bone IK (hip-knee-ankle, shoulder-elbow-wrist) over batches of poses.
 
-Conventions as in :mod:`anim_core.skeleton`: local rotations ``(..., J, 4)`` (w, x, y, z), root translation
+Conventions as in :mod:`anim_core.math.skeleton`: local rotations ``(..., J, 4)`` (w, x, y, z), root translation
 ``(..., 3)``, positions in the skeleton's units.  A chain is three joint indices ``(start, mid, end)`` with
 ``parent(mid) == start`` and ``parent(end) == mid``; any skeleton works.
 
@@ -30,8 +30,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .quat import quat_between, quat_conj, quat_from_axis_angle, quat_mul, rotate
-from .skeleton import Skeleton
+from ..math.quat import quat_between, quat_conj, quat_from_axis_angle, quat_mul, rotate
+from ..math.skeleton import Skeleton
 
 Array = NDArray[np.float64]
 
@@ -45,7 +45,7 @@ def _unit(v: Array, fallback: Array) -> Array:
 
 def smoothstep(x: ArrayLike) -> Array:
     """``3x² - 2x³`` of ``x`` clipped to 0..1: an ease from 0 to 1 with zero slope at both ends (the blend weight of
-    this module's soft switches and of :mod:`anim_core.footplant` / :mod:`anim_core.footlock`)."""
+    this module's soft switches and of :mod:`anim_core.methods.footplant` / :mod:`anim_core.methods.footlock`)."""
     x = np.clip(np.asarray(x, dtype=np.float64), 0.0, 1.0)
     return x * x * (3.0 - 2.0 * x)
 

@@ -1,7 +1,8 @@
 """Generic hybrid keys for an animation of kind ``other``: the fewest keys, spread by an error criterion.
 
-Conventions: a source is a :class:`~anim_core.clip.KeyframeClip` (one key per mocap frame); its hybrid is SQUAD
-through the picked keys, no mirroring (:func:`~anim_core.hybrid.build_other`), played ping-pong (default) or as a
+Conventions: a source is a :class:`~anim_core.math.clip.KeyframeClip` (one key per mocap frame); its hybrid is SQUAD
+through the picked keys, no mirroring (:func:`~anim_core.methods.hybrid.build_other`), played ping-pong (default) or
+as a
 loop (``mode="loop"``: the source's last key repeats its first).  The error of a set of keys is the largest
 distance, over all source frames and joints, between the joint positions of the hybrid and of the source (forward
 kinematics, metres = source units x ``metres_per_unit``).
@@ -18,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .clip import KeyframeClip, PlaybackMode
+from ..math.clip import KeyframeClip, PlaybackMode
 from .hybrid import build_other
 
 Array = NDArray[np.float64]

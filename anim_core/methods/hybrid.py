@@ -6,7 +6,8 @@
   overshoots the crouch key; played ping-pong.  Timed by the mocap (:func:`build_crouch`), the ping-pong turns at
   the spring's first overshoot peak, where the source is deepest.
 * **Idle**: sway keys on a SQUAD spline, played ping-pong.
-* **Other** (any motion): keys picked by :mod:`anim_core.keypick` on a SQUAD spline, no mirroring, played loop or
+* **Other** (any motion): keys picked by :mod:`anim_core.methods.keypick` on a SQUAD spline, no mirroring, played loop
+  or
   ping-pong as configured (:func:`build_other`).
 * **Increments** add keys from the mocap midway between existing ones: gait 4 -> 8 -> 16, crouch/idle 2 -> 3 -> 5.
 
@@ -25,10 +26,10 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import CubicSpline
 from scipy.optimize import brentq
 
-from .clip import KeyframeClip, PlaybackMode, Pose, horizontal, playback_time
-from .mirror import Mirror
-from .quat import make_continuous, slerp_unclamped, squad_eval, squad_tangents
-from .skeleton import Skeleton
+from ..math.clip import KeyframeClip, PlaybackMode, Pose, horizontal, playback_time
+from ..math.quat import make_continuous, slerp_unclamped, squad_eval, squad_tangents
+from ..math.skeleton import Skeleton
+from ..rig.mirror import Mirror
 
 Array = NDArray[np.float64]
 
@@ -148,7 +149,7 @@ class SquadClip:
     def precomputed(self) -> tuple[Array, Array, Array, Array, CubicSpline]:
         """What the clip computed from its keys when it was built, for runtimes that evaluate it elsewhere:
         segment times ``(S + 1,)`` s, SQUAD keys ``q (S + 1, J, 4)`` (sign-continuous) and control points
-        ``a, b (S, J, 4)`` (see :func:`~anim_core.quat.squad_tangents`), and the root spline (before travel)."""
+        ``a, b (S, J, 4)`` (see :func:`~anim_core.math.quat.squad_tangents`), and the root spline (before travel)."""
         return self._seg_times, self._q, self._a, self._b, self._root
 
     def tangents(self) -> tuple[Array, Array, Array]:
@@ -184,7 +185,7 @@ class SpringClip:
     With ``land_on_last_key`` (default) ``u`` is divided by its value at ``duration``, so the ping-pong turns
     exactly on the crouch key instead of wherever the spring has got to (with the thesis constants and a 1.3 s
     half the factor is 1.002; the overshoot is unchanged).  In full, with ``c`` the clip time of
-    :func:`~anim_core.clip.playback_time`::
+    :func:`~anim_core.math.clip.playback_time`::
 
         u(t) = (1 - spring(time_scale * c)) / (1 - spring(time_scale * duration) if land_on_last_key else 1)
 

@@ -20,6 +20,16 @@ Array = NDArray[np.float64]
 MAX_INFLUENCES = 8
 
 
+def vertex_normals(vertices: Array, faces: NDArray[np.intp]) -> Array:
+    """Area-weighted unit vertex normals ``(V, 3)`` of a triangle mesh."""
+    tri = vertices[faces]
+    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
+    normals = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(normals, faces[:, k], face_n)
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-20)
+
+
 def transforms(rotations: ArrayLike, positions: ArrayLike) -> Array:
     """Affine ``(..., 3, 4)`` matrices ``[R | p]`` from quaternions ``(..., 4)`` and positions ``(..., 3)``."""
     return np.concatenate([matrix_from_quat(rotations), np.asarray(positions, np.float64)[..., None]], axis=-1)

@@ -1,7 +1,7 @@
 """Cheaper storage of a keyframe clip: key reduction (the ``reduced`` condition) and quantized rotations
-(``quantized``).  Offline builders; the results play back as ordinary :class:`~anim_core.clip.KeyframeClip` s.
+(``quantized``).  Offline builders; the results play back as ordinary :class:`~anim_core.math.clip.KeyframeClip` s.
 
-Conventions as in :mod:`anim_core.clip`: local rotations ``(K, J, 4)`` scalar first ``(w, x, y, z)``, root
+Conventions as in :mod:`anim_core.math.clip`: local rotations ``(K, J, 4)`` scalar first ``(w, x, y, z)``, root
 translation ``(K, 3)`` in metres, times in seconds, angles in degrees where the name says ``_deg``.
 
 **Key reduction** (:func:`reduce_keys`) keeps the first and last key and, greedily from the start, makes each
@@ -30,9 +30,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from .clip import KeyframeClip
-from .quat import make_continuous, quat_angle
-from .skeleton import Skeleton
+from ..math.clip import KeyframeClip
+from ..math.quat import make_continuous, quat_angle
+from ..math.skeleton import Skeleton
 
 Array = NDArray[np.float64]
 

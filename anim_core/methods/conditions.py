@@ -17,15 +17,15 @@ returns a clip (:data:`AnimClip`); whoever uses a clip reads it through the clip
 Today's methods: ``keyframe`` (the reference: the dense keys themselves, no parameters) and ``hybrid`` (the
 thesis method: 2 base keys plus ``increment`` extra keys per interval, mirroring, SQUAD or the spring; ``increment``
 0..4).
-``hybrid_ik``, ``hybrid_c2``, ``reduced`` and ``quantized`` (issue 16) are registered in
-:mod:`anim_core.extra_conditions`.
+``hybrid_ik``, ``hybrid_c2``, ``reduced`` and ``quantized`` (issue 16).  Every built-in builder and its parameter
+model is in :mod:`anim_core.methods.builders`; they are registered at the end of this module, in one list.
 
 Adding a method (worked example: hold every pose for ``hold`` frames, a "stepped" look)::
 
     from pydantic import Field
 
-    from anim_core.clip import KeyframeClip
-    from anim_core.conditions import Animation, Params, register
+    from anim_core.math.clip import KeyframeClip
+    from anim_core.methods.conditions import Animation, Params, register
 
     class SteppedParams(Params):
         hold: int = Field(ge=1, le=8, description="frames each pose is held")
@@ -45,9 +45,10 @@ and in the clip-set file::
     method = "stepped"
     params = { hold = 2 }
 
-A method is registered when the module defining it is imported.  The built-in ones are below; a method in a module
-of its own is made known to every reader of clip-set files by adding that module's import at the end of this file
-(under "methods defined in other modules").  Nothing else changes: the clip-set file, the manifests and the study
+A method is registered when :func:`register` is called for it.  The built-in ones are registered at the end of this
+module (``BUILT_IN``); a new method is made known to every reader of clip-set files by adding its builder to
+:mod:`anim_core.methods.builders` and its entry to ``BUILT_IN``.  Nothing else changes: the clip-set file, the
+manifests and the study
 server take conditions by id, method and params.
 """
 
@@ -55,49 +56,28 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, Generic, Literal, TypeVar, get_args
+from typing import Any, Generic, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ValidationError
 
-from .clip import KeyframeClip
-from .hybrid import AnimClip, SpringClip, SquadClip, build_crouch, build_gait, build_idle, build_other
+from . import builders as b
+from .base import KINDS, REFERENCE, Animation, ConditionError, Kind, Params
+from .hybrid import AnimClip
 
-Kind = Literal["gait", "crouch", "idle", "other"]
-KINDS: tuple[Kind, ...] = get_args(Kind)
-REFERENCE = "keyframe"  # the method every other condition is compared with
-
-
-class ConditionError(ValueError):
-    """A condition names an unknown method or has invalid parameters; the message names the entry and field."""
-
-
-class Params(BaseModel):
-    """Base of every method's parameter model: frozen, no extra fields, strict types."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid", strict=True)
-
-
-@dataclass(frozen=True, eq=False)
-class Animation:
-    """One animation as a builder receives it.
-
-    ``reference``: the keyframe clip on the frame grid (``fps`` keys per second; mode ``"loop"`` for a gait, its last
-    key repeating the first, ``"pingpong"`` otherwise), already planted and placed as the reference plays;
-    ``key_times``: the base keys' times (s) on that grid (gait: left foot forward, left foot passing; crouch:
-    standing, deepest; idle: the two extremes of the sway; other: the keys picked within the animation's tolerance
-    (:mod:`anim_core.keypick`), or given, the first at 0 and, ping-pong, the last at the end); ``period``: seconds
-    of one gait cycle or ``other`` loop, or of the forward half of a ping-pong clip (``reference.duration`` in
-    every case).
-    """
-
-    name: str
-    kind: Kind
-    reference: KeyframeClip
-    key_times: tuple[float, ...]
-    period: float
-    in_place: bool
-    fps: int
-
+__all__ = [
+    "KINDS",
+    "REFERENCE",
+    "AnimClip",
+    "Animation",
+    "Condition",
+    "ConditionError",
+    "Kind",
+    "Method",
+    "Params",
+    "get_method",
+    "methods",
+    "register",
+]
 
 P = TypeVar("P", bound=Params)
 
@@ -120,7 +100,7 @@ def register(name: str, params: type[P], stored_bytes: Callable[[Any, P], int] |
     """Decorator: register ``build`` as method ``name`` with parameter model ``params`` (names are unique), and
     ``stored_bytes(clip, params)`` if its clips are not stored as float32 keys."""
     if not (isinstance(params, type) and issubclass(params, Params)):
-        raise TypeError(f"the parameters of method {name!r} must be a subclass of anim_core.conditions.Params")
+        raise TypeError(f"the parameters of method {name!r} must be a subclass of anim_core.methods.conditions.Params")
 
     def decorator(build: Callable[[Animation, P], AnimClip]) -> Callable[[Animation, P], AnimClip]:
         if name in _METHODS:
@@ -182,42 +162,17 @@ class Condition:
         return None if count is None else count(clip, self.params)
 
 
-# --- the built-in methods ---------------------------------------------------------------------------------------
+# --- the methods, registered in this one place ------------------------------------------------------------------
 
-class KeyframeParams(Params):
-    """The reference has no parameters."""
-
-
-class HybridParams(Params):
-    increment: int = Field(ge=0, le=4, description="extra keys per interval between the base keys (thesis: 0..2)")
-
-
-@register(REFERENCE, KeyframeParams)
-def build_keyframe(animation: Animation, params: KeyframeParams) -> KeyframeClip:
-    """The reference itself: the dense keys on the grid."""
-    return animation.reference
-
-
-@register("hybrid", HybridParams)
-def build_hybrid(animation: Animation, params: HybridParams) -> SquadClip | SpringClip:
-    """The thesis's hybrid: a gait mirrors half a cycle of keys onto the other half (SQUAD), a crouch follows its
-    keys with the spring, an idle sways on SQUAD between its two extremes, any other motion goes through its picked
-    keys on SQUAD, loop or ping-pong as its reference plays (:mod:`anim_core.hybrid`)."""
-    ref, keys = animation.reference, list(animation.key_times)
-    if animation.kind == "gait":
-        # build_gait measures the travel from its source, so it gets the reference travelling.
-        travelling = KeyframeClip(ref.skeleton, ref.times, ref.rotations, ref.root_translation, ref.mode,
-                                  False, ref.up_axis, ref.name)
-        return build_gait(travelling, keys, animation.period, increment=params.increment, in_place=animation.in_place,
-                          name=animation.name)
-    if animation.kind == "crouch":
-        return build_crouch(ref, keys, increment=params.increment, duration=animation.period, time_scale=None,
-                            name=animation.name)
-    if animation.kind == "idle":
-        return build_idle(ref, keys, increment=params.increment, name=animation.name)
-    return build_other(ref, keys, increment=params.increment, in_place=animation.in_place, name=animation.name)
-
-
-# --- methods defined in other modules (imported last: they import ``register`` from here) -----------------------
-
-from . import extra_conditions  # noqa: E402, F401  (hybrid_ik, hybrid_c2, reduced, quantized: issue 16)
+#: (name, parameter model, builder, stored bytes or None), in the order :func:`methods` lists them.
+BUILT_IN: tuple[tuple[str, type[Params], Callable[[Animation, Any], AnimClip], Callable[[Any, Any], int] | None],
+                ...] = (
+    (REFERENCE, b.KeyframeParams, b.build_keyframe, None),
+    ("hybrid", b.HybridParams, b.build_hybrid, None),
+    ("hybrid_ik", b.HybridIkParams, b.build_hybrid_ik, b.hybrid_ik_bytes),
+    ("hybrid_c2", b.HybridC2Params, b.build_hybrid_c2, None),
+    ("reduced", b.ReducedParams, b.build_reduced, None),
+    ("quantized", b.QuantizedParams, b.build_quantized, b.quantized_bytes),
+)
+for _name, _params, _build, _stored in BUILT_IN:
+    register(_name, _params, _stored)(_build)

@@ -25,14 +25,18 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from .clip import Pose
-from .quat import identity, quat_conj, quat_from_axis_angle, quat_mul, rotate
-from .skeleton import Skeleton
-from .skinning import MAX_INFLUENCES, SkinnedMesh, invert_transforms, transforms
+from ..math.clip import Pose
+from ..math.quat import identity, quat_conj, quat_from_axis_angle, quat_mul, rotate
+from ..math.skeleton import Skeleton
+from ..math.skinning import MAX_INFLUENCES, SkinnedMesh, invert_transforms, transforms, vertex_normals
 
 Array = NDArray[np.float64]
 
 BODY_GROUP = "body"
+#: The character's feet (each: ankle and toe joint), legs (IK chains hip, knee, ankle, as FEET) and up axis (Y).
+FEET = (("LeftFoot", "LeftToeBase"), ("RightFoot", "RightToeBase"))  # each foot: ankle and toe joints
+LEGS = (("LeftUpLeg", "LeftLeg", "LeftFoot"), ("RightUpLeg", "RightLeg", "RightFoot"))  # IK chains, as FEET
+UP = 1
 
 
 class CharacterError(ValueError):
@@ -119,16 +123,6 @@ def _parse_obj(text: str, path: Path) -> tuple[Array, NDArray[np.intp]]:
     if f.min() < 0 or f.max() >= len(v):
         raise CharacterError(f"{path}: a face refers to a vertex that does not exist")
     return v, f
-
-
-def vertex_normals(vertices: Array, faces: NDArray[np.intp]) -> Array:
-    """Area-weighted unit vertex normals ``(V, 3)`` of a triangle mesh."""
-    tri = vertices[faces]
-    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
-    normals = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(normals, faces[:, k], face_n)
-    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-20)
 
 
 def load_character(rig_path: Path, weights_path: Path, obj_path: Path) -> Character:

@@ -1,21 +1,27 @@
-"""The methods of issue 16, registered in the condition registry (:mod:`anim_core.conditions`) like ``keyframe``
-and ``hybrid``: usable in any clip-set file as ``[[conditions]] id/method/params``.
+"""The built-in methods: each one's parameter model and builder (registered, in one list, by
+:mod:`anim_core.methods.conditions`), usable in any clip-set file as ``[[conditions]] id/method/params``.
 
-* ``hybrid_ik`` (:class:`HybridIkParams`): the hybrid of ``increment`` with locked feet (:mod:`anim_core.footlock`):
+* ``keyframe`` (:class:`KeyframeParams`): the reference itself.
+* ``hybrid`` (:class:`HybridParams`): the thesis method, :func:`build_hybrid`.
+
+* ``hybrid_ik`` (:class:`HybridIkParams`): the hybrid of ``increment`` with locked feet
+  (:mod:`anim_core.methods.footlock`):
   the steps detected on the reference (``contact_source = "reference"``), or each also grown by the hybrid's own
   contact frames next to it (``"union"``, default), below ``clearance_m``; held by two-bone leg IK, each swing
   making up the difference between two holds over at least ``2 * blend_frames + 1`` frames; with
   ``swing_clearance`` each foot raised to at least the reference's foot height (off by default: it copies a
   reference's own seam jump into a loop whose hybrid has none).  ``conditions16.toml`` holds ``"reference"`` with
   the clearance, which meets every gait goal of issue 16.
-* ``hybrid_c2`` (:class:`HybridC2Params`): the hybrid of ``increment`` on the C2 spline (:mod:`anim_core.c2spline`)
+* ``hybrid_c2`` (:class:`HybridC2Params`): the hybrid of ``increment`` on the C2 spline
+  (:mod:`anim_core.methods.c2spline`)
   through the same keys.  A crouch follows its keys with the spring, not SQUAD: at increment 0 that is one geodesic
   driven by the closed-form spring, C2 already, so its ``hybrid_c2`` is the spring hybrid itself; a crouch has no C2
   clip with more keys (an error naming the condition).
 * ``reduced`` (:class:`ReducedParams`): the reference with the fewest keys keeping every joint's global rotation
-  within ``epsilon_deg`` (:func:`anim_core.compression.reduce_keys`, greedy).
+  within ``epsilon_deg`` (:func:`anim_core.methods.compression.reduce_keys`, greedy).
 * ``quantized`` (:class:`QuantizedParams`): the reference (or, with ``reduced_epsilon_deg``, its reduction) stored at
-  ``bits`` bits per quaternion component (:func:`anim_core.compression.quantized_clip`), dequantized at playback.
+  ``bits`` bits per quaternion component (:func:`anim_core.methods.compression.quantized_clip`), dequantized at
+  playback.
 
 Stored bytes (the ``bytes`` metric) of ``hybrid_ik`` and ``quantized`` differ from a clip of float32 keys; their
 ``stored_bytes`` functions are registered with them.
@@ -27,12 +33,46 @@ from typing import Literal
 
 from pydantic import Field
 
+from ..math.clip import KeyframeClip
+from ..rig.character import FEET, LEGS
+from .base import Animation, Params
 from .c2spline import C2Clip, c2_from_squad
-from .clip import KeyframeClip
 from .compression import QuantizedClip, keyframe_bytes, quantized_clip, reduce_keys
-from .conditions import Animation, HybridParams, Params, build_hybrid, register
 from .footlock import FootLockedClip, lock_feet
-from .hybrid import SpringClip, SquadClip
+from .hybrid import SpringClip, SquadClip, build_crouch, build_gait, build_idle, build_other
+
+
+class KeyframeParams(Params):
+    """The reference has no parameters."""
+
+
+class HybridParams(Params):
+    increment: int = Field(ge=0, le=4, description="extra keys per interval between the base keys (thesis: 0..2)")
+
+
+def build_keyframe(animation: Animation, params: KeyframeParams) -> KeyframeClip:
+    """The reference itself: the dense keys on the grid."""
+    return animation.reference
+
+
+def build_hybrid(animation: Animation, params: HybridParams) -> SquadClip | SpringClip:
+    """The thesis's hybrid: a gait mirrors half a cycle of keys onto the other half (SQUAD), a crouch follows its
+    keys with the spring, an idle sways on SQUAD between its two extremes, any other motion goes through its picked
+    keys on SQUAD, loop or ping-pong as its reference plays (:mod:`anim_core.methods.hybrid`)."""
+    ref, keys = animation.reference, list(animation.key_times)
+    if animation.kind == "gait":
+        # build_gait measures the travel from its source, so it gets the reference travelling.
+        travelling = KeyframeClip(ref.skeleton, ref.times, ref.rotations, ref.root_translation, ref.mode,
+                                  False, ref.up_axis, ref.name)
+        return build_gait(travelling, keys, animation.period, increment=params.increment, in_place=animation.in_place,
+                          name=animation.name)
+    if animation.kind == "crouch":
+        return build_crouch(ref, keys, increment=params.increment, duration=animation.period, time_scale=None,
+                            name=animation.name)
+    if animation.kind == "idle":
+        return build_idle(ref, keys, increment=params.increment, name=animation.name)
+    return build_other(ref, keys, increment=params.increment, in_place=animation.in_place, name=animation.name)
+
 
 EPSILON = Field(gt=0, le=45, description="largest global-rotation error of any joint at any frame, degrees")
 
@@ -62,21 +102,18 @@ class QuantizedParams(Params):
                                               description="reduce the keys first to within this many degrees")
 
 
-def _hybrid_ik_bytes(clip: FootLockedClip, params: HybridIkParams) -> int:
+def hybrid_ik_bytes(clip: FootLockedClip, params: HybridIkParams) -> int:
     # The hybrid's keys plus an ankle target (3 float32) and a weight (1 float32) per leg and frame, and each
     # knee's hinge (3 float32) and the soft reach (1 float32).
     return (keyframe_bytes(clip.key_times.size, clip.skeleton.n_joints) + int(clip.weights.size * 4 * 4)
             + int(clip.hinges.size * 4) + 4)
 
 
-def _quantized_bytes(clip: KeyframeClip, params: QuantizedParams) -> int:
+def quantized_bytes(clip: KeyframeClip, params: QuantizedParams) -> int:
     return keyframe_bytes(clip.key_times.size, clip.skeleton.n_joints, params.bits)
 
 
-@register("hybrid_ik", HybridIkParams, stored_bytes=_hybrid_ik_bytes)
 def build_hybrid_ik(animation: Animation, params: HybridIkParams) -> FootLockedClip:
-    from .clipset import FEET, LEGS  # the character's joint names; clipset imports this registry
-
     base = build_hybrid(animation, HybridParams(increment=params.increment))
     sk = animation.reference.skeleton
     legs = [tuple(int(j) for j in sk.indices(leg)) for leg in LEGS]
@@ -86,7 +123,6 @@ def build_hybrid_ik(animation: Animation, params: HybridIkParams) -> FootLockedC
                      swing_clearance=params.swing_clearance)
 
 
-@register("hybrid_c2", HybridC2Params)
 def build_hybrid_c2(animation: Animation, params: HybridC2Params) -> C2Clip | SpringClip:
     base = build_hybrid(animation, HybridParams(increment=params.increment))
     if isinstance(base, SquadClip):
@@ -97,12 +133,10 @@ def build_hybrid_c2(animation: Animation, params: HybridC2Params) -> C2Clip | Sp
                      f"only (the spring hybrid 0, C2 already), got increment {params.increment}")
 
 
-@register("reduced", ReducedParams)
 def build_reduced(animation: Animation, params: ReducedParams) -> KeyframeClip:
     return reduce_keys(animation.reference, params.epsilon_deg)
 
 
-@register("quantized", QuantizedParams, stored_bytes=_quantized_bytes)
 def build_quantized(animation: Animation, params: QuantizedParams) -> QuantizedClip:
     ref = animation.reference
     src = ref if params.reduced_epsilon_deg is None else reduce_keys(ref, params.reduced_epsilon_deg)

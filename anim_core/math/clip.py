@@ -13,16 +13,13 @@ the clip's own time axis ``[0, duration]``:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal, NamedTuple
+from typing import Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .quat import identity, make_continuous, nlerp, quat_conj, quat_mul, slerp
 from .skeleton import Skeleton
-
-if TYPE_CHECKING:
-    from .bvh import Bvh
 
 Array = NDArray[np.float64]
 PlaybackMode = Literal["loop", "pingpong", "clamp"]
@@ -192,19 +189,3 @@ class KeyframeClip:
                             self.mode if mode is None else mode,
                             self.in_place if in_place is None else in_place, self.up_axis,
                             self.name if name is None else name)
-
-
-def clip_from_bvh(bvh: Bvh, first_frame: int = 0, last_frame: int | None = None, mode: PlaybackMode = "loop",
-                  in_place: bool = False, name: str = "") -> KeyframeClip:
-    """Frames ``first_frame..last_frame`` (inclusive; default: to the end) of a BVH file as a keyframe clip.
-
-    CMU files start with a T-pose calibration frame, so their motion starts at ``first_frame=1``.
-    """
-    rotations, root = bvh.pose_arrays()
-    last = bvh.n_frames - 1 if last_frame is None else last_frame
-    if not 0 <= first_frame < last <= bvh.n_frames - 1:
-        raise ValueError(f"frame range {first_frame}..{last} is outside 0..{bvh.n_frames - 1} "
-                         f"or holds fewer than 2 frames")
-    frames = slice(first_frame, last + 1)
-    times = np.arange(first_frame, last + 1) * bvh.frame_time
-    return KeyframeClip(bvh.posed_skeleton(), times, rotations[frames], root[frames], mode, in_place, 1, name)

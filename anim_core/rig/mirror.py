@@ -22,17 +22,17 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .clip import Pose
-from .quat import identity, quat_conj, quat_mul
+from ..math.clip import Pose
+from ..math.quat import identity, quat_conj, quat_mul
+from ..math.skeleton import Skeleton
 from .rigmap import partner_name, split_side
-from .skeleton import Skeleton
 
 Array = NDArray[np.float64]
 
 def mirror_partners(names: Sequence[str], overrides: Mapping[str, str] | None = None) -> NDArray[np.intp]:
     """Index of each joint's left/right partner (its own index for central joints), shape ``(J,)``.
 
-    Partners are found from the names as :func:`anim_core.rigmap.split_side` reads them: the same name with the
+    Partners are found from the names as :func:`anim_core.rig.rigmap.split_side` reads them: the same name with the
     other side marker (``LeftArm``/``RightArm``, ``mixamorig:LeftArm``, ``LHipJoint``/``RHipJoint``, ``lShin``/
     ``rShin``, ``L_Hip``/``R_Hip``, ``hand.L``/``hand.R``, ``foot_l``/``foot_r``, ``ThighLeft``/``ThighRight``);
     ``overrides`` maps names to partners explicitly (both directions are set) and wins over the names.  A name

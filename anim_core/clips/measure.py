@@ -1,4 +1,4 @@
-"""Motion metrics of a built clip set (:mod:`anim_core.clipset`): per clip, every other condition against its
+"""Motion metrics of a built clip set (:mod:`anim_core.clips.build`): per clip, every other condition against its
 animation's reference on the same frame grid, and the warnings ``animstudy clips build`` prints.
 
 Metrics and units are listed in the README ("How the thesis clips are built", metrics paragraph).
@@ -11,18 +11,17 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from . import contacts, metrics
-from .conditions import REFERENCE, Kind
-from .quat import quat_angle
+from ..math import contacts
+from ..math.quat import quat_angle
+from ..methods.conditions import REFERENCE, Kind
+from ..rig.character import FEET, LEGS, UP
+from . import metrics
 
 if TYPE_CHECKING:
-    from .clipset import BuiltClip
+    from .record import BuiltClip
 
 Array = NDArray[np.float64]
 
-FEET = (("LeftFoot", "LeftToeBase"), ("RightFoot", "RightToeBase"))  # each foot: ankle and toe joints
-LEGS = (("LeftUpLeg", "LeftLeg", "LeftFoot"), ("RightUpLeg", "RightLeg", "RightFoot"))  # IK chains, as FEET
-UP = 1
 #: A clip further out of phase with its reference than this: a warning.
 MAX_LAG_FRAMES = {"gait": 2, "crouch": 1, "idle": 1, "other": 1}
 #: A joint turning more than this (degrees) from one frame to the next flips: a warning (the thesis clips' largest

@@ -3,7 +3,7 @@
 A BVH file has a ``HIERARCHY`` section (joints with ``OFFSET`` in the parent's frame, ``CHANNELS``, and
 ``End Site`` leaves) and a ``MOTION`` section with one line of channel values per frame.  Values are kept
 exactly as read (``float64``, degrees for rotations, file units for positions); :meth:`Bvh.pose_arrays`
-converts them to local quaternions (radians) for :class:`~anim_core.skeleton.Skeleton` forward kinematics.
+converts them to local quaternions (radians) for :class:`~anim_core.math.skeleton.Skeleton` forward kinematics.
 
 Rotation channels of a joint are composed in the order listed, about the moving axes:
 ``Zrotation Yrotation Xrotation`` means ``R = Rz @ Ry @ Rx`` (``quat_from_euler(.., "ZYX")``).  Position
@@ -22,8 +22,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .quat import euler_from_quat, quat_from_euler
-from .skeleton import Skeleton
+from ..math.clip import KeyframeClip, PlaybackMode
+from ..math.quat import euler_from_quat, quat_from_euler
+from ..math.skeleton import Skeleton
 
 Array = NDArray[np.float64]
 
@@ -412,3 +413,19 @@ def bvh_from_poses(skeleton: Skeleton, rotations: ArrayLike, root_translation: A
     frame = Bvh(skeleton, channels, dict(end_sites or {}), frame_time,
                 np.zeros((rot.shape[0], 3 + 3 * skeleton.n_joints)), source)
     return frame.with_poses(rot, root_translation)
+
+
+def clip_from_bvh(bvh: Bvh, first_frame: int = 0, last_frame: int | None = None, mode: PlaybackMode = "loop",
+                  in_place: bool = False, name: str = "") -> KeyframeClip:
+    """Frames ``first_frame..last_frame`` (inclusive; default: to the end) of a BVH file as a keyframe clip.
+
+    CMU files start with a T-pose calibration frame, so their motion starts at ``first_frame=1``.
+    """
+    rotations, root = bvh.pose_arrays()
+    last = bvh.n_frames - 1 if last_frame is None else last_frame
+    if not 0 <= first_frame < last <= bvh.n_frames - 1:
+        raise ValueError(f"frame range {first_frame}..{last} is outside 0..{bvh.n_frames - 1} "
+                         f"or holds fewer than 2 frames")
+    frames = slice(first_frame, last + 1)
+    times = np.arange(first_frame, last + 1) * bvh.frame_time
+    return KeyframeClip(bvh.posed_skeleton(), times, rotations[frames], root[frames], mode, in_place, 1, name)

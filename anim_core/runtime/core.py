@@ -1,30 +1,31 @@
 """Posing crowds from the keys each clip stores: one compiled kernel per kind of clip, nothing resampled in time.
 
-Conventions: quaternions ``(w, x, y, z)`` (see :mod:`anim_core.quat`), times in seconds, runtime arrays float32
+Conventions: quaternions ``(w, x, y, z)`` (see :mod:`anim_core.math.quat`), times in seconds, runtime arrays float32
 unless a comment says otherwise; every output is the model-space (global) rotation ``(N, J, 4)`` and position
 ``(N, J, 3)`` of every joint of ``N`` characters, each at its own running time ``t (N,)``.
 
 The runtimes, built once per clip at load time (:func:`runtime_for`), evaluated per frame by :meth:`pose`:
 
 * :class:`TableRuntime`: keys on a uniform grid, nlerp between two of them (a keyframe clip's own keys, or a
-  hybrid baked by :func:`anim_core.crowd.bake`); or keys at uneven times (a ``reduced`` clip: the reduction keeps
+  hybrid baked by :func:`anim_core.runtime.crowd.bake`); or keys at uneven times (a ``reduced`` clip: the reduction
+  keeps
   whole poses, so one binary search of the key times per character), nlerp the same way.
 * :class:`QuantizedRuntime`: a ``quantized`` clip's integers (uint8 up to 8 bits, uint16 up to 16) with each
   track's ``low`` and ``step``; the kernel dequantizes the two keys it blends, normalizes each (as
-  :meth:`~anim_core.compression.QuantizedTracks.dequantize` does), then nlerps as the table does.
+  :meth:`~anim_core.methods.compression.QuantizedTracks.dequantize` does), then nlerps as the table does.
 * :class:`SplineRuntime`: a SQUAD hybrid (gait, idle).  Exact SQUAD costs three slerps per joint; instead each
   segment between two keys is a cubic Bezier curve in R^4, normalized, whose two inner control points per joint
   are fitted once to the exact SQUAD curve (minimax, Lawson's iteratively reweighted least squares).  The end
   control points are the keys themselves, so the curve passes through every key.  Per joint and frame that is
   four weighted quaternions and a normalization, like nlerp's two.  The fit's error against the exact curve is
   measured when the runtime is built (``fit_error_deg``) and must stay within :data:`FIT_TOLERANCE_DEG`.
-  A mirrored gait (second half cycle = the mirror image of the first, as :func:`anim_core.hybrid.build_gait`
+  A mirrored gait (second half cycle = the mirror image of the first, as :func:`anim_core.methods.hybrid.build_gait`
   makes it) stores the first half only; the second half is evaluated there and mirrored per joint (partner
   joint, sign flips), which is exact because the mirror commutes with SQUAD.
 * :class:`SpringRuntime`: the crouch.  Per character the closed-form spring gives the path parameter
   (:func:`crouch_path_parameter`), per joint an unclamped slerp between the two keys of its segment with the
   angle precomputed.
-* :class:`C2Runtime`: a ``hybrid_c2`` clip's cumulative B-spline (:mod:`anim_core.c2spline`) evaluated exactly
+* :class:`C2Runtime`: a ``hybrid_c2`` clip's cumulative B-spline (:mod:`anim_core.methods.c2spline`) evaluated exactly
   from its control points: per character the knot span and the cubic basis, per joint the first control point
   times three exponentials of the steps between control points (their logarithms, as half angle and axis, are
   computed at load time); the root is the SQUAD clip's root spline.  Checked at load against
@@ -32,7 +33,7 @@ The runtimes, built once per clip at load time (:func:`runtime_for`), evaluated 
 * :class:`FootLockRuntime`: a ``hybrid_ik`` clip: its hybrid's runtime (the fitted SQUAD segments or the spring)
   poses the character, then per leg the ankle target and weight are evaluated from the clip's
   cubic tracks (stored as the values and slopes at each frame: a cubic Hermite piece per frame interval is
-  exactly the spline's piece) and the analytic two-bone IK of :func:`anim_core.ik.two_bone_ik` (the knee's
+  exactly the spline's piece) and the analytic two-bone IK of :func:`anim_core.methods.ik.two_bone_ik` (the knee's
   hinge, no pole, the soft reach, the ankle keeping its world orientation) turns hip and knee; the leg's joints
   below the hip are re-posed from the new rotations.  A leg with weight 0 is left alone.  Checked at load
   against :meth:`FootLockedClip.sample` (``error_deg`` <=
@@ -58,16 +59,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .c2spline import C2Clip
-from .clip import PLAYBACK_MODES, KeyframeClip, Pose
-from .compression import QuantizedClip
-from .crowd import CrowdBuffers, PoseTable, keyframe_root, numba, table_from_keyframes, uniform
-from .footlock import FootLockedClip
-from .hybrid import SpringClip, SquadClip, spring
-from .ik import _STRAIGHT
-from .mirror import Mirror
-from .quat import quat_angle, quat_conj, quat_log, quat_mul, squad_eval
-from .skeleton import Skeleton
+from ..math.clip import PLAYBACK_MODES, KeyframeClip, Pose
+from ..math.quat import quat_angle, quat_conj, quat_log, quat_mul, squad_eval
+from ..math.skeleton import Skeleton
+from ..methods.c2spline import C2Clip
+from ..methods.compression import QuantizedClip
+from ..methods.footlock import FootLockedClip
+from ..methods.hybrid import SpringClip, SquadClip, spring
+from ..methods.ik import _STRAIGHT
+from ..rig.mirror import Mirror
+from .crowd import CrowdBuffers, PoseTable, keyframe_root, numba, pose_crowd_numpy, table_from_keyframes, uniform
 
 Array = NDArray[np.float64]
 F32 = NDArray[np.float32]
@@ -79,7 +80,8 @@ _MIRROR_TOLERANCE = 1e-6  # quaternion components: the second half must be the m
 # Largest angle between a joint's global rotation from the C2 kernel (the exact curve in float32) and
 # :meth:`C2Clip.sample`, measured when the runtime is built.
 C2_TOLERANCE_DEG = 0.01
-# The same for the foot-locked hybrid: the IK in the kernel is that of anim_core.ik (float64 on the float32 pose)
+# The same for the foot-locked hybrid: the IK in the kernel is that of anim_core.methods.ik (float64 on the float32
+# pose)
 # and, with its hinge, well-conditioned at a straight knee, so what is left is its base's fit error
 # (<= FIT_TOLERANCE_DEG; the spring's is float32 rounding).
 FOOT_LOCK_TOLERANCE_DEG = FIT_TOLERANCE_DEG
@@ -185,7 +187,7 @@ def check_inputs(skeleton: Skeleton, t: ArrayLike, out: CrowdBuffers | None, act
 
 @dataclass(frozen=True, eq=False)
 class TableRuntime(_Runtime):
-    """Keys on a uniform grid (:class:`anim_core.crowd.PoseTable`) or at uneven times: ``rotations (K, J, 4)``,
+    """Keys on a uniform grid (:class:`anim_core.runtime.crowd.PoseTable`) or at uneven times: ``rotations (K, J, 4)``,
     ``root (K, 3)`` (without travel), ``velocity (3,)``, ``params (3,)`` float64 = (key step s, or 0 for uneven
     keys; duration s; playback mode index), ``key_times (K,)`` float64 s for uneven keys (empty on a grid)."""
 
@@ -251,7 +253,7 @@ class SpringRuntime(_Runtime):
     (sign-continuous), ``angles (K - 1, J)`` the 4-D angle between the two keys of each segment and
     ``inv_sin (K - 1, J)`` its reciprocal sine (0 where the angle is too small: linear weights there),
     ``key_root (K, 3)``; ``params (6,)`` float64 = (zeta, omega rad/s, time scale, normalization, duration s,
-    playback mode index), read off the :class:`~anim_core.hybrid.SpringClip`'s fields."""
+    playback mode index), read off the :class:`~anim_core.methods.hybrid.SpringClip`'s fields."""
 
     skeleton: Skeleton
     key_params: Array
@@ -620,7 +622,7 @@ if numba is not None:
 
     @_njit
     def _clip_time(t, duration, mode):
-        """(clip time, completed loops) as :func:`anim_core.clip.playback_time`."""
+        """(clip time, completed loops) as :func:`anim_core.math.clip.playback_time`."""
         if mode == 0:
             cycles = np.floor(t / duration)
             ct = min(max(t - cycles * duration, 0.0), duration)
@@ -755,7 +757,7 @@ if numba is not None:
     @_njit
     def crouch_path_parameter(ct, params):
         """Path parameter ``u`` at clip time ``ct``: ``(1 - spring(time_scale ct)) * normalization``, the closed
-        form of :func:`anim_core.hybrid.spring` from rest at 1 (the one place the crouch's timing lives)."""
+        form of :func:`anim_core.methods.hybrid.spring` from rest at 1 (the one place the crouch's timing lives)."""
         zeta, omega, ts, norm = params[0], params[1], params[2], params[3]
         x = ts * ct
         alpha = omega * np.sqrt(1.0 - zeta * zeta)
@@ -883,7 +885,7 @@ if numba is not None:
 
     @_njit
     def _perpendicular(vx, vy, vz):
-        """A unit vector perpendicular to ``v`` (as :func:`anim_core.ik._perpendicular`)."""
+        """A unit vector perpendicular to ``v`` (as :func:`anim_core.methods.ik._perpendicular`)."""
         hx, hy = (1.0, 0.0) if abs(vx) < 0.9 else (0.0, 1.0)
         cx, cy, cz = -vz * hy, vz * hx, vx * hy - vy * hx
         n = np.sqrt(cx * cx + cy * cy + cz * cz)
@@ -896,7 +898,7 @@ if numba is not None:
 
     @_njit
     def _between(ax, ay, az, bx, by, bz):
-        """The smallest rotation turning ``a`` into ``b`` (as :func:`anim_core.quat.quat_between`)."""
+        """The smallest rotation turning ``a`` into ``b`` (as :func:`anim_core.math.quat.quat_between`)."""
         aa = ax * ax + ay * ay + az * az
         w = np.sqrt(aa) * np.sqrt(bx * bx + by * by + bz * bz) + ax * bx + ay * by + az * bz
         x, y, z = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
@@ -916,7 +918,7 @@ if numba is not None:
     @_njit
     def _foot_lock(c, chains, hinges, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos):
         """Both legs of character ``c`` (posed by the base kernel) solved towards their tracks' targets: the
-        steps of :func:`anim_core.ik.two_bone_ik` with the knee's hinge, no pole, the soft reach and the ankle's
+        steps of :func:`anim_core.methods.ik.two_bone_ik` with the knee's hinge, no pole, the soft reach and the ankle's
         world orientation kept,
         in float64; the hip's and knee's global rotations turn, every joint under the hip is re-placed."""
         fps, loop, duration, mode, soft, straight = ik[0], ik[1], ik[2], int(ik[3]), ik[7], ik[8]
@@ -1132,3 +1134,20 @@ if numba is not None:
         for k in numba.prange((times.shape[0] - first + stride - 1) // stride):
             _spring_one(first + k * stride, key_params, keys, angles, inv_sin, key_root, params, times, parents,
                         offsets, active, out_rot, out_pos)
+
+
+def pose_crowd(table: PoseTable, t: NDArray[np.floating], out: CrowdBuffers | None = None,
+               parallel: bool = False) -> CrowdBuffers:
+    """Global joint rotations and positions of ``N`` characters at their own times ``t (N,)`` seconds (float32).
+
+    The table's compiled kernel (:class:`anim_core.runtime.TableRuntime`; ``parallel``: one thread per core) when
+    numba is present, numpy otherwise.
+    """
+    t = np.ascontiguousarray(t, dtype=np.float64)
+    sk = table.skeleton
+    if numba is None:
+        out = out or CrowdBuffers.for_crowd(t.shape[0], sk.n_joints)
+        rot, pos = pose_crowd_numpy(table, t)
+        out.rotations[:], out.positions[:] = rot, pos
+        return out
+    return TableRuntime.from_table(table).pose(t, out, parallel=parallel)

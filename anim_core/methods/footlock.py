@@ -1,10 +1,10 @@
 """The hybrid with locked feet: the ``hybrid_ik`` condition (thesis, future work 7.1: foot sliding).
 
-Conventions as in :mod:`anim_core.footplant` (frames at ``fps``, metres, Y up, quaternions ``(w, x, y, z)``).
+Conventions as in :mod:`anim_core.methods.footplant` (frames at ``fps``, metres, Y up, quaternions ``(w, x, y, z)``).
 
 Built once (:func:`lock_feet`), per foot and frame of one period:
 
-1. *steps*: the contact phases of the *reference* (keyframe) clip (:func:`anim_core.contacts.foot_down`, every
+1. *steps*: the contact phases of the *reference* (keyframe) clip (:func:`anim_core.math.contacts.foot_down`, every
    foot joint within ``clearance`` m of its standing height) in which its foot comes to rest at least once
    (slowest joint at most ``rest_speed``, default the skate threshold): a phase in which the reference's foot never
    slows is its swing passing low over the floor (a *skim*) and is not held (:func:`steps`);
@@ -16,7 +16,7 @@ Built once (:func:`lock_feet`), per foot and frame of one period:
    frames, holding the union leaves a few frames to swing each foot a whole stride, a pop);
 3. *holds*: each grown by one frame on either side, because the skate measure takes central differences, and
    gaps of at most ``2 * blend_frames`` frames filled (:func:`held_frames`);
-4. :func:`anim_core.footplant.foot_targets` turns the hybrid's own feet over each hold into ankle targets: the
+4. :func:`anim_core.methods.footplant.foot_targets` turns the hybrid's own feet over each hold into ankle targets: the
    foot on the ground from its slowest frame on, its slowest joint moving at most ``max_speed`` (by default
    0.3 m/s: a margin under the 0.5 m/s skate threshold for what the IK cannot reach at a hold's edges);
 5. *swings*: between two holds the ankle's offset from its animated place eases (smoothstep) from one foothold to
@@ -34,7 +34,7 @@ Built once (:func:`lock_feet`), per foot and frame of one period:
 
 Stored: the hybrid's keys plus one ankle target ``(3,)`` and weight per leg and frame of one period, each knee's
 hinge and the soft reach.  At playback (:meth:`FootLockedClip.sample`) the hybrid is evaluated, the targets and
-weights are interpolated between frames by cubic splines and the analytic two-bone IK of :mod:`anim_core.ik`
+weights are interpolated between frames by cubic splines and the analytic two-bone IK of :mod:`anim_core.methods.ik`
 (hip-knee-ankle, knee kept in its animated plane and bending about its hinge, so it never flips; soft reach near
 full extension, so it does not kink; foot keeping its world orientation) moves each leg; bone lengths are the
 skeleton's, so they stay exact.
@@ -50,8 +50,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import CubicSpline
 
-from .clip import KeyframeClip, PlaybackMode, Pose, playback_time
-from .contacts import (
+from ..math.clip import KeyframeClip, PlaybackMode, Pose, playback_time
+from ..math.contacts import (
     CONTACT_CLEARANCE_M,
     SKATE_SPEED_MPS,
     contact_intervals,
@@ -60,10 +60,10 @@ from .contacts import (
     interval_mask,
     standing_heights,
 )
+from ..math.skeleton import Skeleton
 from .footplant import foot_targets
 from .hybrid import HybridClip
 from .ik import hinge_axis, smoothstep, two_bone_ik
-from .skeleton import Skeleton
 
 Array = NDArray[np.float64]
 ContactSource = Literal["reference", "union"]
@@ -84,8 +84,8 @@ class FootLockedClip:
     """``base`` (a hybrid clip) with the legs ``legs`` ((hip, knee, ankle) per foot) solved each frame towards
     ``targets (T, F, 3)`` with ``weights (T, F)``, one period of ``T`` frames at ``fps`` (a loop's frames wrap, a
     ping-pong clip's span ``0..duration``); targets are relative to the root without its travel.  ``hinges
-    (F, 3)``: each knee's hinge in its local frame (:func:`anim_core.ik.hinge_axis`), so a knee near straight
-    never flips; ``soft``: the IK's soft reach (:func:`anim_core.ik.two_bone_ik`), so a leg passing full
+    (F, 3)``: each knee's hinge in its local frame (:func:`anim_core.methods.ik.hinge_axis`), so a knee near straight
+    never flips; ``soft``: the IK's soft reach (:func:`anim_core.methods.ik.two_bone_ik`), so a leg passing full
     extension does not kink."""
 
     base: HybridClip
@@ -169,7 +169,7 @@ class FootLockedClip:
 
 def steps(down: ArrayLike, speed: ArrayLike, periodic: bool, rest_speed: float = SKATE_SPEED_MPS) -> NDArray[np.bool_]:
     """``(T, F)`` the contact frames ``down (T, F)`` that belong to a step: a contact phase in which the foot's
-    slowest joint gets down to ``rest_speed`` m/s (``speed (T, F)``, :func:`anim_core.contacts.foot_speed`) at
+    slowest joint gets down to ``rest_speed`` m/s (``speed (T, F)``, :func:`anim_core.math.contacts.foot_speed`) at
     least once.  A phase in which the foot never slows so far is a swing passing low over the floor (a skim),
     and holding it would drag the swinging foot back."""
     d = np.asarray(down, dtype=bool)
@@ -203,7 +203,7 @@ def held_frames(down: ArrayLike, periodic: bool, blend_frames: int) -> NDArray[n
     """``(T, F)`` the frames a foot is held in, from its contact frames ``down (T, F)``: each contact phase grown
     by one frame on either side, then gaps of at most ``2 * blend_frames`` frames between two phases filled.
 
-    Why: the skate measure (:func:`anim_core.contacts.foot_speed`) takes central differences, so a contact frame
+    Why: the skate measure (:func:`anim_core.math.contacts.foot_speed`) takes central differences, so a contact frame
     whose neighbour is a blend frame (the foot moving as animated) gets half the animated speed however well the
     contact frame itself is held; and two phases closer than their blends would overlap, the target switching
     from one phase's hold to the other's in mid-blend (a pop)."""
@@ -264,7 +264,7 @@ def lock_feet(base: HybridClip, reference: KeyframeClip, legs: Sequence[tuple[in
     ``legs``: (hip, knee, ankle) joint indices per foot; ``feet``: per foot the joints that touch the ground (ankle,
     toe); ``fps``: frames per second of the period the targets are computed on; ``blend_frames``: holds closer
     than ``2 * blend_frames`` frames are joined, and a non-periodic clip's first and last holds fade in and out
-    over that many frames; ``clearance`` m: the contact threshold of :func:`anim_core.contacts.foot_down`;
+    over that many frames; ``clearance`` m: the contact threshold of :func:`anim_core.math.contacts.foot_down`;
     ``max_speed`` m/s: the held foot's slowest joint moves at most this fast (it may roll, not slide);
     ``rest_speed`` m/s: a reference contact phase whose foot never gets this slow is a skim, not a step;
     ``contact_source``: ``"reference"`` holds the reference's steps, ``"union"`` grows each by the hybrid's own

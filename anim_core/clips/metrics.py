@@ -16,7 +16,7 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .quat import canonicalize, quat_conj, quat_log, quat_mul
+from ..math.quat import canonicalize, quat_conj, quat_log, quat_mul
 
 Array = NDArray[np.float64]
 

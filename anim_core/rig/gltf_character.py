@@ -1,16 +1,17 @@
-"""A skinned glTF character (:class:`~anim_core.gltf.GltfAsset`) as the :class:`~anim_core.character.Character`
+"""A skinned glTF character (:class:`~anim_core.io.gltf.GltfAsset`) as the :class:`~anim_core.rig.character.Character`
 the pipeline drives: its skeleton mapped onto the canonical CMU skeleton, metres, Y up, facing +Z, left at +X.
 
 Nothing here opens a file (``server.assets`` finds and reads it); every failure is a
-:class:`~anim_core.character.CharacterError` whose message starts with the asset's file name.
+:class:`~anim_core.rig.character.CharacterError` whose message starts with the asset's file name.
 
 - **Bind pose.**  The mesh is authored in its bind pose, so the joints' positions are those of their bind
   transforms (the inverses of the inverse bind matrices), not the nodes' rest pose; the two may differ.
-- **Mapping.**  :func:`~anim_core.rigmap.map_skeleton` maps the skin's joints (at the bind pose) onto the 31 canonical
+- **Mapping.**  :func:`~anim_core.rig.rigmap.map_skeleton` maps the skin's joints (at the bind pose) onto the 31
+  canonical
   joints; an explicit ``{canonical: source}`` mapping overrides or completes it.  A skeleton without hips, spine,
   head, legs or arms is an error naming the missing parts.
 - **Units and up axis**: detected from the skeleton's stature and the head-over-hips axis
-  (:func:`~anim_core.rigmap.canonical_frame`), or given; the character is turned (quarter turns) so its left is +X.
+  (:func:`~anim_core.rig.rigmap.canonical_frame`), or given; the character is turned (quarter turns) so its left is +X.
 - **Joints the canonical skeleton has and the rig lacks** (``LHipJoint``, ``LowerBack``, finger bases, ...) are
   placed where the CMU skeleton has them: on their parent for those with a zero offset there (:data:`ON_PARENT`),
   else evenly on the segment between their mapped neighbours (a missing leaf: towards the parent's tail, see
@@ -32,17 +33,17 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from ..io.gltf import GltfAsset
+from ..math.quat import rotate
+from ..math.skeleton import Skeleton
+from ..math.skinning import MAX_INFLUENCES
 from .character import CMU_TO_RIG, Character, CharacterError
-from .gltf import GltfAsset
-from .quat import rotate
 from .rigmap import CANONICAL_NAMES, CANONICAL_PARENTS, UNITS, RigMapError, RigMapping, canonical_frame, map_skeleton
-from .skeleton import Skeleton
-from .skinning import MAX_INFLUENCES
 
 Array = NDArray[np.float64]
 
 #: The character's joint names: the canonical ones, spelt as the MakeHuman rig spells them (what
-#: :func:`~anim_core.character.retarget` and :func:`~anim_core.character.bind_mesh` look up by default).
+#: :func:`~anim_core.rig.character.retarget` and :func:`~anim_core.rig.character.bind_mesh` look up by default).
 RIG_NAMES: tuple[str, ...] = tuple(CMU_TO_RIG.get(n, n) for n in CANONICAL_NAMES)
 #: Joints that sit on their parent in the CMU skeleton (zero offset; the bone below them carries the length): a rig
 #: without them gets them there, as the motion has them.
@@ -107,8 +108,8 @@ def character_from_gltf(asset: GltfAsset, explicit: Mapping[str, str] | None = N
                         up_axis: str | None = None) -> MappedCharacter:
     """The glTF character ``asset`` as the pipeline's character (see the module docstring).
 
-    ``explicit``: ``{canonical joint: source joint}`` (e.g. from :func:`~anim_core.rigmap.read_mapping_file`);
-    ``units`` (a key of :data:`~anim_core.rigmap.UNITS`) and ``up_axis`` (``"y"``/``"z"``) override the detection.
+    ``explicit``: ``{canonical joint: source joint}`` (e.g. from :func:`~anim_core.rig.rigmap.read_mapping_file`);
+    ``units`` (a key of :data:`~anim_core.rig.rigmap.UNITS`) and ``up_axis`` (``"y"``/``"z"``) override the detection.
     The result's ``vertices`` are the asset's in the same order, converted; ``joints``/``weights`` ``(V, 8)``.
     """
     src = asset.source

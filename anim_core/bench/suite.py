@@ -11,7 +11,7 @@ Variants:
   closed-form spring and unclamped slerp for the crouch; a ``reduced`` clip's keys at their own times, a
   ``quantized`` clip's integers dequantized in the kernel, a ``hybrid_c2`` clip's control points, a
   ``hybrid_ik`` clip's hybrid runtime plus its foot tracks and two-bone IK.  The headline figures.
-* ``baked``: every hybrid baked into a uniform table of keys (:func:`anim_core.crowd.bake`), posed like a
+* ``baked``: every hybrid baked into a uniform table of keys (:func:`anim_core.runtime.crowd.bake`), posed like a
   keyframe clip: the speed of dense keys bought with their memory.
 * ``reference``: the numpy reference implementation (``clip.sample`` + ``Skeleton.forward_kinematics``), with
   SQUAD tangents precomputed when the clip is built.
@@ -37,14 +37,13 @@ from typing import Any
 
 import numpy as np
 
-from . import metrics
-from .c2spline import C2Clip
-from .clip import KeyframeClip
-from .clipset import BuiltClip
-from .crowd import CrowdBuffers, bake, numba
-from .footlock import FootLockedClip
-from .hybrid import SpringClip, SquadClip
-from .runtime import (
+from ..clips import metrics
+from ..clips.record import BuiltClip
+from ..math.clip import KeyframeClip
+from ..methods.c2spline import C2Clip
+from ..methods.footlock import FootLockedClip
+from ..methods.hybrid import SpringClip, SquadClip
+from ..runtime import (
     AnyRuntime,
     TableRuntime,
     angle_error_deg,
@@ -54,6 +53,7 @@ from .runtime import (
     runtime_for,
     sample_times,
 )
+from ..runtime.crowd import CrowdBuffers, bake, numba
 
 DEFAULT_CHARACTERS = (1, 2, 5, 10, 20, 50, 100, 200, 1000, 10000)
 VARIANTS = ("keys", "baked", "reference", "naive")

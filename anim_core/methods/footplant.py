@@ -1,13 +1,13 @@
 """Keep planted feet planted: contact phases given per frame, legs pinned there with two-bone IK.
 
-Offline (a clip builder's step, not a runtime job).  Conventions as in :mod:`anim_core.contacts` and
-:mod:`anim_core.ik`: frames along axis 0 at ``fps``, positions in metres, ``up_axis`` vertical.  For each
+Offline (a clip builder's step, not a runtime job).  Conventions as in :mod:`anim_core.math.contacts` and
+:mod:`anim_core.methods.ik`: frames along axis 0 at ``fps``, positions in metres, ``up_axis`` vertical.  For each
 foot and each contact phase (an interval of frames in which the foot is down, typically detected on the source
 motion before retargeting), the foot follows its animated path on the ground from the phase's slowest frame on,
 shifted horizontally by whatever its slowest joint (heel or toe) moves beyond ``max_speed``: it can roll, not
 slide.  Heights stay the animated ones, the foot keeps its animated world orientation, and two-bone IK on
 hip-knee-ankle moves the leg, the knee bending about its hinge estimated on the given poses
-(:func:`anim_core.ik.hinge_axis`): towards its animated position while the leg is well bent, in its animated
+(:func:`anim_core.methods.ik.hinge_axis`): towards its animated position while the leg is well bent, in its animated
 plane where the leg is (nearly) straight and that position says nothing about where the knee points.  Over
 ``blend_frames`` frames on each side of a phase the IK weight eases in and out (smoothstep), so the leg never jumps.
 """
@@ -19,9 +19,9 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .contacts import contact_intervals
+from ..math.contacts import contact_intervals
+from ..math.skeleton import Skeleton
 from .ik import hinge_axis, smoothstep, two_bone_ik
-from .skeleton import Skeleton
 
 Array = NDArray[np.float64]
 
@@ -110,10 +110,10 @@ def plant_feet(skeleton: Skeleton, local_rotations: ArrayLike, root_translation:
     clips played in place, the ground moves at minus this under the character, so a pinned ankle follows it.
     ``max_speed`` m/s: inside a phase the foot follows its animated ground path, shifted so that its slowest
     joint never moves faster than this (by default 0.4 m/s, below the skate threshold of
-    :mod:`anim_core.contacts`); the foot keeps its world orientation, so heel and toe still roll.
+    :mod:`anim_core.math.contacts`); the foot keeps its world orientation, so heel and toe still roll.
     ``rest_speed`` m/s: a phase in which the foot's slowest joint never gets slower than this is a swing that
     skims the floor, not a step, and is left alone (holding it would drag the swinging foot back).
-    Each knee bends about its hinge estimated on ``local_rotations`` (:func:`anim_core.ik.hinge_axis`; a leg
+    Each knee bends about its hinge estimated on ``local_rotations`` (:func:`anim_core.methods.ik.hinge_axis`; a leg
     straight in every pose has none and is solved without), so it never flips or bends backwards near full reach.
     """
     rot = np.array(local_rotations, dtype=np.float64)
@@ -132,7 +132,8 @@ def plant_feet(skeleton: Skeleton, local_rotations: ArrayLike, root_translation:
 
 
 def _hinge(skeleton: Skeleton, local_rotations: ArrayLike, root: Array, chain: tuple[int, int, int]) -> Array | None:
-    """The knee's hinge (:func:`anim_core.ik.hinge_axis`) on the animated poses, or ``None`` for a leg straight in
+    """The knee's hinge (:func:`anim_core.methods.ik.hinge_axis`) on the animated poses, or ``None`` for a leg
+    straight in
     every pose: its plane is nowhere defined, and the plain solve (knee towards its animated position) is all
     there is — a motion file is not refused for it."""
     try:

@@ -3,11 +3,11 @@ motion on the character as glTF or BVH (``animstudy clips convert FILE OUT``, :f
 ``animstudy clips export``).
 
 :func:`inspect_source` reads a BVH (``.bvh``, ``.bvh.gz``) or glTF (``.glb``, ``.gltf``) file, maps its skeleton
-(:mod:`anim_core.rigmap`) and reports, per motion: joints, convention and mapping with reasons, units, up axis,
-fps, frames, duration, the foot-contact phases (frame intervals, :mod:`anim_core.contacts` on the motion in
+(:mod:`anim_core.rig.rigmap`) and reports, per motion: joints, convention and mapping with reasons, units, up axis,
+fps, frames, duration, the foot-contact phases (frame intervals, :mod:`anim_core.math.contacts` on the motion in
 metres) and a suggested ``kind`` and frame range.  Suggestions are heuristics stated in :func:`suggest`; the
-user decides.  Every failure is a ``ValueError`` subclass naming the file (:class:`~anim_core.bvh.BvhError` with
-its line, :class:`~anim_core.gltf.GltfError`, :class:`~anim_core.rigmap.RigMapError`).
+user decides.  Every failure is a ``ValueError`` subclass naming the file (:class:`~anim_core.io.bvh.BvhError` with
+its line, :class:`~anim_core.io.gltf.GltfError`, :class:`~anim_core.rig.rigmap.RigMapError`).
 """
 
 from __future__ import annotations
@@ -20,13 +20,13 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from .bvh import Bvh, bvh_from_poses, read_bvh, write_bvh
-from .character import Character, retarget
-from .contacts import contact_intervals, foot_down
-from .gltf import GltfAnimation, read_gltf, write_gltf
-from .rigmap import CANONICAL_NAMES, Normalized, normalize_bvh, normalize_motion
-from .skeleton import Skeleton
-from .skinning import SkinnedMesh
+from ..io.bvh import Bvh, bvh_from_poses, read_bvh, write_bvh
+from ..io.gltf import GltfAnimation, read_gltf, write_gltf
+from ..math.contacts import contact_intervals, foot_down
+from ..math.skeleton import Skeleton
+from ..math.skinning import SkinnedMesh
+from ..rig.character import Character, retarget
+from ..rig.rigmap import CANONICAL_NAMES, Normalized, normalize_bvh, normalize_motion
 
 Array = NDArray[np.float64]
 
@@ -133,7 +133,7 @@ def _report(name: str, out: Normalized) -> MotionReport:
 def read_motions(path: str | os.PathLike[str], explicit: Mapping[str, str] | None = None,
                  units: str | None = None, up_axis: str | None = None) -> list[tuple[str, Normalized]]:
     """Every motion of a BVH (one) or glTF file (one per animation), named and normalized
-    (:func:`~anim_core.rigmap.normalize_bvh`); errors are ``ValueError`` subclasses naming the file."""
+    (:func:`~anim_core.rig.rigmap.normalize_bvh`); errors are ``ValueError`` subclasses naming the file."""
     path = Path(path)
     name = path.name.lower()
     if name.endswith((".bvh", ".bvh.gz")):

@@ -1,6 +1,6 @@
 """A rotation spline with continuous angular acceleration (C2) through the hybrid's keys: the ``hybrid_c2`` condition.
 
-Conventions as in :mod:`anim_core.quat`: quaternions ``(..., 4)`` scalar first ``(w, x, y, z)``, times in seconds.
+Conventions as in :mod:`anim_core.math.quat`: quaternions ``(..., 4)`` scalar first ``(w, x, y, z)``, times in seconds.
 
 The curve is the *cumulative* cubic B-spline on unit quaternions of Kim, Kim and Shin (M.-J. Kim, M.-S. Kim,
 S. Y. Shin, "A general construction scheme for unit quaternion curves with simple high order derivatives",
@@ -19,7 +19,7 @@ grows) solves for the rotation-vector residuals at the knots; it stops below :da
 Loops (gait) use a periodic knot vector; ping-pong clips (idle) are the periodic spline through the keys followed
 by the same keys backwards, which is symmetric about both turns, so the velocity is zero there and the
 acceleration continuous across the reversal.  Keys, mirrored second half cycle, root spline and travel are those
-of the :class:`~anim_core.hybrid.SquadClip` it is built from (:func:`c2_from_squad`); only the rotation curve
+of the :class:`~anim_core.methods.hybrid.SquadClip` it is built from (:func:`c2_from_squad`); only the rotation curve
 differs.  The crouch's spring clip has no SQUAD spline and no C2 counterpart here.
 """
 
@@ -30,10 +30,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .clip import PlaybackMode, Pose, playback_time
+from ..math.clip import PlaybackMode, Pose, playback_time
+from ..math.quat import canonicalize, make_continuous, quat_conj, quat_exp, quat_log, quat_mul
+from ..math.skeleton import Skeleton
 from .hybrid import SquadClip
-from .quat import canonicalize, make_continuous, quat_conj, quat_exp, quat_log, quat_mul
-from .skeleton import Skeleton
 
 Array = NDArray[np.float64]
 
@@ -163,7 +163,7 @@ class PeriodicC2Spline:
 
 @dataclass(frozen=True, eq=False)
 class C2Clip:
-    """The rotation curve of a :class:`~anim_core.hybrid.SquadClip` (its keys, root, travel and playback) as the
+    """The rotation curve of a :class:`~anim_core.methods.hybrid.SquadClip` (its keys, root, travel and playback) as the
     C2 spline of this module; build with :func:`c2_from_squad`."""
 
     skeleton: Skeleton

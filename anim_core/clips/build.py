@@ -1,14 +1,14 @@
 """Building a clip set from motion capture: one animation's reference on the frame grid, every condition's clip
-from it (:mod:`anim_core.conditions`), the clips sampled, placed on the floor and measured.
+from it (:mod:`anim_core.methods.conditions`), the clips sampled, placed on the floor and measured.
 
 For each animation (an :class:`AnimationConfig`, read from the clip-set file by ``server.clipset``) the builder
 
 1. takes the motion, already on the canonical CMU skeleton (any common rig is brought there first by
-   :func:`anim_core.rigmap.normalize_bvh`), and retargets it onto the character (metres, Y up), turned to face +Z
+   :func:`anim_core.rig.rigmap.normalize_bvh`), and retargets it onto the character (metres, Y up), turned to face +Z
    (:func:`source_from_bvh`);
 2. picks what the description does not give: the gait cycle and keys from the feet, the crouch keys from the hip
    height, the idle keys from the sway; an ``other`` motion (any kind of movement) plays its whole frame range and
-   its hybrid keys are picked within its tolerance (:func:`anim_core.keypick.pick_keys`);
+   its hybrid keys are picked within its tolerance (:func:`anim_core.methods.keypick.pick_keys`);
 3. makes the **reference** keyframe clip: the chosen stretch of mocap resampled to ``fps`` keys per second on a
    grid whose length is a whole number of frames (the stretch is time-scaled by under half a frame to fit; a gait
    cycle also gets an even number of frames so its mirrored half-cycle lands on the grid, and it fades in from the
@@ -19,31 +19,32 @@ For each animation (an :class:`AnimationConfig`, read from the clip-set file by 
 5. samples every clip on the same grid (one loop, or one forward-and-back period), puts the floor under the
    reference's planted feet and measures the motion metrics, every other condition against the reference.
 
-The metrics are measured by :mod:`anim_core.clipmetrics`. Nothing here reads files: the server finds, verifies
+The metrics are measured by :mod:`anim_core.clips.measure`. Nothing here reads files: the server finds, verifies
 and writes them (``server.clipset``, ``server.assets``).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
-from . import contacts
-from .bvh import Bvh
-from .character import Character, RetargetedCharacter, retarget
-from .clip import KeyframeClip, PlaybackMode, Pose, horizontal
-from .clipmetrics import FEET, LEGS, UP, clip_feet, measure
-from .conditions import REFERENCE, Animation, AnimClip, Condition, Kind
-from .footplant import plant_feet
-from .ik import smoothstep
-from .keypick import pick_keys
-from .quat import quat_from_axis_angle, quat_mul, rotate, slerp
-from .rigmap import UNITS
-from .skeleton import Skeleton
+from ..io.bvh import Bvh
+from ..math import contacts
+from ..math.clip import KeyframeClip, PlaybackMode, Pose, horizontal
+from ..math.quat import quat_from_axis_angle, quat_mul, rotate, slerp
+from ..math.skeleton import Skeleton
+from ..methods.conditions import REFERENCE, Animation, Condition, Kind
+from ..methods.footplant import plant_feet
+from ..methods.ik import smoothstep
+from ..methods.keypick import pick_keys
+from ..rig.character import FEET, LEGS, UP, Character, RetargetedCharacter, retarget
+from ..rig.rigmap import UNITS
+from .measure import clip_feet, measure
+from .record import BuiltClip
 
 Array = NDArray[np.float64]
 
@@ -68,8 +69,9 @@ class AnimationConfig:
     source frames that override the automatic picks.
 
     How the caller reads the source: ``animation`` picks a glTF file's animation by name or index (default: the
-    first); ``mapping`` names an explicit joint-mapping file, ``units`` (a key of :data:`anim_core.rigmap.UNITS`) and
-    ``up_axis`` (``"y"``/``"z"``) override the detection (:func:`anim_core.rigmap.normalize_bvh`).  ``tolerance_mm``
+    first); ``mapping`` names an explicit joint-mapping file, ``units`` (a key of :data:`anim_core.rig.rigmap.UNITS`)
+    and
+    ``up_axis`` (``"y"``/``"z"``) override the detection (:func:`anim_core.rig.rigmap.normalize_bvh`).  ``tolerance_mm``
     (kind ``other``): the largest joint position error, mm, of the hybrid through the picked keys against the
     reference."""
 
@@ -217,51 +219,6 @@ def pick_idle(source: Source) -> tuple[int, int]:
 
 # --- clips -----------------------------------------------------------------------------------------------------
 
-@dataclass(frozen=True, eq=False)
-class BuiltClip:
-    """One clip of the set, sampled on its grid, with its metrics."""
-
-    id: str
-    animation: str
-    kind: Kind
-    condition: str
-    method: str
-    params: dict[str, Any]
-    clip: AnimClip
-    key_times: Array
-    key_rotations: Array
-    fps: int
-    n_frames: int
-    playback: PlaybackMode
-    in_place: bool
-    root_speed_mps: float
-    source: dict[str, Any]
-    character: RetargetedCharacter
-    local_rotations: Array = field(repr=False)
-    root_positions: Array = field(repr=False)
-    world_rotations: Array = field(repr=False)
-    world_positions: Array = field(repr=False)
-    metrics: dict[str, float | None] = field(default_factory=dict)
-
-    @property
-    def times(self) -> Array:
-        return np.arange(self.n_frames) / self.fps
-
-    @property
-    def duration_s(self) -> float:
-        return self.n_frames / self.fps
-
-    def arrays(self) -> dict[str, Array]:
-        sk = self.character.skeleton
-        return {
-            "joint_names": np.array(sk.names), "parents": sk.parents, "offsets": sk.offsets,
-            "bind_rotations": self.character.bind_rotations, "bind_positions": self.character.bind_positions,
-            "times": self.times, "local_rotations": self.local_rotations, "root_positions": self.root_positions,
-            "world_rotations": self.world_rotations, "world_positions": self.world_positions,
-            "key_times": self.key_times, "key_rotations": self.key_rotations,
-        }
-
-
 def _grid_times(start: float, stop: float, fps: int, even: bool, ease: float) -> Array:
     """Source times of the keys of :func:`_grid_clip`: a whole (or even) number of frames spanning ``start..stop``
     plus ``ease`` seconds, over which the clip's speed eases from 0 to 1 at the start and back at the end
@@ -325,7 +282,7 @@ def _crossfaded_loop(source: Source, clip: KeyframeClip, src_t: Array, blend: fl
 
 
 def _planted(source: Source, clip: KeyframeClip, src_t: Array) -> KeyframeClip:
-    """``clip`` with its feet held where they are while the source's feet are down (:mod:`anim_core.footplant`).
+    """``clip`` with its feet held where they are while the source's feet are down (:mod:`anim_core.methods.footplant`).
 
     Contacts are detected on the mocap on its own skeleton at the keys' source times; a loop is planted as one
     period in place (the ground moving under it), so a phase may run across the seam."""
@@ -346,7 +303,7 @@ def _planted(source: Source, clip: KeyframeClip, src_t: Array) -> KeyframeClip:
 
 
 def _source_skate(source: Source, start: float, stop: float, fps: int) -> float:
-    """Foot skate ratio (:mod:`anim_core.contacts`) of the mocap on its own skeleton from ``start`` to ``stop``
+    """Foot skate ratio (:mod:`anim_core.math.contacts`) of the mocap on its own skeleton from ``start`` to ``stop``
     seconds (the configured frames) at ``fps``, velocities by central differences with one frame beyond each end
     (held at the file's ends)."""
     n = int(np.floor((stop - start) * fps + 1e-9))
@@ -363,7 +320,7 @@ def _on_grid(t: float, start: float, stop: float, clip: KeyframeClip) -> float:
 
 def reference_animation(source: Source, fps: int) -> tuple[Animation, dict[str, Any]]:
     """The reference keyframe clip of one animation on the frame grid, with its base keys, as builders receive it
-    (:class:`~anim_core.conditions.Animation`); and what the manifest records of the source."""
+    (:class:`~anim_core.methods.conditions.Animation`); and what the manifest records of the source."""
     cfg = source.config
     t = source.time_of
     if cfg.kind == "gait":
@@ -398,7 +355,7 @@ def reference_animation(source: Source, fps: int) -> tuple[Animation, dict[str, 
 def _other_reference(source: Source, fps: int) -> tuple[KeyframeClip, tuple[float, ...], dict[str, Any]]:
     """Kind ``other``: the whole frame range on the grid (a loop closed, :meth:`KeyframeClip.closed_loop`; a
     ping-pong clip easing to rest at its turns), planted; its base keys given (source frames, mapped to the grid)
-    or picked on it within ``tolerance_mm`` (:func:`anim_core.keypick.pick_keys`)."""
+    or picked on it within ``tolerance_mm`` (:func:`anim_core.methods.keypick.pick_keys`)."""
     cfg = source.config
     loop = cfg.playback == "loop"
     start, stop = source.time_of(cfg.frames[0]), source.time_of(cfg.frames[1])

@@ -1,7 +1,7 @@
 """glTF 2.0 (``.glb``, ``.gltf``) skinned characters and animations, read and written with pygltflib.
 
 Conventions: glTF is Y up, metres, quaternions ``(x, y, z, w)`` in the file; here, as everywhere in anim_core,
-``(w, x, y, z)``.  A skin's joints become a :class:`~anim_core.skeleton.Skeleton` in topological order (parents
+``(w, x, y, z)``.  A skin's joints become a :class:`~anim_core.math.skeleton.Skeleton` in topological order (parents
 first; the skin's own order is kept in :attr:`GltfAsset.skin_order`): ``offsets`` are the joint nodes'
 translations, ``rest_rotations`` their rotations, and the root joint takes the whole transform of the nodes above
 it (a uniform scale there scales the skeleton, its motion and the inverse bind matrices).  Joint scales other than 1
@@ -28,9 +28,9 @@ import numpy as np
 import pygltflib
 from numpy.typing import NDArray
 
-from .character import vertex_normals
-from .quat import identity, quat_from_matrix, quat_mul, rotate, slerp
-from .skeleton import Skeleton
+from ..math.quat import identity, quat_from_matrix, quat_mul, rotate, slerp
+from ..math.skeleton import Skeleton
+from ..math.skinning import vertex_normals
 
 Array = NDArray[np.float64]
 

@@ -6,8 +6,9 @@ uniform time grid, sign-continuous, float32.  A keyframe clip's own keys are use
 exactly the reference's nlerp); a hybrid clip is *baked* once at build time, its SQUAD or spring curve sampled
 at ``rate`` keys per second, so that posing a hybrid character costs exactly what posing a keyframe character
 costs: gather two keys, nlerp, forward kinematics; the memory of dense keys is the price (the benchmark's
-``baked`` variant).  :func:`pose_crowd` runs that per character and joint in the numba kernel of
-:class:`anim_core.runtime.TableRuntime` (single- or multi-threaded); without numba it falls back to numpy.
+``baked`` variant).  :func:`anim_core.runtime.pose_crowd` runs that per character and joint in the numba kernel
+of :class:`anim_core.runtime.TableRuntime` (single- or multi-threaded); without numba it falls back to
+:func:`pose_crowd_numpy`.  The runtime builds on this module's tables; this module imports nothing of it.
 :mod:`anim_core.runtime` evaluates hybrids from their own keys instead.
 """
 
@@ -19,12 +20,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from .clip import PLAYBACK_MODES, KeyframeClip, playback_time
-from .quat import make_continuous, quat_angle
-from .skeleton import Skeleton
+from ..math.clip import PLAYBACK_MODES, KeyframeClip, playback_time
+from ..math.quat import make_continuous, quat_angle
+from ..math.skeleton import Skeleton
 
 if TYPE_CHECKING:
-    from .hybrid import AnimClip
+    from ..methods.hybrid import AnimClip
 
 Array = NDArray[np.float64]
 BAKE_RATE = 30.0  # keys per second a baked hybrid table starts from (the keyframe rate), doubled as needed
@@ -163,22 +164,3 @@ class CrowdBuffers:
     @classmethod
     def for_crowd(cls, n: int, joints: int) -> CrowdBuffers:
         return cls(np.empty((n, joints, 4), np.float32), np.empty((n, joints, 3), np.float32))
-
-
-def pose_crowd(table: PoseTable, t: NDArray[np.floating], out: CrowdBuffers | None = None,
-               parallel: bool = False) -> CrowdBuffers:
-    """Global joint rotations and positions of ``N`` characters at their own times ``t (N,)`` seconds (float32).
-
-    The table's compiled kernel (:class:`anim_core.runtime.TableRuntime`; ``parallel``: one thread per core) when
-    numba is present, numpy otherwise.
-    """
-    t = np.ascontiguousarray(t, dtype=np.float64)
-    sk = table.skeleton
-    if numba is None:
-        out = out or CrowdBuffers.for_crowd(t.shape[0], sk.n_joints)
-        rot, pos = pose_crowd_numpy(table, t)
-        out.rotations[:], out.positions[:] = rot, pos
-        return out
-    from .runtime import TableRuntime  # the runtime builds on this module's tables
-
-    return TableRuntime.from_table(table).pose(t, out, parallel=parallel)
