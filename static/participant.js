@@ -231,6 +231,16 @@
     return type === "text" ? String(raw).trim() || null : raw;
   }
 
+  async function resume() {
+    const r = await persist(() => api("GET", `/sessions/${creds.session_id}`));
+    if ([401, 403, 404].includes(r.status)) { clearCreds(); await start(); return; }
+    const state = await r.json();
+    if (state.state === "completed") { thanks(state); return; }
+    if (!state.demographics_given) { show("demographics"); return; }
+    if (!creds.instructed) { show("instructions"); return; }
+    await nextTrial();
+  }
+
   $("info-next").addEventListener("click", () => show("consent"));
   $("consent-box").addEventListener("change", (e) => { $("consent-next").disabled = !e.target.checked; });
   $("consent-next").addEventListener("click", async () => {
