@@ -5,7 +5,7 @@
 
 (() => {
   const slug = decodeURIComponent(location.pathname.split("/").filter(Boolean).pop() || "");
-  // A researcher's preview link (?preview=<token>): a pilot run, kept apart from a real session in this browser.
+  // A researcher's preview link (?preview=<token>): a pilot session, kept apart from a real one in this browser.
   const preview = new URLSearchParams(location.search).get("preview");
   const storeKey = preview ? `animstudy-pilot:${slug}` : `animstudy:${slug}`;
   const $ = (id) => document.getElementById(id);
@@ -229,6 +229,16 @@
     const type = q.type || "choice";
     if (type === "number" || type === "likert") return Number(raw);
     return type === "text" ? String(raw).trim() || null : raw;
+  }
+
+  async function resume() {
+    const r = await persist(() => api("GET", `/sessions/${creds.session_id}`));
+    if ([401, 403, 404].includes(r.status)) { clearCreds(); await start(); return; }
+    const state = await r.json();
+    if (state.state === "completed") { thanks(state); return; }
+    if (!state.demographics_given) { show("demographics"); return; }
+    if (!creds.instructed) { show("instructions"); return; }
+    await nextTrial();
   }
 
   $("info-next").addEventListener("click", () => show("consent"));

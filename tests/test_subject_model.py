@@ -124,3 +124,10 @@ def test_refuses_what_it_cannot_fit():
     x[:, 2] = np.nan
     with pytest.raises(ValueError, match="at least one score"):
         fit(x, [0, 0, 0])
+
+
+def test_unanimous_answers_do_not_raise():
+    """Everyone always says 'equal': no spread to model.  The fit stops, says so, and gives NaN (the results show
+    None), as sureal's would."""
+    m = fit(np.zeros((4, 3, 2)), [0, 0, 1, 1])
+    assert not m.converged and np.isnan(m.quality).all()

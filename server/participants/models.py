@@ -34,7 +34,7 @@ class ParticipantSession(Base):
     answers: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # question id -> answer (studyfile.Question)
     external: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # the study's accepted URL parameters
     device: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # schemas.DeviceReport at the start (0005)
-    # A researcher's preview run (0009): left out of results and exports unless asked for, deletable at once.
+    # A researcher's pilot session (0009): left out of results and exports unless asked for, deletable at once.
     pilot: Mapped[bool] = mapped_column(default=False, server_default=false())
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     completed_at: Mapped[datetime | None] = mapped_column(UTCDateTime)

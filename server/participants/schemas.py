@@ -68,7 +68,7 @@ class SessionCreate(BaseModel):
                                             "PROLIFIC_PID, STUDY_ID, SESSION_ID")
     device: DeviceReport | None = None
     preview: str | None = Field(default=None, max_length=2000, description="the token of a researcher's preview "
-                                "link: the session is a pilot run (draft or open study)")
+                                "link: the session is a pilot session (draft or open study)")
 
     @field_validator("consent")
     @classmethod

@@ -39,7 +39,7 @@ class NewSession:
 def start_session(session: Session, study: Study, external: dict[str, str] | None,
                   device: dict[str, Any] | None = None, pilot: bool = False) -> NewSession:
     """A session with its trials drawn in a seeded random order; the token is returned once, stored hashed.
-    ``pilot``: a researcher's preview run (the caller checked the preview link), allowed on a draft too."""
+    ``pilot``: a researcher's pilot session (the caller checked the preview link), allowed on a draft too."""
     if not pilot and study.state != StudyState.open:
         raise Conflict(f"study {study.slug!r} is not open for participants")
     token = secrets.token_urlsafe(32)

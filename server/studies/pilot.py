@@ -53,7 +53,7 @@ def check_preview(study: Study, token: str, secret: bytes) -> None:
     if claims.get("typ") != "preview" or claims.get("study") != study.id:
         raise Forbidden("this preview link belongs to another study")
     if study.state not in PREVIEW_STATES:
-        raise Conflict(f"study {study.slug!r} is {study.state}: pilot runs work while it is a draft or open")
+        raise Conflict(f"study {study.slug!r} is {study.state}: pilot sessions start only while it is a draft or open")
 
 
 def pilot_counts(session: Session, study: Study) -> dict[str, int]:

@@ -160,6 +160,12 @@ def study_results(session: Session, study: Study, benchmark_path: Path,
         "participants": [r.as_dict() for r in records.values()],
     }
     results["subject_model"] = copy.deepcopy(_subject_model_cached(_analysed_tests(rows)))
+    results["methods"]["exclusions"] = (
+        "practice and catch trials; every vote of a participant screened out by the study's screening rules "
+        f"({', '.join(rules.rules) or 'none'}; docs/screening.md); pilot sessions unless asked for")
+    results["methods"]["subject_model"] = (
+        "ITU-T P.910 Annex E / P.913 12.6 maximum likelihood (sureal's MLE): score = comparison score + "
+        "participant bias + participant inconsistency + animation ambiguity, over the finished, kept participants")
     results["pilot_included"] = include_pilot
     durations = [(ps.completed_at - ps.created_at).total_seconds() for ps in session.scalars(
         select(ParticipantSession).where(ParticipantSession.study_id == study.id,

@@ -182,7 +182,7 @@ def preview(slug: str, session: SessionDep, settings: SettingsDep, researcher: R
     of results and exports unless asked for."""
     study = service.managed_study(session, slug, researcher)
     if study.state not in pilot.PREVIEW_STATES:
-        raise Conflict(f"study {slug!r} is {study.state}: pilot runs work while it is a draft or open")
+        raise Conflict(f"study {slug!r} is {study.state}: pilot sessions start only while it is a draft or open")
     link = pilot.preview_link(study, settings.secret)
     return {"url": link.url, "expires_at": link.expires_at.isoformat(), **pilot.pilot_counts(session, study)}
 
