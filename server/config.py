@@ -21,7 +21,8 @@ class Settings(BaseSettings):
     videos; default a random key kept in ``<var>/secret.key``.  ``ANIMSTUDY_ALLOWED_HOSTS``: the host names the
     service answers to, comma-separated (``*.example.org`` matches subdomains); default ``*``, any; other
     ``Host`` headers get 400.  ``ANIMSTUDY_SESSIONS_PER_MINUTE``: new participant sessions allowed per client
-    address and minute (per worker process); default 60, 0 for no limit.  ``ANIMSTUDY_UPLOAD_MAX_BYTES``: the
+    address and minute (counted in the database: once across every process and instance); default 60, 0 for no
+    limit.  ``ANIMSTUDY_UPLOAD_MAX_BYTES``: the
     largest motion file a researcher may upload into a study's assets (``POST /api/v1/studies/{slug}/assets``);
     default 50 MB (50 * 2**20 bytes)."""
 
