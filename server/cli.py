@@ -211,7 +211,8 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies
         pairs = list(dict.fromkeys([*needed, *_pairs_in_use(settings)]))
         render_media(settings.data, clips_dir, out, settings.secret,
                      RenderSettings(width=width, height=height, shadows=shadows), pairs=pairs,
-                     workers=workers, every_clip=every_clip, progress=lambda m: print(m, flush=True))
+                     workers=workers, every_clip=every_clip, progress=lambda m: print(m, flush=True),
+                     scheduler=settings.dask_scheduler)
     except (AssetError, MediaError) as exc:
         return _fail(str(exc))
     except OSError as exc:

@@ -24,7 +24,8 @@ class Settings(BaseSettings):
     address and minute (counted in the database: once across every process and instance); default 60, 0 for no
     limit.  ``ANIMSTUDY_UPLOAD_MAX_BYTES``: the
     largest motion file a researcher may upload into a study's assets (``POST /api/v1/studies/{slug}/assets``);
-    default 50 MB (50 * 2**20 bytes)."""
+    default 50 MB (50 * 2**20 bytes).  ``ANIMSTUDY_DASK_SCHEDULER``: the Dask scheduler that renders run on (e.g.
+    ``tcp://host:8786``, see docs/cluster.md); default none: a local Dask cluster started per job."""
 
     model_config = SettingsConfigDict(env_prefix="ANIMSTUDY_", extra="ignore")
 
@@ -39,6 +40,7 @@ class Settings(BaseSettings):
     allowed_hosts: Annotated[list[str], NoDecode] = ["*"]
     sessions_per_minute: int = Field(default=60, ge=0)
     upload_max_bytes: int = Field(default=50 * 2**20, ge=1)
+    dask_scheduler: str | None = None
 
     @field_validator("allowed_hosts", mode="before")
     @classmethod

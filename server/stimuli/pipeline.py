@@ -140,7 +140,8 @@ def render(settings: Settings, place: Place, wanted: list[tuple[str, str]], rend
     from server.media.build import render_media
 
     render_media(settings.data, place.clips_dir, settings.media_dir, settings.secret, render_settings,
-                 pairs=wanted, workers=workers, every_clip=False, progress=progress, manifest_dir=place.render_dir)
+                 pairs=wanted, workers=workers, every_clip=False, progress=progress, manifest_dir=place.render_dir,
+                 scheduler=settings.dask_scheduler)
     return read_render_manifest(place.render_dir)
 
 

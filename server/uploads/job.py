@@ -324,7 +324,7 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
     watcher.start()
     try:
         render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret, render, pairs=pairs,
-                     workers=1, progress=lambda m: progress(message=m))
+                     workers=1, progress=lambda m: progress(message=m), scheduler=settings.dask_scheduler)
     finally:
         stop.set()
         watcher.join()
