@@ -473,9 +473,13 @@ class PeakMemory:
             self._thread.join()
 
 
+def _value(value: Any) -> Any:
+    return value
+
+
 def _run_on_dask(p: Plan, out_dir: Path, scheduler: str | None, workers: int,
                  progress: Callable[[str], None]) -> list[list[tuple[str, float]]]:
-    """One :func:`render_task` per job on the cluster (see :mod:`server.cluster`), the character scattered once;
+    """One :func:`render_task` per job on the cluster (see :mod:`server.cluster`), the character sent once;
     each job's files are stored as it finishes, so a job interrupted later renders only what is still missing.
     A failed task fails the render naming its clip, after the others have finished and been stored."""
     from distributed import as_completed as dask_completed
@@ -483,9 +487,12 @@ def _run_on_dask(p: Plan, out_dir: Path, scheduler: str | None, workers: int,
     from server.cluster import dask_client
 
     with dask_client(scheduler, min(workers, len(p.jobs))) as client, client.as_current():
+        # The character goes to the cluster once per job, as a task of its own rather than scattered data: a
+        # scattered value lost with its worker cannot be recovered, a task's result is computed again.
         characters = {j.character: j for j in p.jobs}
-        scattered = {c: client.scatter(job_character(j), broadcast=True, hash=False) for c, j in characters.items()}
-        futures = {client.submit(render_task, j, job_arrays(j), scattered[j.character], pure=False,
+        shared = {c: client.submit(_value, job_character(j), pure=False, key=f"character-{uuid.uuid4().hex[:8]}")
+                  for c, j in characters.items()}
+        futures = {client.submit(render_task, j, job_arrays(j), shared[j.character], pure=False,
                                  key=f"render-{j.animation}-{uuid.uuid4().hex[:8]}"): j for j in p.jobs}
         results, failures = [], []
         for future in dask_completed(futures):
