@@ -432,6 +432,50 @@ def researcher_create(settings: Settings, email: str, password: str, admin: bool
     return 0
 
 
+def bench_render(settings: Settings, width: int, height: int, animations: list[str] | None) -> int:
+    """Frames per second of rendering the default study's videos on a real Dask cluster (a local scheduler and
+    worker processes) of 1 and then 2 workers, the same work each time, and the ratio."""
+    import tempfile
+
+    from server.assets import AssetError
+    from server.clipset.build import build_clip_set
+    from server.clipset.manifest import write_clip_set
+    from server.media.build import MediaError, plan, run_on_dask
+    from server.media.scene import RenderSettings
+    from server.studies.service import clip_set_index, required_pairs
+    from server.studies.studyfile import thesis_study
+
+    render_settings = RenderSettings(width=width, height=height)
+    with tempfile.TemporaryDirectory(prefix="animstudy-bench-render-") as tmp:
+        clips_dir = Path(tmp) / "clips"
+        try:
+            if (settings.clips_dir / "manifest.json").is_file():
+                clips_dir = settings.clips_dir
+            else:
+                print("building the clip set", flush=True)
+                write_clip_set(build_clip_set(settings.data), clips_dir)
+            pairs = required_pairs(thesis_study().design, clip_set_index(clips_dir))
+            fps = {}
+            for workers in (1, 2):
+                out = Path(tmp) / f"media-{workers}"
+                out.mkdir()
+                p = plan(settings.data, clips_dir, out, render_settings, settings.secret, pairs, animations)
+                frames = sum(j.n_frames for j in p.jobs)
+                print(f"{workers} worker(s): {sum(len(j.outputs) for j in p.jobs)} videos, {frames} frames, "
+                      f"{len(p.jobs)} tasks at {width}x{height}", flush=True)
+                started = time.perf_counter()
+                run_on_dask(p, out, None, workers, lambda m: print(m, flush=True))
+                seconds = time.perf_counter() - started
+                fps[workers] = frames / seconds
+                print(f"{workers} worker(s): {seconds:.1f} s, {fps[workers]:.1f} frames/s (cluster start "
+                      "included)", flush=True)
+        except (AssetError, MediaError) as exc:
+            return _fail(str(exc))
+    print(f"render: 1 worker {fps[1]:.1f} frames/s, 2 workers {fps[2]:.1f} frames/s, ratio {fps[2] / fps[1]:.2f} "
+          f"(on {os.cpu_count()} cores; load average {os.getloadavg()[0]:.1f})", flush=True)
+    return 0
+
+
 def bench(settings: Settings, json_path: Path, characters: list[int], stages: list[str], frames: int,
           variants: list[str], config: Path | None = None) -> int:
     """Run the performance benchmark on the clip set of ``config`` (default: the built-in one); write JSON (for
@@ -633,7 +677,15 @@ def _main(argv: Sequence[str] | None = None) -> int:
     se.add_argument("--out", type=Path, default=None, help="file to write (default: standard output)")
     gcp = sub.add_parser("gc", help="delete the videos no study's stimulus set (and not the render manifest) uses")
     gcp.add_argument("--dry-run", action="store_true", help="list them, delete nothing")
-    bn = sub.add_parser("bench", help="time pose evaluation of crowds, keyframe against every other condition")
+    bn = sub.add_parser("bench", help="time pose evaluation of crowds, keyframe against every other condition "
+                                      "(`bench render`: render frames per second on 1 and 2 Dask workers)")
+    bn.add_argument("what", nargs="?", choices=["crowd", "render"], default="crowd",
+                    help="crowd (default): pose evaluation; render: the default study's videos on a local Dask "
+                         "cluster of 1 and then 2 workers")
+    bn.add_argument("--width", type=int, default=160, help="bench render: video width (default: 160)")
+    bn.add_argument("--height", type=int, default=120, help="bench render: video height (default: 120)")
+    bn.add_argument("--animations", type=lambda v: [a for a in v.split(",") if a], default=None,
+                    help="bench render: only these animations, comma-separated (default: all)")
     bn.add_argument("--json", type=Path, default=None, help="results file (default: <var dir>/benchmark/results.json)")
     bn.add_argument("--config", type=Path, default=None,
                     help="clip-set TOML whose clips to time (default: the built-in one), e.g. "
@@ -647,6 +699,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
                     help="comma-separated: keys, baked, reference, naive (default: all)")
     args = parser.parse_args(argv)
     settings = Settings.from_env()
+    if args.command == "bench" and args.what == "render":
+        return bench_render(settings, max(16, args.width), max(16, args.height), args.animations)
     if args.command == "bench":
         from anim_core.benchmark import DEFAULT_CHARACTERS, VARIANTS
 

@@ -477,7 +477,7 @@ def _value(value: Any) -> Any:
     return value
 
 
-def _run_on_dask(p: Plan, out_dir: Path, scheduler: str | None, workers: int,
+def run_on_dask(p: Plan, out_dir: Path, scheduler: str | None, workers: int,
                  progress: Callable[[str], None]) -> list[list[tuple[str, float]]]:
     """One :func:`render_task` per job on the cluster (see :mod:`server.cluster`), the character sent once;
     each job's files are stored as it finishes, so a job interrupted later renders only what is still missing.
@@ -539,7 +539,7 @@ def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
                 _init_worker()
                 results = [run_job(j) for j in p.jobs]
             else:
-                results = _run_on_dask(p, out_dir, scheduler, workers, progress)
+                results = run_on_dask(p, out_dir, scheduler, workers, progress)
         progress(f"rendered {sum(len(r) for r in results)} videos in {time.perf_counter() - started:.1f} s, "
                  f"peak memory {memory.peak_bytes / 2**20:.0f} MiB (all processes)")
     manifest_dir = Path(manifest_dir or out_dir)
