@@ -172,3 +172,43 @@ def test_a_failing_clip_is_named_and_the_other_jobs_are_stored(data, clips_dir, 
     stored, local = _files(out), _files(local_render)
     assert run and run <= stored.keys(), messages
     assert all(stored[n] == local[n] for n in run)
+
+
+RESTARTED = """
+import sys
+from pathlib import Path
+from server.media.build import render_media
+from server.media.scene import RenderSettings
+pairs = [tuple(p.split("|")) for p in sys.argv[4].split(",")]
+render_media(Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3]), {secret!r},
+             RenderSettings(width={w}, height={h}, shadows=False), pairs=pairs, scheduler=sys.argv[5])
+"""
+
+
+def test_a_render_restarted_mid_job_renders_only_what_is_missing(data, clips_dir, pairs, local_render, dask_cluster,
+                                                                 tmp_path):
+    """The submitting process (the server, the command) is killed with -9 once the first job's files are stored;
+    run again, it renders only the videos still missing, and they are the local render's."""
+    address, _observer, _procs = dask_cluster
+    out = tmp_path / "media"
+    script = RESTARTED.format(secret=SECRET, w=TINY.width, h=TINY.height)
+    first = subprocess.Popen([sys.executable, "-c", script, str(data), str(clips_dir), str(out),
+                              ",".join(f"{a}|{b}" for a, b in pairs), address])
+    deadline = time.monotonic() + 180
+    while not (out.is_dir() and any(f.suffix == ".mp4" for f in out.iterdir())):
+        assert first.poll() is None, "the render ended before it was killed"
+        assert time.monotonic() < deadline, "no video was stored"
+        time.sleep(0.05)
+    first.kill()
+    first.wait(10)
+    assert not (out / MANIFEST).exists()  # it was killed mid-job
+    # Up to date: a video with its poster (the kill may have come between a job's files).
+    stored_before = {f.name for f in out.iterdir() if f.suffix == ".mp4" and f.with_suffix(".jpg").is_file()}
+    total = sum(1 for n in _files(local_render) if n.endswith(".mp4"))
+    assert 0 < len(stored_before) < total
+    messages: list[str] = []
+    render_media(data, clips_dir, out, SECRET, TINY, pairs=pairs, scheduler=address, progress=messages.append)
+    missing = total - len(stored_before)
+    assert f"{total} videos, {len(stored_before)} up to date, {missing} to render" in messages[0], messages
+    assert f"rendered {missing} videos" in "\n".join(messages), messages
+    assert _files(out) == _files(local_render)
