@@ -292,8 +292,8 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                 lacking = [c for c in pipeline.needed_conditions(study_file.design) if c not in ids] + [
                     a for a in study_file.design.animations if a not in config.animations]
                 if lacking:
-                    return _fail(f"{args.file}: {', '.join(lacking)} not in its clip set {study_file.clips.set}")
-                checked = f"; its animations and conditions are in its clip set {study_file.clips.set}"
+                    return _fail(f"{args.file}: {', '.join(lacking)} not in its clip set")
+                checked = "; its animations and conditions are in its own clip set ([clips])"
             elif (settings.clips_dir / MANIFEST).is_file():
                 service.check_known(study_file.design, service.clip_set_index(settings.clips_dir))
                 checked = f"; its animations and conditions are in the clip set {settings.clips_dir}"
