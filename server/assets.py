@@ -1,7 +1,7 @@
 """The source data files: where they are in the data directory, what their content must be, and loading them.
 
-anim_core opens no data directory: its loaders take file paths (:func:`anim_core.character.load_character`,
-:func:`anim_core.bvh.read_bvh`, :func:`anim_core.gltf.read_gltf`); this module finds and verifies those files
+anim_core opens no data directory: its loaders take file paths (:func:`anim_core.rig.character.load_character`,
+:func:`anim_core.io.bvh.read_bvh`, :func:`anim_core.io.gltf.read_gltf`); this module finds and verifies those files
 and turns the loaders' errors into :class:`AssetError` naming the file.  A glTF character (and its mapping file)
 is a user's file named by the clip-set file: under the data directory or absolute, not checksum-listed.
 
@@ -17,11 +17,11 @@ import gzip
 import hashlib
 from pathlib import Path
 
-from anim_core.bvh import Bvh, BvhError, read_bvh
-from anim_core.character import Character, CharacterError, load_character
-from anim_core.gltf import GltfError, read_gltf
-from anim_core.gltf_character import MappedCharacter, character_from_gltf
-from anim_core.rigmap import RigMapError, read_mapping_file
+from anim_core.io.bvh import Bvh, BvhError, read_bvh
+from anim_core.io.gltf import GltfError, read_gltf
+from anim_core.rig.character import Character, CharacterError, load_character
+from anim_core.rig.gltf_character import MappedCharacter, character_from_gltf
+from anim_core.rig.rigmap import RigMapError, read_mapping_file
 
 #: path in the data directory (as mirrored, gzip-compressed where marked) -> sha256 of the uncompressed content
 CHECKSUMS: dict[str, str] = {

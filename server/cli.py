@@ -30,8 +30,8 @@ def _source_options(parser: argparse.ArgumentParser) -> None:
 
 def clips_inspect(path: Path, mapping: Path | None, units: str | None, up_axis: str | None) -> int:
     """Print what a BVH or glTF file holds and how it maps onto the character (``animstudy clips inspect``)."""
-    from anim_core.rigmap import read_mapping_file
-    from anim_core.sourceinfo import format_report, inspect_source
+    from anim_core.clips.sources import format_report, inspect_source
+    from anim_core.rig.rigmap import read_mapping_file
 
     if not path.is_file():
         return _fail(f"{path}: no such file")
@@ -47,8 +47,8 @@ def clips_inspect(path: Path, mapping: Path | None, units: str | None, up_axis: 
 def clips_convert(data_dir: Path, path: Path, out: Path, mapping: Path | None, units: str | None,
                   up_axis: str | None) -> int:
     """Write a BVH/glTF motion retargeted onto the character as .glb/.gltf or .bvh (``animstudy clips convert``)."""
-    from anim_core.rigmap import read_mapping_file
-    from anim_core.sourceinfo import export_on_character, inspect_source
+    from anim_core.clips.sources import export_on_character, inspect_source
+    from anim_core.rig.rigmap import read_mapping_file
     from server.assets import character as load_character
 
     if not path.is_file():
@@ -67,9 +67,9 @@ def clips_export(data_dir: Path, clips_dir: Path, clip_id: str, out: Path) -> in
     """Write one clip of a built clip set on the character as .glb/.gltf or .bvh (``animstudy clips export``)."""
     import numpy as np
 
-    from anim_core.character import bind_mesh
-    from anim_core.skeleton import Skeleton
-    from anim_core.sourceinfo import write_motion
+    from anim_core.clips.sources import write_motion
+    from anim_core.math.skeleton import Skeleton
+    from anim_core.rig.character import bind_mesh
     from server.clipset.build import load_character, record_config
     from server.clipset.manifest import read_clip, read_clip_manifest
 
@@ -98,9 +98,8 @@ def inspect(data_dir: Path) -> int:
     """Print what the motion-capture files in the data directory hold."""
     import numpy as np
 
-    from anim_core.bvh import BvhError, read_bvh
-    from anim_core.clip import clip_from_bvh
-    from anim_core.clipset import METRES_PER_CMU_UNIT
+    from anim_core.clips.build import METRES_PER_CMU_UNIT
+    from anim_core.io.bvh import BvhError, clip_from_bvh, read_bvh
 
     paths = sorted(data_dir.glob("mocap/**/*.bvh*"))
     if not paths:
@@ -128,8 +127,8 @@ def _fmt(value: float | None, digits: int) -> str:
 
 def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
     """Build the clip set, write it to ``out`` and print its metric table."""
-    from anim_core.clipmetrics import clip_warnings
-    from anim_core.clipset import ConfigError
+    from anim_core.clips.build import ConfigError
+    from anim_core.clips.measure import clip_warnings
     from server.assets import AssetError
     from server.clipset.build import build_clip_set
     from server.clipset.config import load_config
@@ -179,7 +178,7 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies
     """Render the clip set's videos into ``out`` (building the clip set first if it is missing): the pairs the
     ``studies`` files (default: the thesis study file) show, the pairs of every study in the database, and the
     clips of those pairs (``every_clip``: every clip)."""
-    from anim_core.clipset import ConfigError
+    from anim_core.clips.build import ConfigError
     from server.assets import AssetError
     from server.clipset.build import build_clip_set
     from server.clipset.manifest import MANIFEST, write_clip_set
@@ -266,7 +265,7 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
     """``animstudy study ...``: schema, validate, create, list, open, close, export."""
     from sqlalchemy import select
 
-    from anim_core.clipset import ConfigError
+    from anim_core.clips.build import ConfigError
     from server.assets import AssetError
     from server.clipset.manifest import MANIFEST
     from server.errors import ServiceError
@@ -287,7 +286,16 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
     try:
         if command == "validate":
             study_file = load_study_file(args.file)
-            if (settings.clips_dir / MANIFEST).is_file():
+            if study_file.clips is not None:
+                config = pipeline.study_place(settings, study_file, args.file).config
+                assert config is not None
+                ids = {c.id for c in config.conditions}
+                lacking = [c for c in pipeline.needed_conditions(study_file.design) if c not in ids] + [
+                    a for a in study_file.design.animations if a not in config.animations]
+                if lacking:
+                    return _fail(f"{args.file}: {', '.join(lacking)} not in its clip set")
+                checked = "; its animations and conditions are in its own clip set ([clips])"
+            elif (settings.clips_dir / MANIFEST).is_file():
                 service.check_known(study_file.design, service.clip_set_index(settings.clips_dir))
                 checked = f"; its animations and conditions are in the clip set {settings.clips_dir}"
             else:
@@ -332,6 +340,27 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
             elif command == "close":
                 study = service.set_state(session, service.get_study(session, args.slug), StudyState.closed)
                 print(f"study {study.slug!r} is {study.state}")
+            elif command == "export-archive":
+                from server.stimuli.archive import export_archive
+
+                study = service.get_study(session, args.slug)
+                out = export_archive(study, settings.media_dir, args.out or Path(f"{study.slug}.animstudy.zip"))
+                print(f"study {study.slug!r} with its stimulus set {study.stimulus_set.digest[:12]} "
+                      f"({len(study.stimulus_set.content['pairs'])} pair videos) -> {out} "
+                      f"({out.stat().st_size / 2**20:.1f} MiB)")
+            elif command == "import-archive":
+                from server.stimuli.archive import import_archive
+
+                owner = None
+                if args.owner:
+                    owner = session.scalar(select(Researcher).where(Researcher.email == normalize_email(args.owner)))
+                    if owner is None:
+                        return _fail(f"no researcher {args.owner!r} (create one with `animstudy researcher create`)")
+                study = import_archive(session, args.file, settings.media_dir, owner)
+                if args.open:
+                    service.open_study(session, study, settings.media_dir)
+                print(f"imported study {study.slug!r} ({study.state}) with its stimulus set "
+                      f"{study.stimulus_set.digest[:12]}; participant link: /s/{study.slug}")
             elif command == "export":
                 study = service.get_study(session, args.slug)
                 text = (service.export_csv(session, study) if args.format == "csv" else
@@ -393,7 +422,7 @@ def serve(settings: Settings, host: str, port: int, workers: int) -> int:
     """Migrate, prepare the default study if there is none, and serve."""
     import uvicorn
 
-    from anim_core.clipset import ConfigError
+    from anim_core.clips.build import ConfigError
     from server.assets import AssetError
     from server.db import make_engine, migrate, session_factory
     from server.errors import ServiceError
@@ -483,8 +512,8 @@ def bench(settings: Settings, json_path: Path, characters: list[int], stages: li
     # One thread for numpy/BLAS in the main figures (the compiled kernel's threads are a separate figure).
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
-    from anim_core import benchmark
-    from anim_core.clipset import ConfigError
+    from anim_core.bench import suite as benchmark
+    from anim_core.clips.build import ConfigError
     from server.assets import AssetError
     from server.clipset.build import build_clip_set
     from server.clipset.config import load_config
@@ -566,7 +595,7 @@ QUICK_BENCH = "--characters 10,1000 --stages pose --frames 50 --variants keys"
 
 
 def _variants(text: str) -> list[str]:
-    from anim_core.benchmark import VARIANTS
+    from anim_core.bench.suite import VARIANTS
 
     chosen = [v.strip() for v in text.split(",") if v.strip()]
     if not chosen or any(v not in VARIANTS for v in chosen):
@@ -671,6 +700,14 @@ def _main(argv: Sequence[str] | None = None) -> int:
     for name in ("open", "close"):
         so = st_sub.add_parser(name, help=f"{name} a study for participants")
         so.add_argument("slug")
+    sa = st_sub.add_parser("export-archive", help="one file with the study file, its pinned stimulus set and its "
+                           "videos, to rerun the study on another server")
+    sa.add_argument("slug")
+    sa.add_argument("--out", type=Path, default=None, help="archive file (default: <slug>.animstudy.zip)")
+    si = st_sub.add_parser("import-archive", help="recreate a study from its archive (same stimuli, byte for byte)")
+    si.add_argument("file", type=Path)
+    si.add_argument("--owner", default=None, help="e-mail of the researcher who owns it (default: none)")
+    si.add_argument("--open", action="store_true", help="open it for participants at once")
     se = st_sub.add_parser("export", help="a study's votes, one row per vote (see the data dictionary)")
     se.add_argument("slug")
     se.add_argument("--format", choices=("csv", "json"), default="csv")
@@ -702,7 +739,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
     if args.command == "bench" and args.what == "render":
         return bench_render(settings, max(16, args.width), max(16, args.height), args.animations)
     if args.command == "bench":
-        from anim_core.benchmark import DEFAULT_CHARACTERS, VARIANTS
+        from anim_core.bench.suite import DEFAULT_CHARACTERS, VARIANTS
 
         quick = args.quick
         return bench(settings, args.json or settings.benchmark_path,

@@ -111,6 +111,11 @@
             r.animation, c.condition, c.value == null ? (c.bound ? `${c.bound} all others` : "–") : fmt(c.value, 2),
             c.ci95 ? `${fmt(c.ci95[0], 2)} … ${fmt(c.ci95[1], 2)}` : "–", c.votes, r.fit.status])));
     renderQuestions(res, comps);
+    // The clips of the study's stimulus set, with the metrics they had when it was made (pinned when it opened).
+    $("stimulus-set").textContent = res.stimulus_set
+      ? `The study's stimulus set ${res.stimulus_set.slice(0, 12)}: its clips as they were when the set was made ` +
+        `(pinned when the study opened; exports name it in the column stimulus_set).`
+      : "";
     renderMetrics(res.clips);
     renderBenchmark(res.benchmark);
   }
@@ -145,7 +150,7 @@
 
   // The study's own clips (`shown`) in the chart and first in the table; the rest of the clip set below them.
   function renderMetrics(all) {
-    if (!all.length) { $("chart-metrics").textContent = "No clip set found."; $("table-metrics").replaceChildren(); return; }
+    if (!all.length) { $("chart-metrics").textContent = "This study has no stimulus set."; $("table-metrics").replaceChildren(); return; }
     const mine = all.filter((c) => c.shown);
     const clips = [...mine, ...all.filter((c) => !c.shown)];
     const charted = mine.length ? mine : all;

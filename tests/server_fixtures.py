@@ -75,10 +75,12 @@ def study_file(design: Design | None = None, slug: str = "thesis", **sections: o
 
 
 def make_study(db: Session, design: Design | None = None, slug: str = "thesis", state: StudyState = StudyState.open,
-               owner: object = None, media_dir: Path | None = None, **sections: object) -> Study:
-    """A study over :func:`fake_media` (its stimulus set hashes the stand-in files of ``media_dir``, if given)."""
+               owner: object = None, media_dir: Path | None = None, clips_dir: Path | None = None,
+               **sections: object) -> Study:
+    """A study over :func:`fake_media` (its stimulus set hashes the stand-in files of ``media_dir`` and takes the
+    clips' metrics from the clip set in ``clips_dir``, if given)."""
     study = create_study(db, fake_media(design), study_file(design, slug, **sections), owner=owner,  # type: ignore[arg-type]
-                         media_dir=media_dir)
+                         media_dir=media_dir, clips_dir=clips_dir)
     return set_state(db, study, state)
 
 

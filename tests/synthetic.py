@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from anim_core import quat as Q
-from anim_core.skeleton import Skeleton
+from anim_core.math import quat as Q
+from anim_core.math.skeleton import Skeleton
 
 # A 9-joint biped: hips, a spine chain and two 3-joint legs, Y up, X to the character's left, Z forward.
 BIPED_NAMES = ("Hips", "Spine", "Head", "LeftUpLeg", "LeftLeg", "LeftFoot", "RightUpLeg", "RightLeg", "RightFoot")

@@ -1,4 +1,4 @@
-"""Tests of ``anim_core.bvh``: parsing, writing, pose conversion and error reporting, on real CMU files and on
+"""Tests of ``anim_core.io.bvh``: parsing, writing, pose conversion and error reporting, on real CMU files and on
 small hierarchies written out below."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from anim_core.bvh import Bvh, BvhError, format_bvh, parse_bvh, read_bvh, write_bvh
-from anim_core.quat import quat_angle
+from anim_core.io.bvh import Bvh, BvhError, format_bvh, parse_bvh, read_bvh, write_bvh
+from anim_core.math.quat import quat_angle
 
 CMU_JOINTS = (
     "Hips LHipJoint LeftUpLeg LeftLeg LeftFoot LeftToeBase RHipJoint RightUpLeg RightLeg RightFoot "

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from anim_core.bvh import format_bvh, read_bvh
-from anim_core.character import retarget
-from anim_core.clipset import ConfigError
-from anim_core.gltf import GltfAnimation, read_gltf, write_gltf
+from anim_core.clips.build import ConfigError
+from anim_core.io.bvh import format_bvh, read_bvh
+from anim_core.io.gltf import GltfAnimation, read_gltf, write_gltf
+from anim_core.rig.character import retarget
 from server.assets import AssetError
 from server.assets import character as load_character
 from server.cli import main
@@ -171,8 +171,8 @@ def test_a_loop_through_straight_legs_does_not_flip(data, tmp_path):
     loop: the foot planting keeps each knee on its hinge, so no joint flips (before: thighs and feet twisted by
     167 degrees in one frame, a `clips build` warning).  The largest frame-to-frame turn is 33 degrees where the
     right knee, hyper-extended in the mocap, is bent forwards through straight (18 degrees unplanted)."""
-    from anim_core.clipmetrics import clip_warnings
-    from anim_core.quat import quat_angle
+    from anim_core.clips.measure import clip_warnings
+    from anim_core.math.quat import quat_angle
 
     text = (f'[animations.middle]\nkind = "other"\nsource = "{CMU}/{CROUCH}"\nframes = [20, 120]\n'
             f'playback = "loop"\n')
@@ -268,9 +268,9 @@ def test_config_errors_name_the_entry_and_field(tmp_path, entry, message):
 
 def test_a_method_that_cannot_build_an_other_names_animation_and_condition(data, sources, tmp_path):
     """Every registered method builds kind "other"; one that needs a gait must fail naming both."""
-    from anim_core.clip import KeyframeClip
-    from anim_core.clipset import build_animation
-    from anim_core.conditions import Animation, Condition, Params, register
+    from anim_core.clips.build import build_animation
+    from anim_core.math.clip import KeyframeClip
+    from anim_core.methods.conditions import Animation, Condition, Params, register
     from server.clipset.build import load_source
 
     @register("test_gait_only", Params)
@@ -337,7 +337,7 @@ def test_export_then_import_gives_the_clips_skeleton_and_poses(data, clips_dir, 
 def test_export_uses_the_clip_sets_gltf_character(data, tmp_path, capsys):
     """Clips built for a glTF character (the MakeHuman body exported as Mixamo, cm, Z up, its mesh made 10 % wider
     so that it differs) export with that body, not MakeHuman's."""
-    from anim_core.gltf_character import character_from_gltf
+    from anim_core.rig.gltf_character import character_from_gltf
     from tests.test_gltf_character import Z_UP as GLTF_Z_UP
     from tests.test_gltf_character import export, mixamo_names
 

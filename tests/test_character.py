@@ -6,9 +6,9 @@ import shutil
 import numpy as np
 import pytest
 
-from anim_core.bvh import read_bvh
-from anim_core.character import CharacterError, retarget
-from anim_core.clip import Pose
+from anim_core.io.bvh import read_bvh
+from anim_core.math.clip import Pose
+from anim_core.rig.character import CharacterError, retarget
 from server.assets import CHARACTER_DIR, AssetError
 from server.assets import character as load_character
 

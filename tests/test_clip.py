@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from anim_core import quat as Q
-from anim_core.clip import KeyframeClip, playback_time
+from anim_core.math import quat as Q
+from anim_core.math.clip import KeyframeClip, playback_time
 from tests.synthetic import biped, random_rotations
 
 

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from anim_core.bvh import format_bvh, read_bvh
-from anim_core.gltf import GltfAnimation, write_gltf
-from anim_core.skeleton import Skeleton
+from anim_core.io.bvh import format_bvh, read_bvh
+from anim_core.io.gltf import GltfAnimation, write_gltf
+from anim_core.math.skeleton import Skeleton
 from server.cli import main
 from tests.test_rigmap import Z_UP, convention_table, renamed, scaled, turned
 
@@ -152,8 +152,8 @@ def test_bad_input_gives_one_clear_error_line_and_writes_nothing(walk_text, tmp_
 def test_convert_writes_the_motion_on_the_character(data, tmp_path, capsys):
     import trimesh
 
-    from anim_core.character import retarget
-    from anim_core.gltf import read_gltf
+    from anim_core.io.gltf import read_gltf
+    from anim_core.rig.character import retarget
     from server.assets import character as load_character
 
     source = data / "mocap" / "cmu" / "12_03_walk.bvh.gz"

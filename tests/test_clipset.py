@@ -6,10 +6,10 @@ import shutil
 import numpy as np
 import pytest
 
-from anim_core import quat as Q
-from anim_core.clipmetrics import FEET
-from anim_core.clipset import ConfigError
-from anim_core.skeleton import Skeleton
+from anim_core.clips.build import ConfigError
+from anim_core.math import quat as Q
+from anim_core.math.skeleton import Skeleton
+from anim_core.rig.character import FEET
 from server.assets import AssetError
 from server.cli import main
 from server.clipset.build import build_clip_set

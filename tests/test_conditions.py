@@ -9,14 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from anim_core.clip import KeyframeClip
-from anim_core.clipset import ConfigError
-from anim_core.conditions import (
+from anim_core.clips.build import ConfigError
+from anim_core.math.clip import KeyframeClip
+from anim_core.methods.builders import HybridParams
+from anim_core.methods.conditions import (
     REFERENCE,
     Animation,
     Condition,
     ConditionError,
-    HybridParams,
     Params,
     get_method,
     methods,

@@ -5,14 +5,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from anim_core import metrics
-from anim_core.c2spline import PeriodicC2Spline, c2_from_squad
-from anim_core.clip import KeyframeClip
-from anim_core.compression import quantization_bound_deg, quantize_rotations, quantized_clip, reduce_keys
-from anim_core.hybrid import SquadClip
-from anim_core.ik import two_bone_ik
-from anim_core.quat import quat_angle, quat_from_rotvec, quat_mul
-from anim_core.skeleton import Skeleton
+from anim_core.clips import metrics
+from anim_core.math.clip import KeyframeClip
+from anim_core.math.quat import quat_angle, quat_from_rotvec, quat_mul
+from anim_core.math.skeleton import Skeleton
+from anim_core.methods.c2spline import PeriodicC2Spline, c2_from_squad
+from anim_core.methods.compression import quantization_bound_deg, quantize_rotations, quantized_clip, reduce_keys
+from anim_core.methods.hybrid import SquadClip
+from anim_core.methods.ik import two_bone_ik
 
 
 def _random_walk_keys(rng, k, j, step=0.35):
@@ -166,7 +166,7 @@ def _knee_side(sk, rot, hinge):
     the hinge in the world."""
     g, p = sk.forward_kinematics(rot)
     normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 1])
-    from anim_core.quat import rotate
+    from anim_core.math.quat import rotate
     h = rotate(g[:, 1], np.broadcast_to(hinge, (len(rot), 3)))
     return np.sum(normal * h, axis=-1), h
 
@@ -240,7 +240,7 @@ def test_ik_hinge_axis_is_recovered_from_bent_poses():
     rot[:, 0] = quat_from_rotvec(rng.normal(size=(n, 3)) * 0.5)
     rot[:, 1] = quat_from_rotvec(axis * rng.uniform(0.2, 1.2, (n, 1)))
     rot[:, 2] = [1.0, 0, 0, 0]
-    from anim_core.ik import hinge_axis
+    from anim_core.methods.ik import hinge_axis
     np.testing.assert_allclose(hinge_axis(sk, rot, None, (0, 1, 2)), axis, atol=1e-9)
     np.testing.assert_allclose(hinge_axis(sk, _flip_bends(rot), None, (0, 1, 2)), -axis, atol=1e-9)
     straight = np.tile([1.0, 0, 0, 0], (4, 3, 1))
@@ -249,7 +249,7 @@ def test_ik_hinge_axis_is_recovered_from_bent_poses():
 
 
 def test_holds_grow_by_a_frame_and_skims_are_not_steps():
-    from anim_core.footlock import held_frames, joined, steps
+    from anim_core.methods.footlock import held_frames, joined, steps
     down = np.zeros((30, 1), dtype=bool)
     down[5:12] = down[20:22] = True  # a step, then two fast low frames (a skim)
     speed = np.full((30, 1), 3.0)
@@ -268,7 +268,7 @@ def test_holds_grow_by_a_frame_and_skims_are_not_steps():
 
 
 def test_swing_offsets_ease_from_one_foothold_to_the_next():
-    from anim_core.footlock import swing_offsets
+    from anim_core.methods.footlock import swing_offsets
     held = np.zeros((20, 1), dtype=bool)
     held[0:5] = held[12:18] = True
     off = np.zeros((20, 1, 3))
@@ -312,7 +312,7 @@ def extra(full_set):
 
 
 def test_conditions_are_registered_with_typed_params():
-    from anim_core.conditions import Condition, ConditionError, methods
+    from anim_core.methods.conditions import Condition, ConditionError, methods
     assert {"hybrid_ik", "hybrid_c2", "reduced", "quantized"} <= set(methods())
     ik = Condition.parse("ik", "hybrid_ik", {"increment": 1})
     assert ik.params_dict() == {"increment": 1, "blend_frames": 3, "clearance_m": 0.05,
@@ -346,8 +346,8 @@ def test_clip_set_files_and_studies():
 
 
 def test_crouch_has_no_c2_clip_with_more_keys(data):
-    from anim_core.clipset import ConfigError, build_animation
-    from anim_core.conditions import Condition
+    from anim_core.clips.build import ConfigError, build_animation
+    from anim_core.methods.conditions import Condition
     from server.assets import character
     from server.clipset.build import load_source
     from server.clipset.config import load_config
@@ -459,8 +459,8 @@ def test_hybrid_ik_feet_are_as_high_as_the_keyframe_clips(full_set, animation, i
     keyframe clip's at the same frame, within 20 mm (the clip's standing heights move a little with the lift, and
     the soft reach stops a nearly straight leg short); the plain hybrids are up to 106 mm (walk 0) and 154 mm
     (run 0) lower."""
-    from anim_core.clipset import FEET
-    from anim_core.contacts import standing_heights
+    from anim_core.math.contacts import standing_heights
+    from anim_core.rig.character import FEET
     by_id = {c.id: c for c in full_set}
     ref, c = by_id[f"{animation}-keyframe"], by_id[f"{animation}-hybrid_ik{increment}"]
     feet = [list(ref.character.skeleton.indices(foot)) for foot in FEET]

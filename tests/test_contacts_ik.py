@@ -4,11 +4,11 @@ unreachable targets, a stable knee plane."""
 import numpy as np
 import pytest
 
-from anim_core import contacts
-from anim_core import quat as Q
-from anim_core.footplant import plant_feet
-from anim_core.ik import two_bone_ik
-from anim_core.skeleton import Skeleton
+from anim_core.math import contacts
+from anim_core.math import quat as Q
+from anim_core.math.skeleton import Skeleton
+from anim_core.methods.footplant import plant_feet
+from anim_core.methods.ik import two_bone_ik
 
 FPS = 30.0
 

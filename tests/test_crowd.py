@@ -6,10 +6,11 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from anim_core import benchmark
-from anim_core import quat as Q
-from anim_core.clip import KeyframeClip
-from anim_core.crowd import BAKE_TOLERANCE_DEG, bake, numba, pose_crowd, pose_crowd_numpy, table_from_keyframes
+from anim_core.bench import suite as benchmark
+from anim_core.math import quat as Q
+from anim_core.math.clip import KeyframeClip
+from anim_core.runtime import pose_crowd
+from anim_core.runtime.crowd import BAKE_TOLERANCE_DEG, bake, numba, pose_crowd_numpy, table_from_keyframes
 from server.clipset.build import build_clip_set
 from tests.synthetic import biped, random_rotations
 

@@ -26,7 +26,7 @@ def dashboard_site(data, tmp_path_factory):
     engine = _fresh_engine("sqlite", tmp_path_factory)
     migrate(engine)
     with session_factory(engine)() as db:
-        simulate(db, make_study(db), n=20, seed=11)
+        simulate(db, make_study(db, clips_dir=settings.clips_dir), n=20, seed=11)
         create_researcher(db, "lead@example.org", "correct horse battery", admin=True)
     with live_server(create_app(settings, engine, run_migrations=False)) as base:
         yield base
@@ -53,7 +53,10 @@ def test_dashboard_logs_in_and_draws_every_chart(dashboard_site):
             shapes = page.eval_on_selector(f"#{chart}", "e => e.querySelectorAll('svg rect, svg circle').length")
             assert shapes >= 8, f"{chart} drew {shapes} shapes"
         assert page.eval_on_selector("#table-stats", "e => e.querySelectorAll('tbody tr').length") == 8
-        assert page.eval_on_selector("#table-metrics", "e => e.querySelectorAll('tbody tr').length") == 16
+        # the clips of the study's stimulus set only (4 animations x keyframe, hybrid0, hybrid1), not the whole
+        # clip set on the server
+        assert page.eval_on_selector("#table-metrics", "e => e.querySelectorAll('tbody tr').length") == 12
+        assert page.inner_text("#stimulus-set").startswith("The study's stimulus set ")
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(ARTIFACTS / "dashboard.png"), full_page=True)
         with page.expect_download() as download:

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from playwright.sync_api import sync_playwright
 
-from anim_core import benchmark
+from anim_core.bench import suite as benchmark
 from server.app import create_app
 from server.clipset.build import build_clip_set
 from server.clipset.config import load_config

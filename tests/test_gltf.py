@@ -6,13 +6,13 @@ import json
 import numpy as np
 import pytest
 
-from anim_core.bvh import bvh_from_poses, format_bvh, parse_bvh, read_bvh
-from anim_core.character import retarget
-from anim_core.gltf import GltfAnimation, GltfError, read_gltf, write_gltf
-from anim_core.quat import quat_conj, quat_from_axis_angle, quat_mul, rotate
-from anim_core.rigmap import normalize_motion
-from anim_core.skeleton import Skeleton
-from anim_core.skinning import SkinnedMesh
+from anim_core.io.bvh import bvh_from_poses, format_bvh, parse_bvh, read_bvh
+from anim_core.io.gltf import GltfAnimation, GltfError, read_gltf, write_gltf
+from anim_core.math.quat import quat_conj, quat_from_axis_angle, quat_mul, rotate
+from anim_core.math.skeleton import Skeleton
+from anim_core.math.skinning import SkinnedMesh
+from anim_core.rig.character import retarget
+from anim_core.rig.rigmap import normalize_motion
 from server.assets import character as load_character
 
 

@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from anim_core.bvh import read_bvh
-from anim_core.character import bind_mesh, retarget
-from anim_core.clip import Pose
-from anim_core.gltf import read_gltf, write_gltf
-from anim_core.gltf_character import RIG_NAMES, character_from_gltf
-from anim_core.quat import identity, rotate
-from anim_core.rigmap import CANONICAL_NAMES, CANONICAL_PARENTS
-from anim_core.skeleton import Skeleton
+from anim_core.io.bvh import read_bvh
+from anim_core.io.gltf import read_gltf, write_gltf
+from anim_core.math.clip import Pose
+from anim_core.math.quat import identity, rotate
+from anim_core.math.skeleton import Skeleton
+from anim_core.rig.character import bind_mesh, retarget
+from anim_core.rig.gltf_character import RIG_NAMES, character_from_gltf
+from anim_core.rig.rigmap import CANONICAL_NAMES, CANONICAL_PARENTS
 from server.assets import AssetError
 from server.assets import character as load_makehuman
 from server.clipset.build import build_clip_set

@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from anim_core import quat as Q
-from anim_core.bvh import read_bvh
-from anim_core.clip import KeyframeClip, Pose, clip_from_bvh
-from anim_core.hybrid import (
+from anim_core.io.bvh import clip_from_bvh, read_bvh
+from anim_core.math import quat as Q
+from anim_core.math.clip import KeyframeClip, Pose
+from anim_core.math.skeleton import Skeleton
+from anim_core.methods.hybrid import (
     THESIS_OMEGA,
     THESIS_TIME_SCALE,
     THESIS_ZETA,
@@ -25,8 +26,7 @@ from anim_core.hybrid import (
     spring,
     spring_settle_time,
 )
-from anim_core.mirror import Mirror, mirror_partners
-from anim_core.skeleton import Skeleton
+from anim_core.rig.mirror import Mirror, mirror_partners
 from tests.synthetic import BIPED_NAMES, BIPED_PARENTS, biped, random_rotations
 
 CMU = "mocap/cmu/"

@@ -3,10 +3,9 @@
 import numpy as np
 import pytest
 
-from anim_core.bvh import read_bvh
-from anim_core.clip import clip_from_bvh
-from anim_core.hybrid import build_idle
-from anim_core.keypick import pick_keys
+from anim_core.io.bvh import clip_from_bvh, read_bvh
+from anim_core.methods.hybrid import build_idle
+from anim_core.methods.keypick import pick_keys
 
 CMU_M = 0.0254 / 0.45
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from anim_core.character import bind_mesh
+from anim_core.rig.character import bind_mesh
 from server.assets import character as load_character
 from server.clipset.build import build_clip_set
 from server.clipset.manifest import write_clip_set

@@ -3,9 +3,8 @@
 import numpy as np
 import pytest
 
-from anim_core import metrics
-from anim_core import quat as Q
-from anim_core.metrics import (
+from anim_core.clips import metrics
+from anim_core.clips.metrics import (
     CONTACT_CLEARANCE_M,
     SKATE_SPEED_MPS,
     angular_velocity_jumps,
@@ -14,6 +13,7 @@ from anim_core.metrics import (
     mpjpe_mm,
     storage_bytes,
 )
+from anim_core.math import quat as Q
 
 FPS = 30.0
 T = 30

@@ -9,7 +9,7 @@ import pytest
 import quaternion as npq
 from scipy.spatial.transform import Rotation
 
-from anim_core import quat as Q
+from anim_core.math import quat as Q
 
 ORDERS = ["XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX", "xyz", "xzy", "yxz", "yzx", "zxy", "zyx"]
 

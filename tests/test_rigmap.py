@@ -4,12 +4,12 @@ scaled and turned must retarget to the very same character poses."""
 import numpy as np
 import pytest
 
-from anim_core.bvh import Bvh, read_bvh
-from anim_core.character import retarget
-from anim_core.mirror import mirror_partners
-from anim_core.quat import quat_conj, quat_from_axis_angle, quat_mul, rotate
-from anim_core.rigmap import CANONICAL_NAMES, RigMapError, map_skeleton, normalize_bvh, read_mapping_file
-from anim_core.skeleton import Skeleton
+from anim_core.io.bvh import Bvh, read_bvh
+from anim_core.math.quat import quat_conj, quat_from_axis_angle, quat_mul, rotate
+from anim_core.math.skeleton import Skeleton
+from anim_core.rig.character import retarget
+from anim_core.rig.mirror import mirror_partners
+from anim_core.rig.rigmap import CANONICAL_NAMES, RigMapError, map_skeleton, normalize_bvh, read_mapping_file
 from server.assets import character as load_character
 
 CMU = CANONICAL_NAMES
@@ -334,7 +334,7 @@ def test_units_and_up_axis_overrides_and_errors(walks):
 def rig_with_turned_frames(bvh: Bvh, rng: np.random.Generator):
     """The motion on a glTF-like rig: Mixamo names, metres, every joint frame turned at random in the rest pose
     (same world motion).  Returns the skeleton, local rotations, root translation and end sites."""
-    from anim_core.quat import quat_normalize
+    from anim_core.math.quat import quat_normalize
 
     s = bvh.posed_skeleton()
     rot, root = bvh.pose_arrays()
@@ -357,7 +357,7 @@ def rig_with_turned_frames(bvh: Bvh, rng: np.random.Generator):
 
 def test_rig_with_joint_frames_not_aligned_to_the_world(character, walks, rng):
     """Removing the rest pose of a rig whose joint frames are turned must give the very same character poses."""
-    from anim_core.rigmap import normalize_motion
+    from anim_core.rig.rigmap import normalize_motion
 
     bvh = walks[0]
     rig, local, root, ends = rig_with_turned_frames(bvh, rng)
@@ -455,7 +455,7 @@ def test_real_mixamo_and_unreal_hierarchies_map_as_expected():
     ("Lthing", None, "lthing", None),
 ])
 def test_names_read_as_side_and_stem(name, side, stem, partner):
-    from anim_core.rigmap import partner_name, split_side
+    from anim_core.rig.rigmap import partner_name, split_side
 
     s = split_side(name)
     assert (s.side, s.stem, partner_name(name)) == (side, stem, partner)

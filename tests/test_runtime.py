@@ -5,10 +5,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from anim_core import quat as Q
 from anim_core import runtime as R
-from anim_core.crowd import CrowdBuffers
-from anim_core.hybrid import SpringClip, SquadClip
+from anim_core.math import quat as Q
+from anim_core.methods.hybrid import SpringClip, SquadClip
+from anim_core.runtime.crowd import CrowdBuffers
 from server.clipset.build import build_clip_set
 from server.clipset.config import load_config
 

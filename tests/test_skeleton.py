@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from anim_core import quat as Q
-from anim_core.skeleton import Skeleton
+from anim_core.math import quat as Q
+from anim_core.math.skeleton import Skeleton
 from tests.synthetic import biped, random_rotations, random_tree_skeleton
 
 

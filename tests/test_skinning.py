@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from anim_core import quat as Q
-from anim_core.skinning import SkinnedMesh, invert_transforms, transforms
+from anim_core.math import quat as Q
+from anim_core.math.skinning import SkinnedMesh, invert_transforms, transforms
 from tests.synthetic import random_rotations, random_tree_skeleton
 
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import quaternion as npq
 
-from anim_core import quat as Q
+from anim_core.math import quat as Q
 
 
 def random_walk_keys(rng, n_keys, n_tracks, step=0.9):

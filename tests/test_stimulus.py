@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 from scipy.signal import find_peaks
 
-from anim_core import contacts
-from anim_core import quat as Q
-from anim_core.bvh import read_bvh
-from anim_core.clipmetrics import FEET, clip_warnings
+from anim_core.clips.measure import clip_warnings
+from anim_core.io.bvh import read_bvh
+from anim_core.math import contacts
+from anim_core.math import quat as Q
+from anim_core.rig.character import FEET
 from server.assets import character as load_character
 from server.clipset.build import build_clip_set, load_source
 from server.clipset.config import load_config
@@ -134,7 +135,7 @@ def bone_angles_deg(skeleton, a, b):
 @pytest.mark.parametrize("animation", ANIMATIONS)
 def test_planting_turns_only_the_legs_and_them_a_little(data, animation):
     """Bone directions stay the mocap's except where IK pins a foot; there the largest deviation is printed."""
-    from anim_core import clipset as cs
+    from anim_core.clips import build as cs
 
     config = load_config()
     cfg = config.animations[animation]

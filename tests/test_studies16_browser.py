@@ -215,7 +215,7 @@ def test_the_dashboard_shows_each_studys_clips_metrics_and_votes(site, walked, p
     # A benchmark with long series names, to check the line chart's legend too (the benchmark itself is
     # tests/test_dashboard_benchmark.py's subject).
     names = ["keyframe", "hybrid, from its keys", "hybrid, baked table", "keyframe, numpy reference",
-             "hybrid, numpy reference", "hybrid, naive SQUAD"]  # anim_core.benchmark.series's
+             "hybrid, numpy reference", "hybrid, naive SQUAD"]  # anim_core.bench.suite.series's
     names += [f"{a} {m}, from its keys" for a in ("walk", "run", "crouch", "idle") for m in ("keyframe", "hybrid")]
     settings.benchmark_path.parent.mkdir(parents=True, exist_ok=True)
     settings.benchmark_path.write_text(json.dumps({"series": [

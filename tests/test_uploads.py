@@ -264,11 +264,13 @@ def test_a_chunked_upload_is_refused_while_it_is_still_sending(tmp_path, tmp_pat
         engine.dispose()
 
 
-def test_the_clip_set_file_of_the_assets_reads_back(tmp_path):
-    """The job's clip-set file: every condition of the richest shipped clip set (ints, floats, strings in
-    params), the assets' kinds, absolute sources with spaces and frames, as load_config reads them."""
+def test_the_clip_set_description_of_the_assets(tmp_path):
+    """The job's clip-set description (typed, no file written to be read back): every condition of the richest
+    shipped clip set (ints, floats, strings in params), the assets' kinds, absolute sources with spaces and
+    frames, validated as a clip-set file is."""
+    from anim_core.clips.build import ConfigError
     from server.clipset.config import CharacterConfig, load_config
-    from server.uploads.job import BaseClipSet, write_clip_set_file
+    from server.uploads.job import BaseClipSet, assets_config
 
     shipped = load_config(Path("server/clipset/conditions16.toml"))
     conditions = [(c.id, c.method, c.params_dict()) for c in shipped.conditions]
@@ -276,13 +278,16 @@ def test_the_clip_set_file_of_the_assets_reads_back(tmp_path):
               StudyAsset(id=2, name="walk2", filename='we"ird.bvh', kind="gait", first_frame=0, last_frame=99)]
     files = {1: tmp_path / "a b" / "Sway 1.bvh", 2: tmp_path / 'we"ird.bvh'}
     character = CharacterConfig(gltf="/data/bodies/Mine 2.glb", units="cm")
-    path = write_clip_set_file(tmp_path / "clipset.toml", assets, lambda a: files[a.id],
-                               BaseClipSet(24, ("LHipJoint",), character, conditions))
-    config = load_config(path)
+    base = BaseClipSet(24, ("LHipJoint",), character, conditions)
+    config = assets_config(assets, lambda a: files[a.id], base)
     assert (config.fps, config.relocate, config.character) == (24, ("LHipJoint",), character)
     assert [(c.id, c.method, c.params_dict()) for c in config.conditions] == conditions
     assert {n: (a.kind, a.source, a.frames) for n, a in config.animations.items()} == {
         "sway": ("idle", str(files[1]), (3, 40)), "walk2": ("gait", str(files[2]), (0, 99))}
+    assert not list(tmp_path.rglob("*.toml"))
+    bad = [StudyAsset(id=1, name="sway", filename="Sway 1.bvh", kind="idle", first_frame=40, last_frame=3)]
+    with pytest.raises(ConfigError, match=r"the study's assets \[animations.sway\] frames"):
+        assets_config(bad, lambda a: files[a.id], base)
 
 
 def test_an_unreadable_clip_set_stops_the_build(tmp_path):

@@ -1,7 +1,7 @@
 """Building a clip set from the data directory: the character (MakeHuman, or the clip-set file's glTF) and each
 animation's motion file, verified (:mod:`server.assets`), brought onto the canonical skeleton
-(:func:`anim_core.sourceinfo.read_motions`: any common rig, BVH or glTF) and turned into clips by anim_core
-(:func:`anim_core.clipset.build_animation`); each clip's ``source`` records the character it was built for."""
+(:func:`anim_core.clips.sources.read_motions`: any common rig, BVH or glTF) and turned into clips by anim_core
+(:func:`anim_core.clips.build.build_animation`); each clip's ``source`` records the character it was built for."""
 
 from __future__ import annotations
 
@@ -10,11 +10,12 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from anim_core.character import Character
-from anim_core.clipset import AnimationConfig, BuiltClip, Source, build_animation, source_from_bvh
-from anim_core.conditions import Condition
-from anim_core.rigmap import Normalized, read_mapping_file
-from anim_core.sourceinfo import read_motions
+from anim_core.clips.build import AnimationConfig, Source, build_animation, source_from_bvh
+from anim_core.clips.record import BuiltClip
+from anim_core.clips.sources import read_motions
+from anim_core.methods.conditions import Condition
+from anim_core.rig.character import Character
+from anim_core.rig.rigmap import Normalized, read_mapping_file
 from server import assets
 from server.assets import AssetError
 
@@ -102,8 +103,8 @@ def animation_clips(data_dir: Path, character: Character, config: AnimationConfi
                     conditions: Sequence[Condition], relocate: tuple[str, ...],
                     progress: Callable[[str], None] = lambda _msg: None) -> list[BuiltClip]:
     """The clips of one animation (its motion file read by :func:`load_source`), one per condition, the reference
-    first (:func:`anim_core.clipset.build_animation`).  Raises :class:`AssetError` (file) or
-    :class:`~anim_core.clipset.ConfigError` (entry, field or condition); nothing is written."""
+    first (:func:`anim_core.clips.build.build_animation`).  Raises :class:`AssetError` (file) or
+    :class:`~anim_core.clips.build.ConfigError` (entry, field or condition); nothing is written."""
     return build_animation(load_source(data_dir, character, config, relocate), fps, conditions, progress)
 
 

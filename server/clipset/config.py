@@ -3,16 +3,17 @@ entry and the field.  The format is documented in the README ("Clip-set file")."
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from anim_core.clip import PLAYBACK_MODES
-from anim_core.clipset import DEFAULT_TOLERANCE_MM, AnimationConfig, ConfigError
-from anim_core.conditions import KINDS, REFERENCE, Condition, ConditionError
-from anim_core.rigmap import UNITS
+from anim_core.clips.build import DEFAULT_TOLERANCE_MM, AnimationConfig, ConfigError
+from anim_core.math.clip import PLAYBACK_MODES
+from anim_core.methods.conditions import KINDS, REFERENCE, Condition, ConditionError
+from anim_core.rig.rigmap import UNITS
 
 DEFAULT_CONFIG = Path(__file__).with_name("thesis.toml")
 #: Animation names and condition ids: a clip's id is ``<animation>-<condition>``, so neither holds a "-".
@@ -194,6 +195,30 @@ def _conditions(raw: Any, path: Path) -> tuple[Condition, ...]:
         raise ConfigError(f"{path}: [[conditions]] must hold exactly one condition with method {REFERENCE!r} "
                           f"(the reference the others are compared with), got {references or 'none'}")
     return tuple(out)
+
+
+def clip_set_config(animations: dict[str, dict[str, Any]], conditions: list[dict[str, Any]], fps: int,
+                    relocate: tuple[str, ...], character: CharacterConfig, where: str) -> ClipSetConfig:
+    """A clip-set description from its tables (``[animations.<name>]`` and ``[[conditions]]`` as dicts),
+    validated as a clip-set file's are (errors name ``where``): for code that describes a clip set itself, like
+    the build job of uploads, without writing a file to parse it again."""
+    if not animations:
+        raise ConfigError(f"{where}: no animation to build")
+    return ClipSetConfig(fps, tuple(relocate), {name: _animation(name, entry, f"{where} [animations.{name}]")
+                                                for name, entry in animations.items()},
+                         _conditions(conditions, Path(where)), character)
+
+
+def inline_config(animations: dict[str, dict[str, Any]] | None, conditions: list[dict[str, Any]] | None,
+                  where: str) -> ClipSetConfig:
+    """The default clip-set file with its animations and/or conditions replaced by inline tables (a study file's
+    ``[clips]``), validated as a clip-set file's are."""
+    default = load_config()
+    return dataclasses.replace(
+        default,
+        animations=default.animations if animations is None else {
+            name: _animation(name, entry, f"{where} [clips.animations.{name}]") for name, entry in animations.items()},
+        conditions=default.conditions if conditions is None else _conditions(conditions, Path(where)))
 
 
 def load_config(path: Path = DEFAULT_CONFIG) -> ClipSetConfig:

@@ -15,8 +15,8 @@ from typing import Any, Literal, TypeVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from anim_core.clipset import BuiltClip
-from anim_core.conditions import Kind
+from anim_core.clips.record import BuiltClip
+from anim_core.methods.conditions import Kind
 
 MANIFEST = "manifest.json"
 VERSION = 2

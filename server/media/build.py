@@ -36,7 +36,7 @@ from .manifest import RenderedClip, RenderedPair, RenderManifest, read_render_ma
 from .scene import Framing, RenderSettings, frame_motion
 
 if TYPE_CHECKING:
-    from anim_core.character import Character
+    from anim_core.rig.character import Character
 
 MEDIA_NAME = re.compile(r"^[0-9a-f]{24}\.(mp4|jpg)$")
 DIVIDER_PX = 4
@@ -329,7 +329,7 @@ def run_job(job: AnimationJob, arrays: Arrays | None = None, character: Characte
             ) -> list[tuple[str, float]]:
     """Render the job's outputs into ``job.out_dir``; returns (output name, seconds) per finished video.
     ``arrays`` and ``character``: given as values (default: read from the clip files and the data directory)."""
-    from anim_core.character import bind_mesh
+    from anim_core.rig.character import bind_mesh
 
     from .renderer import ClipRenderer
     from .video import Planes, VideoWriter, hstack_planes, write_poster, yuv420

@@ -49,7 +49,7 @@ import pyrender  # noqa: E402
 from OpenGL import GL  # noqa: E402
 from pyrender.shader_program import ShaderProgramCache  # noqa: E402
 
-from anim_core.skinning import SkinnedMesh  # noqa: E402
+from anim_core.math.skinning import SkinnedMesh  # noqa: E402
 
 from .scene import Framing, RenderSettings  # noqa: E402
 

@@ -13,21 +13,25 @@
 
 A study file without ``[clips]`` uses the server's clip set (``<var>/clips``, its render manifest in
 ``<var>/media``); one with ``[clips] set = "file.toml"`` gets the clip set of that file, kept in
-``<var>/clipsets/<key>/`` (``key``: a hash of the file's path and content, so an edited file is another clip set).
+``<var>/clipsets/<key>/`` (``key``: a hash of the file's path and content, so an edited file is another clip set);
+one with inline ``[clips]`` conditions and/or animations gets the default clip-set file with those replaced
+(``key``: a hash of the tables and the default file).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
+import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 from sqlalchemy.orm import Session
 
-from anim_core.conditions import REFERENCE
-from server.clipset.config import ClipSetConfig, load_config
+from anim_core.clips.record import BuiltClip
+from anim_core.methods.conditions import REFERENCE, Condition
+from server.clipset.config import DEFAULT_CONFIG, ClipSetConfig, inline_config, load_config
 from server.clipset.manifest import MANIFEST, ManifestError, read_clip_manifest
 from server.config import Settings
 from server.errors import Unprocessable
@@ -35,7 +39,7 @@ from server.media.build import rendered_pairs, rendered_settings
 from server.media.manifest import RenderManifest, read_render_manifest
 from server.media.scene import RenderSettings
 from server.studies.design import Design
-from server.studies.studyfile import StudyFile
+from server.studies.studyfile import Clips, StudyFile
 
 Progress = Callable[[str], None]
 CLIPSETS = "clipsets"
@@ -64,13 +68,25 @@ def file_place(settings: Settings, config_path: Path) -> Place:
     return Place(base / "clips", base / "render", config)
 
 
+def inline_place(settings: Settings, clips: Clips, where: str) -> Place:
+    """The place of a clip set given inline (``[clips]`` conditions and/or animations over the default file)."""
+    config = inline_config(clips.animations, clips.conditions, where)
+    tables = json.dumps({"animations": clips.animations, "conditions": clips.conditions}, sort_keys=True)
+    key = hashlib.sha256(b"inline\0" + tables.encode() + b"\0" + DEFAULT_CONFIG.read_bytes()).hexdigest()[:16]
+    base = settings.var / CLIPSETS / key
+    return Place(base / "clips", base / "render", config)
+
+
 def study_place(settings: Settings, study_file: StudyFile, study_path: Path | None) -> Place:
-    """The clip set ``study_file`` uses: its ``[clips] set`` (relative to ``study_path``'s folder) or the
-    server's."""
-    if study_file.clips is None:
+    """The clip set ``study_file`` uses: its ``[clips] set`` (relative to ``study_path``'s folder), its inline
+    ``[clips]``, or the server's."""
+    clips = study_file.clips
+    if clips is None:
         return server_place(settings)
+    if clips.set is None:
+        return inline_place(settings, clips, str(study_path or "the study file"))
     base = Path(study_path).parent if study_path is not None else Path.cwd()
-    return file_place(settings, base / study_file.clips.set)
+    return file_place(settings, base / clips.set)
 
 
 def needed_conditions(design: Design) -> list[str]:
@@ -78,21 +94,50 @@ def needed_conditions(design: Design) -> list[str]:
                                                                         else [])]))
 
 
+class AnimationError(ValueError):
+    """Building one animation's clips failed; the message starts with its name."""
+
+    def __init__(self, animation: str, cause: Exception) -> None:
+        super().__init__(f"{animation!r}: {cause}")
+        self.animation = animation
+
+
+def build_animations(data_dir: Path, config: ClipSetConfig, wanted: dict[str, tuple[Condition, ...]],
+                     progress: Progress = lambda _m: None,
+                     each: Callable[[int, str], None] = lambda _k, _name: None) -> list[BuiltClip]:
+    """The clips of each animation of ``wanted`` in its conditions (the reference among them), on the character
+    of ``config``, loaded and verified once.  AssetError/ConfigError of the character as they are; of an
+    animation as :class:`AnimationError`.  Nothing is written."""
+    from server.clipset.build import animation_clips, load_character
+
+    progress("loading the character")
+    character, record = load_character(data_dir, config.character, progress)
+    built: list[BuiltClip] = []
+    for k, (name, conditions) in enumerate(wanted.items()):
+        each(k, name)
+        try:
+            built += animation_clips(data_dir, character, config.animations[name], config.fps, conditions,
+                                     config.relocate, progress)
+        except ValueError as exc:
+            raise AnimationError(name, exc) from None
+    # Every clip records the character it was built for; the manifest keeps it once.
+    return [dataclasses.replace(c, source={**c.source, "character": record}) for c in built]
+
+
 def build(data_dir: Path, config: ClipSetConfig, clips_dir: Path, design: Design,
           progress: Progress = lambda _m: None) -> int:
     """Build the clips of ``design`` that the clip set in ``clips_dir`` lacks, from ``config``; returns how many
     clips were built.  An animation is built with every condition it already had plus the ones needed (the
     reference first: the others are made from it).  422 naming what ``config`` does not have."""
-    from server.clipset.build import animation_clips, load_character
     from server.uploads.job import merge_clips
 
     conditions = needed_conditions(design)
     by_id = {c.id: c for c in config.conditions}
     if unknown := [c for c in conditions if c not in by_id]:
-        raise Unprocessable(f"design: condition(s) {', '.join(unknown)} are not in the clip-set file (it has "
+        raise Unprocessable(f"design: condition(s) {', '.join(unknown)} are not in the study's clip set (it has "
                             f"{', '.join(by_id)})")
     if unknown := [a for a in design.animations if a not in config.animations]:
-        raise Unprocessable(f"design.animations: {', '.join(unknown)} are not in the clip-set file (it has "
+        raise Unprocessable(f"design.animations: {', '.join(unknown)} are not in the study's clip set (it has "
                             f"{', '.join(config.animations)})")
     try:
         current = read_clip_manifest(clips_dir).clips if (clips_dir / MANIFEST).is_file() else []
@@ -105,16 +150,12 @@ def build(data_dir: Path, config: ClipSetConfig, clips_dir: Path, design: Design
     if not todo:
         progress(f"clips: all {len(design.animations) * len(conditions)} the design needs are built")
         return 0
-    progress("loading the character")
-    character, record = load_character(data_dir, config.character, progress)  # once for every animation
-    built = []
-    for k, name in enumerate(todo, 1):
-        wanted = have.get(name, set()) | set(conditions)
-        subset = tuple(c for c in config.conditions if c.id in wanted or c.method == REFERENCE)
-        progress(f"[{k}/{len(todo)}] {name}: building {len(subset)} clips")
-        built += animation_clips(data_dir, character, config.animations[name], config.fps, subset, config.relocate,
-                                 progress)
-    built = [dataclasses.replace(c, source={**c.source, "character": record}) for c in built]
+    wanted = {}
+    for name in todo:
+        keep = have.get(name, set()) | set(conditions)
+        wanted[name] = tuple(c for c in config.conditions if c.id in keep or c.method == REFERENCE)
+    built = build_animations(data_dir, config, wanted, progress, lambda k, name: progress(
+        f"[{k + 1}/{len(todo)}] {name}: building {len(wanted[name])} clips"))
     merge_clips(clips_dir, built)
     progress(f"clips: {len(built)} built into the clip set")
     return len(built)
@@ -134,14 +175,14 @@ def pairs(session: Session, place: Place, design: Design, media_dir: Path) -> li
 
 
 def render(settings: Settings, place: Place, wanted: list[tuple[str, str]], render_settings: RenderSettings,
-           progress: Progress = lambda _m: None, workers: int = 2) -> RenderManifest:
-    """Render what is missing of ``wanted`` (and the clips they show) into the media directory; the render
-    manifest of ``place``."""
+           progress: Progress = lambda _m: None, workers: int = 2, every_clip: bool = False) -> RenderManifest:
+    """Render what is missing of ``wanted`` and the clips they show (``every_clip``: every clip) into the media
+    directory; returns the render manifest of ``place``."""
     from server.media.build import render_media
 
     render_media(settings.data, place.clips_dir, settings.media_dir, settings.secret, render_settings,
-                 pairs=wanted, workers=workers, every_clip=False, progress=progress, manifest_dir=place.render_dir,
-                 scheduler=settings.dask_scheduler)
+                 pairs=wanted, workers=workers, every_clip=every_clip, progress=progress,
+                 manifest_dir=place.render_dir, scheduler=settings.dask_scheduler)
     return read_render_manifest(place.render_dir)
 
 
@@ -159,7 +200,8 @@ def prepare(settings: Settings, session: Session, study_file: StudyFile, study_p
             progress(f"building the server's clip set in {place.clips_dir}")
             write_clip_set(build_clip_set(settings.data, progress=progress), place.clips_dir)
     else:
-        progress(f"clip set {study_file.clips.set if study_file.clips else ''} -> {place.clips_dir}")
+        what = study_file.clips.set if study_file.clips and study_file.clips.set else "given in the study file"
+        progress(f"clip set {what} -> {place.clips_dir}")
         build(settings.data, place.config, place.clips_dir, study_file.design, progress)
     # The size and shadows of the videos there already, so that a study's videos look alike.
     before = place.render_dir if (place.render_dir / MANIFEST).is_file() else settings.media_dir

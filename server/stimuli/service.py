@@ -101,7 +101,7 @@ def content_digest(content: dict[str, Any]) -> str:
 
 
 @lru_cache(maxsize=4096)
-def _sha256(path: str, _stamp: tuple[int, int, int]) -> str:
+def _sha256(path: str, _stamp: tuple[int, int, int, int]) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
@@ -110,13 +110,14 @@ def _sha256(path: str, _stamp: tuple[int, int, int]) -> str:
 
 
 def file_sha256(path: Path) -> str | None:
-    """sha256 of a file's bytes (None if it is not there); cached on (inode, size, mtime)."""
+    """sha256 of a file's bytes (None if it is not there); cached on (inode, size, mtime, ctime): renders set
+    every video's mtime to one fixed time, but any write changes the ctime."""
     try:
         st = os.stat(path)
     except OSError:
         return None
     try:
-        return _sha256(str(path), (st.st_ino, st.st_size, st.st_mtime_ns))
+        return _sha256(str(path), (st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns))
     except OSError:
         return None
 

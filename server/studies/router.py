@@ -67,6 +67,10 @@ def create_study(body: StudyFile, session: SessionDep, settings: SettingsDep,
                  researcher: ResearcherDep) -> StudySummary:
     """A draft study from a study file's content (as JSON) over the rendered videos (``animstudy study create``
     renders what is missing; here the videos must exist)."""
+    if body.clips is not None:
+        raise Unprocessable("clips.set: a study file that names its clip set is created with `animstudy study "
+                            "create FILE` on the server, which builds and renders its clips; through the API a "
+                            "study uses the server's clip set and its own uploads")
     media = render_manifest(settings)
     return summary(session, service.create_study(session, media, body, owner=researcher,
                                                  media_dir=settings.media_dir, clips_dir=settings.clips_dir,

@@ -95,16 +95,18 @@ def definition(study: Study) -> StudyFile:
 
 def create_study(session: Session, media: RenderManifest, study_file: StudyFile,
                  owner: Researcher | None = None, media_dir: Path | None = None,
-                 clips_dir: Path | None = None, animations: Collection[str] | None = None) -> Study:
+                 clips_dir: Path | None = None, animations: Collection[str] | None = None,
+                 stimulus_set: stimulus_sets.SetContent | None = None) -> Study:
     """A draft study over the videos of a render manifest (``server.media.build``), which must hold its pairs;
     its stimulus set (:mod:`server.stimuli`) hashes the files in ``media_dir`` and takes the clips' metrics from
-    the clip set in ``clips_dir``.  ``animations``: the ones its owner may use (default: all; the others are
-    unknown to them, see ``server.uploads.service.usable_animations``)."""
+    the clip set in ``clips_dir`` (or is ``stimulus_set``, the set ``media`` was made from: an imported study's).
+    ``animations``: the ones its owner may use (default: all; the others are unknown to them, see
+    ``server.uploads.service.usable_animations``)."""
     if session.scalar(select(Study.id).where(Study.slug == study_file.slug)) is not None:
         raise Conflict(f"a study with slug {study_file.slug!r} exists already")
     study = Study(slug=study_file.slug, state=StudyState.draft, owner_id=owner.id if owner else None,
                   **_columns(study_file))
-    _build_comparisons(session, study, media, study_file.design, media_dir, clips_dir, animations)
+    _build_comparisons(session, study, media, study_file.design, media_dir, clips_dir, animations, stimulus_set)
     session.add(study)
     session.commit()
     return study
@@ -112,7 +114,8 @@ def create_study(session: Session, media: RenderManifest, study_file: StudyFile,
 
 def _build_comparisons(session: Session, study: Study, media: RenderManifest, design: Design,
                        media_dir: Path | None, clips_dir: Path | None,
-                       animations: Collection[str] | None = None) -> None:
+                       animations: Collection[str] | None = None,
+                       given: stimulus_sets.SetContent | None = None) -> None:
     """The study's stimuli, comparisons and stimulus set for ``design`` (replacing any it had), from the clips of
     ``animations`` (default: all)."""
     if study.opened_at is not None:  # its set is pinned
@@ -144,7 +147,8 @@ def _build_comparisons(session: Session, study: Study, media: RenderManifest, de
         study.comparisons.append(Comparison(kind=kind, reference=stimulus(ref), test=stimulus(test),
                                             video_reference_left=pair_videos[(r, t)],
                                             video_reference_right=pair_videos[(t, r)]))
-    content = stimulus_sets.make_content(media, [s.clip_id for s in study.stimuli], needed, media_dir, clips_dir)
+    content = given or stimulus_sets.make_content(media, [s.clip_id for s in study.stimuli], needed, media_dir,
+                                                  clips_dir)
     study.stimulus_set = stimulus_sets.store(session, content)
 
 
@@ -190,6 +194,8 @@ def update_study(session: Session, study: Study, changes: Mapping[str, Any],
         raise Conflict(f"study {study.slug!r} has been open: participants saw it as it is; create a new study")
     if "slug" in changes and changes["slug"] != study.slug:
         raise Conflict("a study's slug cannot change")
+    if changes.get("clips") is not None:
+        raise Unprocessable("clips: a study's clip set is chosen when it is created (`animstudy study create`)")
     current = definition(study).model_dump()
     for key, value in changes.items():
         merge = isinstance(current.get(key), dict) and isinstance(value, dict)

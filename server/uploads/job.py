@@ -3,17 +3,16 @@
 
 Stages (``build_jobs.stage``; ``done``/``total`` count each stage's steps):
 
-1. ``building``: one step per asset.  The job writes the clip-set file of the assets,
-   ``<assets dir>/<study id>/clipset.toml`` (each asset an ``[animations.<name>]`` entry with its kind, absolute
-   source path and frames; the ``fps``, character and ``[[conditions]]`` of the clip set in the var directory,
-   or of the default clip-set file when there is none), reads it with
-   :func:`server.clipset.config.load_config` and builds each animation with
-   :func:`server.clipset.build.build_clip_set` (any common rig, BVH or glTF, as ``clips build`` does); the
-   clips are merged into the clip set (an asset's clips replace its earlier ones; the manifest is replaced last,
-   in one step).
+1. ``building``: one step per asset.  The job describes the assets as a clip set (:func:`assets_config`: each
+   asset an animation with its kind, source file and frames; the ``fps``, character and conditions of the clip
+   set in the var directory, or of the default clip-set file when there is none), validated as a clip-set file
+   is, and builds each animation through the stimulus pipeline
+   (:func:`server.stimuli.pipeline.build_animations`: the character loaded and verified once; any common rig,
+   BVH or glTF, as ``clips build`` does); the clips are merged into the clip set (an asset's clips replace its
+   earlier ones; the manifest is replaced last, in one step).
 2. ``rendering``: one step per video missing: every clip's and the pairs the study's design (with the new
    animations) and every other study show, with the size and shadows the videos have already
-   (:func:`server.media.build.rendered_settings`, :func:`server.media.build.render_media`, one worker process
+   (:func:`server.media.build.rendered_settings`, :func:`server.stimuli.pipeline.render`, one worker process
    so the server keeps a core).
 3. ``study``: the assets' animations are added to the study's design (its comparisons rebuilt over the videos).
 4. ``done`` (state ``done``), or state ``failed`` with ``error`` at the stage where it failed.
@@ -25,15 +24,13 @@ set and the videos.
 from __future__ import annotations
 
 import fcntl
-import json
-import math
 import os
 import re
 import sys
 import threading
 import traceback
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -81,28 +78,7 @@ class Progress:
             session.commit()
 
 
-# --- the clip-set file of the assets ---------------------------------------------------------------------------
-
-def _toml_value(value: Any) -> str:
-    """A TOML value for the few types a clip-set file holds (JSON strings are TOML basic strings; finite floats'
-    ``repr`` is TOML)."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if not math.isfinite(value):
-            raise BuildError(f"a condition parameter is {value}, which a clip-set file cannot hold")
-        return repr(value)
-    if isinstance(value, str):
-        return json.dumps(value)
-    if isinstance(value, list | tuple):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    if isinstance(value, dict):  # TOML has no null: a parameter left unset (None) is left out
-        return "{ " + ", ".join(f"{json.dumps(str(k))} = {_toml_value(v)}" for k, v in value.items()
-                                if v is not None) + " }"
-    raise BuildError(f"cannot write {value!r} into a clip-set file")
-
+# --- the clip-set description of the assets ---------------------------------------------------------------
 
 def current_clip_set(clips_dir: Path) -> Any:
     """The manifest of the clip set in ``clips_dir``, None if there is none; one that cannot be read stops the
@@ -146,26 +122,18 @@ def base_clip_set(data_dir: Path, clips_dir: Path) -> BaseClipSet:
     return BaseClipSet(fps, default.relocate, character, conditions)
 
 
-def write_clip_set_file(path: Path, assets: Sequence[StudyAsset], asset_file: Callable[[StudyAsset], Path],
-                        base: BaseClipSet) -> Path:
-    """The clip-set file (README "Clip-set file") of ``assets``, through a temporary file."""
-    body = {k: v for k, v in asdict(base.character).items() if v is not None}
-    lines = ["# written by the build job of the study's uploaded assets (server/uploads/job.py)",
-             f"fps = {base.fps}", "", "[character]", f"relocate = {_toml_value(list(base.relocate))}",
-             *(f"{k} = {_toml_value(v)}" for k, v in body.items()), ""]
-    for a in assets:
-        lines += [f"[animations.{a.name}]", f"kind = {_toml_value(a.kind)}",
-                  f"source = {_toml_value(str(asset_file(a)))}",
-                  f"frames = {_toml_value([a.first_frame, a.last_frame])}", ""]
-    for cid, method, params in base.conditions:
-        lines += ["[[conditions]]", f"id = {_toml_value(cid)}", f"method = {_toml_value(method)}"]
-        if params:
-            lines.append(f"params = {_toml_value(params)}")
-        lines.append("")
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text("\n".join(lines), encoding="utf-8")
-    tmp.replace(path)
-    return path
+def assets_config(assets: Sequence[StudyAsset], asset_file: Callable[[StudyAsset], Path],
+                  base: BaseClipSet) -> Any:
+    """The clip-set description (:class:`server.clipset.config.ClipSetConfig`) of ``assets``: each an animation
+    with its kind, source file and frames, on the fps, character and conditions of ``base``; validated as a
+    clip-set file is (ConfigError names the asset)."""
+    from server.clipset.config import clip_set_config
+
+    animations = {a.name: {"kind": a.kind, "source": str(asset_file(a)), "frames": [a.first_frame, a.last_frame]}
+                  for a in assets}
+    conditions = [{"id": cid, "method": method, **({"params": params} if params else {})}
+                  for cid, method, params in base.conditions]
+    return clip_set_config(animations, conditions, base.fps, base.relocate, base.character, "the study's assets")
 
 
 # --- merging into the clip set -----------------------------------------------------------------------------------
@@ -184,7 +152,7 @@ def check_names(clips_dir: Path, assets: Sequence[StudyAsset], asset_file: Calla
 
 
 def merge_clips(clips_dir: Path, built: list[Any]) -> Path:
-    """Add built clips (:class:`anim_core.clipset.BuiltClip`) to the clip set in ``clips_dir``, replacing the
+    """Add built clips (:class:`anim_core.clips.build.BuiltClip`) to the clip set in ``clips_dir``, replacing the
     clips of the same animations; each ``.npz`` is written under a temporary name and renamed, the manifest last,
     so readers see the old clip set or the new one."""
     from server.clipset.manifest import MANIFEST, CharacterEntry, ClipManifest, entry, write_json
@@ -260,12 +228,13 @@ def draft(session: Session, study_id: int) -> Study:
 
 
 def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progress: Progress) -> None:
-    from server.clipset.build import build_clip_set
-    from server.clipset.config import load_config
-    from server.media.build import plan, render_media, rendered_settings
-    from server.media.manifest import read_render_manifest
+    from server.media.build import plan, rendered_settings
+    from server.stimuli import pipeline
+    from server.stimuli.pipeline import AnimationError, build_animations
     from server.studies.design import Design
-    from server.studies.service import pairs_to_render, update_study
+    from server.studies.service import update_study
+
+    place = pipeline.server_place(settings)
 
     with factory() as session:
         job = session.get(BuildJob, job_id)
@@ -286,19 +255,19 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
     if missing:
         raise BuildError(f"the asset files {', '.join(missing)} are missing on the server; upload them again")
     check_names(settings.clips_dir, assets, asset_file)
-    config_path = write_clip_set_file(settings.assets_dir / str(study.id) / "clipset.toml", assets, asset_file,
-                                      base_clip_set(settings.data, settings.clips_dir))
-    config = load_config(config_path)
+    try:
+        config = assets_config(assets, asset_file, base_clip_set(settings.data, settings.clips_dir))
+    except ValueError as exc:  # ConfigError: names the asset and the field
+        raise BuildError(str(exc)) from None
 
-    built = []
-    for k, (name, cfg) in enumerate(config.animations.items()):
+    def each(k: int, name: str) -> None:
         progress(stage="building", done=k, total=len(assets), message=f"{name}: building its clips")
-        one = replace(config, animations={name: cfg})  # the same character, fps, conditions
-        try:
-            built += build_clip_set(settings.data, one,
-                                    progress=lambda m, name=name: progress(message=f"{name}: {m.strip()}"))
-        except ValueError as exc:  # ConfigError, AssetError: they name the entry and the file
-            raise BuildError(f"asset {name!r}: {exc}") from None
+
+    try:
+        built = build_animations(settings.data, config, dict.fromkeys(config.animations, config.conditions),
+                                 lambda m: progress(message=m.strip()), each)
+    except AnimationError as exc:  # ConfigError, AssetError of an asset: they name the field and the file
+        raise BuildError(f"asset {exc}") from None
     merge_clips(settings.clips_dir, built)
     progress(stage="building", done=len(assets), total=len(assets), message=f"{len(built)} clips built")
 
@@ -308,7 +277,7 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
         animations = list(dict.fromkeys([*design.animations, *(a.name for a in assets)]))
         new_design = design.model_copy(update={"animations": animations})
         Design.model_validate(new_design.model_dump())
-        pairs = pairs_to_render(session, new_design, settings.clips_dir, settings.media_dir)
+        pairs = pipeline.pairs(session, place, new_design, settings.media_dir)
     render = rendered_settings(settings.media_dir)
     todo = [o for j in plan(settings.data, settings.clips_dir, settings.media_dir, render, settings.secret,
                             pairs).jobs for o in j.outputs]
@@ -322,9 +291,9 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
 
     watcher = threading.Thread(target=watch, daemon=True)
     watcher.start()
-    try:
-        render_media(settings.data, settings.clips_dir, settings.media_dir, settings.secret, render, pairs=pairs,
-                     workers=1, progress=lambda m: progress(message=m), scheduler=settings.dask_scheduler)
+    try:  # one worker process: the server keeps a core
+        media = pipeline.render(settings, place, pairs, render, lambda m: progress(message=m), workers=1,
+                                every_clip=True)
     finally:
         stop.set()
         watcher.join()
@@ -333,8 +302,8 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
     progress(stage="study", done=0, total=1, message="adding the animations to the study's design")
     with factory() as session:
         study = draft(session, study.id)
-        update_study(session, study, {"design": new_design.model_dump()}, read_render_manifest(settings.media_dir),
-                     settings.media_dir, settings.clips_dir)
+        update_study(session, study, {"design": new_design.model_dump()}, media, settings.media_dir,
+                     settings.clips_dir)
     progress(stage="study", done=1, total=1, message=f"the design shows {', '.join(animations)}")
 
 

@@ -1,5 +1,5 @@
 """A draft study's assets: motion files uploaded by its researcher, validated by inspecting them
-(:func:`anim_core.sourceinfo.inspect_source`) before anything is stored, listed, changed and deleted; and starting
+(:func:`anim_core.clips.sources.inspect_source`) before anything is stored, listed, changed and deleted; and starting
 and reading the build job (:mod:`server.uploads.job`) that turns them into clips and videos.
 
 Files live in ``<assets dir>/<study id>/<filename>`` (``Settings.assets_dir``); an upload is streamed into its own
@@ -34,7 +34,7 @@ from server.studies.service import managed_study
 
 from .models import AnimationShare, BuildJob, BuildState, StudyAsset
 
-#: What an upload may be: a motion file :func:`~anim_core.sourceinfo.inspect_source` reads.  No ``.bvh.gz``: a
+#: What an upload may be: a motion file :func:`~anim_core.clips.sources.inspect_source` reads.  No ``.bvh.gz``: a
 #: compressed file could unpack to far more than the size limit allows.
 EXTENSIONS = (".bvh", ".glb", ".gltf")
 FILENAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._ -]{0,99}$")
@@ -117,7 +117,7 @@ def asset_path(settings: Settings, asset: StudyAsset) -> Path:
 
 
 def report_json(report: Any, motions: list[str]) -> dict[str, Any]:
-    """What inspecting a file found (:class:`anim_core.sourceinfo.MotionReport`), as stored and served."""
+    """What inspecting a file found (:class:`anim_core.clips.sources.MotionReport`), as stored and served."""
     n = report.normalized
     m = n.mapping
     return {"motion": report.name, "motions": motions, "joints": len(m.source_names), "convention": m.convention,
@@ -132,7 +132,7 @@ def report_json(report: Any, motions: list[str]) -> dict[str, Any]:
 def inspect_upload(path: Path) -> dict[str, Any]:
     """Inspect an uploaded file: its report, or 422 with the reader's message (file, line, what is wrong).  A glTF
     with several animations gives its first one (the report names the others)."""
-    from anim_core.sourceinfo import inspect_source
+    from anim_core.clips.sources import inspect_source
 
     try:
         reports = inspect_source(path)

@@ -1,0 +1,2 @@
+"""The crowd-posing benchmark (:mod:`.suite`).
+"""

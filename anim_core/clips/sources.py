@@ -1,0 +1,212 @@
+"""What a motion file holds, for a user about to add it to a clip set (``animstudy clips inspect FILE``), and the
+motion on the character as glTF or BVH (``animstudy clips convert FILE OUT``, :func:`write_motion`; a built clip:
+``animstudy clips export``).
+
+:func:`inspect_source` reads a BVH (``.bvh``, ``.bvh.gz``) or glTF (``.glb``, ``.gltf``) file, maps its skeleton
+(:mod:`anim_core.rig.rigmap`) and reports, per motion: joints, convention and mapping with reasons, units, up axis,
+fps, frames, duration, the foot-contact phases (frame intervals, :mod:`anim_core.math.contacts` on the motion in
+metres) and a suggested ``kind`` and frame range.  Suggestions are heuristics stated in :func:`suggest`; the
+user decides.  Every failure is a ``ValueError`` subclass naming the file (:class:`~anim_core.io.bvh.BvhError` with
+its line, :class:`~anim_core.io.gltf.GltfError`, :class:`~anim_core.rig.rigmap.RigMapError`).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..io.bvh import Bvh, bvh_from_poses, read_bvh, write_bvh
+from ..io.gltf import GltfAnimation, read_gltf, write_gltf
+from ..math.contacts import contact_intervals, foot_down
+from ..math.skeleton import Skeleton
+from ..math.skinning import SkinnedMesh
+from ..rig.character import Character, retarget
+from ..rig.rigmap import CANONICAL_NAMES, Normalized, normalize_bvh, normalize_motion
+
+Array = NDArray[np.float64]
+
+#: Root speed (m/s) above which a motion with alternating foot contacts is a gait; hip drop (share of the standing
+#: hip height) above which a motion is a crouch; root travel (m) and joint motion below which it is an idle.
+GAIT_SPEED = 0.3
+CROUCH_DROP = 0.2
+IDLE_TRAVEL = 0.3
+MIN_PHASE = 0.1
+
+
+@dataclass(frozen=True)
+class MotionReport:
+    """One motion of a file: the normalized motion, contact phases per foot (``[start, stop)`` frames) and the
+    suggestion with its reason."""
+
+    name: str
+    normalized: Normalized
+    contacts: dict[str, list[tuple[int, int]]]
+    kind: str
+    frames: tuple[int, int]
+    reason: str
+
+    @property
+    def n_frames(self) -> int:
+        return self.normalized.bvh.n_frames
+
+    @property
+    def fps(self) -> float:
+        return self.normalized.bvh.fps
+
+    @property
+    def duration(self) -> float:
+        return (self.n_frames - 1) / self.fps
+
+
+def _t_pose(positions: Array) -> bool:
+    """Is frame 0 a calibration T-pose (both hands level with the shoulders, far out to the sides)?"""
+    ix = {n: i for i, n in enumerate(CANONICAL_NAMES)}
+    p = positions[0]
+    arm = np.linalg.norm(p[ix["LeftHand"]] - p[ix["LeftArm"]])
+    return all(abs(p[ix[f"{s}Hand"], 1] - p[ix[f"{s}Arm"], 1]) < 0.15 * arm for s in ("Left", "Right"))
+
+
+def suggest(positions: Array, fps: float, contacts: Mapping[str, NDArray[np.intp]]) -> tuple[str, tuple[int, int],
+                                                                                               str]:
+    """Kind (``gait``, ``crouch``, ``idle``, ``other``), inclusive frame range and why, from joint positions
+    ``(F, 31, 3)`` in metres (Y up) of the canonical skeleton.
+
+    A calibration T-pose in frame 0 is skipped.  ``crouch``: the hips drop by more than :data:`CROUCH_DROP` of
+    their height in the first frame; ``gait``: the root moves faster than :data:`GAIT_SPEED` and both feet touch
+    down; the range is then one cycle, from a left touchdown to the next; ``idle``: the root travels less than
+    :data:`IDLE_TRAVEL`; else ``other``.
+    """
+    first = 1 if len(positions) > 2 and _t_pose(positions) else 0
+    last = len(positions) - 1
+    hips = positions[first:, 0]
+    height = hips[:, 1] - positions[first:, :, 1].min()
+    horizontal = hips[:, [0, 2]]
+    travel = float(np.linalg.norm(horizontal[-1] - horizontal[0]))
+    speed = travel / max((last - first) / fps, 1e-9)
+    drop = 1.0 - float(height.min() / max(height[0], 1e-9))
+    skip = " (frame 0 is a T-pose)" if first else ""
+    if drop > CROUCH_DROP:
+        return "crouch", (first, last), f"the hips drop by {drop:.0%} of their height{skip}"
+    left = [int(s) for s, _ in contacts["left"] if s > first]
+    if speed > GAIT_SPEED and len(contacts["left"]) and len(contacts["right"]):
+        if len(left) >= 2:
+            return "gait", (left[0], left[1]), (f"the root moves {speed:.2f} m/s with alternating foot contacts; "
+                                                f"one cycle between the first two left touchdowns")
+        return "gait", (first, last), f"the root moves {speed:.2f} m/s with foot contacts{skip}"
+    if travel < IDLE_TRAVEL:
+        return "idle", (first, last), f"the root travels {travel:.2f} m in all{skip}"
+    return "other", (first, last), f"no gait, crouch or idle pattern (root travels {travel:.2f} m){skip}"
+
+
+def _report(name: str, out: Normalized) -> MotionReport:
+    bvh = out.bvh
+    rot, root = bvh.pose_arrays()
+    skeleton = bvh.posed_skeleton()
+    positions = skeleton.forward_kinematics(rot, root)[1] * out.metres_per_unit
+    ix = {n: i for i, n in enumerate(CANONICAL_NAMES)}
+    feet = positions[:, [[ix["LeftFoot"], ix["LeftToeBase"]], [ix["RightFoot"], ix["RightToeBase"]]]]
+    contacts: dict[str, NDArray[np.intp]] = {}
+    if len(positions) >= 2:
+        down = foot_down(feet)
+        # Blips shorter than MIN_PHASE seconds (a heel grazing the floor) are not phases; gaps as short are closed.
+        short = max(1, round(MIN_PHASE * bvh.fps))
+        for k in range(2):
+            for s, e in contact_intervals(~down[:, k]):
+                if e - s < short and s > 0 and e < len(down):
+                    down[s:e, k] = True
+            for s, e in contact_intervals(down[:, k]):
+                if e - s < short:
+                    down[s:e, k] = False
+        contacts = {"left": contact_intervals(down[:, 0]), "right": contact_intervals(down[:, 1])}
+    else:
+        contacts = {"left": np.zeros((0, 2), np.intp), "right": np.zeros((0, 2), np.intp)}
+    kind, frames, reason = suggest(positions, bvh.fps, contacts)
+    return MotionReport(name, out, {k: [(int(a), int(b)) for a, b in v] for k, v in contacts.items()}, kind, frames,
+                        reason)
+
+
+def read_motions(path: str | os.PathLike[str], explicit: Mapping[str, str] | None = None,
+                 units: str | None = None, up_axis: str | None = None) -> list[tuple[str, Normalized]]:
+    """Every motion of a BVH (one) or glTF file (one per animation), named and normalized
+    (:func:`~anim_core.rig.rigmap.normalize_bvh`); errors are ``ValueError`` subclasses naming the file."""
+    path = Path(path)
+    name = path.name.lower()
+    if name.endswith((".bvh", ".bvh.gz")):
+        bvh: Bvh = read_bvh(path)
+        return [(path.name, normalize_bvh(bvh, explicit, units, up_axis))]
+    if name.endswith((".glb", ".gltf")):
+        asset = read_gltf(path)
+        if not asset.animations:
+            raise ValueError(f"{path.name}: the file holds a character but no animation")
+        return [(a.name, normalize_motion(asset.skeleton, a.rotations, a.root_translation, a.frame_time, {},
+                                          f"{path.name} animation {a.name!r}", explicit, units, up_axis))
+                for a in asset.animations]
+    raise ValueError(f"{path.name}: not a motion file; expected .bvh, .bvh.gz, .glb or .gltf")
+
+
+def inspect_source(path: str | os.PathLike[str], explicit: Mapping[str, str] | None = None,
+                   units: str | None = None, up_axis: str | None = None) -> list[MotionReport]:
+    """Reports of every motion in the file (one for a BVH, one per animation of a glTF)."""
+    return [_report(name, out) for name, out in read_motions(path, explicit, units, up_axis)]
+
+
+def format_report(path: str | os.PathLike[str], reports: list[MotionReport]) -> str:
+    """Plain-text report of :func:`inspect_source` for the terminal."""
+    lines = []
+    for r in reports:
+        n = r.normalized
+        m = n.mapping
+        lines += [f"{Path(path).name}: {r.name}",
+                  f"  joints      {len(m.source_names)}",
+                  f"  convention  {m.convention}",
+                  f"  units       {n.units} ({n.metres_per_unit:g} m per unit)",
+                  f"  up axis     {n.up_axis.upper()}" + (f"; {'; '.join(n.notes)}" if n.notes else ""),
+                  f"  fps         {r.fps:g}",
+                  f"  frames      {r.n_frames}",
+                  f"  duration    {r.duration:.3f} s",
+                  "  foot contacts (frames [start, stop)):"]
+        for foot, phases in r.contacts.items():
+            lines.append(f"    {foot:<5} {', '.join(f'{a}-{b}' for a, b in phases) or 'none'}")
+        lines += [f"  suggested   kind = \"{r.kind}\", frames {r.frames[0]}..{r.frames[1]}  ({r.reason})",
+                  "  mapping (character joint <- file joint: why):"]
+        for d in m.decisions:
+            lines.append(f"    {d.canonical:<16} <- {d.source or '(none)'}: {d.reason}")
+        if m.unmapped:
+            lines.append(f"  unmapped (ignored): {', '.join(m.unmapped)}")
+    return "\n".join(lines)
+
+
+def write_motion(path: str | os.PathLike[str], skeleton: Skeleton, mesh: SkinnedMesh, faces: NDArray[np.intp],
+                 rotations: Array, root_translation: Array, frame_time: float, end_sites: Mapping[int, Array],
+                 name: str = "motion") -> None:
+    """Write a motion on the character: ``.glb``/``.gltf`` (character mesh + skin + animation) or ``.bvh``/
+    ``.bvh.gz`` (``skeleton`` with ``end_sites``), for a look in Blender or a web viewer.
+
+    ``skeleton``: the character's bones (metres, Y up, identity rest rotations); ``mesh`` bound to it;
+    ``rotations``: ``(F, J, 4)`` local (w, x, y, z); ``root_translation``: ``(F, 3)`` m; one frame per
+    ``frame_time`` seconds.  Nothing is left behind on failure (both writers write to a temporary name)."""
+    path = Path(path)
+    lower = path.name.lower()
+    if lower.endswith((".glb", ".gltf")):
+        times = np.arange(len(rotations)) * frame_time
+        write_gltf(path, skeleton, mesh.vertices, mesh.normals, faces, mesh.joints, mesh.weights, mesh.inverse_bind,
+                   (GltfAnimation(name, times, rotations, root_translation),))
+    elif lower.endswith((".bvh", ".bvh.gz")):
+        write_bvh(bvh_from_poses(skeleton, rotations, root_translation, frame_time, dict(end_sites), path.name), path)
+    else:
+        raise ValueError(f"{path.name}: export writes .glb, .gltf, .bvh or .bvh.gz")
+
+
+def export_on_character(normalized: Normalized, character: Character, path: str | os.PathLike[str],
+                        name: str = "motion") -> None:
+    """Write a normalized motion retargeted onto ``character`` (:func:`write_motion`)."""
+    bvh = normalized.bvh
+    rt = retarget(character, bvh.posed_skeleton(), bvh.end_sites)
+    rot, root = bvh.pose_arrays()
+    ends = {j: np.asarray(e) * rt.root_scale for j, e in bvh.end_sites.items()}
+    write_motion(path, rt.skeleton, rt.mesh, rt.faces, rot, root * rt.root_scale, bvh.frame_time, ends, name)

@@ -1,0 +1,143 @@
+"""The built-in methods: each one's parameter model and builder (registered, in one list, by
+:mod:`anim_core.methods.conditions`), usable in any clip-set file as ``[[conditions]] id/method/params``.
+
+* ``keyframe`` (:class:`KeyframeParams`): the reference itself.
+* ``hybrid`` (:class:`HybridParams`): the thesis method, :func:`build_hybrid`.
+
+* ``hybrid_ik`` (:class:`HybridIkParams`): the hybrid of ``increment`` with locked feet
+  (:mod:`anim_core.methods.footlock`):
+  the steps detected on the reference (``contact_source = "reference"``), or each also grown by the hybrid's own
+  contact frames next to it (``"union"``, default), below ``clearance_m``; held by two-bone leg IK, each swing
+  making up the difference between two holds over at least ``2 * blend_frames + 1`` frames; with
+  ``swing_clearance`` each foot raised to at least the reference's foot height (off by default: it copies a
+  reference's own seam jump into a loop whose hybrid has none).  ``conditions16.toml`` holds ``"reference"`` with
+  the clearance, which meets every gait goal of issue 16.
+* ``hybrid_c2`` (:class:`HybridC2Params`): the hybrid of ``increment`` on the C2 spline
+  (:mod:`anim_core.methods.c2spline`)
+  through the same keys.  A crouch follows its keys with the spring, not SQUAD: at increment 0 that is one geodesic
+  driven by the closed-form spring, C2 already, so its ``hybrid_c2`` is the spring hybrid itself; a crouch has no C2
+  clip with more keys (an error naming the condition).
+* ``reduced`` (:class:`ReducedParams`): the reference with the fewest keys keeping every joint's global rotation
+  within ``epsilon_deg`` (:func:`anim_core.methods.compression.reduce_keys`, greedy).
+* ``quantized`` (:class:`QuantizedParams`): the reference (or, with ``reduced_epsilon_deg``, its reduction) stored at
+  ``bits`` bits per quaternion component (:func:`anim_core.methods.compression.quantized_clip`), dequantized at
+  playback.
+
+Stored bytes (the ``bytes`` metric) of ``hybrid_ik`` and ``quantized`` differ from a clip of float32 keys; their
+``stored_bytes`` functions are registered with them.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from ..math.clip import KeyframeClip
+from ..rig.character import FEET, LEGS
+from .base import Animation, Params
+from .c2spline import C2Clip, c2_from_squad
+from .compression import QuantizedClip, keyframe_bytes, quantized_clip, reduce_keys
+from .footlock import FootLockedClip, lock_feet
+from .hybrid import SpringClip, SquadClip, build_crouch, build_gait, build_idle, build_other
+
+
+class KeyframeParams(Params):
+    """The reference has no parameters."""
+
+
+class HybridParams(Params):
+    increment: int = Field(ge=0, le=4, description="extra keys per interval between the base keys (thesis: 0..2)")
+
+
+def build_keyframe(animation: Animation, params: KeyframeParams) -> KeyframeClip:
+    """The reference itself: the dense keys on the grid."""
+    return animation.reference
+
+
+def build_hybrid(animation: Animation, params: HybridParams) -> SquadClip | SpringClip:
+    """The thesis's hybrid: a gait mirrors half a cycle of keys onto the other half (SQUAD), a crouch follows its
+    keys with the spring, an idle sways on SQUAD between its two extremes, any other motion goes through its picked
+    keys on SQUAD, loop or ping-pong as its reference plays (:mod:`anim_core.methods.hybrid`)."""
+    ref, keys = animation.reference, list(animation.key_times)
+    if animation.kind == "gait":
+        # build_gait measures the travel from its source, so it gets the reference travelling.
+        travelling = KeyframeClip(ref.skeleton, ref.times, ref.rotations, ref.root_translation, ref.mode,
+                                  False, ref.up_axis, ref.name)
+        return build_gait(travelling, keys, animation.period, increment=params.increment, in_place=animation.in_place,
+                          name=animation.name)
+    if animation.kind == "crouch":
+        return build_crouch(ref, keys, increment=params.increment, duration=animation.period, time_scale=None,
+                            name=animation.name)
+    if animation.kind == "idle":
+        return build_idle(ref, keys, increment=params.increment, name=animation.name)
+    return build_other(ref, keys, increment=params.increment, in_place=animation.in_place, name=animation.name)
+
+
+EPSILON = Field(gt=0, le=45, description="largest global-rotation error of any joint at any frame, degrees")
+
+
+class HybridIkParams(Params):
+    increment: int = Field(ge=0, le=4, description="extra keys per interval, as for the hybrid")
+    blend_frames: int = Field(3, ge=0, le=30, description="frames of the blend in and out at contact boundaries: "
+                              "holds closer than twice this are joined")
+    clearance_m: float = Field(0.05, gt=0, le=0.5, description="a foot is down below this height above the floor")
+    contact_source: Literal["union", "reference"] = Field(
+        "union", description="steps of the reference alone, or each grown by the hybrid's contact frames beside it")
+    swing_clearance: bool = Field(False, description="raise each foot to at least the reference's foot height "
+                                  "above the floor")
+
+
+class HybridC2Params(Params):
+    increment: int = Field(ge=0, le=4, description="extra keys per interval, as for the hybrid")
+
+
+class ReducedParams(Params):
+    epsilon_deg: float = EPSILON
+
+
+class QuantizedParams(Params):
+    bits: int = Field(ge=2, le=16, description="bits per quaternion component")
+    reduced_epsilon_deg: float | None = Field(None, gt=0, le=45,
+                                              description="reduce the keys first to within this many degrees")
+
+
+def hybrid_ik_bytes(clip: FootLockedClip, params: HybridIkParams) -> int:
+    # The hybrid's keys plus an ankle target (3 float32) and a weight (1 float32) per leg and frame, and each
+    # knee's hinge (3 float32) and the soft reach (1 float32).
+    return (keyframe_bytes(clip.key_times.size, clip.skeleton.n_joints) + int(clip.weights.size * 4 * 4)
+            + int(clip.hinges.size * 4) + 4)
+
+
+def quantized_bytes(clip: KeyframeClip, params: QuantizedParams) -> int:
+    return keyframe_bytes(clip.key_times.size, clip.skeleton.n_joints, params.bits)
+
+
+def build_hybrid_ik(animation: Animation, params: HybridIkParams) -> FootLockedClip:
+    base = build_hybrid(animation, HybridParams(increment=params.increment))
+    sk = animation.reference.skeleton
+    legs = [tuple(int(j) for j in sk.indices(leg)) for leg in LEGS]
+    feet = [[int(j) for j in sk.indices(foot)] for foot in FEET]
+    return lock_feet(base, animation.reference, legs, feet, animation.fps, params.blend_frames, params.clearance_m,
+                     up_axis=animation.reference.up_axis, contact_source=params.contact_source,
+                     swing_clearance=params.swing_clearance)
+
+
+def build_hybrid_c2(animation: Animation, params: HybridC2Params) -> C2Clip | SpringClip:
+    base = build_hybrid(animation, HybridParams(increment=params.increment))
+    if isinstance(base, SquadClip):
+        return c2_from_squad(base)
+    if params.increment == 0:
+        return base  # one geodesic driven by the closed-form spring: C2 already
+    raise ValueError(f"a {animation.kind} follows its keys with the spring: hybrid_c2 exists for it at increment 0 "
+                     f"only (the spring hybrid 0, C2 already), got increment {params.increment}")
+
+
+def build_reduced(animation: Animation, params: ReducedParams) -> KeyframeClip:
+    return reduce_keys(animation.reference, params.epsilon_deg)
+
+
+def build_quantized(animation: Animation, params: QuantizedParams) -> QuantizedClip:
+    ref = animation.reference
+    src = ref if params.reduced_epsilon_deg is None else reduce_keys(ref, params.reduced_epsilon_deg)
+    return quantized_clip(src, params.bits)[0]

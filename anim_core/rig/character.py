@@ -1,0 +1,319 @@
+"""The skinned character (MakeHuman base mesh on the 31-joint ``cmu_mb`` rig) and retargeting of mocap onto it.
+
+Source files (:func:`load_character` takes their paths; the server finds and verifies them in its data directory,
+``server.assets``): ``base.obj.gz`` (decimetres, Y up, A-pose;
+only the group ``body`` is the character, the rest is helper geometry), ``rig.cmu_mb.json`` (bone heads and tails
+in metres, Blender Z up) and ``weights.cmu_mb.json.gz`` (per bone ``[vertex, weight]`` lists, up to 8 bones per
+vertex).  Everything here is converted to **metres, Y up**, the character facing +Z with its left at +X (the
+orientation of the CMU motion capture).
+
+Retargeting (:func:`retarget`) plays the local joint rotations of a BVH skeleton unchanged on a skeleton with the
+character's bone lengths and the mocap's rest bone directions, so every bone of the character points exactly
+where the mocap's bone points, at every frame.  The mesh is bound to that skeleton by one rotation per joint
+(``bind_rotations``), the rotation that turns the joint's mocap rest direction into the direction the bone has in
+the A-posed mesh; it is computed down each chain relative to the parent's, so twist carries over smoothly.
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..math.clip import Pose
+from ..math.quat import identity, quat_conj, quat_from_axis_angle, quat_mul, rotate
+from ..math.skeleton import Skeleton
+from ..math.skinning import MAX_INFLUENCES, SkinnedMesh, invert_transforms, transforms, vertex_normals
+
+Array = NDArray[np.float64]
+
+BODY_GROUP = "body"
+#: The character's feet (each: ankle and toe joint), legs (IK chains hip, knee, ankle, as FEET) and up axis (Y).
+FEET = (("LeftFoot", "LeftToeBase"), ("RightFoot", "RightToeBase"))  # each foot: ankle and toe joints
+LEGS = (("LeftUpLeg", "LeftLeg", "LeftFoot"), ("RightUpLeg", "RightLeg", "RightFoot"))  # IK chains, as FEET
+UP = 1
+
+
+class CharacterError(ValueError):
+    """A character file is unreadable or not what the loader expects; the message names the file."""
+
+#: BVH joint name -> rig joint name where they differ.
+CMU_TO_RIG = {"LeftHandIndex1": "LeftHandFinger1", "RightHandIndex1": "RightHandFinger1"}
+#: Pelvis "bones" from the hip centre to each hip socket: the mocap and the rig disagree on where these point
+#: (by about 45 degrees), and the pelvis is rigid, so these joints are moved rather than their mesh rotated.
+DEFAULT_RELOCATE = ("LHipJoint", "RHipJoint")
+
+
+@dataclass(frozen=True, eq=False)
+class Character:
+    """The rigged mesh as authored (A-pose), metres, Y up.
+
+    ``names``/``parents``: rig joints in topological order; ``heads``/``tails``: ``(J, 3)`` bone head (the joint)
+    and tail positions; ``vertices``/``normals``: ``(V, 3)``; ``faces``: ``(F, 3)`` triangles; ``joints``/``weights``:
+    ``(V, 8)`` influences, each row summing to 1.
+    """
+
+    names: tuple[str, ...]
+    parents: NDArray[np.intp]
+    heads: Array
+    tails: Array
+    vertices: Array
+    normals: Array
+    faces: NDArray[np.intp]
+    joints: NDArray[np.intp]
+    weights: Array
+
+    def index(self, name: str) -> int:
+        return self.names.index(name)
+
+    @property
+    def sole_height(self) -> float:
+        """Lowest point of the mesh (the soles, feet flat in the A-pose)."""
+        return float(self.vertices[:, 1].min())
+
+
+def _open_text(path: Path) -> str:
+    try:
+        data = path.read_bytes()
+        return (gzip.decompress(data) if path.suffix == ".gz" else data).decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise CharacterError(f"{path} is not UTF-8 text: {exc}") from None
+    except (OSError, EOFError) as exc:
+        raise CharacterError(f"cannot read {path}: {exc} (corrupt file?)") from None
+
+
+def _load_json(path: Path) -> dict:
+    try:
+        return json.loads(_open_text(path))
+    except json.JSONDecodeError as exc:
+        raise CharacterError(f"{path} is not valid JSON: {exc}") from None
+
+
+def _yup(blender: Array) -> Array:
+    """Blender Z-up (x, y, z) -> Y-up (x, z, -y); the rig faces -Y in Blender, +Z here."""
+    b = np.asarray(blender, dtype=np.float64)
+    return np.stack([b[..., 0], b[..., 2], -b[..., 1]], axis=-1)
+
+
+def _parse_obj(text: str, path: Path) -> tuple[Array, NDArray[np.intp]]:
+    """All vertices (decimetres) and the quad/triangle faces of group ``body`` as triangles (0-based, global)."""
+    vertices: list[list[float]] = []
+    faces: list[list[int]] = []
+    group = None
+    try:
+        for number, line in enumerate(text.splitlines(), 1):  # noqa: B007 (number names the bad line)
+            if line.startswith("v "):
+                vertices.append([float(x) for x in line.split()[1:4]])
+            elif line.startswith("g "):
+                group = line[2:].strip()
+            elif line.startswith("f ") and group == BODY_GROUP:
+                idx = [int(tok.split("/")[0]) - 1 for tok in line.split()[1:]]
+                faces.extend([idx[0], idx[k], idx[k + 1]] for k in range(1, len(idx) - 1))
+    except (ValueError, IndexError):
+        raise CharacterError(f"{path}, line {number}: malformed OBJ line {line[:60]!r}") from None
+    if not faces:
+        raise CharacterError(f"{path} has no faces in group {BODY_GROUP!r}")
+    v = np.array(vertices, dtype=np.float64)
+    f = np.array(faces, dtype=np.intp)
+    if f.min() < 0 or f.max() >= len(v):
+        raise CharacterError(f"{path}: a face refers to a vertex that does not exist")
+    return v, f
+
+
+def load_character(rig_path: Path, weights_path: Path, obj_path: Path) -> Character:
+    """Load the MakeHuman character from its rig, weights and mesh files (each may be gzip-compressed, ``.gz``):
+    body only, metres, Y up, weights normalized per vertex."""
+    rig_path, weights_path, obj_path = Path(rig_path), Path(weights_path), Path(obj_path)
+    rig = _load_json(rig_path)
+    weight_lists = _load_json(weights_path).get("weights")
+    if not isinstance(weight_lists, dict):
+        raise CharacterError(f"{weights_path} has no 'weights' table")
+    all_vertices, faces = _parse_obj(_open_text(obj_path), obj_path)
+
+    # Rig joints in topological order (parents first), names as in the file.
+    try:
+        order: list[str] = []
+        pending = dict(rig)
+        while pending:
+            ready = [n for n, b in pending.items() if b["parent"] == "" or b["parent"] in order]
+            if not ready:
+                raise CharacterError(f"rig bones {sorted(pending)} have parents that are not in the rig")
+            for n in sorted(ready):
+                order.append(n)
+                del pending[n]
+        parents = np.array([order.index(rig[n]["parent"]) if rig[n]["parent"] else -1 for n in order])
+        heads = _yup(np.array([rig[n]["head"]["default_position"] for n in order]))
+        tails = _yup(np.array([rig[n]["tail"]["default_position"] for n in order]))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CharacterError(f"{rig_path} is not a rig file as expected: {exc!r}") from None
+
+    # Keep the body's vertices only, re-indexed.
+    used = np.unique(faces)
+    remap = np.full(len(all_vertices), -1, dtype=np.intp)
+    remap[used] = np.arange(len(used))
+    vertices = all_vertices[used] * 0.1  # decimetres -> metres; the OBJ is already Y up
+    faces = remap[faces]
+
+    influences: list[list[tuple[int, float]]] = [[] for _ in range(len(used))]
+    for bone, pairs in weight_lists.items():
+        if bone not in order:
+            raise CharacterError(f"skin weights name bone {bone!r}, which is not in the rig")
+        j = order.index(bone)
+        for vertex, weight in pairs:
+            if 0 <= vertex < len(remap) and remap[vertex] >= 0 and weight > 0:
+                influences[remap[vertex]].append((j, float(weight)))
+    if any(len(inf) == 0 for inf in influences):
+        raise CharacterError("some body vertices have no skin weights")
+    if max(len(inf) for inf in influences) > MAX_INFLUENCES:
+        raise CharacterError(f"some vertices have more than {MAX_INFLUENCES} influences")
+    joints = np.zeros((len(used), MAX_INFLUENCES), dtype=np.intp)
+    weights = np.zeros((len(used), MAX_INFLUENCES))
+    for v, inf in enumerate(influences):  # once at load time
+        joints[v, : len(inf)] = [j for j, _ in inf]
+        weights[v, : len(inf)] = [w for _, w in inf]
+    sums = weights.sum(axis=1)
+    if np.abs(sums - 1.0).max() > 1e-3:
+        raise CharacterError(f"skin weights of the body do not sum to 1 (worst vertex sums to {sums.min():.4f})")
+    weights /= sums[:, None]
+    return Character(tuple(order), parents, heads, tails, vertices, vertex_normals(vertices, faces), faces,
+                     joints, weights)
+
+
+def _arc(a: Array, b: Array) -> Array:
+    """The smallest rotation (quaternion) turning direction ``a (3,)`` into direction ``b (3,)``."""
+    a = a / np.linalg.norm(a)
+    b = b / np.linalg.norm(b)
+    axis = np.cross(a, b)
+    s = np.linalg.norm(axis)
+    if s < 1e-12:
+        if a @ b > 0:
+            return identity()
+        ortho = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+        return quat_from_axis_angle(ortho, np.pi)
+    return quat_from_axis_angle(axis, np.arctan2(s, a @ b))
+
+
+@dataclass(frozen=True, eq=False)
+class RetargetedCharacter:
+    """The character bound to one mocap skeleton.
+
+    ``skeleton``: the mocap's joints (names, order, parents) with the character's bone lengths and the mocap's rest
+    directions, metres, identity rest rotations; mocap local rotations play on it unchanged.  ``mesh``: the body
+    bound to it (joint indices in the mocap's order).  ``bind_rotations``/``bind_positions``: ``(J, 4)``/``(J, 3)``
+    joint frames in the A-posed mesh.  ``root_scale``: metres per mocap length unit (ratio of leg lengths).
+    ``contact_heights``: ``(J,)`` height of each joint above the soles in the A-pose (feet flat on the floor).
+    """
+
+    skeleton: Skeleton
+    mesh: SkinnedMesh
+    faces: NDArray[np.intp]
+    bind_rotations: Array
+    bind_positions: Array
+    root_scale: float
+    contact_heights: Array
+
+    def pose(self, mocap: Pose) -> Pose:
+        """The character's pose for a batch of mocap poses: same rotations, root translation scaled to metres."""
+        return Pose(np.asarray(mocap.rotations), np.asarray(mocap.root_translation) * self.root_scale)
+
+
+def bind_mesh(character: Character, joint_names: Sequence[str], bind_rotations: Array, bind_positions: Array,
+              name_map: Mapping[str, str] | None = None) -> SkinnedMesh:
+    """The character's body bound to joints ``joint_names`` (in that order) with the given A-pose joint frames.
+
+    ``bind_rotations``/``bind_positions``: ``(J, 4)``/``(J, 3)``, e.g. from :func:`retarget` or a clip file.
+    """
+    name_map = dict(CMU_TO_RIG if name_map is None else name_map)
+    rig_to_joint = np.full(len(character.names), -1, dtype=np.intp)
+    for j, name in enumerate(joint_names):
+        rig = name_map.get(name, name)
+        if rig not in character.names:
+            raise CharacterError(f"the character has no joint for {name!r}")
+        rig_to_joint[character.index(rig)] = j
+    joints = rig_to_joint[character.joints]
+    if np.any((joints < 0) & (character.weights > 0)):
+        raise CharacterError("the mesh is weighted to rig joints that the skeleton does not have")
+    weights = np.where(joints >= 0, character.weights, 0.0)
+    inverse_bind = invert_transforms(transforms(bind_rotations, bind_positions))
+    return SkinnedMesh(character.vertices, character.normals, np.maximum(joints, 0), weights, inverse_bind)
+
+
+def retarget(character: Character, mocap: Skeleton, end_sites: Mapping[int, Array],
+             name_map: Mapping[str, str] | None = None,
+             relocate: Sequence[str] = DEFAULT_RELOCATE) -> RetargetedCharacter:
+    """Bind ``character`` to the mocap skeleton ``mocap`` (identity rest rotations, e.g. from a BVH file).
+
+    ``end_sites``: mocap End Site offsets per leaf joint (they give the direction of the last bones);
+    ``name_map``: mocap -> rig joint names where they differ (default :data:`CMU_TO_RIG`); ``relocate``: mocap
+    joints with a zero-length bone to their parent whose mesh keeps its parent's orientation; the joint itself is
+    moved instead so that its child bone gets the mocap's direction while the child stays where the mesh has it.
+    """
+    name_map = dict(CMU_TO_RIG if name_map is None else name_map)
+    if not np.allclose(mocap.rest_rotations, identity((mocap.n_joints,))):
+        raise ValueError("retargeting expects a mocap skeleton with identity rest rotations (as read from BVH)")
+    try:
+        rig_index = np.array([character.index(name_map.get(n, n)) for n in mocap.names])
+    except ValueError:
+        missing = [n for n in mocap.names if name_map.get(n, n) not in character.names]
+        raise CharacterError(f"the character has no joints for mocap joints {missing}") from None
+    rig_parents = character.parents[rig_index]
+    expected = np.where(mocap.parents >= 0, rig_index[np.maximum(mocap.parents, 0)], -1)
+    if not np.array_equal(rig_parents, expected):
+        raise CharacterError("the character's joint hierarchy differs from the mocap skeleton's")
+
+    n = mocap.n_joints
+    heads = character.heads[rig_index]
+    tails = character.tails[rig_index]
+    children = [mocap.children(j) for j in range(n)]
+    zero = np.linalg.norm(mocap.offsets, axis=1) < 1e-9
+    q_bind = identity((n,))  # mocap rest frame -> A-pose frame, per joint
+    p_bind = heads.copy()
+    offsets = np.zeros((n, 3))
+    for j in range(n):  # once per skeleton
+        p = mocap.parents[j]
+        q_parent = q_bind[p] if p >= 0 else identity()
+        # The bone that orients this joint's segment: its (single) child with a mocap direction, or its End Site.
+        defining = [c for c in children[j] if not zero[c]]
+        if defining:
+            c = max(defining, key=lambda c: np.linalg.norm(mocap.offsets[c]))
+            mocap_dir, rig_vec = mocap.offsets[c], heads[c] - heads[j]
+        elif j in end_sites and np.linalg.norm(end_sites[j]) > 1e-9:
+            mocap_dir, rig_vec = np.asarray(end_sites[j], np.float64), tails[j] - heads[j]
+        else:
+            mocap_dir = rig_vec = None
+        if mocap.names[j] in relocate:
+            if not (zero[j] and defining and p >= 0):
+                raise ValueError(f"cannot relocate joint {mocap.names[j]!r}: it needs a zero-length bone to its "
+                                 f"parent and a child bone")
+            q_bind[j] = q_parent
+            direction = rotate(q_parent, mocap_dir / np.linalg.norm(mocap_dir))
+            p_bind[j] = heads[c] - np.linalg.norm(rig_vec) * direction
+        elif mocap_dir is not None:
+            q_bind[j] = quat_mul(_arc(rotate(q_parent, mocap_dir), rig_vec), q_parent)
+        else:
+            q_bind[j] = q_parent
+    for j in range(1, n):
+        p = mocap.parents[j]
+        if zero[j]:
+            offsets[j] = rotate(quat_conj(q_bind[p]), p_bind[j] - p_bind[p])
+        else:
+            length = np.linalg.norm(heads[j] - heads[p])
+            offsets[j] = mocap.offsets[j] / np.linalg.norm(mocap.offsets[j]) * length
+    skeleton = Skeleton(mocap.names, mocap.parents, offsets)
+
+    mesh = bind_mesh(character, mocap.names, q_bind, p_bind, name_map)
+
+    leg = ("LeftUpLeg", "LeftLeg", "LeftFoot", "RightUpLeg", "RightLeg", "RightFoot")
+    try:
+        chain = [mocap.index(name) for name in leg]
+    except KeyError as exc:
+        raise CharacterError(f"cannot scale the root: {exc}") from None
+    mocap_leg = sum(np.linalg.norm(mocap.offsets[j]) for k, j in enumerate(chain) if k % 3)
+    character_leg = sum(np.linalg.norm(offsets[j]) for k, j in enumerate(chain) if k % 3)
+    contact = p_bind[:, 1] - character.sole_height
+    return RetargetedCharacter(skeleton, mesh, character.faces, q_bind, p_bind, character_leg / mocap_leg, contact)

@@ -1,0 +1,118 @@
+"""Left/right mirroring of poses.
+
+A mirrored pose is the reflection of the original through a plane (for a humanoid: its sagittal plane).  The
+reflection ``M = I - 2 n n^T`` (unit normal ``n``) maps a rotation ``R`` to ``M R M``; for a quaternion
+``(w, v)`` that is ``(w, -M v)`` — with ``n = x`` it keeps the x component and negates y and z ("negate two of
+the three axes").  Left and right joints then swap their values; joints without a partner (hips, spine, neck)
+keep their own, mirrored.
+
+Local rotations are only comparable across left and right after the **bind (rest) pose is removed**: each
+local rotation ``L_j`` is first expressed as the world-aligned rotation ``A_j = G0_p L_j G0_j^-1`` (``G0`` the
+global rest rotations, ``p`` the parent), which is the identity at rest whatever the rig's joint frames are;
+``A`` is mirrored and swapped, then the rest pose is put back.  Skipping that step on a rig whose joint frames
+are not world-aligned turns limbs around (the thesis saw the model turn by 180 degrees).  For BVH skeletons,
+whose rest rotations are the identity, ``A = L``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..math.clip import Pose
+from ..math.quat import identity, quat_conj, quat_mul
+from ..math.skeleton import Skeleton
+from .rigmap import partner_name, split_side
+
+Array = NDArray[np.float64]
+
+def mirror_partners(names: Sequence[str], overrides: Mapping[str, str] | None = None) -> NDArray[np.intp]:
+    """Index of each joint's left/right partner (its own index for central joints), shape ``(J,)``.
+
+    Partners are found from the names as :func:`anim_core.rig.rigmap.split_side` reads them: the same name with the
+    other side marker (``LeftArm``/``RightArm``, ``mixamorig:LeftArm``, ``LHipJoint``/``RHipJoint``, ``lShin``/
+    ``rShin``, ``L_Hip``/``R_Hip``, ``hand.L``/``hand.R``, ``foot_l``/``foot_r``, ``ThighLeft``/``ThighRight``);
+    ``overrides`` maps names to partners explicitly (both directions are set) and wins over the names.  A name
+    with a word or separated side marker (``Left``, ``_L``, ``L_``) but no partner raises ``ValueError``; one with
+    only a glued letter (``LOD``) without a partner is central.
+    """
+    index = {n: i for i, n in enumerate(names)}
+    perm = np.arange(len(names), dtype=np.intp)
+    explicit: dict[str, str] = {}
+    for a, b in (overrides or {}).items():
+        for n in (a, b):
+            if n not in index:
+                raise ValueError(f"mirror override names unknown joint {n!r}")
+        explicit[a], explicit[b] = b, a
+    for i, name in enumerate(names):
+        if name in explicit:
+            perm[i] = index[explicit[name]]
+            continue
+        partner = partner_name(name)
+        if partner is None:
+            continue
+        if partner in index:
+            perm[i] = index[partner]
+        elif split_side(name).strong:
+            raise ValueError(f"joint {name!r} looks sided but has no partner {partner!r}; give the pair explicitly")
+    if not np.array_equal(perm[perm], np.arange(len(names))):
+        raise ValueError("mirror partners are not symmetric")
+    return perm
+
+
+@dataclass(frozen=True, eq=False)
+class Mirror:
+    """Mirrors poses of one skeleton through the plane ``dot(n, p) = offset`` (unit normal ``n``, world axes).
+
+    Everything that depends only on the skeleton (partners, rest rotations) is computed once here.
+    """
+
+    skeleton: Skeleton
+    normal: Array = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
+    offset: float = 0.0
+    overrides: Mapping[str, str] | None = None
+    partners: NDArray[np.intp] = field(init=False, repr=False)
+    _rest: Array = field(init=False, repr=False)
+    _rest_parent: Array = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        n = np.asarray(self.normal, dtype=np.float64)
+        if n.shape != (3,) or not np.linalg.norm(n) > 0:
+            raise ValueError(f"mirror plane normal must be a non-zero 3-vector, got {self.normal!r}")
+        rest, _ = self.skeleton.rest_global()
+        parents = self.skeleton.parents
+        rest_parent = np.where((parents >= 0)[:, None], rest[np.maximum(parents, 0)], identity((len(parents),)))
+        for name, value in (("normal", n / np.linalg.norm(n)),
+                            ("partners", mirror_partners(self.skeleton.names, self.overrides)),
+                            ("_rest", rest), ("_rest_parent", rest_parent)):
+            object.__setattr__(self, name, value)
+
+    def with_offset(self, offset: float) -> Mirror:
+        """The same mirror through a parallel plane ``dot(n, p) = offset``."""
+        return Mirror(self.skeleton, self.normal, offset, self.overrides)
+
+    def reflect_rotations(self, q: ArrayLike) -> Array:
+        """``M R M`` for quaternions ``(..., 4)``: ``(w, v) -> (w, -v + 2 (v . n) n)``."""
+        q = np.asarray(q, dtype=np.float64)
+        v = q[..., 1:]
+        vn = np.sum(v * self.normal, axis=-1, keepdims=True)
+        return np.concatenate([q[..., :1], -v + 2.0 * vn * self.normal], axis=-1)
+
+    def reflect_points(self, p: ArrayLike) -> Array:
+        """Reflect points ``(..., 3)`` through the plane."""
+        p = np.asarray(p, dtype=np.float64)
+        d = np.sum(p * self.normal, axis=-1, keepdims=True) - self.offset
+        return p - 2.0 * d * self.normal
+
+    def __call__(self, pose: Pose) -> Pose:
+        """Mirror a batch of poses: rotations ``(..., J, 4)``, root translation ``(..., 3)``."""
+        rot = np.asarray(pose.rotations, dtype=np.float64)
+        aligned = quat_mul(quat_mul(self._rest_parent, rot), quat_conj(self._rest))
+        swapped = self.reflect_rotations(aligned)[..., self.partners, :]
+        local = quat_mul(quat_mul(quat_conj(self._rest_parent), swapped), self._rest)
+        root0 = self.skeleton.offsets[0]
+        root = self.reflect_points(np.asarray(pose.root_translation, dtype=np.float64) + root0) - root0
+        return Pose(local, root)

@@ -1,0 +1,663 @@
+"""Mapping any common humanoid skeleton onto the CMU 31-joint skeleton the character is rigged for.
+
+Conventions: the **canonical skeleton** is the CMU one (:data:`CANONICAL_NAMES`, :data:`CANONICAL_PARENTS`), Y up,
+the character facing +Z with its left at +X, lengths in the source's units (``metres_per_unit`` says what they
+are).  Every other part of anim_core that takes a BVH (clips, retargeting, foot contacts) takes it in that form, so
+a source from another rig is first brought into it with :func:`normalize_bvh`.
+
+Names are read as *side* + *stem* (:func:`split_side`): prefixes of Mixamo (``mixamorig:``, ``mixamorig_``,
+``Armature_mixamorig``), Blender's ``DEF-``, 3ds Max's ``Bip01 `` and any ``namespace:``/``Armature|`` are dropped,
+then a side is recognised as a word
+(``Left``/``Right`` before or after the stem, any case), ``L_``/``R_``/``L `` prefixes, ``.L``/``_L``/``_l`` suffixes
+(Blender, Unreal's ``thigh_l``), or a single letter glued to a capitalised stem (CMU's ``LHipJoint``, Poser/DAZ's
+``lThigh``).  Stems give candidate roles; the hierarchy and the rest-pose bone lengths decide: a limb is the path
+from the hips (legs) or the chest (arms: the joint where both arms' paths meet) to its end joint (``foot``/
+``ankle``, ``hand``/``wrist``); the knee and elbow are the joints of that path that split it into two long parts,
+the thigh and upper arm the joints that carry the length to them (so a ``Leg`` a few centimetres below the hip is
+a helper, the knee on a ``Shin`` is the knee, and a ``Shoulder`` under a separate ``Collar`` is the upper arm).
+Joints named ``twist``, ``roll``, ``helper``, ``corrective``, ``end``/``nub`` are never chosen for a limb.  Every
+decision is recorded with its reason in :attr:`RigMapping.decisions`.
+
+Joints of the source that map to nothing are reported (:attr:`RigMapping.unmapped`) and their rotations fold into
+the nearest mapped joint below them: exact for helpers that do not rotate off the bone (twist bones, fixed
+helpers), an approximation otherwise.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import tomllib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..io.bvh import Bvh, BvhError, bvh_from_poses
+from ..math.quat import identity, quat_conj, quat_from_axis_angle, quat_mul, rotate
+from ..math.skeleton import Skeleton
+
+Array = NDArray[np.float64]
+
+CANONICAL_NAMES: tuple[str, ...] = (
+    "Hips", "LHipJoint", "LeftUpLeg", "LeftLeg", "LeftFoot", "LeftToeBase",
+    "RHipJoint", "RightUpLeg", "RightLeg", "RightFoot", "RightToeBase",
+    "LowerBack", "Spine", "Spine1", "Neck", "Neck1", "Head",
+    "LeftShoulder", "LeftArm", "LeftForeArm", "LeftHand", "LeftFingerBase", "LeftHandIndex1", "LThumb",
+    "RightShoulder", "RightArm", "RightForeArm", "RightHand", "RightFingerBase", "RightHandIndex1", "RThumb",
+)
+_PARENT_NAMES = {
+    "LHipJoint": "Hips", "LeftUpLeg": "LHipJoint", "LeftLeg": "LeftUpLeg", "LeftFoot": "LeftLeg",
+    "LeftToeBase": "LeftFoot", "LowerBack": "Hips", "Spine": "LowerBack", "Spine1": "Spine", "Neck": "Spine1",
+    "Neck1": "Neck", "Head": "Neck1", "LeftShoulder": "Spine1", "LeftArm": "LeftShoulder",
+    "LeftForeArm": "LeftArm", "LeftHand": "LeftForeArm", "LeftFingerBase": "LeftHand",
+    "LeftHandIndex1": "LeftFingerBase", "LThumb": "LeftHand",
+}
+_PARENT_NAMES |= {k.replace("Left", "Right").replace("LH", "RH").replace("LT", "RT"):
+                  v.replace("Left", "Right").replace("LH", "RH") for k, v in list(_PARENT_NAMES.items())}
+CANONICAL_PARENTS: NDArray[np.intp] = np.array(
+    [-1] + [CANONICAL_NAMES.index(_PARENT_NAMES[n]) for n in CANONICAL_NAMES[1:]], dtype=np.intp)
+#: Parts without which the character cannot be driven, each with the canonical joints it needs.
+REQUIRED_PARTS: dict[str, tuple[str, ...]] = {
+    "hips": ("Hips",), "spine": ("Spine1",), "head": ("Head",),
+    "left leg": ("LeftUpLeg", "LeftLeg", "LeftFoot"), "right leg": ("RightUpLeg", "RightLeg", "RightFoot"),
+    "left arm": ("LeftArm", "LeftForeArm", "LeftHand"), "right arm": ("RightArm", "RightForeArm", "RightHand"),
+}
+#: Limits on what a source may hold, so hostile files fail fast instead of exhausting memory.
+MAX_JOINTS = 1000
+MAX_FRAMES = 1_000_000
+
+_PREFIX = re.compile(r"^(?:.*[:|])?(?:armature_?)?(?:mixamorig[_:]?)?(?:def[-_])?(?:bip0*1[ _])?", re.IGNORECASE)
+# (pattern, side group, strong): a strong marker without a partner is an error in mirroring, a weak one is central.
+_SIDES: tuple[tuple[re.Pattern[str], bool], ...] = (
+    (re.compile(r"^(?P<side>left|right)(?=[^a-z]|$)[ _.]?", re.IGNORECASE), True),
+    (re.compile(r"^(?P<side>left|right)", re.IGNORECASE), True),
+    (re.compile(r"[ _.]?(?P<side>left|right)$", re.IGNORECASE), True),
+    (re.compile(r"^(?P<side>[LRlr])[_. ]"), True),
+    (re.compile(r"[_.](?P<side>[LRlr])$"), True),
+    (re.compile(r"^(?P<side>[LRlr])(?=[A-Z])"), False),
+)
+_HELPER = re.compile(r"twist|roll|helper|corrective|adj|nub|end$|site|ik|pole|target", re.IGNORECASE)
+
+
+class RigMapError(ValueError):
+    """A skeleton that cannot be mapped onto the character (missing parts, inconsistent explicit mapping)."""
+
+
+@dataclass(frozen=True)
+class SideName:
+    """A joint name read as side (``"L"``, ``"R"`` or ``None``), stem (lowercase letters and digits) and a
+    ``pattern`` with ``{}`` where the side marker was (the partner's name is ``pattern`` with the other marker)."""
+
+    side: str | None
+    stem: str
+    pattern: str
+    marker: str
+    strong: bool
+
+
+def split_side(name: str) -> SideName:
+    """Read a joint name as side + stem; see the module docstring for the recognised conventions."""
+    prefix = _PREFIX.match(name).group(0)  # type: ignore[union-attr]
+    rest = name[len(prefix):] or name
+    if rest is name:
+        prefix = ""
+    for pattern, strong in _SIDES:
+        m = pattern.search(rest)
+        if m and m.group(0) != rest:
+            marker = m.group("side")
+            side = "L" if marker[0] in "Ll" else "R"
+            a, b = m.span("side")
+            stem = re.sub(r"[^a-z0-9]", "", (rest[:m.start()] + rest[m.end():]).lower())
+            return SideName(side, stem, prefix + rest[:a] + "{}" + rest[b:], marker, strong)
+    return SideName(None, re.sub(r"[^a-z0-9]", "", rest.lower()), name, "", False)
+
+
+def _partner_marker(marker: str) -> str:
+    table = {"l": "r", "r": "l", "left": "right", "right": "left"}
+    other = table[marker.lower()]
+    if marker.isupper() and len(marker) > 1:
+        return other.upper()
+    return other.capitalize() if marker[0].isupper() else other
+
+
+def partner_name(name: str) -> str | None:
+    """The name of the joint's left/right partner, ``None`` for a central joint."""
+    s = split_side(name)
+    return None if s.side is None else s.pattern.replace("{}", _partner_marker(s.marker), 1)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Roles from stems
+
+_ROLE_STEMS: dict[str, tuple[str, ...]] = {
+    "hipjoint": ("hipjoint", "pelvis", "pelvisside"),
+    "upleg": ("upleg", "thigh", "upperleg", "hip", "thighbend", "femur"),
+    "knee": ("leg", "calf", "shin", "knee", "lowerleg", "tibia"),
+    "foot": ("foot", "ankle"),
+    "toe": ("toebase", "toe", "toes", "ball", "foot", "toe0", "toe01"),
+    "collar": ("collar", "clavicle", "shoulder"),
+    "arm": ("arm", "upperarm", "shldr", "shoulder", "shldrbend", "humerus"),
+    "elbow": ("forearm", "lowerarm", "elbow", "forearmbend"),
+    "hand": ("hand", "wrist"),
+    "thumb": ("thumb", "thumb1", "thumb01", "handthumb"),
+    "fingerbase": ("fingerbase", "palm", "handpalm", "hand", "metacarpal"),  # looked for below the hand only
+    "index": ("handindex1", "index", "index1", "index01", "indexfinger1", "finger", "handindex", "findex",
+              "handfinger"),  # "handfinger": the MakeHuman cmu_mb rig's LeftHandFinger1
+}
+_CENTRAL_HIPS = ("hips", "hip", "pelvis")
+_CENTRAL_HEAD = ("head",)
+
+
+def _has_role(stem: str, role: str) -> bool:
+    base = re.sub(r"\d+$", "", stem)
+    return stem in _ROLE_STEMS[role] or base in _ROLE_STEMS[role]
+
+
+@dataclass(frozen=True)
+class Decision:
+    """One canonical joint: the source joint it reads (``None``: synthesised, zero length, no rotation) and why."""
+
+    canonical: str
+    source: str | None
+    reason: str
+
+
+@dataclass(frozen=True, eq=False)
+class RigMapping:
+    """Which source joint drives each canonical joint.
+
+    ``source_index``: ``(31,)`` source joint index per canonical joint, ``-1`` where none; ``decisions``: per
+    canonical joint, what was chosen and why; ``unmapped``: source joints that drive nothing; ``convention``: the
+    naming convention(s) recognised.
+    """
+
+    source_names: tuple[str, ...]
+    source_index: NDArray[np.intp]
+    decisions: tuple[Decision, ...]
+    unmapped: tuple[str, ...]
+    convention: str
+
+    def as_dict(self) -> dict[str, str]:
+        """``{canonical: source}`` for the mapped joints (the format of an explicit mapping file)."""
+        return {d.canonical: d.source for d in self.decisions if d.source is not None}
+
+
+CONVENTIONS: dict[str, re.Pattern[str]] = {
+    "Mixamo": re.compile(r"mixamorig", re.IGNORECASE),
+    "Unreal": re.compile(r"^(pelvis|thigh_[lr]|calf_[lr]|upperarm_[lr]|lowerarm_[lr]|clavicle_[lr]|spine_0\d)$"),
+    "Blender": re.compile(r"\.[LR]$"),
+    "Poser/DAZ": re.compile(r"^[lr](Thigh|Shin|Collar|Shldr|ForeArm|Foot|Hand|Toe)"),
+    "SMPL": re.compile(r"^([LR]_(Hip|Knee|Ankle|Collar|Shoulder|Elbow|Wrist)|Pelvis|Spine[123])$"),
+    "CMU": re.compile(r"^(LHipJoint|RHipJoint|LowerBack|Neck1|LeftFingerBase|LThumb|RThumb)$"),
+    "Left/Right words": re.compile(r"(^|[^a-z])(Left|Right)|(Left|Right)$", re.IGNORECASE),
+    "L_/R_ and _L/_R": re.compile(r"^[LRlr]_|_[LRlr]$"),
+}
+
+
+def detect_convention(names: Sequence[str]) -> str:
+    """The naming conventions the names follow, most specific first (``"Mixamo + Poser/DAZ"`` for a mix)."""
+    found: list[str] = []
+    for label, pattern in CONVENTIONS.items():
+        hits = sum(bool(pattern.search(n)) for n in names)
+        if hits >= 2 or (label == "Mixamo" and hits):
+            found.append(label)
+    specific = [f for f in found if f not in ("Left/Right words", "L_/R_ and _L/_R")]
+    return " + ".join(specific or found) or "unknown"
+
+
+def _chain(parents: NDArray[np.intp], j: int, stop: int) -> list[int]:
+    """Joints from ``stop`` (exclusive) down to ``j`` (inclusive); empty if ``stop`` is not an ancestor."""
+    out = []
+    while j != stop:
+        if j < 0:
+            return []
+        out.append(j)
+        j = int(parents[j])
+    return out[::-1]
+
+
+def _lca(parents: NDArray[np.intp], a: int, b: int) -> int:
+    ancestors = set()
+    while a >= 0:
+        ancestors.add(a)
+        a = int(parents[a])
+    while b not in ancestors:
+        b = int(parents[b])
+    return b
+
+
+def _straight(pos: Array, path: list[int], a: int, b: int, tolerance: float = 0.05) -> bool:
+    """Do the joints of ``path`` between positions ``a`` and ``b`` lie on the segment ``a``..``b``?"""
+    seg = pos[b] - pos[a]
+    length = np.linalg.norm(seg)
+    if length < 1e-12:
+        return False
+    i, k = path.index(a), path.index(b)
+    for j in path[i + 1:k]:
+        v = pos[j] - pos[a]
+        t = np.clip(v @ seg / length**2, 0.0, 1.0)
+        if np.linalg.norm(v - t * seg) > tolerance * length:
+            return False
+    return True
+
+
+class _Mapper:
+    def __init__(self, names: Sequence[str], parents: NDArray[np.intp], rest_positions: Array) -> None:
+        self.names = tuple(names)
+        self.parents = parents
+        self.pos = rest_positions
+        self.sides = [split_side(n) for n in names]
+        self.helper = [bool(_HELPER.search(s.stem)) for s in self.sides]
+        depth = np.zeros(len(names), dtype=np.intp)
+        for j in range(1, len(names)):
+            depth[j] = depth[parents[j]] + 1
+        self.depth = depth
+        self.map: dict[str, int] = {}
+        self.why: dict[str, str] = {}
+
+    def set(self, canonical: str, j: int | None, reason: str) -> None:
+        if j is not None and j >= 0:
+            self.map[canonical] = j
+            self.why[canonical] = reason
+
+    def named(self, role: str, side: str | None, among: Sequence[int] | None = None) -> list[int]:
+        joints = range(len(self.names)) if among is None else among
+        return [j for j in joints if self.sides[j].side == side and not self.helper[j]
+                and _has_role(self.sides[j].stem, role)]
+
+    def top(self, joints: list[int]) -> int | None:
+        return min(joints, key=lambda j: (self.depth[j], j)) if joints else None
+
+    def dist(self, a: int, b: int) -> float:
+        return float(np.linalg.norm(self.pos[a] - self.pos[b]))
+
+    def limb(self, side: str, base: int, end: int, prefix: str, kinds: tuple[str, str, str]) -> None:
+        """Map a leg (``kinds`` = upleg, knee, hipjoint) or an arm (arm, elbow, collar) from ``base`` to ``end``."""
+        upper_role, middle_role = kinds[:2]
+        canon = {"upleg": ("UpLeg", "Leg", "HipJoint"), "arm": ("Arm", "ForeArm", "Shoulder")}[upper_role]
+        path = _chain(self.parents, end, base)[:-1]  # joints between base and end
+        ok = [j for j in path if not self.helper[j]]
+        if not ok:
+            return
+        by_name = self.named(middle_role, side, ok)
+        candidates = by_name or ok
+
+        # The middle joint (knee, elbow) splits the limb into two long parts.
+        def split(j: int) -> float:
+            return min(self.dist(base, j), self.dist(j, end))
+        middle = max(candidates, key=split)
+        how = "named " + repr(self.names[middle]) if by_name else "no joint named like it"
+        self.set(prefix + canon[1], middle, f"{how}; of the joints between {self.names[base]!r} and "
+                                           f"{self.names[end]!r} it splits the limb into the two longest parts "
+                                           f"({split(middle):.3g} units each at least)")
+        before = [j for j in ok if path.index(j) < path.index(middle)]
+        if not before:
+            return
+        lower = self.dist(middle, end)
+        girdles = self.named("collar" if upper_role == "arm" else "hipjoint", side, before)
+        if upper_role == "arm":
+            # "shoulder" names the collar unless a collar/clavicle precedes it; then it is the upper arm.
+            explicit = [j for j in girdles if self.sides[j].stem.rstrip("0123456789") in ("collar", "clavicle")]
+            named_upper = [j for j in self.named("arm", side, before)
+                           if not (self.sides[j].stem.startswith("shoulder") and not explicit
+                                   and any(k != j for k in self.named("arm", side, before)))]
+            named_upper = [j for j in named_upper if not explicit or path.index(j) > path.index(explicit[-1])]
+        else:
+            named_upper = [j for j in self.named("upleg", side, before) if j not in girdles]
+
+        def carries(j: int) -> bool:
+            ratio = self.dist(j, middle) / max(lower, 1e-12)
+            return 0.55 <= ratio <= 2.0 and _straight(self.pos, path, j, middle)
+        valid_named = [j for j in named_upper if carries(j)]
+        if valid_named:
+            upper = valid_named[0]
+            reason = (f"named {self.names[upper]!r}; carries the length to {self.names[middle]!r} "
+                      f"({self.dist(upper, middle):.3g} vs {lower:.3g} below)")
+        else:
+            valid = [j for j in before if carries(j)]
+            if not valid:
+                upper = before[-1]
+                reason = "the joint just above the middle joint (no joint carries a plausible length)"
+            else:
+                upper = valid[0]
+                reason = (f"first joint from which the path to {self.names[middle]!r} is straight and as long as "
+                          f"the part below ({self.dist(upper, middle):.3g} vs {lower:.3g})"
+                          + (f"; named joints {[self.names[j] for j in named_upper]} do not" if named_upper else ""))
+        self.set(prefix + canon[0], upper, reason)
+        above = [j for j in path if path.index(j) < path.index(upper)]
+        girdle_name = (("L" if side == "L" else "R") + "HipJoint") if upper_role == "upleg" else prefix + "Shoulder"
+        if above:
+            self.set(girdle_name, above[-1], f"the joint above {self.names[upper]!r} on the path from "
+                                             f"{self.names[base]!r} (carries the "
+                                             f"{'pelvis' if upper_role == 'upleg' else 'collar'} bone)")
+
+    def run(self) -> None:
+        sides = {"L": "Left", "R": "Right"}
+        hips_named = [j for j in range(len(self.names)) if self.sides[j].side is None
+                      and self.sides[j].stem in _CENTRAL_HIPS]
+        feet = {s: self.top(self.named("foot", s)) for s in sides}
+        hands = {s: self.top(self.named("hand", s)) for s in sides}
+        if feet["L"] is not None and feet["R"] is not None:
+            lca = _lca(self.parents, feet["L"], feet["R"])
+            hips = self.top([j for j in hips_named if j == lca or _chain(self.parents, lca, j)])
+            if hips is None:
+                hips = lca
+                self.set("Hips", hips, "where the paths to both feet meet")
+            else:
+                self.set("Hips", hips, f"named {self.names[hips]!r}, above both feet")
+        elif hips_named:
+            hips = self.top(hips_named)
+            self.set("Hips", hips, f"named {self.names[hips]!r}")
+        else:
+            return
+        for s, word in sides.items():
+            foot = feet[s]
+            if foot is not None and _chain(self.parents, foot, hips):
+                self.set(word + "Foot", foot, f"named {self.names[foot]!r} (the highest {word.lower()} foot/ankle)")
+                self.limb(s, hips, foot, word, ("upleg", "knee", "hipjoint"))
+                toes = [c for c in range(foot + 1, len(self.names)) if self.parents[c] == foot and not self.helper[c]]
+                named = self.named("toe", s, toes)
+                toe = (named or toes or [None])[0]
+                if toe is not None:
+                    self.set(word + "ToeBase", toe, f"{'named ' if named else ''}{self.names[toe]!r}, "
+                                                    f"child of the foot")
+        present = [h for h in hands.values() if h is not None]
+        if not present:
+            return
+        if len(present) == 2:
+            chest = _lca(self.parents, *present)
+        else:  # one arm: the chest is the first branching joint above its hand
+            chest = int(self.parents[present[0]])
+            while chest > 0 and len([c for c in range(len(self.names)) if self.parents[c] == chest]) < 2:
+                chest = int(self.parents[chest])
+        if chest != hips and _chain(self.parents, chest, hips):
+            self.set("Spine1", chest, "where the paths to both hands meet (the chest)")
+            spine = [j for j in _chain(self.parents, chest, hips)[:-1]]
+            if len(spine) >= 2:
+                self.set("LowerBack", spine[0], "first spine joint above the hips")
+            if spine:
+                self.set("Spine", spine[-1], "last spine joint below the chest"
+                         + (f"; {[self.names[j] for j in spine[1:-1]]} fold into it" if len(spine) > 2 else ""))
+        else:
+            chest = hips
+        head = self.top([j for j in range(len(self.names)) if self.sides[j].side is None and not self.helper[j]
+                         and self.sides[j].stem in _CENTRAL_HEAD and _chain(self.parents, j, chest)])
+        if head is not None:
+            self.set("Head", head, f"named {self.names[head]!r}, above the chest")
+            neck = _chain(self.parents, head, chest)[:-1]
+            if len(neck) >= 2:
+                self.set("Neck", neck[0], "first joint above the chest towards the head")
+            if neck:
+                self.set("Neck1", neck[-1], "joint below the head")
+        for s, word in sides.items():
+            hand = hands[s]
+            if hand is None or not _chain(self.parents, hand, chest):
+                continue
+            self.set(word + "Hand", hand, f"named {self.names[hand]!r} (the highest {word.lower()} hand/wrist)")
+            self.limb(s, chest, hand, word, ("arm", "elbow", "collar"))
+            below = [c for c in range(hand + 1, len(self.names)) if _chain(self.parents, c, hand)]
+            thumb = self.top(self.named("thumb", s, below))
+            base = self.top(self.named("fingerbase", s, below))
+            self.set(word + "FingerBase", base, "named finger base under the hand")
+            if base is not None:
+                below = [c for c in below if _chain(self.parents, c, base)]
+            index = self.top(self.named("index", s, below))
+            self.set(("L" if s == "L" else "R") + "Thumb", thumb, "first thumb joint under the hand")
+            if index is not None:
+                self.set(word + "HandIndex1", index, "first index/finger joint under the hand")
+
+
+def map_skeleton(skeleton: Skeleton, explicit: Mapping[str, str] | None = None) -> RigMapping:
+    """Map ``skeleton``'s joints onto the canonical (CMU) joints; ``explicit`` ``{canonical: source}`` wins.
+
+    Raises :class:`RigMapError` naming the missing parts if hips, spine, head, legs or arms cannot be found, and
+    if an explicit entry names an unknown joint or contradicts the hierarchy.
+    """
+    names = skeleton.names
+    if skeleton.n_joints > MAX_JOINTS:
+        raise RigMapError(f"the skeleton has {skeleton.n_joints} joints; at most {MAX_JOINTS} are supported")
+    _, rest_pos = skeleton.rest_global()
+    mapper = _Mapper(names, skeleton.parents, rest_pos)
+    mapper.run()
+    for canonical, source in (explicit or {}).items():
+        if canonical not in CANONICAL_NAMES:
+            raise RigMapError(f"explicit mapping names {canonical!r}, which is not a character joint; they are "
+                              f"{', '.join(CANONICAL_NAMES)}")
+        if source in (None, ""):
+            mapper.map.pop(canonical, None)
+            mapper.why[canonical] = "left out by the explicit mapping"
+            continue
+        if source not in names:
+            raise RigMapError(f"explicit mapping maps {canonical!r} to {source!r}, which is not a joint of the "
+                              f"skeleton")
+        j = names.index(source)
+        for other in [c for c, k in mapper.map.items() if k == j and c != canonical]:
+            del mapper.map[other]
+            mapper.why[other] = f"its automatic choice {source!r} was given to {canonical!r} by the explicit mapping"
+        mapper.set(canonical, j, "explicit mapping")
+    # The same source joint may drive only one canonical joint (the last writer above wins per canonical joint).
+    used: dict[int, str] = {}
+    for canonical in CANONICAL_NAMES:
+        j = mapper.map.get(canonical)
+        if j is not None and j in used:
+            raise RigMapError(f"source joint {names[j]!r} is mapped to both {used[j]!r} and {canonical!r}")
+        if j is not None:
+            used[j] = canonical
+    # Hierarchy: each mapped joint must lie below the source joint of its nearest mapped canonical ancestor.
+    for c, canonical in enumerate(CANONICAL_NAMES):
+        j = mapper.map.get(canonical)
+        p = int(CANONICAL_PARENTS[c])
+        while p >= 0 and CANONICAL_NAMES[p] not in mapper.map:
+            p = int(CANONICAL_PARENTS[p])
+        if j is not None and p >= 0 and not _chain(skeleton.parents, j, mapper.map[CANONICAL_NAMES[p]]):
+            raise RigMapError(f"{canonical!r} is mapped to {names[j]!r}, which is not below "
+                              f"{names[mapper.map[CANONICAL_NAMES[p]]]!r} (mapped to {CANONICAL_NAMES[p]!r})")
+    missing = [part for part, joints in REQUIRED_PARTS.items() if any(n not in mapper.map for n in joints)]
+    if missing:
+        detail = "; ".join(f"{part}: {', '.join(n for n in REQUIRED_PARTS[part] if n not in mapper.map)}"
+                           for part in missing)
+        raise RigMapError(f"cannot find the {', '.join(missing)} of the skeleton (missing {detail}); give them in "
+                          f"an explicit mapping (character joint = source joint)")
+    # The bones that carry the limbs' and the trunk's lengths must have a length.
+    short = [f"{a}-{b} ({names[mapper.map[a]]!r}-{names[mapper.map[b]]!r})"
+             for a, b in (("LeftUpLeg", "LeftLeg"), ("LeftLeg", "LeftFoot"), ("RightUpLeg", "RightLeg"),
+                          ("RightLeg", "RightFoot"), ("LeftArm", "LeftForeArm"), ("LeftForeArm", "LeftHand"),
+                          ("RightArm", "RightForeArm"), ("RightForeArm", "RightHand"), ("Hips", "Head"))
+             if mapper.dist(mapper.map[a], mapper.map[b]) < 1e-9]
+    if short:
+        raise RigMapError(f"zero-length bones where the character needs a length: {', '.join(short)}")
+    index = np.array([mapper.map.get(n, -1) for n in CANONICAL_NAMES], dtype=np.intp)
+    decisions = tuple(Decision(n, names[mapper.map[n]] if n in mapper.map else None,
+                               mapper.why.get(n, "not found: synthesised with zero length and no rotation"))
+                      for n in CANONICAL_NAMES)
+    unmapped = tuple(n for j, n in enumerate(names) if j not in used)
+    return RigMapping(names, index, decisions, unmapped, detect_convention(names))
+
+
+def read_mapping_file(path: str | Path) -> dict[str, str]:
+    """An explicit mapping ``{character joint: source joint}`` from a ``.toml`` (table ``[mapping]`` or top level)
+    or ``.json`` file."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+        data = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise RigMapError(f"{path}: cannot read the mapping: {exc}") from None
+    data = data.get("mapping", data) if isinstance(data, dict) else data
+    if not isinstance(data, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in data.items()):
+        raise RigMapError(f"{path}: a mapping is a table of character joint = source joint strings")
+    return dict(data)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Units and up axis
+
+#: Metres per unit and the plausible range of a standing humanoid's rest-pose height (joints only) in that unit.
+UNITS: dict[str, tuple[float, tuple[float, float]]] = {
+    "m": (1.0, (0.9, 2.4)),
+    "inch": (0.0254, (36.0, 89.9)),
+    "cm": (0.01, (90.0, 240.0)),
+    "mm": (0.001, (900.0, 2400.0)),
+    # CMU's BVH conversions: 1 unit = (1 / 0.45) inches.
+    "cmu": (0.0254 / 0.45, (15.0, 35.0)),
+}
+
+
+def detect_up_axis(rest_positions: Array, head: int, hips: int) -> str:
+    """``"y"`` or ``"z"``: the axis along which the head stands above the hips (most)."""
+    d = rest_positions[head] - rest_positions[hips]
+    return "y" if abs(d[1]) >= abs(d[2]) else "z"
+
+
+def detect_units(height: float) -> str:
+    """The unit in which ``height`` (rest-pose joint extent along up) is a plausible human height."""
+    for unit, (_, (lo, hi)) in UNITS.items():
+        if lo <= height <= hi:
+            return unit
+    raise RigMapError(f"a rest-pose height of {height:.4g} units is not a human height in m, cm, mm, inches or CMU "
+                      f"units; give the units explicitly")
+
+
+def canonical_frame(rest_positions: Array, source_index: NDArray[np.intp], up_axis: str | None = None,
+                    units: str | None = None) -> tuple[Array, str, str, float]:
+    """The turn that brings a source skeleton into the canonical world (Y up, its left at +X), and its units.
+
+    ``rest_positions``: ``(J, 3)`` source joint positions at rest; ``source_index``: a :class:`RigMapping`'s
+    ``source_index``; ``up_axis``/``units`` override the detection.  Returns ``(world, up_axis, units, facing)``:
+    ``world`` the quaternion (w, x, y, z) to apply to source positions, ``facing`` the turn about up (radians).
+    """
+    idx = source_index
+    hips, head = idx[0], idx[CANONICAL_NAMES.index("Head")]
+    if up_axis is None:
+        up_axis = detect_up_axis(rest_positions, head, hips)
+    if up_axis not in ("y", "z"):
+        raise RigMapError(f"up axis must be 'y' or 'z', got {up_axis!r}")
+    # World change to Y up: Z up (x, y, z) -> (x, z, -y) is a -90 degree turn about x.
+    to_y = identity() if up_axis == "y" else quat_from_axis_angle(np.array([1.0, 0.0, 0.0]), -np.pi / 2)
+    p = rotate(to_y, rest_positions)
+    left = p[idx[CANONICAL_NAMES.index("LeftUpLeg")]] - p[idx[CANONICAL_NAMES.index("RightUpLeg")]]
+    # Rigs are authored facing along an axis: the turn is snapped to quarter turns so that a subject's slight
+    # asymmetry does not turn the motion.
+    facing = float(np.round(np.arctan2(left[2], left[0]) / (np.pi / 2)) * (np.pi / 2))
+    world = quat_mul(quat_from_axis_angle(np.array([0.0, 1.0, 0.0]), facing), to_y)
+    height = float(np.ptp(rotate(world, rest_positions)[:, 1]))
+    if units is None:
+        units = detect_units(height)
+    if units not in UNITS:
+        raise RigMapError(f"units must be one of {', '.join(UNITS)}, got {units!r}")
+    return world, up_axis, units, facing
+
+
+@dataclass(frozen=True, eq=False)
+class Normalized:
+    """A source motion brought into the canonical form: ``bvh`` (CMU joints and channels, Y up, facing +Z), the
+    ``mapping``, the detected or given ``units`` and ``up_axis``, ``metres_per_unit`` and ``facing_angle`` (radians
+    about up that turned the source's left to +X)."""
+
+    bvh: Bvh
+    mapping: RigMapping
+    units: str
+    up_axis: str
+    metres_per_unit: float
+    facing_angle: float
+    notes: tuple[str, ...] = field(default=())
+
+
+def normalize_motion(skeleton: Skeleton, rotations: Array, root_translation: Array, frame_time: float,
+                     end_sites: Mapping[int, Array], source: str, explicit: Mapping[str, str] | None = None,
+                     units: str | None = None, up_axis: str | None = None) -> Normalized:
+    """Bring a motion on any humanoid skeleton into the canonical form (see :class:`Normalized`).
+
+    ``skeleton``: source joints (any rest rotations); ``rotations``: ``(F, J, 4)`` local (w, x, y, z);
+    ``root_translation``: ``(F, 3)`` in source units; ``end_sites``: leaf offsets per joint index.  ``units`` (a
+    key of :data:`UNITS`) and ``up_axis`` (``"y"``/``"z"``) override the detection.  The canonical joints' global
+    rotations are the mapped source joints' global rotations with the source's rest pose removed (so each is the
+    identity at rest) and the world turned to Y up, left at +X; their rest offsets are the mapped joints' rest
+    positions.
+    """
+    rotations = np.asarray(rotations, dtype=np.float64)
+    n_frames = rotations.shape[0]
+    if n_frames > MAX_FRAMES:
+        raise RigMapError(f"{source}: {n_frames} frames; at most {MAX_FRAMES} are supported")
+    if n_frames == 0:
+        raise RigMapError(f"{source}: the motion has no frames")
+    if not (np.all(np.isfinite(rotations)) and np.all(np.isfinite(root_translation))):
+        raise RigMapError(f"{source}: the motion holds NaN or infinite values")
+    try:
+        mapping = map_skeleton(skeleton, explicit)
+    except RigMapError as exc:
+        raise RigMapError(f"{source}: {exc}") from None
+    idx = mapping.source_index
+    rest_rot, rest_pos = skeleton.rest_global()
+    world, up_axis, units, facing = canonical_frame(rest_pos, idx, up_axis, units)
+    p = rotate(world, rest_pos)
+    hips = idx[0]
+
+    g_rot, g_pos = skeleton.forward_kinematics(rotations, root_translation)
+    # Source global rotation with its rest removed, in the new world: W G G0^-1 W^-1.
+    aligned = quat_mul(quat_mul(world, quat_mul(g_rot, quat_conj(rest_rot))), quat_conj(world))
+    n = len(CANONICAL_NAMES)
+    c_rest = np.zeros((n, 3))
+    c_glob = np.empty((n_frames, n, 4))
+    for c in range(n):  # 31 canonical joints, vectorized over frames
+        parent = CANONICAL_PARENTS[c]
+        if idx[c] >= 0:
+            c_rest[c] = p[idx[c]]
+            c_glob[:, c] = aligned[:, idx[c]]
+        else:
+            c_rest[c] = c_rest[parent]
+            c_glob[:, c] = c_glob[:, parent]
+    offsets = c_rest.copy()
+    offsets[1:] -= c_rest[CANONICAL_PARENTS[1:]]
+    local = c_glob.copy()
+    local[:, 1:] = quat_mul(quat_conj(c_glob[:, CANONICAL_PARENTS[1:]]), c_glob[:, 1:])
+    root = rotate(world, g_pos[:, hips]) - c_rest[0]
+    ends: dict[int, Array] = {}
+    for c in range(n):
+        if c in CANONICAL_PARENTS:
+            continue
+        j = idx[c]
+        if j >= 0 and j in end_sites:
+            # The End Site offset is in the joint's frame; bring it to the world at rest, then to the new world.
+            ends[c] = rotate(world, rotate(rest_rot[j], np.asarray(end_sites[j], np.float64)))
+        elif j >= 0 and skeleton.children(j):
+            ends[c] = p[skeleton.children(j)[0]] - p[j]
+        else:
+            ends[c] = np.zeros(3)
+    bvh = bvh_from_poses(Skeleton(CANONICAL_NAMES, CANONICAL_PARENTS, offsets), local, root, frame_time, ends,
+                         source)
+    notes = []
+    if abs(facing) > 1e-9:
+        notes.append(f"turned {np.degrees(facing):.1f} degrees about up so the character's left is +X")
+    return Normalized(bvh, mapping, units, up_axis, UNITS[units][0], facing, tuple(notes))
+
+
+def normalize_bvh(bvh: Bvh, explicit: Mapping[str, str] | None = None, units: str | None = None,
+                  up_axis: str | None = None) -> Normalized:
+    """:func:`normalize_motion` of a BVH file (constant non-root position channels count as offsets)."""
+    if bvh.skeleton.n_joints > MAX_JOINTS:
+        raise RigMapError(f"{bvh.source}: {bvh.skeleton.n_joints} joints; at most {MAX_JOINTS} are supported")
+    if bvh.n_frames == 0:
+        raise RigMapError(f"{bvh.source}: the MOTION section has no frames ('Frames: 0')")
+    zero = [bvh.skeleton.names[j] for j in range(1, bvh.skeleton.n_joints)
+            if np.linalg.norm(bvh.skeleton.offsets[j]) < 1e-12 and not bvh.skeleton.children(j)
+            and np.linalg.norm(bvh.end_sites.get(j, np.zeros(3))) < 1e-12]
+    try:
+        rotations, root = bvh.pose_arrays()
+        skeleton = bvh.posed_skeleton()
+    except BvhError as exc:
+        raise RigMapError(str(exc)) from None
+    out = normalize_motion(skeleton, rotations, root, bvh.frame_time, bvh.end_sites, bvh.source, explicit, units,
+                           up_axis)
+    s = bvh.skeleton
+    if (s.names == CANONICAL_NAMES and np.array_equal(s.parents, CANONICAL_PARENTS) and out.up_axis == "y"
+            and out.facing_angle == 0 and np.array_equal(out.mapping.source_index, np.arange(len(CANONICAL_NAMES)))):
+        # Already canonical (a CMU file): the file itself, bit for bit; the computation would only add rounding.
+        out = Normalized(bvh, out.mapping, out.units, out.up_axis, out.metres_per_unit, out.facing_angle, out.notes)
+    if zero:
+        return Normalized(out.bvh, out.mapping, out.units, out.up_axis, out.metres_per_unit, out.facing_angle,
+                          (*out.notes, f"zero-length leaf bones ignored: {', '.join(zero)}"))
+    return out
