@@ -22,7 +22,9 @@ if TYPE_CHECKING:
     from distributed import Client
 
 CONNECT_TIMEOUT_S = 10.0
-WORKERS_TIMEOUT_S = 60.0  # how long a job waits for a cluster without workers to get one
+WORKERS_TIMEOUT_S = 60.0
+CLOSE_TIMEOUT_S = 30.0
+log = logging.getLogger(__name__)  # how long a job waits for a cluster without workers to get one
 
 
 class ClusterError(MediaError):
@@ -83,7 +85,15 @@ def dask_client(scheduler: str | None, workers: int | None = None) -> Iterator[C
         finally:
             client.close()
         return
-    with LocalCluster(n_workers=workers or machine_workers(), threads_per_worker=1, processes=True,
-                      dashboard_address=None, silence_logs=logging.WARNING) as cluster, \
-            Client(cluster, set_as_default=False) as client:
+    cluster = LocalCluster(n_workers=workers or machine_workers(), threads_per_worker=1, processes=True,
+                           dashboard_address=None, silence_logs=logging.ERROR)
+    client = Client(cluster, set_as_default=False)
+    try:
         yield client
+    finally:
+        # The job's files are stored by now: workers slow to stop (a loaded machine) must not fail it.
+        for part in (client, cluster):
+            try:
+                part.close(timeout=CLOSE_TIMEOUT_S)
+            except Exception as exc:  # logged, never raised over the job's own outcome
+                log.warning("closing the local Dask cluster: %s: %s", type(exc).__name__, exc)
