@@ -238,7 +238,7 @@ def prepare_study(settings: Settings, session_factory: object) -> None:
     (studies/thesis.toml) needs (what is missing), then create and open it."""
     from sqlalchemy import select
 
-    from server.stimuli import pipeline
+    from server.studies import pipeline
     from server.studies.models import Study
     from server.studies.service import create_study, open_study
     from server.studies.studyfile import thesis_study
@@ -273,8 +273,7 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
     from server.media.scene import RenderSettings
     from server.researchers.models import Researcher
     from server.researchers.service import normalize_email
-    from server.stimuli import pipeline
-    from server.studies import service
+    from server.studies import pipeline, service
     from server.studies.models import Study, StudyState
     from server.studies.router import summary
     from server.studies.studyfile import StudyFile, StudyFileError, load_study_file
@@ -341,7 +340,7 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                 study = service.set_state(session, service.get_study(session, args.slug), StudyState.closed)
                 print(f"study {study.slug!r} is {study.state}")
             elif command == "export-archive":
-                from server.stimuli.archive import export_archive
+                from server.studies.archive import export_archive
 
                 study = service.get_study(session, args.slug)
                 out = export_archive(study, settings.media_dir, args.out or Path(f"{study.slug}.animstudy.zip"))
@@ -349,7 +348,7 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                       f"({len(study.stimulus_set.content['pairs'])} pair videos) -> {out} "
                       f"({out.stat().st_size / 2**20:.1f} MiB)")
             elif command == "import-archive":
-                from server.stimuli.archive import import_archive
+                from server.studies.archive import import_archive
 
                 owner = None
                 if args.owner:
@@ -386,8 +385,8 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
 def gc(settings: Settings, dry_run: bool) -> int:
     """``animstudy gc``: delete the videos and posters that neither a study's stimulus set nor the render manifest
     uses (``--dry-run``: list them)."""
-    from server.stimuli.pipeline import render_manifest_dirs
     from server.stimuli.service import collect
+    from server.studies.pipeline import render_manifest_dirs
 
     with _study_session(settings) as session:  # type: ignore[attr-defined]
         found = collect(session, settings.media_dir, render_manifest_dirs(settings), dry_run=dry_run)

@@ -32,7 +32,7 @@ from sqlalchemy.orm import Session
 from anim_core.clips.record import BuiltClip
 from anim_core.methods.conditions import REFERENCE, Condition
 from server.clipset.config import DEFAULT_CONFIG, ClipSetConfig, inline_config, load_config
-from server.clipset.manifest import MANIFEST, ManifestError, read_clip_manifest
+from server.clipset.manifest import MANIFEST, ManifestError, merge_clip_set, read_clip_manifest
 from server.config import Settings
 from server.errors import Unprocessable
 from server.media.build import rendered_pairs, rendered_settings
@@ -129,8 +129,6 @@ def build(data_dir: Path, config: ClipSetConfig, clips_dir: Path, design: Design
     """Build the clips of ``design`` that the clip set in ``clips_dir`` lacks, from ``config``; returns how many
     clips were built.  An animation is built with every condition it already had plus the ones needed (the
     reference first: the others are made from it).  422 naming what ``config`` does not have."""
-    from server.uploads.job import merge_clips
-
     conditions = needed_conditions(design)
     by_id = {c.id: c for c in config.conditions}
     if unknown := [c for c in conditions if c not in by_id]:
@@ -156,7 +154,10 @@ def build(data_dir: Path, config: ClipSetConfig, clips_dir: Path, design: Design
         wanted[name] = tuple(c for c in config.conditions if c.id in keep or c.method == REFERENCE)
     built = build_animations(data_dir, config, wanted, progress, lambda k, name: progress(
         f"[{k + 1}/{len(todo)}] {name}: building {len(wanted[name])} clips"))
-    merge_clips(clips_dir, built)
+    try:
+        merge_clip_set(clips_dir, built)
+    except ManifestError as exc:
+        raise Unprocessable(str(exc)) from None
     progress(f"clips: {len(built)} built into the clip set")
     return len(built)
 
