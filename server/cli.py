@@ -231,7 +231,8 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies
         pairs = list(dict.fromkeys([*needed, *_pairs_in_use(settings)]))
         render_media(settings.data, clips_dir, out, settings.secret,
                      RenderSettings(width=width, height=height, shadows=shadows), pairs=pairs,
-                     workers=workers, every_clip=every_clip, progress=lambda m: print(m, flush=True))
+                     workers=workers, every_clip=every_clip, progress=lambda m: print(m, flush=True),
+                     scheduler=settings.dask_scheduler)
     except (AssetError, MediaError) as exc:
         return _fail(str(exc))
     except OSError as exc:
@@ -258,7 +259,7 @@ def prepare_study(settings: Settings, session_factory: object) -> None:
     (studies/thesis.toml) needs (what is missing), then create and open it."""
     from sqlalchemy import select
 
-    from server.stimuli import pipeline
+    from server.studies import pipeline
     from server.studies.models import Study
     from server.studies.service import create_study, open_study
     from server.studies.studyfile import thesis_study
@@ -293,8 +294,7 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
     from server.media.scene import RenderSettings
     from server.researchers.models import Researcher
     from server.researchers.service import normalize_email
-    from server.stimuli import pipeline
-    from server.studies import service
+    from server.studies import pipeline, service
     from server.studies.models import Study, StudyState
     from server.studies.studyfile import StudyFile, StudyFileError, load_study_file
 
@@ -314,8 +314,8 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                 lacking = [c for c in pipeline.needed_conditions(study_file.design) if c not in ids] + [
                     a for a in study_file.design.animations if a not in config.animations]
                 if lacking:
-                    return _fail(f"{args.file}: {', '.join(lacking)} not in its clip set {study_file.clips.set}")
-                checked = f"; its animations and conditions are in its clip set {study_file.clips.set}"
+                    return _fail(f"{args.file}: {', '.join(lacking)} not in its clip set")
+                checked = "; its animations and conditions are in its own clip set ([clips])"
             elif (settings.clips_dir / MANIFEST).is_file():
                 service.check_known(study_file.design, service.clip_set_index(settings.clips_dir))
                 checked = f"; its animations and conditions are in the clip set {settings.clips_dir}"
@@ -362,7 +362,7 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                 study = service.set_state(session, service.get_study(session, args.slug), StudyState.closed)
                 print(f"study {study.slug!r} is {study.state}")
             elif command == "export-archive":
-                from server.stimuli.archive import export_archive
+                from server.studies.archive import export_archive
 
                 study = service.get_study(session, args.slug)
                 out = export_archive(study, settings.media_dir, args.out or Path(f"{study.slug}.animstudy.zip"))
@@ -370,7 +370,7 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                       f"({len(study.stimulus_set.content['pairs'])} pair videos) -> {out} "
                       f"({out.stat().st_size / 2**20:.1f} MiB)")
             elif command == "import-archive":
-                from server.stimuli.archive import import_archive
+                from server.studies.archive import import_archive
 
                 owner = None
                 if args.owner:
@@ -409,8 +409,8 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
 def gc(settings: Settings, dry_run: bool) -> int:
     """``animstudy gc``: delete the videos and posters that neither a study's stimulus set nor the render manifest
     uses (``--dry-run``: list them)."""
-    from server.stimuli.pipeline import render_manifest_dirs
     from server.stimuli.service import collect
+    from server.studies.pipeline import render_manifest_dirs
 
     with _study_session(settings) as session:  # type: ignore[attr-defined]
         found = collect(session, settings.media_dir, render_manifest_dirs(settings), dry_run=dry_run)
@@ -532,6 +532,50 @@ def researcher_create(settings: Settings, email: str, password: str, admin: bool
     except ServiceError as exc:
         return _fail(exc.detail)
     print(f"researcher {researcher.email} created{' (admin: sees and manages every study)' if admin else ''}")
+    return 0
+
+
+def bench_render(settings: Settings, width: int, height: int, animations: list[str] | None) -> int:
+    """Frames per second of rendering the default study's videos on a real Dask cluster (a local scheduler and
+    worker processes) of 1 and then 2 workers, the same work each time, and the ratio."""
+    import tempfile
+
+    from server.assets import AssetError
+    from server.clipset.build import build_clip_set
+    from server.clipset.manifest import write_clip_set
+    from server.media.build import MediaError, plan, run_on_dask
+    from server.media.scene import RenderSettings
+    from server.studies.service import clip_set_index, required_pairs
+    from server.studies.studyfile import thesis_study
+
+    render_settings = RenderSettings(width=width, height=height)
+    with tempfile.TemporaryDirectory(prefix="animstudy-bench-render-") as tmp:
+        clips_dir = Path(tmp) / "clips"
+        try:
+            if (settings.clips_dir / "manifest.json").is_file():
+                clips_dir = settings.clips_dir
+            else:
+                print("building the clip set", flush=True)
+                write_clip_set(build_clip_set(settings.data), clips_dir)
+            pairs = required_pairs(thesis_study().design, clip_set_index(clips_dir))
+            fps = {}
+            for workers in (1, 2):
+                out = Path(tmp) / f"media-{workers}"
+                out.mkdir()
+                p = plan(settings.data, clips_dir, out, render_settings, settings.secret, pairs, animations)
+                frames = sum(j.n_frames for j in p.jobs)
+                print(f"{workers} worker(s): {sum(len(j.outputs) for j in p.jobs)} videos, {frames} frames, "
+                      f"{len(p.jobs)} tasks at {width}x{height}", flush=True)
+                started = time.perf_counter()
+                run_on_dask(p, out, None, workers, lambda m: print(m, flush=True))
+                seconds = time.perf_counter() - started
+                fps[workers] = frames / seconds
+                print(f"{workers} worker(s): {seconds:.1f} s, {fps[workers]:.1f} frames/s (cluster start "
+                      "included)", flush=True)
+        except (AssetError, MediaError) as exc:
+            return _fail(str(exc))
+    print(f"render: 1 worker {fps[1]:.1f} frames/s, 2 workers {fps[2]:.1f} frames/s, ratio {fps[2] / fps[1]:.2f} "
+          f"(on {os.cpu_count()} cores; load average {os.getloadavg()[0]:.1f})", flush=True)
     return 0
 
 
@@ -792,7 +836,15 @@ def build_parser() -> argparse.ArgumentParser:
     se.add_argument("--out", type=Path, default=None, help="file to write (default: standard output)")
     gcp = sub.add_parser("gc", help="delete the videos no study's stimulus set (and not the render manifest) uses")
     gcp.add_argument("--dry-run", action="store_true", help="list them, delete nothing")
-    bn = sub.add_parser("bench", help="time pose evaluation of crowds, keyframe against every other condition")
+    bn = sub.add_parser("bench", help="time pose evaluation of crowds, keyframe against every other condition "
+                                      "(`bench render`: render frames per second on 1 and 2 Dask workers)")
+    bn.add_argument("what", nargs="?", choices=["crowd", "render"], default="crowd",
+                    help="crowd (default): pose evaluation; render: the default study's videos on a local Dask "
+                         "cluster of 1 and then 2 workers")
+    bn.add_argument("--width", type=int, default=160, help="bench render: video width (default: 160)")
+    bn.add_argument("--height", type=int, default=120, help="bench render: video height (default: 120)")
+    bn.add_argument("--animations", type=lambda v: [a for a in v.split(",") if a], default=None,
+                    help="bench render: only these animations, comma-separated (default: all)")
     bn.add_argument("--json", type=Path, default=None, help="results file (default: <var dir>/benchmark/results.json)")
     bn.add_argument("--config", type=Path, default=None,
                     help="clip-set TOML whose clips to time (default: the built-in one), e.g. "
@@ -814,6 +866,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
 
         return loadtest.main(args)
     settings = Settings.from_env()
+    if args.command == "bench" and args.what == "render":
+        return bench_render(settings, max(16, args.width), max(16, args.height), args.animations)
     if args.command == "bench":
         from anim_core.bench.suite import DEFAULT_CHARACTERS, VARIANTS
 

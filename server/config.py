@@ -22,13 +22,16 @@ class Settings(BaseSettings):
     videos; default a random key kept in ``<var>/secret.key``.  ``ANIMSTUDY_ALLOWED_HOSTS``: the host names the
     service answers to, comma-separated (``*.example.org`` matches subdomains); default ``*``, any; other
     ``Host`` headers get 400.  ``ANIMSTUDY_SESSIONS_PER_MINUTE``: new participant sessions allowed per client
-    address and minute (per worker process); default 60, 0 for no limit.  ``ANIMSTUDY_UPLOAD_MAX_BYTES``: the
+    address and minute (counted in the database: once across every process and instance); default 60, 0 for no
+    limit.  ``ANIMSTUDY_UPLOAD_MAX_BYTES``: the
     largest motion file a researcher may upload into a study's assets (``POST /api/v1/studies/{slug}/assets``);
     default 50 MB (50 * 2**20 bytes).  ``ANIMSTUDY_TRUSTED_PROXIES``: addresses of the reverse proxies whose
     ``X-Forwarded-For`` names the client (comma-separated IP addresses or networks, e.g. ``127.0.0.1,10.0.0.0/8``);
     default none: the header is ignored, and the rate limits count the connecting address.
     ``ANIMSTUDY_BUILD_MEMORY_MB``: the address space a build job's process may take (``RLIMIT_AS``), beyond which
-    the build fails with a MemoryError instead of taking the machine's memory; default 8192, 0 for no limit."""
+    the build fails with a MemoryError instead of taking the machine's memory; default 8192, 0 for no limit.
+    ``ANIMSTUDY_DASK_SCHEDULER``: the Dask scheduler that renders run on (e.g. ``tcp://host:8786``, see
+    docs/cluster.md); default none: a local Dask cluster started per job."""
 
     model_config = SettingsConfigDict(env_prefix="ANIMSTUDY_", extra="ignore")
 
@@ -45,6 +48,7 @@ class Settings(BaseSettings):
     sessions_per_minute: int = Field(default=60, ge=0)
     upload_max_bytes: int = Field(default=50 * 2**20, ge=1)
     build_memory_mb: int = Field(default=8192, ge=0)
+    dask_scheduler: str | None = None
 
     @field_validator("allowed_hosts", "trusted_proxies", mode="before")
     @classmethod

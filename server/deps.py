@@ -78,9 +78,10 @@ def client_address(request: Request) -> str:
     return address
 
 
-async def limit_new_sessions(request: Request) -> None:
-    """``ANIMSTUDY_SESSIONS_PER_MINUTE`` per address: 429 with ``Retry-After`` beyond it."""
-    wait = request.app.state.session_limiter.hit(client_address(request))
+async def limit_new_sessions(request: Request, session: SessionDep) -> None:
+    """``ANIMSTUDY_SESSIONS_PER_MINUTE`` per address (counted in the database, across every instance): 429 with
+    ``Retry-After`` beyond it."""
+    wait = request.app.state.session_limiter.hit(session, client_address(request))
     if wait is not None:
         raise TooManyRequests("too many new sessions from this address; wait and try again", retry_after=wait)
 

@@ -3,9 +3,11 @@
 from server.db import Base
 from server.participants.models import ParticipantSession, PlaybackEvent, Trial, Vote
 from server.researchers.models import Researcher
+from server.security import KnownLogin, RateEvent
 from server.stimuli.models import StimulusSet
 from server.studies.models import Comparison, Stimulus, Study
 from server.uploads.models import AnimationShare, BuildJob, StudyAsset
 
-__all__ = ["AnimationShare", "Base", "BuildJob", "Comparison", "ParticipantSession", "PlaybackEvent", "Researcher",
+__all__ = ["AnimationShare", "Base", "BuildJob", "Comparison", "KnownLogin", "ParticipantSession", "PlaybackEvent",
+           "RateEvent", "Researcher",
            "Stimulus", "StimulusSet", "Study", "StudyAsset", "Trial", "Vote"]

@@ -3,18 +3,23 @@ included), and the rate limits of logins and of new participant sessions."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
 import re
-import threading
 import time
-from collections import defaultdict, deque
+from collections import deque
 from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from sqlalchemy import BigInteger, Float, Index, Integer, String, delete, select, text
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Mapped, Session, mapped_column
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from .db import Base
 
 MAX_BODY_BYTES = 64 * 1024  # a vote with its playback report is well under 20 KB
 RETRY_AFTER_S = 2
@@ -189,31 +194,67 @@ class Protect:
 
 
 Clock = Callable[[], float]
+_KEY_SEP = "\x1f"  # joins the parts of a tuple key (addresses and e-mails never hold it)
+
+
+class RateEvent(Base):
+    """One counted event of a limit (a new participant session, a failed login) per ``bucket`` and ``key``, at
+    ``at`` (seconds since the epoch).  In the database, so every process and machine serving the study counts
+    the same events: several ``animstudy serve`` instances behave as one."""
+
+    __tablename__ = "rate_events"
+    __table_args__ = (Index("ix_rate_events_bucket_key_at", "bucket", "key", "at"),
+                      Index("ix_rate_events_bucket_at", "bucket", "at"))
+
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    bucket: Mapped[str] = mapped_column(String(32))
+    key: Mapped[str] = mapped_column(String(400))
+    at: Mapped[float] = mapped_column(Float)
+
+
+class KnownLogin(Base):
+    """An address that has logged in to an account (see :class:`LoginLimiter`)."""
+
+    __tablename__ = "known_logins"
+
+    account: Mapped[str] = mapped_column(String(320), primary_key=True)
+    address: Mapped[str] = mapped_column(String(64), primary_key=True)
+
+
+def _key(key: Hashable) -> str:
+    return _KEY_SEP.join(map(str, key)) if isinstance(key, tuple) else str(key)
+
+
+def _serialize(session: Session, bucket: str, key: str) -> None:
+    """Makes the check-then-count of one key atomic across processes.  SQLite: every writing transaction holds
+    the file's write lock from its BEGIN (``server.db``).  PostgreSQL: a transaction-scoped advisory lock on the
+    key (read committed would let two processes each count 59 and both insert the 60th)."""
+    if session.get_bind().dialect.name == "postgresql":
+        digest = hashlib.blake2b(f"{bucket}{_KEY_SEP}{key}".encode(), digest_size=8).digest()
+        session.execute(text("SELECT pg_advisory_xact_lock(:k)"), {"k": int.from_bytes(digest, "big", signed=True)})
 
 
 class _Window:
-    """Event times per key over the last ``window_s`` seconds (keys with no recent events are forgotten)."""
+    """Event times per key over the last ``window_s`` seconds, in the ``rate_events`` table under ``bucket``
+    (events older than the window are deleted as new ones arrive)."""
 
-    def __init__(self, window_s: float) -> None:
+    def __init__(self, bucket: str, window_s: float) -> None:
+        self.bucket = bucket
         self.window = window_s
-        self._events: dict[Hashable, deque[float]] = defaultdict(deque)
 
-    def recent(self, key: Hashable, now: float) -> deque[float]:
-        q = self._events.get(key)
-        if q is None:
-            return deque()
-        while q and now - q[0] >= self.window:
-            q.popleft()
-        if not q:
-            del self._events[key]
-        return q
+    def recent(self, session: Session, key: Hashable, now: float) -> list[float]:
+        return list(session.scalars(select(RateEvent.at).where(
+            RateEvent.bucket == self.bucket, RateEvent.key == _key(key), RateEvent.at > now - self.window)
+            .order_by(RateEvent.at)))
 
-    def add(self, key: Hashable, now: float) -> None:
-        self.recent(key, now)
-        self._events[key].append(now)
+    def add(self, session: Session, key: Hashable, now: float) -> None:
+        session.execute(delete(RateEvent).where(RateEvent.bucket == self.bucket,
+                                                RateEvent.at <= now - self.window))
+        session.add(RateEvent(bucket=self.bucket, key=_key(key), at=now))
+        session.flush()
 
-    def clear(self, key: Hashable) -> None:
-        self._events.pop(key, None)
+    def clear(self, session: Session, key: Hashable) -> None:
+        session.execute(delete(RateEvent).where(RateEvent.bucket == self.bucket, RateEvent.key == _key(key)))
 
 
 def _seconds(wait: float) -> int:
@@ -223,26 +264,31 @@ def _seconds(wait: float) -> int:
 class RateLimiter:
     """At most ``limit`` events per key in any ``window_s`` seconds (sliding window); ``limit`` 0 is no limit.
 
-    In memory, per process: with several workers the limit applies once per worker.
+    The events are rows of ``rate_events`` (bucket ``bucket``), so the limit holds once across every process and
+    instance on the database.  ``clock``: seconds since the epoch (instances on several machines compare times).
     """
 
-    def __init__(self, limit: int, window_s: float = 60.0, clock: Clock = time.monotonic) -> None:
+    def __init__(self, limit: int, window_s: float = 60.0, clock: Clock = time.time,
+                 bucket: str = "session") -> None:
         self.limit = limit
         self.clock = clock
-        self._window = _Window(window_s)
-        self._lock = threading.Lock()
+        self._window = _Window(bucket, window_s)
 
-    def hit(self, key: Hashable) -> int | None:
-        """Count an event for ``key``; if the limit is reached already, count nothing and return the seconds
-        until the next one is allowed."""
+    def hit(self, session: Session, key: Hashable) -> int | None:
+        """Count an event for ``key`` and commit it; if the limit is reached already, count nothing and return
+        the seconds until the next one is allowed.  ``session`` must have no pending work (it is committed)."""
         if self.limit <= 0:
             return None
         now = self.clock()
-        with self._lock:
-            q = self._window.recent(key, now)
+        try:
+            _serialize(session, self._window.bucket, _key(key))
+            q = self._window.recent(session, key, now)
             if len(q) >= self.limit:
                 return _seconds(q[-self.limit] + self._window.window - now)
-            self._window.add(key, now)
+            self._window.add(session, key, now)
+            session.commit()
+        finally:
+            session.rollback()  # ends the transaction (and its lock) when nothing was committed
         return None
 
 
@@ -256,50 +302,59 @@ class LoginLimiter:
       ``max_delay_s`` seconds after the account's last failure.  The account is slowed, never blocked: the right
       password from an address without failures, or from one that has logged in to the account before, gets in.
 
-    In memory, per process (several workers each keep their own counts).
+    The failures and known addresses are in the database (``rate_events``, ``known_logins``): counted once
+    across every process and instance.  ``clock``: seconds since the epoch.
     """
 
     def __init__(self, per_pair: int = 10, per_address: int = 50, account_free: int = 10,
-                 max_delay_s: float = 60.0, window_s: float = 900.0, clock: Clock = time.monotonic) -> None:
+                 max_delay_s: float = 60.0, window_s: float = 900.0, clock: Clock = time.time) -> None:
         self.per_pair, self.per_address, self.account_free = per_pair, per_address, account_free
         self.max_delay = max_delay_s
         self.clock = clock
-        self._pair = _Window(window_s)
-        self._address = _Window(window_s)
-        self._account = _Window(window_s)
-        self._known: dict[str, set[str]] = defaultdict(set)
-        self._lock = threading.Lock()
+        self._pair = _Window("login_pair", window_s)
+        self._address = _Window("login_address", window_s)
+        self._account = _Window("login_account", window_s)
 
-    def retry_after(self, address: str, account: str) -> int | None:
+    def retry_after(self, session: Session, address: str, account: str) -> int | None:
         """Seconds to wait before ``address`` may try a password for ``account``, or None."""
         now = self.clock()
         window = self._pair.window
         waits = []
-        with self._lock:
-            pair = self._pair.recent((address, account), now)
-            if len(pair) >= self.per_pair:
-                waits.append(pair[-self.per_pair] + window - now)
-            by_address = self._address.recent(address, now)
-            if len(by_address) >= self.per_address:
-                waits.append(by_address[-self.per_address] + window - now)
-            if by_address and address not in self._known.get(account, ()):
-                by_account = self._account.recent(account, now)
-                excess = len(by_account) - self.account_free
-                if excess >= 0:
-                    waits.append(by_account[-1] + min(self.max_delay, 2.0 ** excess) - now)
+        pair = self._pair.recent(session, (address, account), now)
+        if len(pair) >= self.per_pair:
+            waits.append(pair[-self.per_pair] + window - now)
+        by_address = self._address.recent(session, address, now)
+        if len(by_address) >= self.per_address:
+            waits.append(by_address[-self.per_address] + window - now)
+        if by_address and session.get(KnownLogin, (account, address)) is None:
+            by_account = self._account.recent(session, account, now)
+            excess = len(by_account) - self.account_free
+            if excess >= 0:
+                waits.append(by_account[-1] + min(self.max_delay, 2.0 ** excess) - now)
         waits = [w for w in waits if w > 0]
         return _seconds(max(waits)) if waits else None
 
-    def failed(self, address: str, account: str) -> None:
+    def failed(self, session: Session, address: str, account: str) -> None:
+        """Count a failure and commit it (``session`` must have no other pending work)."""
         now = self.clock()
-        with self._lock:
-            self._pair.add((address, account), now)
-            self._address.add(address, now)
-            self._account.add(account, now)
+        try:
+            self._pair.add(session, (address, account), now)
+            self._address.add(session, address, now)
+            self._account.add(session, account, now)
+            session.commit()
+        finally:
+            session.rollback()
 
-    def succeeded(self, address: str, account: str) -> None:
+    def succeeded(self, session: Session, address: str, account: str) -> None:
         """The address knows the password: its own failures for the account are forgotten and it is no longer
-        slowed by failures elsewhere.  The account's failures stay (an attack may still be going on)."""
-        with self._lock:
-            self._pair.clear((address, account))
-            self._known[account].add(address)
+        slowed by failures elsewhere.  The account's failures stay (an attack may still be going on).  Commits
+        (``session`` must have no other pending work)."""
+        try:
+            self._pair.clear(session, (address, account))
+            if session.get(KnownLogin, (account, address)) is None:
+                session.add(KnownLogin(account=account, address=address))
+            session.commit()
+        except IntegrityError:  # another instance recorded the same address at the same moment
+            session.rollback()
+        finally:
+            session.rollback()

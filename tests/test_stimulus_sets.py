@@ -248,3 +248,35 @@ def test_study_create_builds_and_renders_the_clip_set_a_study_file_names(tmp_pat
     assert cli.main(["study", "create", str(second)]) == 0
     out = capsys.readouterr().out
     assert "clips: all 8 the design needs are built" in out and ", 0 to render" in out
+
+
+def test_study_create_builds_conditions_given_inline(tmp_path, monkeypatch, capsys, data):
+    """A study file with its conditions inline ([[clips.conditions]]) on the default motions: built and rendered
+    by `study create`; an inline set that lacks a design's condition is refused with the condition named."""
+    monkeypatch.setenv("ANIMSTUDY_VAR_DIR", str(tmp_path / "var"))
+    monkeypatch.setenv("ANIMSTUDY_DATA_DIR", str(data))
+    monkeypatch.setenv("ANIMSTUDY_SECRET_KEY", "inline-clips-secret-0123456789abcdef01")
+    monkeypatch.delenv("ANIMSTUDY_DATABASE_URL", raising=False)
+    monkeypatch.delenv("DATABASE_URL", raising=False)
+    text = FUTURE_WORK.read_text().replace('slug = "future-work"', 'slug = "inline"')
+    text = text.replace('animations = ["walk", "crouch"]', 'animations = ["walk"]').replace(
+        'conditions = ["hybrid0", "hybrid_ik0", "hybrid_c2_0"]', 'conditions = ["hybrid_c2_0"]')
+    text = text.replace('set = "../server/clipset/conditions16.toml"', '''conditions = [
+  { id = "keyframe", method = "keyframe" },
+  { id = "hybrid_c2_0", method = "hybrid_c2", params = { increment = 0 } },
+]''')
+    study = tmp_path / "inline.toml"
+    study.write_text(text)
+    assert cli.main(["study", "validate", str(study)]) == 0
+    assert cli.main(["study", "create", str(study), "--width", "96", "--height", "72", "--no-shadows"]) == 0
+    out = capsys.readouterr().out
+    assert "clip set given in the study file" in out and "[1/1] walk: building 2 clips" in out
+    with cli._study_session(Settings.from_env()) as db:
+        content = stimulus_sets.content_of(service.get_study(db, "inline").stimulus_set)
+    assert {(c.animation, c.condition, c.method) for c in content.clips} == {
+        ("walk", "keyframe", "keyframe"), ("walk", "hybrid_c2_0", "hybrid_c2")}
+    lacking = tmp_path / "lacking.toml"
+    lacking.write_text(text.replace('slug = "inline"', 'slug = "lacking"').replace(
+        'conditions = ["hybrid_c2_0"]', 'conditions = ["hybrid_ik0"]'))
+    assert cli.main(["study", "create", str(lacking)]) == 2
+    assert "hybrid_ik0 are not in the study's clip set" in capsys.readouterr().err

@@ -18,8 +18,8 @@ from server import cli
 from server.app import create_app
 from server.config import Settings
 from server.db import migrate
-from server.stimuli.archive import ArchiveError, export_archive, import_archive
 from server.studies import service
+from server.studies.archive import ArchiveError, export_archive, import_archive
 from server.studies.models import Study
 from tests.conftest import DATABASES, _fresh_engine
 from tests.server_fixtures import answer_all, start, study_file, write_fake_media

@@ -3,6 +3,7 @@ entry and the field.  The format is documented in docs/motion/clip-sets.md."""
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import tomllib
 from dataclasses import dataclass
@@ -212,6 +213,18 @@ def clip_set_config(animations: dict[str, dict[str, Any]], conditions: list[dict
     return ClipSetConfig(fps, tuple(relocate), {name: _animation(name, entry, f"{where} [animations.{name}]")
                                                 for name, entry in animations.items()},
                          _conditions(conditions, Path(where)), character)
+
+
+def inline_config(animations: dict[str, dict[str, Any]] | None, conditions: list[dict[str, Any]] | None,
+                  where: str) -> ClipSetConfig:
+    """The default clip-set file with its animations and/or conditions replaced by inline tables (a study file's
+    ``[clips]``), validated as a clip-set file's are."""
+    default = load_config()
+    return dataclasses.replace(
+        default,
+        animations=default.animations if animations is None else {
+            name: _animation(name, entry, f"{where} [clips.animations.{name}]") for name, entry in animations.items()},
+        conditions=default.conditions if conditions is None else _conditions(conditions, Path(where)))
 
 
 def load_config(path: Path = DEFAULT_CONFIG) -> ClipSetConfig:

@@ -107,6 +107,33 @@ def write_clip_set(clips: list[BuiltClip], out: Path) -> Path:
     return write_json(out / MANIFEST, manifest)
 
 
+def merge_clip_set(clips_dir: Path, built: list[BuiltClip]) -> Path:
+    """Add built clips to the clip set in ``clips_dir`` (created if there is none), replacing the clips of the
+    same animations; each ``.npz`` is written under a temporary name and renamed, the manifest last, so readers
+    see the old clip set or the new one.  ManifestError if the clip set there is unreadable (merging into it would
+    drop its clips) or was built for another character."""
+    clips_dir = Path(clips_dir)
+    clips_dir.mkdir(parents=True, exist_ok=True)
+    current = read_clip_manifest(clips_dir) if (clips_dir / MANIFEST).exists() else None
+    old = list(current.clips) if current is not None else []
+    records = [c.source.get("character") for c in built]
+    built_for = CharacterEntry.model_validate(records[0]) if records and records[0] else None
+    # A manifest from before the character was recorded (None) was built for the MakeHuman body, as base_clip_set
+    # builds the new clips then; any other difference mixes bodies.
+    recorded = current.character if current is not None else None
+    if any(r != records[0] for r in records) or (recorded is not None and built and recorded != built_for):
+        raise ManifestError("the new clips were built for another character than the clip set's; rebuild the "
+                            "clip set (`animstudy clips build`)")
+    character = built_for if built else recorded
+    for c in built:
+        tmp = clips_dir / f".{c.id}.tmp.npz"
+        np.savez_compressed(tmp, **c.arrays())
+        tmp.replace(clips_dir / f"{c.id}.npz")
+    replaced = {c.animation for c in built}
+    entries = [e for e in old if e.animation not in replaced] + [entry(c) for c in built]
+    return write_json(clips_dir / MANIFEST, ClipManifest(character=character, clips=entries))
+
+
 def write_json(path: Path, model: BaseModel) -> Path:
     """Write ``model`` as JSON through a temporary file: readers never see a half-written manifest."""
     tmp = path.with_name(f".{path.name}.tmp")

@@ -8,17 +8,17 @@ exists is up to date.  Only ``manifest.json`` (read by the server, never served)
 from __future__ import annotations
 
 import ctypes
+import dataclasses
 import functools
 import hashlib
 import hmac
 import json
-import multiprocessing
 import os
 import re
 import threading
 import time
+import uuid
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -272,17 +272,71 @@ def _character(data_dir: Path, config: CharacterConfig) -> Character:
     return made.character if isinstance(made, MappedCharacter) else made
 
 
-def run_job(job: AnimationJob) -> list[tuple[str, float]]:
-    """Render the job's outputs; returns (output name, seconds) per finished video."""
+class RenderError(MediaError):
+    """A render task failed; the message names the animation and the clip."""
+
+
+Arrays = dict[str, dict[str, NDArray[Any]]]
+
+
+def job_arrays(job: AnimationJob) -> Arrays:
+    """The arrays of the job's clips, by clip id (what a worker needs instead of the clip files)."""
+    return {i: dict(np.load(c.path)) for i, c in job.clips.items()}
+
+
+def job_character(job: AnimationJob) -> Character:
+    return _character(job.data_dir, job.character)
+
+
+@dataclass(frozen=True)
+class RenderedFile:
+    """A rendered file as a task returns it: its name in the media directory, its bytes and their sha256."""
+
+    name: str
+    data: bytes
+    sha256: str
+
+
+def render_task(job: AnimationJob, arrays: Arrays, character: Character) -> list[RenderedFile]:
+    """A pure task: the job's videos and posters rendered from values (no file of the clip set or the data
+    directory is read; a worker needs no shared filesystem), returned as bytes.  Renders are deterministic, so a
+    task run again (its worker died) returns the same bytes."""
+    import tempfile
+
+    _init_worker()
+    with tempfile.TemporaryDirectory(prefix="animstudy-render-") as tmp:
+        run_job(dataclasses.replace(job, out_dir=Path(tmp)), arrays, character)
+        files = []
+        for o in job.outputs:
+            for name in (o.video, o.poster):
+                data = (Path(tmp) / name).read_bytes()
+                files.append(RenderedFile(name, data, hashlib.sha256(data).hexdigest()))
+    return files
+
+
+def store_rendered(out_dir: Path, files: Sequence[RenderedFile]) -> None:
+    """Write a task's files into ``out_dir`` (checked against their hashes; each appears whole or not at all)."""
+    for f in files:
+        if not MEDIA_NAME.match(f.name) or hashlib.sha256(f.data).hexdigest() != f.sha256:
+            raise MediaError(f"a render task returned {f.name!r} damaged (name or sha256 does not match)")
+        tmp = out_dir / f"{f.name}.{os.getpid()}.tmp"
+        tmp.write_bytes(f.data)
+        os.replace(tmp, out_dir / f.name)
+
+
+def run_job(job: AnimationJob, arrays: Arrays | None = None, character: Character | None = None
+            ) -> list[tuple[str, float]]:
+    """Render the job's outputs into ``job.out_dir``; returns (output name, seconds) per finished video.
+    ``arrays`` and ``character``: given as values (default: read from the clip files and the data directory)."""
     from anim_core.rig.character import bind_mesh
 
     from .renderer import ClipRenderer
     from .video import Planes, VideoWriter, hstack_planes, write_poster, yuv420
 
     started = time.perf_counter()
-    arrays = {i: dict(np.load(c.path)) for i, c in job.clips.items()}
+    arrays = arrays if arrays is not None else job_arrays(job)
     first = next(iter(arrays.values()))
-    character = _character(job.data_dir, job.character)
+    character = character if character is not None else job_character(job)
     mesh = bind_mesh(character, [str(n) for n in first["joint_names"]], first["bind_rotations"],
                      first["bind_positions"])
     everything = np.concatenate([a["world_positions"].reshape(-1, 3) for a in arrays.values()])
@@ -353,9 +407,12 @@ def run_job(job: AnimationJob) -> list[tuple[str, float]]:
                         write_poster(job.out_dir / o.poster, poster)
                 if clip_id in held:
                     frames.append(planes)
-        except BaseException:
+        except BaseException as exc:
             for w in writers.values():
                 w.abort()
+            if isinstance(exc, Exception) and not isinstance(exc, RenderError):
+                raise RenderError(f"rendering clip {clip_id} ({job.animation}) failed: "
+                                  f"{type(exc).__name__}: {exc}") from exc
             raise
         for w in writers.values():
             w.close()
@@ -415,13 +472,56 @@ class PeakMemory:
             self._thread.join()
 
 
+def _value(value: Any) -> Any:
+    return value
+
+
+def run_on_dask(p: Plan, out_dir: Path, scheduler: str | None, workers: int,
+                 progress: Callable[[str], None]) -> list[list[tuple[str, float]]]:
+    """One :func:`render_task` per job on the cluster (see :mod:`server.cluster`), the character sent once;
+    each job's files are stored as it finishes, so a job interrupted later renders only what is still missing.
+    A failed task fails the render naming its clip, after the others have finished and been stored."""
+    from distributed import as_completed as dask_completed
+
+    from server.cluster import dask_client
+
+    with dask_client(scheduler, min(workers, len(p.jobs))) as client, client.as_current():
+        # The character goes to the cluster once per job, as a task of its own rather than scattered data: a
+        # scattered value lost with its worker cannot be recovered, a task's result is computed again.
+        characters = {j.character: j for j in p.jobs}
+        shared = {c: client.submit(_value, job_character(j), pure=False, key=f"character-{uuid.uuid4().hex[:8]}")
+                  for c, j in characters.items()}
+        futures = {client.submit(render_task, j, job_arrays(j), shared[j.character], pure=False,
+                                 key=f"render-{j.animation}-{uuid.uuid4().hex[:8]}"): j for j in p.jobs}
+        results, failures = [], []
+        for future in dask_completed(futures):
+            job = futures[future]
+            try:
+                files = future.result()
+            except Exception as exc:  # the task's own error, or its workers kept dying
+                failures.append(str(exc) if isinstance(exc, MediaError) else
+                                f"rendering {job.animation} failed: {type(exc).__name__}: {exc}")
+                progress(f"  {job.animation}: FAILED ({failures[-1]})")
+                continue
+            store_rendered(out_dir, files)
+            results.append([(f.name, 0.0) for f in files if f.name.endswith(".mp4")])
+            progress(f"  {job.animation}: {len(results[-1])} videos stored ({len(results)}/{len(p.jobs)} jobs)")
+    if failures:
+        raise RenderError("; ".join(failures))
+    return results
+
+
 def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
                  settings: RenderSettings | None = None, pairs: Sequence[tuple[str, str]] = (),
                  workers: int = 2, animations: Sequence[str] | None = None, every_clip: bool = True,
-                 progress: Callable[[str], None] = lambda _m: None, manifest_dir: Path | None = None) -> Path:
+                 progress: Callable[[str], None] = lambda _m: None, manifest_dir: Path | None = None,
+                 scheduler: str | None = None) -> Path:
     """Render what is missing of :func:`plan` and write the manifest; returns the manifest path.  Nothing
     rendered before is deleted or replaced (``animstudy gc`` collects what no study uses).  The manifest goes
-    into ``manifest_dir`` (default ``out_dir``): the videos of several clip sets share one media directory."""
+    into ``manifest_dir`` (default ``out_dir``): the videos of several clip sets share one media directory.
+
+    ``scheduler`` (``ANIMSTUDY_DASK_SCHEDULER``): the jobs run on that Dask cluster; otherwise on a local Dask
+    cluster of ``workers`` processes, or in this process when ``workers`` is 1."""
     settings = settings or RenderSettings()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -429,19 +529,16 @@ def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
     p = plan(data_dir, clips_dir, out_dir, settings, secret, pairs, animations, every_clip)
     todo = sum(len(j.outputs) for j in p.jobs)
     videos = len({o.name for o in p.outputs})  # clips with identical arrays share theirs
+    where = f"Dask scheduler {scheduler}" if scheduler else f"{min(workers, max(1, len(p.jobs)))} workers"
     progress(f"{videos} videos, {videos - todo} up to date, {todo} to render "
-             f"({sum(j.n_frames for j in p.jobs)} frames, {min(workers, max(1, len(p.jobs)))} workers)")
+             f"({sum(j.n_frames for j in p.jobs)} frames, {where})")
     if p.jobs:
         with PeakMemory() as memory:
-            if workers <= 1:
+            if workers <= 1 and not scheduler:
                 _init_worker()
                 results = [run_job(j) for j in p.jobs]
             else:
-                ctx = multiprocessing.get_context("spawn")  # fresh processes: OpenGL state never crosses a fork
-                with ProcessPoolExecutor(max_workers=min(workers, len(p.jobs)), mp_context=ctx,
-                                         initializer=_init_worker) as pool:
-                    futures = [pool.submit(run_job, j) for j in p.jobs]
-                    results = [f.result() for f in as_completed(futures)]
+                results = run_on_dask(p, out_dir, scheduler, workers, progress)
         progress(f"rendered {sum(len(r) for r in results)} videos in {time.perf_counter() - started:.1f} s, "
                  f"peak memory {memory.peak_bytes / 2**20:.0f} MiB (all processes)")
     manifest_dir = Path(manifest_dir or out_dir)

@@ -26,13 +26,14 @@ def login(form: Annotated[OAuth2PasswordRequestForm, Depends()], session: Sessio
     (``server.security.LoginLimiter``)."""
     limiter = request.app.state.login_limiter
     keys = (client_address(request), normalize_email(form.username))
-    wait = limiter.retry_after(*keys)
+    wait = limiter.retry_after(session, *keys)
+    session.rollback()  # the password check below takes its time: hold no transaction meanwhile
     if wait is not None:
         raise TooManyRequests("too many failed logins; wait and try again", retry_after=wait)
     try:
         researcher = authenticate(session, form.username, form.password)
     except Unauthorized:
-        limiter.failed(*keys)
+        limiter.failed(session, *keys)
         raise
-    limiter.succeeded(*keys)
+    limiter.succeeded(session, *keys)
     return TokenRead(access_token=issue_token(researcher, settings.secret, settings.token_hours))

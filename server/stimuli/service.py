@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
-from sqlalchemy import select
+from sqlalchemy import column, select, table
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -214,10 +214,10 @@ def missing(content: SetContent, media_dir: Path) -> list[str]:
 
 def referenced(session: Session) -> set[str]:
     """Every file name a study's set uses (draft, open or closed)."""
-    from server.studies.models import Study
-
-    rows = session.scalars(select(StimulusSet).where(
-        StimulusSet.id.in_(select(Study.stimulus_set_id).where(Study.stimulus_set_id.is_not(None)))))
+    # The studies table by name: studies depend on stimulus sets, not the other way round.
+    studies = table("studies", column("stimulus_set_id"))
+    rows = session.scalars(select(StimulusSet).where(StimulusSet.id.in_(
+        select(studies.c.stimulus_set_id).where(studies.c.stimulus_set_id.is_not(None)))))
     return {name for row in rows for name in content_of(row).hashes()}
 
 

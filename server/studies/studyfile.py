@@ -261,12 +261,27 @@ def template_problem(url: str, fields: set[str]) -> str | None:
 
 
 class Clips(_Strict):
-    """The clip set a study's clips come from (``[clips]``): ``set``, a clip-set file (README "Clip-set file"),
-    relative to the study file.  `animstudy study create` builds the clips of it the study needs and renders
-    their videos; without ``[clips]`` the study uses the server's clip set."""
+    """The clip set a study's clips come from (``[clips]``): ``set``, a clip-set file (README "Clip-set file")
+    relative to the study file; or inline ``conditions`` (``[[clips.conditions]]``, as a clip-set file's
+    ``[[conditions]]``) and/or ``animations`` (``[clips.animations.<name>]``, sources under the data directory),
+    the rest from the default clip-set file.  `animstudy study create` builds the clips of it the study needs and
+    renders their videos; without ``[clips]`` the study uses the server's clip set."""
 
-    set: str = Field(min_length=1, max_length=500, pattern=r"\.toml$",
-                     description="clip-set file (TOML), relative to the study file")
+    set: str | None = Field(None, min_length=1, max_length=500, pattern=r"\.toml$",
+                            description="clip-set file (TOML), relative to the study file")
+    conditions: list[dict[str, Any]] | None = Field(None, min_length=1, max_length=64,
+                                                    description="conditions, as a clip-set file's [[conditions]]")
+    animations: dict[str, dict[str, Any]] | None = Field(None, min_length=1, max_length=64,
+                                                         description="animations, as a clip-set file's "
+                                                                     "[animations.<name>]")
+
+    @model_validator(mode="after")
+    def one_source(self) -> Self:
+        if self.set is None and self.conditions is None and self.animations is None:
+            raise ValueError("[clips] needs set, or conditions and/or animations")
+        if self.set is not None and (self.conditions is not None or self.animations is not None):
+            raise ValueError("[clips] takes either set (a clip-set file) or conditions/animations inline, not both")
+        return self
 
 
 class StudyFile(_Strict):

@@ -7,12 +7,12 @@ Stages (``build_jobs.stage``; ``done``/``total`` count each stage's steps):
    asset an animation with its kind, source file and frames; the ``fps``, character and conditions of the clip
    set in the var directory, or of the default clip-set file when there is none), validated as a clip-set file
    is, and builds each animation through the stimulus pipeline
-   (:func:`server.stimuli.pipeline.build_animations`: the character loaded and verified once; any common rig,
+   (:func:`server.studies.pipeline.build_animations`: the character loaded and verified once; any common rig,
    BVH or glTF, as ``clips build`` does); the clips are merged into the clip set (an asset's clips replace its
    earlier ones; the manifest is replaced last, in one step).
 2. ``rendering``: one step per video missing: every clip's and the pairs the study's design (with the new
    animations) and every other study show, with the size and shadows the videos have already
-   (:func:`server.media.build.rendered_settings`, :func:`server.stimuli.pipeline.render`, one worker process
+   (:func:`server.media.build.rendered_settings`, :func:`server.studies.pipeline.render`, one worker process
    so the server keeps a core).
 3. ``study``: the assets' animations are added to the study's design (its comparisons rebuilt over the videos).
 4. ``done`` (state ``done``), or state ``failed`` with ``error`` at the stage where it failed.
@@ -36,7 +36,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -169,30 +168,15 @@ def check_names(clips_dir: Path, assets: Sequence[StudyAsset], asset_file: Calla
 
 
 def merge_clips(clips_dir: Path, built: list[Any]) -> Path:
-    """Add built clips (:class:`anim_core.clips.build.BuiltClip`) to the clip set in ``clips_dir``, replacing the
-    clips of the same animations; each ``.npz`` is written under a temporary name and renamed, the manifest last,
-    so readers see the old clip set or the new one."""
-    from server.clipset.manifest import MANIFEST, CharacterEntry, ClipManifest, entry, write_json
+    """:func:`server.clipset.manifest.merge_clip_set`, its errors as the job's (the clip set must be readable
+    first: the uploaded clips are added to it)."""
+    from server.clipset.manifest import ManifestError, merge_clip_set
 
-    clips_dir.mkdir(parents=True, exist_ok=True)
-    current = current_clip_set(clips_dir)
-    old = list(current.clips) if current is not None else []
-    records = [c.source.get("character") for c in built]
-    built_for = CharacterEntry.model_validate(records[0]) if records and records[0] else None
-    # A manifest from before the character was recorded (None) was built for the MakeHuman body, as base_clip_set
-    # builds the new clips then; any other difference mixes bodies.
-    recorded = current.character if current is not None else None
-    if any(r != records[0] for r in records) or (recorded is not None and built and recorded != built_for):
-        raise BuildError("the new clips were built for another character than the clip set's; rebuild the clip "
-                         "set (`animstudy clips build`)")
-    character = built_for if built else recorded
-    for c in built:
-        tmp = clips_dir / f".{c.id}.tmp.npz"
-        np.savez_compressed(tmp, **c.arrays())
-        tmp.replace(clips_dir / f"{c.id}.npz")
-    replaced = {c.animation for c in built}
-    entries = [e for e in old if e.animation not in replaced] + [entry(c) for c in built]
-    return write_json(clips_dir / MANIFEST, ClipManifest(character=character, clips=entries))
+    current_clip_set(clips_dir)  # an unreadable one stops the build, saying so
+    try:
+        return merge_clip_set(clips_dir, built)
+    except ManifestError as exc:
+        raise BuildError(str(exc)) from None
 
 
 # --- the job ---------------------------------------------------------------------------------------------------
@@ -246,9 +230,9 @@ def draft(session: Session, study_id: int) -> Study:
 
 def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progress: Progress) -> None:
     from server.media.build import plan, rendered_settings
-    from server.stimuli import pipeline
-    from server.stimuli.pipeline import AnimationError, build_animations
+    from server.studies import pipeline
     from server.studies.design import Design
+    from server.studies.pipeline import AnimationError, build_animations
     from server.studies.service import update_study
 
     place = pipeline.server_place(settings)

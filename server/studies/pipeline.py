@@ -13,13 +13,16 @@
 
 A study file without ``[clips]`` uses the server's clip set (``<var>/clips``, its render manifest in
 ``<var>/media``); one with ``[clips] set = "file.toml"`` gets the clip set of that file, kept in
-``<var>/clipsets/<key>/`` (``key``: a hash of the file's path and content, so an edited file is another clip set).
+``<var>/clipsets/<key>/`` (``key``: a hash of the file's path and content, so an edited file is another clip set);
+one with inline ``[clips]`` conditions and/or animations gets the default clip-set file with those replaced
+(``key``: a hash of the tables and the default file).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
+import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,15 +31,15 @@ from sqlalchemy.orm import Session
 
 from anim_core.clips.record import BuiltClip
 from anim_core.methods.conditions import REFERENCE, Condition
-from server.clipset.config import ClipSetConfig, load_config
-from server.clipset.manifest import MANIFEST, ManifestError, read_clip_manifest
+from server.clipset.config import DEFAULT_CONFIG, ClipSetConfig, inline_config, load_config
+from server.clipset.manifest import MANIFEST, ManifestError, merge_clip_set, read_clip_manifest
 from server.config import Settings
 from server.errors import Unprocessable
 from server.media.build import rendered_pairs, rendered_settings
 from server.media.manifest import RenderManifest, read_render_manifest
 from server.media.scene import RenderSettings
 from server.studies.design import Design
-from server.studies.studyfile import StudyFile
+from server.studies.studyfile import Clips, StudyFile
 
 Progress = Callable[[str], None]
 CLIPSETS = "clipsets"
@@ -65,13 +68,25 @@ def file_place(settings: Settings, config_path: Path) -> Place:
     return Place(base / "clips", base / "render", config)
 
 
+def inline_place(settings: Settings, clips: Clips, where: str) -> Place:
+    """The place of a clip set given inline (``[clips]`` conditions and/or animations over the default file)."""
+    config = inline_config(clips.animations, clips.conditions, where)
+    tables = json.dumps({"animations": clips.animations, "conditions": clips.conditions}, sort_keys=True)
+    key = hashlib.sha256(b"inline\0" + tables.encode() + b"\0" + DEFAULT_CONFIG.read_bytes()).hexdigest()[:16]
+    base = settings.var / CLIPSETS / key
+    return Place(base / "clips", base / "render", config)
+
+
 def study_place(settings: Settings, study_file: StudyFile, study_path: Path | None) -> Place:
-    """The clip set ``study_file`` uses: its ``[clips] set`` (relative to ``study_path``'s folder) or the
-    server's."""
-    if study_file.clips is None:
+    """The clip set ``study_file`` uses: its ``[clips] set`` (relative to ``study_path``'s folder), its inline
+    ``[clips]``, or the server's."""
+    clips = study_file.clips
+    if clips is None:
         return server_place(settings)
+    if clips.set is None:
+        return inline_place(settings, clips, str(study_path or "the study file"))
     base = Path(study_path).parent if study_path is not None else Path.cwd()
-    return file_place(settings, base / study_file.clips.set)
+    return file_place(settings, base / clips.set)
 
 
 def needed_conditions(design: Design) -> list[str]:
@@ -114,15 +129,13 @@ def build(data_dir: Path, config: ClipSetConfig, clips_dir: Path, design: Design
     """Build the clips of ``design`` that the clip set in ``clips_dir`` lacks, from ``config``; returns how many
     clips were built.  An animation is built with every condition it already had plus the ones needed (the
     reference first: the others are made from it).  422 naming what ``config`` does not have."""
-    from server.uploads.job import merge_clips
-
     conditions = needed_conditions(design)
     by_id = {c.id: c for c in config.conditions}
     if unknown := [c for c in conditions if c not in by_id]:
-        raise Unprocessable(f"design: condition(s) {', '.join(unknown)} are not in the clip-set file (it has "
+        raise Unprocessable(f"design: condition(s) {', '.join(unknown)} are not in the study's clip set (it has "
                             f"{', '.join(by_id)})")
     if unknown := [a for a in design.animations if a not in config.animations]:
-        raise Unprocessable(f"design.animations: {', '.join(unknown)} are not in the clip-set file (it has "
+        raise Unprocessable(f"design.animations: {', '.join(unknown)} are not in the study's clip set (it has "
                             f"{', '.join(config.animations)})")
     try:
         current = read_clip_manifest(clips_dir).clips if (clips_dir / MANIFEST).is_file() else []
@@ -141,7 +154,10 @@ def build(data_dir: Path, config: ClipSetConfig, clips_dir: Path, design: Design
         wanted[name] = tuple(c for c in config.conditions if c.id in keep or c.method == REFERENCE)
     built = build_animations(data_dir, config, wanted, progress, lambda k, name: progress(
         f"[{k + 1}/{len(todo)}] {name}: building {len(wanted[name])} clips"))
-    merge_clips(clips_dir, built)
+    try:
+        merge_clip_set(clips_dir, built)
+    except ManifestError as exc:
+        raise Unprocessable(str(exc)) from None
     progress(f"clips: {len(built)} built into the clip set")
     return len(built)
 
@@ -167,7 +183,7 @@ def render(settings: Settings, place: Place, wanted: list[tuple[str, str]], rend
 
     render_media(settings.data, place.clips_dir, settings.media_dir, settings.secret, render_settings,
                  pairs=wanted, workers=workers, every_clip=every_clip, progress=progress,
-                 manifest_dir=place.render_dir)
+                 manifest_dir=place.render_dir, scheduler=settings.dask_scheduler)
     return read_render_manifest(place.render_dir)
 
 
@@ -185,7 +201,8 @@ def prepare(settings: Settings, session: Session, study_file: StudyFile, study_p
             progress(f"building the server's clip set in {place.clips_dir}")
             write_clip_set(build_clip_set(settings.data, progress=progress), place.clips_dir)
     else:
-        progress(f"clip set {study_file.clips.set if study_file.clips else ''} -> {place.clips_dir}")
+        what = study_file.clips.set if study_file.clips and study_file.clips.set else "given in the study file"
+        progress(f"clip set {what} -> {place.clips_dir}")
         build(settings.data, place.config, place.clips_dir, study_file.design, progress)
     # The size and shadows of the videos there already, so that a study's videos look alike.
     before = place.render_dir if (place.render_dir / MANIFEST).is_file() else settings.media_dir

@@ -30,11 +30,11 @@ from server.errors import Conflict, Unprocessable
 from server.media.build import DIVIDER_PX, MEDIA_NAME
 from server.media.manifest import RenderedClip, RenderedPair, RenderManifest
 from server.researchers.models import Researcher
-from server.studies import service as studies
-from server.studies.models import Study
-from server.studies.studyfile import StudyFile
+from server.stimuli.service import SetContent, content_digest, content_of, file_sha256, missing
 
-from .service import SetContent, content_digest, content_of, file_sha256, missing
+from . import service as studies
+from .models import Study
+from .studyfile import StudyFile
 
 FORMAT = "animstudy-study-archive"
 VERSION = 1

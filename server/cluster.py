@@ -1,0 +1,99 @@
+"""Where renders run: Dask distributed (docs/cluster.md).
+
+Without ``ANIMSTUDY_DASK_SCHEDULER`` a job starts an in-process ``LocalCluster`` (worker processes on this machine,
+one thread each: OSMesa renders on one core per process) and closes it when done, so every command works with
+nothing to start.  With ``ANIMSTUDY_DASK_SCHEDULER=tcp://host:8786`` the job is submitted to that cluster; its
+workers need the same animstudy version installed (checked: a worker with another version is refused) but no
+shared filesystem: tasks get their inputs as values and return the encoded bytes.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from importlib.metadata import PackageNotFoundError, version
+from typing import TYPE_CHECKING
+
+from server.media.build import MediaError
+
+if TYPE_CHECKING:
+    from distributed import Client
+
+CONNECT_TIMEOUT_S = 10.0
+WORKERS_TIMEOUT_S = 60.0
+CLOSE_TIMEOUT_S = 30.0
+log = logging.getLogger(__name__)  # how long a job waits for a cluster without workers to get one
+
+
+class ClusterError(MediaError):
+    """The Dask cluster cannot run the job (unreachable, no workers, other versions); the message says which.
+    A :class:`~server.media.build.MediaError`: every command that renders reports it as one."""
+
+
+def package_version() -> str:
+    """The installed animstudy version (what a worker must have too)."""
+    try:
+        return version("animstudy")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+# The submitting side's version, read once (a test may stand in another one here; workers report their own).
+PACKAGE_VERSION = package_version()
+
+
+def machine_workers() -> int:
+    """Worker processes for the local cluster: one per core this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def check_versions(client: Client, address: str) -> None:
+    """Refuse a cluster whose workers run another animstudy version (naming both), or that has no worker."""
+    try:
+        client.wait_for_workers(1, timeout=WORKERS_TIMEOUT_S)
+    except TimeoutError:
+        raise ClusterError(f"the Dask scheduler at {address} has no workers (waited {WORKERS_TIMEOUT_S:.0f} s); "
+                           "start some with `dask worker " + address + "`") from None
+    reported = client.run(package_version)
+    other = {worker: v for worker, v in reported.items() if v != PACKAGE_VERSION}
+    if other:
+        listed = ", ".join(f"{worker} has animstudy {v}" for worker, v in sorted(other.items()))
+        raise ClusterError(f"Dask workers with another animstudy version than this side's {PACKAGE_VERSION}: "
+                           f"{listed}; install the same version on every worker")
+
+
+@contextmanager
+def dask_client(scheduler: str | None, workers: int | None = None) -> Iterator[Client]:
+    """A client of the cluster at ``scheduler``, or of a local cluster of ``workers`` processes (default: one per
+    core) closed on exit.  :class:`ClusterError` names the address when the scheduler cannot be reached."""
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        try:
+            client = Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise ClusterError(f"cannot reach the Dask scheduler at {scheduler} ({exc}); is it running, and is "
+                               "ANIMSTUDY_DASK_SCHEDULER right?") from None
+        try:
+            check_versions(client, scheduler)
+            yield client
+        finally:
+            client.close()
+        return
+    cluster = LocalCluster(n_workers=workers or machine_workers(), threads_per_worker=1, processes=True,
+                           dashboard_address=None, silence_logs=logging.ERROR)
+    client = Client(cluster, set_as_default=False)
+    try:
+        yield client
+    finally:
+        # The job's files are stored by now: workers slow to stop (a loaded machine) must not fail it.
+        for part in (client, cluster):
+            try:
+                part.close(timeout=CLOSE_TIMEOUT_S)
+            except Exception as exc:  # logged, never raised over the job's own outcome
+                log.warning("closing the local Dask cluster: %s: %s", type(exc).__name__, exc)

@@ -1,0 +1,214 @@
+"""Renders on Dask: a real ``dask scheduler`` and two ``dask worker`` processes on loopback, started here.
+
+A small clip set (two animations, two conditions, 96x72) keeps it fast; every job is one animation's videos.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from server import cluster
+from server.clipset.build import build_clip_set
+from server.clipset.config import load_config
+from server.clipset.manifest import write_clip_set
+from server.media.build import MediaError, read_clip_set, render_media
+from server.media.manifest import MANIFEST
+from server.media.scene import RenderSettings
+from server.studies.service import clip_set_index, required_pairs
+from server.studies.studyfile import thesis_study
+
+TINY = RenderSettings(width=96, height=72, shadows=False)
+SECRET = b"cluster test secret"
+DASK = Path(sys.executable).with_name("dask")
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def clips_dir(data, tmp_path_factory):
+    config = load_config()
+    small = dataclasses.replace(config, animations={k: config.animations[k] for k in ("run", "idle")},
+                                conditions=config.conditions[:2])
+    out = tmp_path_factory.mktemp("clips")
+    write_clip_set(build_clip_set(data, small), out)
+    return out
+
+
+@pytest.fixture(scope="module")
+def pairs(clips_dir):
+    design = thesis_study().design.model_copy(update={"animations": ["run", "idle"], "conditions": ["hybrid0"]})
+    return required_pairs(design, clip_set_index(clips_dir))
+
+
+@pytest.fixture(scope="module")
+def local_render(data, clips_dir, pairs, tmp_path_factory):
+    """The same videos rendered in this process, without Dask."""
+    out = tmp_path_factory.mktemp("local")
+    render_media(data, clips_dir, out, SECRET, TINY, pairs=pairs, workers=1)
+    return out
+
+
+@pytest.fixture(scope="module")
+def dask_cluster(tmp_path_factory):
+    """``dask scheduler`` and two ``dask worker`` processes (no nanny: the worker is the process killed)."""
+    logs = tmp_path_factory.mktemp("dask-logs")
+    address = f"tcp://127.0.0.1:{_port()}"
+    port = address.rsplit(":", 1)[1]
+    procs = {"scheduler": subprocess.Popen([str(DASK), "scheduler", "--host", "127.0.0.1", "--port", port,
+                                            "--no-dashboard"], stdout=(logs / "scheduler.log").open("wb"),
+                                           stderr=subprocess.STDOUT)}
+    for name in ("w1", "w2"):
+        procs[name] = subprocess.Popen([str(DASK), "worker", address, "--name", name, "--nthreads", "1",
+                                        "--no-nanny", "--no-dashboard", "--death-timeout", "60"],
+                                       stdout=(logs / f"{name}.log").open("wb"), stderr=subprocess.STDOUT)
+    from distributed import Client
+
+    client = None
+    try:
+        deadline = time.monotonic() + 60
+        while client is None:
+            try:
+                client = Client(address, timeout=5, set_as_default=False)
+            except OSError:
+                if time.monotonic() > deadline:
+                    pytest.fail(f"the scheduler did not start: {(logs / 'scheduler.log').read_text()[-2000:]}")
+                time.sleep(0.5)
+        client.wait_for_workers(2, timeout=60)
+        yield address, client, procs
+    finally:
+        if client is not None:
+            client.close()
+        for proc in procs.values():
+            proc.kill()
+            proc.wait(10)
+
+
+def _files(directory: Path) -> dict[str, bytes]:
+    return {f.name: f.read_bytes() for f in sorted(directory.iterdir()) if f.suffix in (".mp4", ".jpg")}
+
+
+def test_a_worker_killed_mid_job_and_the_videos_are_byte_identical_to_a_local_render(
+        data, clips_dir, pairs, local_render, dask_cluster, tmp_path):
+    address, observer, procs = dask_cluster
+    out = tmp_path / "media"
+    errors: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            render_media(data, clips_dir, out, SECRET, TINY, pairs=pairs, scheduler=address)
+        except BaseException as exc:  # handed to the test
+            errors.append(exc)
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    # Kill -9 the second worker as soon as it is rendering a task.
+    victim = next(w for w, info in observer.scheduler_info()["workers"].items() if info["name"] == "w2")
+    deadline = time.monotonic() + 120
+    while not observer.processing().get(victim):
+        assert thread.is_alive() and time.monotonic() < deadline, "w2 never got a task"
+        time.sleep(0.05)
+    procs["w2"].kill()
+    procs["w2"].wait(10)
+    thread.join(300)
+    assert not thread.is_alive() and errors == [], errors
+    assert (out / MANIFEST).read_bytes() == (local_render / MANIFEST).read_bytes()
+    mine, local = _files(out), _files(local_render)
+    assert len(local) >= 2 * 2 * 3  # per animation at least 2 clip videos and a pair, each with a poster
+    assert mine.keys() == local.keys()
+    assert all(mine[name] == local[name] for name in local), "a video differs from the local render"
+
+
+def test_an_unreachable_scheduler_is_named(data, clips_dir, pairs, tmp_path):
+    address = f"tcp://127.0.0.1:{_port()}"  # nothing listens there
+    with pytest.raises(MediaError, match=f"cannot reach the Dask scheduler at {address}"):
+        render_media(data, clips_dir, tmp_path / "media", SECRET, TINY, pairs=pairs, scheduler=address)
+
+
+def test_workers_of_another_version_are_refused_naming_both(data, clips_dir, pairs, dask_cluster, tmp_path,
+                                                          monkeypatch):
+    address, _observer, _procs = dask_cluster
+    monkeypatch.setattr(cluster, "PACKAGE_VERSION", "0.0.1-elsewhere")
+    with pytest.raises(MediaError) as raised:
+        render_media(data, clips_dir, tmp_path / "media", SECRET, TINY, pairs=pairs, scheduler=address)
+    message = str(raised.value)
+    assert "0.0.1-elsewhere" in message and f"animstudy {cluster.package_version()}" in message, message
+    assert not (tmp_path / "media" / MANIFEST).exists()
+
+
+def test_a_failing_clip_is_named_and_the_other_jobs_are_stored(data, clips_dir, pairs, local_render, dask_cluster,
+                                                               tmp_path):
+    address, _observer, _procs = dask_cluster
+    broken = tmp_path / "clips"
+    broken.mkdir()
+    for f in clips_dir.iterdir():
+        (broken / f.name).write_bytes(f.read_bytes())
+    bad = next(c for c in read_clip_set(broken) if c.animation == "idle" and c.condition != "keyframe")
+    arrays = dict(np.load(bad.path))
+    arrays["world_rotations"] = arrays["world_rotations"][:, :3]  # joints missing: the renderer cannot skin it
+    with bad.path.open("wb") as f:
+        np.savez(f, **arrays)
+    out = tmp_path / "media"
+    messages: list[str] = []
+    with pytest.raises(MediaError, match=f"clip {bad.id}"):
+        render_media(data, broken, out, SECRET, TINY, pairs=pairs, scheduler=address, progress=messages.append)
+    # The other animation's videos were stored, and are the local render's.
+    manifest = json.loads((local_render / MANIFEST).read_text())
+    run = {e[k] for e in [*manifest["clips"].values(), *manifest["pairs"]]
+           if (e.get("clip") or e["left"]).startswith("run-") for k in ("video", "poster")}
+    stored, local = _files(out), _files(local_render)
+    assert run and run <= stored.keys(), messages
+    assert all(stored[n] == local[n] for n in run)
+
+
+RESTARTED = """
+import sys
+from pathlib import Path
+from server.media.build import render_media
+from server.media.scene import RenderSettings
+pairs = [tuple(p.split("|")) for p in sys.argv[4].split(",")]
+render_media(Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3]), {secret!r},
+             RenderSettings(width={w}, height={h}, shadows=False), pairs=pairs, scheduler=sys.argv[5])
+"""
+
+
+def test_a_render_restarted_mid_job_renders_only_what_is_missing(data, clips_dir, pairs, local_render, dask_cluster,
+                                                                 tmp_path):
+    """The submitting process (the server, the command) is killed with -9 once the first job's files are stored;
+    run again, it renders only the videos still missing, and they are the local render's."""
+    address, _observer, _procs = dask_cluster
+    out = tmp_path / "media"
+    script = RESTARTED.format(secret=SECRET, w=TINY.width, h=TINY.height)
+    first = subprocess.Popen([sys.executable, "-c", script, str(data), str(clips_dir), str(out),
+                              ",".join(f"{a}|{b}" for a, b in pairs), address])
+    deadline = time.monotonic() + 180
+    while not (out.is_dir() and any(f.suffix == ".mp4" for f in out.iterdir())):
+        assert first.poll() is None, "the render ended before it was killed"
+        assert time.monotonic() < deadline, "no video was stored"
+        time.sleep(0.05)
+    first.kill()
+    first.wait(10)
+    assert not (out / MANIFEST).exists()  # it was killed mid-job
+    # Up to date: a video with its poster (the kill may have come between a job's files).
+    stored_before = {f.name for f in out.iterdir() if f.suffix == ".mp4" and f.with_suffix(".jpg").is_file()}
+    total = sum(1 for n in _files(local_render) if n.endswith(".mp4"))
+    assert 0 < len(stored_before) < total
+    messages: list[str] = []
+    render_media(data, clips_dir, out, SECRET, TINY, pairs=pairs, scheduler=address, progress=messages.append)
+    missing = total - len(stored_before)
+    assert f"{total} videos, {len(stored_before)} up to date, {missing} to render" in messages[0], messages
+    assert f"rendered {missing} videos" in "\n".join(messages), messages
+    assert _files(out) == _files(local_render)
