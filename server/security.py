@@ -91,8 +91,8 @@ def refuse_bidi_controls(value: Any) -> Any:
     """``value`` (a text, or a list or dict of texts) unchanged, or ValueError naming the first
     :data:`BIDI_CONTROLS` character found (for pydantic validators)."""
     texts = value if isinstance(value, list) else list(value.values()) if isinstance(value, dict) else [value]
-    for text in texts:
-        if isinstance(text, str) and (found := BIDI_CONTROLS.search(text)):
+    for item in texts:
+        if isinstance(item, str) and (found := BIDI_CONTROLS.search(item)):
             raise ValueError(f"must not contain the bidirectional control character U+{ord(found.group()):04X} "
                              f"(it shows text in another order than it is stored)")
     return value
