@@ -173,7 +173,8 @@ def _print_fidelity(clips: list) -> None:
         f = c.fidelity
         if f is None:
             continue
-        verdict = "ok" if f.ok else "UNFAITHFUL (built anyway): " + "; ".join(f.problems)
+        verdict = ("UNFAITHFUL (built anyway): " + "; ".join(f.problems) if not f.ok else
+                   "UNFAITHFUL (its reference; built anyway)" if c.metrics.get("unfaithful") else "ok")
         against = "source" if c is clips[0] or c.animation != prev else "reference"
         prev = c.animation
         print(f"{c.id:{width}} {f.upright_m:6.2f} {f.foot_reach_m * 1000:7.0f} {-f.under_floor_m * 1000:8.0f} "

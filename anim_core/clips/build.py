@@ -491,7 +491,8 @@ def _gate(source: Source, clips: list[BuiltClip], src_t: Array) -> list[BuiltCli
         ends = fidelity.pose_angles(_source_poses(source, src_t[[0, -1]]))
         slack = np.degrees(np.abs(ends[1] - ends[0]))
     contact = reference.character.contact_heights
-    checks = [fidelity.check_reference(reference.world_positions, contact, candidates, slack)]
+    source_frames = cfg.frames[0] + np.round(times / source.frame_time).astype(np.intp)
+    checks = [fidelity.check_reference(reference.world_positions, contact, candidates, slack, source_frames)]
     checks += [fidelity.check_condition(c.world_positions, contact, reference.world_positions) for c in clips[1:]]
     out = []
     for c, check in zip(clips, checks, strict=True):

@@ -137,13 +137,14 @@ def _body(positions: Array, contact_heights: Array) -> tuple[float, float, float
 
 
 def check_reference(positions: Array, contact_heights: Array, source_positions: Array | list[Array],
-                    slack_deg: Array | None = None) -> Fidelity:
+                    slack_deg: Array | None = None, source_frames: NDArray[np.intp] | None = None) -> Fidelity:
     """The gate on a reference clip: body checks on ``positions`` ``(T, 31, 3)`` (metres, on the floor;
     ``contact_heights`` ``(31,)`` the joints' heights above the soles standing) and its pose angles against
     ``source_positions`` ``(T, 31, 3)`` (the source's own forward kinematics at the same source times, any units
     and orientation), or against the closer of several such arrays per frame (a loop's seam fades between two
     cycles).  ``slack_deg`` ``(A,)``: what each angle may differ beyond :data:`POSE_LIMIT_DEG` by design (a loop
-    of a stretch that does not end where it began is closed by spreading that difference over it)."""
+    of a stretch that does not end where it began is closed by spreading that difference over it).
+    ``source_frames`` ``(T,)``: the source file's frame of each clip frame, named in the messages."""
     up, reach, under, hand, problems = _body(positions, contact_heights)
     candidates = source_positions if isinstance(source_positions, list) else [source_positions]
     mine = pose_angles(positions)
@@ -152,11 +153,12 @@ def check_reference(positions: Array, contact_heights: Array, source_positions: 
     beyond = np.degrees(diff) - slack
     frame, angle = np.unravel_index(int(np.argmax(beyond)), beyond.shape)
     worst = float(np.degrees(diff[frame, angle]))
-    at = f"{ANGLE_NAMES[angle]} at frame {frame}"
+    where = f"frame {frame}" + ("" if source_frames is None else f" (source frame {int(source_frames[frame])})")
+    at = f"{ANGLE_NAMES[angle]} at {where}"
     if beyond[frame, angle] > POSE_LIMIT_DEG:
         allowed = POSE_LIMIT_DEG + slack[angle]
         problems.append(f"not faithful to the source: the {ANGLE_NAMES[angle]} angle is {worst:.0f} degrees off at "
-                        f"frame {frame} (limit {allowed:.0f})")
+                        f"clip {where} (limit {allowed:.0f})")
     return Fidelity(up, reach, under, hand, worst, at, tuple(problems))
 
 
