@@ -152,7 +152,7 @@
 
   // --- start and resume ---------------------------------------------------------------------------------
   async function start() {
-    const r = await persist(() => fetch(`/api/v1/studies/${encodeURIComponent(slug)}`));
+    const r = await persist(() => fetch(`/api/v1/studies/${encodeURIComponent(slug)}${preview ? `?preview=${encodeURIComponent(preview)}` : ""}`));
     if (!r.ok) {
       const defaults = await persist(() => fetch("/api/v1/page-defaults"));
       applyPage(await defaults.json());

@@ -32,7 +32,7 @@ def rows_of(db, model, column, ids) -> int:
 def test_preview_link_starts_pilot_sessions_on_a_draft_and_only_with_a_valid_token(client, db, researcher_headers):
     make_study(db, state=StudyState.draft)
     make_study(db, slug="other", state=StudyState.open)
-    assert start_pilot(client, None).status_code == 409  # no token: a draft takes nobody
+    assert start_pilot(client, None).status_code == 404  # no token: a draft is unknown to participants
     token = preview(client, researcher_headers)
     r = start_pilot(client, token)
     assert r.status_code == 201, r.text

@@ -20,8 +20,8 @@ from server.deps import ParticipantTokenDep, SessionDep, SettingsDep, limit_new_
 from server.errors import PayloadTooLarge
 from server.participants import service
 from server.studies import service as studies_service
-from server.studies.pilot import check_preview
-from server.studies.service import get_study, public_study
+from server.studies.pilot import previewed_study
+from server.studies.service import public_study
 
 from .models import ParticipantSession, SessionState, Trial
 from .schemas import (
@@ -50,11 +50,8 @@ def media_url(name: str) -> str:
              dependencies=[Depends(limit_new_sessions)])
 async def create_session(slug: str, body: SessionCreate, session: SessionDep,
                          settings: SettingsDep) -> SessionCreated:
-    if body.preview is not None:  # a researcher's pilot run: draft studies too
-        study = get_study(session, slug)
-        check_preview(study, body.preview, settings.secret)
-    else:
-        study = public_study(session, slug)
+    study = (previewed_study(session, slug, body.preview, settings.secret) if body.preview is not None
+             else public_study(session, slug))  # a researcher's pilot run: draft studies too
     new = service.start_session(session, study, body.external,
                                 body.device.model_dump() if body.device else None, pilot=body.preview is not None)
     return SessionCreated(session_id=new.session.id, token=new.token, trials_total=new.session.trials_total)

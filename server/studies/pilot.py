@@ -17,7 +17,7 @@ from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session
 
 from server.db import utcnow
-from server.errors import Conflict, Forbidden
+from server.errors import Conflict, Forbidden, NotFound
 from server.participants.models import ParticipantSession, PlaybackEvent, Trial, Vote
 
 from .models import Study, StudyState
@@ -81,3 +81,13 @@ def delete_pilot_sessions(session: Session, study: Study, commit: bool = True) -
     if commit:
         session.commit()
     return deleted
+
+
+def previewed_study(session: Session, slug: str, token: str, secret: bytes) -> Study:
+    """The study ``slug`` for a pilot run with the preview ``token`` (a draft too): 404 for an unknown study, 403
+    for a token that is not this study's (the draft's existence is then known to the link's holder only)."""
+    study = session.scalar(select(Study).where(Study.slug == slug))
+    if study is None:
+        raise NotFound(f"no study {slug!r}")
+    check_preview(study, token, secret)
+    return study

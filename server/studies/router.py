@@ -123,8 +123,11 @@ def page_defaults() -> dict[str, Any]:
 
 
 @router.get("/studies/{slug}", response_model=StudyPublic)
-def read_study(slug: str, session: SessionDep) -> StudyPublic:
-    study = service.public_study(session, slug)
+def read_study(slug: str, session: SessionDep, settings: SettingsDep,
+               preview: Annotated[str | None, Query(max_length=2000, description="a researcher's preview token: "
+                                                    "a draft study too")] = None) -> StudyPublic:
+    study = (pilot.previewed_study(session, slug, preview, settings.secret) if preview is not None
+             else service.public_study(session, slug))
     return StudyPublic(slug=study.slug, title=study.title, state=study.state, texts=study.texts,
                        consent_version=study.consent_version, trials_total=service.trials_total(study),
                        scale=study.scale, questions=study.questions,
