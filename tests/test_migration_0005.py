@@ -19,7 +19,7 @@ TABLES = ("studies", "sessions", "trials", "votes", "comparisons", "stimuli")
 
 
 # Columns added by 0005 and later migrations (each test compares what existed before its migration).
-LATER_COLUMNS = ("page", "device", "screening", "pilot")
+LATER_COLUMNS = ("page", "device", "stimulus_set_id", "public_id", "screening", "pilot")
 
 
 def dump(conn: sa.Connection) -> dict[str, list[tuple]]:

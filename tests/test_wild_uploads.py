@@ -62,16 +62,16 @@ def test_changing_how_a_file_is_read_inspects_it_again(uclient, admin, draft, da
                          headers=admin).status_code == 422
 
 
-def test_the_clip_set_file_reads_the_file_as_the_researcher_said(tmp_path):
-    from server.clipset.config import CharacterConfig, load_config
-    from server.uploads.job import BaseClipSet, write_clip_set_file
+def test_the_clip_set_description_reads_the_file_as_the_researcher_said(tmp_path):
+    from server.clipset.config import CharacterConfig
+    from server.uploads.job import BaseClipSet, assets_config
 
     options = {"units": "cm", "up_axis": "z", "mapping": {"LeftLeg": "StickLeg"}}
     asset = StudyAsset(id=1, name="stick", filename="stick.bvh", kind="idle", first_frame=0, last_frame=9,
                        report={"options": options})
-    path = write_clip_set_file(tmp_path / "clipset.toml", [asset], lambda a: tmp_path / a.filename,
-                               BaseClipSet(30, ("LHipJoint",), CharacterConfig(), [("keyframe", "keyframe", {})]))
-    cfg = load_config(path).animations["stick"]
+    config = assets_config([asset], lambda a: tmp_path / a.filename,
+                           BaseClipSet(30, ("LHipJoint",), CharacterConfig(), [("keyframe", "keyframe", {})]))
+    cfg = config.animations["stick"]
     assert (cfg.units, cfg.up_axis) == ("cm", "z")
     assert json.loads((tmp_path / "stick.mapping.json").read_text()) == options["mapping"] == json.loads(
         open(cfg.mapping).read())
