@@ -14,15 +14,6 @@ window.DashboardScreening = (() => {
     bt500: "BT.500 (P+Q)/(J·R)", correlation: "correlation with the panel", fast: "share answered before one playback",
   };
 
-  function table(container, header, rows) {
-    const { table: t, body } = Researcher.newTable(header);
-    for (const row of rows) {
-      const tr = body.insertRow();
-      for (const cell of row) tr.insertCell().textContent = cell;
-    }
-    container.replaceChildren(t);
-  }
-
   function render(res) {
     const s = res.screening;
     if (!s) return;
@@ -39,9 +30,9 @@ window.DashboardScreening = (() => {
     const o = res.overall, wo = res.without_screening.overall;
     rows.push(["all comparisons", o.n_participants, fmt(o.mean_score), interval(o.ci95), p(o.wilcoxon_p),
                wo.n_participants, fmt(wo.mean_score), interval(wo.ci95), p(wo.wilcoxon_p)]);
-    table($("table-screening"), ["comparison", "n (screened)", "mean", "95 % CI", "Holm p", "n (everyone)", "mean",
+    Researcher.fillTable($("table-screening"), ["comparison", "n (screened)", "mean", "95 % CI", "Holm p", "n (everyone)", "mean",
                                  "95 % CI", "Holm p"], rows);
-    table($("table-excluded"), ["participant", "screened by", "measures (value / threshold)"],
+    Researcher.fillTable($("table-excluded"), ["participant", "screened by", "measures (value / threshold)"],
           s.excluded.map((e) => [short(e.session_id), e.screened_by.join(", "),
                                  Object.entries(e.rules).filter(([, r]) => r.flagged)
                                    .map(([rule, r]) => `${RULE_NAMES[rule] || rule}: ${fmt(r.value)} / ${fmt(r.threshold)}`)
@@ -49,9 +40,9 @@ window.DashboardScreening = (() => {
     $("excluded-empty").hidden = s.excluded.length > 0;
     const m = res.subject_model;
     if (m && m.status !== "too_few") {
-      table($("table-subject-comparisons"), ["comparison", "modelled score", "95 % CI"],
+      Researcher.fillTable($("table-subject-comparisons"), ["comparison", "modelled score", "95 % CI"],
             m.comparisons.map((c) => [`${c.animation}, ${c.condition}`, fmt(c.score), interval(c.ci95)]));
-      table($("table-subject-participants"), ["participant", "bias", "95 % CI", "inconsistency", "95 % CI"],
+      Researcher.fillTable($("table-subject-participants"), ["participant", "bias", "95 % CI", "inconsistency", "95 % CI"],
             m.participants.map((q) => [short(q.session_id), fmt(q.bias), interval(q.bias_ci95), fmt(q.inconsistency),
                                        interval(q.inconsistency_ci95)]));
       $("subject-model-note").textContent = `Maximum likelihood, ${m.iterations} iterations (${m.status}).`;

@@ -57,15 +57,6 @@
     return div;
   }
 
-  function table(container, header, rows) {
-    const { table: t, body } = Researcher.newTable(header);
-    for (const row of rows) {
-      const tr = body.insertRow();
-      for (const cell of row) tr.insertCell().textContent = cell;
-    }
-    container.replaceChildren(t);
-  }
-
   function render(res) {
     $("dashboard").hidden = false;
     $("actions").hidden = false;
@@ -97,7 +88,7 @@
       [...comps.map((c) => ({ label: label(c), value: c.mean_score, ci: c.ci95 })),
        { label: "all comparisons", value: res.overall.mean_score, ci: res.overall.ci95 }], res.answer_scale.min, res.answer_scale.max,
       "Mean preference"));
-    table($("table-stats"), ["comparison", "n", "mean", "95 % CI", "Wilcoxon p", "Holm p", "sign test p",
+    Researcher.fillTable($("table-stats"), ["comparison", "n", "mean", "95 % CI", "Wilcoxon p", "Holm p", "sign test p",
                              "rank-biserial", "n for 80 % power"],
           comps.map((c) => [label(c), c.n_participants, fmt(c.mean_score, 2),
                             c.ci95 ? `${fmt(c.ci95[0], 2)} … ${fmt(c.ci95[1], 2)}` : "–", p(c.wilcoxon_p), p(c.p_holm),
@@ -108,7 +99,7 @@
       `Consistency of the two side-swapped showings: weighted κ ${fmt(sc.weighted_kappa, 2)}, exact agreement ` +
       `${fmt(sc.exact_agreement, 2)}, within one step ${fmt(sc.within_one, 2)} (${sc.pairs} pairs). ` +
       `Krippendorff's α (ordinal): ${fmt(res.krippendorff_alpha_ordinal, 2)}. ${res.methods.wilcoxon}.`;
-    table($("table-ranking"), ["animation", "condition", "scale value", "95 % CI", "votes", "fit"],
+    Researcher.fillTable($("table-ranking"), ["animation", "condition", "scale value", "95 % CI", "votes", "fit"],
           (res.rankings || []).flatMap((r) => r.conditions.map((c) => [
             r.animation, c.condition, c.value == null ? (c.bound ? `${c.bound} all others` : "–") : fmt(c.value, 2),
             c.ci95 ? `${fmt(c.ci95[0], 2)} … ${fmt(c.ci95[1], 2)}` : "–", c.votes, r.fit.status])));
@@ -133,7 +124,7 @@
     const values = rows.flatMap((r) => (r.ci ? r.ci : [r.value])).filter((v) => v !== null && v !== undefined);
     const lo = Math.floor(Math.min(0, ...values) * 2) / 2, hi = Math.ceil(Math.max(0, ...values) * 2) / 2;
     $("chart-scale").replaceChildren(Charts.forest(rows, lo, Math.max(hi, lo + 0.5), "Scale per animation"));
-    table($("table-scale"), ["animation", "condition", "scale value", "95 % CI", "JND", "participants", "fit"],
+    Researcher.fillTable($("table-scale"), ["animation", "condition", "scale value", "95 % CI", "JND", "participants", "fit"],
           scales.flatMap((s) => s.conditions.map((c, i) => [
             s.animation, c, fmt(s.value[i], 2), s.ci95[i] ? `${fmt(s.ci95[i][0], 2)} … ${fmt(s.ci95[i][1], 2)}` : "–",
             fmt(s.value_jnd[i], 2), s.participants, s.status])));
@@ -141,11 +132,11 @@
       `${s.animation}, ${c}`, ...s.conditions.map((_, j) => cell(s, i, j))]));
     const width = Math.max(0, ...scales.map((s) => s.conditions.length));
     const header = ["", ...Array.from({ length: width }, (_, j) => scales[0] ? (scales[0].conditions[j] ?? "") : "")];
-    table($("table-pbetter"), header, matrix((s, i, j) => {
+    Researcher.fillTable($("table-pbetter"), header, matrix((s, i, j) => {
       const v = s.p_better[i][j];
       return v === null || v === undefined ? "–" : `${v.toFixed(2)}${v < 0.025 || v > 0.975 ? " *" : ""}`;
     }));
-    table($("table-pairs"), header, matrix((s, i, j) => (i === j ? "–" : String(s.pair_counts[i][j]))));
+    Researcher.fillTable($("table-pairs"), header, matrix((s, i, j) => (i === j ? "–" : String(s.pair_counts[i][j]))));
     const rounds = res.adaptive_rounds;
     $("adaptive-panel").hidden = !rounds;
     if (!rounds) return;
@@ -157,7 +148,7 @@
     } else {
       $("chart-rounds").replaceChildren();
     }
-    table($("table-rounds"), ["round", "votes before", ...animations.map((a) => `${a}: nats`),
+    Researcher.fillTable($("table-rounds"), ["round", "votes before", ...animations.map((a) => `${a}: nats`),
                               ...animations.map((a) => `${a}: pairs`)],
           rounds.map((r) => [r.round, r.votes_before, ...animations.map((a) => fmt(r.information[a], 3)),
                              ...animations.map((a) => r.pairs[a].map((p) => p.join("–")).join(", "))]));
@@ -209,7 +200,7 @@
                                                       (v) => `${Math.round(v * 100)} %`));
     const m = (c) => c.metrics;
     const name = (id) => { const c = all.find((x) => x.id === id); return c ? `${c.animation} ${c.condition}` : id; };
-    table($("table-metrics"), ["clip", "in this study", "method", "same arrays as", "keys", "foot skate", "source skate", "slide mm",
+    Researcher.fillTable($("table-metrics"), ["clip", "in this study", "method", "same arrays as", "keys", "foot skate", "source skate", "slide mm",
                                "penetration mm", "floating mm", "MPJPE mm", "max rotation error °",
                                "key velocity jump rad/s", "key acceleration jump rad/s²", "jerk m/s³", "bytes",
                                "seam jump mm", "hips phase r (lag)", "knee phase r (lag)", "fidelity",
@@ -272,7 +263,7 @@
     const error = (clip) => (bench.accuracy || []).find((a) => a.clip === clip && a.variant === "keys");
     const perFrame = (bench.results || []).filter((r) => r.stage === "pose" && r.variant === "keys" && r.threads === 1);
     const largest = Math.max(0, ...perFrame.map((r) => r.characters));
-    table($("table-benchmark"), ["clip", `ms per frame (keys, ${largest} characters)`,
+    Researcher.fillTable($("table-benchmark"), ["clip", `ms per frame (keys, ${largest} characters)`,
                                  "÷ keyframe (keys, ≥ 10 characters, worst)", "runtime bytes (keys)",
                                  "runtime bytes (baked)", "largest error ° (keys)"],
           clips.map((c) => {

@@ -52,5 +52,15 @@ window.Researcher = (() => {
     return { table, body: table.createTBody() };
   }
 
-  return { api, start, newTable };
+  // A table of text cells in place of what ``container`` held.
+  function fillTable(container, headers, rows) {
+    const { table, body } = newTable(headers);
+    for (const row of rows) {
+      const tr = body.insertRow();
+      for (const cell of row) tr.insertCell().textContent = cell;
+    }
+    container.replaceChildren(table);
+  }
+
+  return { api, start, newTable, fillTable };
 })();

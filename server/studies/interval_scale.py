@@ -26,7 +26,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import optimize
 
-from .ranking import GradedComparison, _cdf_pdf, _cuts, _scores, rank_conditions
+from .ranking import GradedComparison, _cdf_pdf, _scores, rank_conditions
 
 BOOT_PRIOR_SD = 10.0
 N_BOOT = 200
@@ -42,14 +42,6 @@ def _design(votes: Sequence[GradedComparison], names: Sequence[str]) -> tuple[np
         if column[v.reference] >= 0:
             x[i, column[v.reference]] -= 1
     return x, np.array([v.score + 2 for v in votes], dtype=int)
-
-
-def ridge_fit(votes: Sequence[GradedComparison], names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-    """(scale values of ``names`` with names[0] at 0, the 4 cut points) maximising the ordinal BT likelihood
-    of the 5-point votes plus a N(0, ``BOOT_PRIOR_SD``) ridge on the values."""
-    x, y = _design(votes, names)
-    params = _ridge(x, y, None)
-    return np.concatenate([[0.0], params[: x.shape[1]]]), _cuts(params[x.shape[1]:], False)[0]
 
 
 def _ridge(x: np.ndarray, y: np.ndarray, start: np.ndarray | None) -> np.ndarray:
