@@ -43,9 +43,16 @@ def rng() -> np.random.Generator:
 DATABASES = ["sqlite"] + (["postgresql"] if os.environ.get("TEST_DATABASE_URL") else [])
 
 
+def own_database(url, database: str) -> str:
+    """The name of the extra PostgreSQL database ``database`` for the test database of ``url``: named after it
+    (``test`` + ``test_animstudy_live`` -> ``test_animstudy_live``, ``test_b`` -> ``test_b_animstudy_live``), so
+    that two runs against two test databases on one server never share one."""
+    return f"{url.database}_{database.removeprefix('test_')}"
+
+
 def _fresh_engine(kind: str, tmp_path_factory: pytest.TempPathFactory, database: str | None = None):
     """An empty database: a new SQLite file, or the PostgreSQL test database (or ``database`` on the same
-    server, created if needed) with its schema dropped."""
+    server, created if needed; see :func:`own_database`) with its schema dropped."""
     from sqlalchemy import make_url, text
 
     from server.config import normalize_database_url
@@ -55,6 +62,7 @@ def _fresh_engine(kind: str, tmp_path_factory: pytest.TempPathFactory, database:
         return make_engine(f"sqlite:///{tmp_path_factory.mktemp('db') / 'test.db'}")
     url = make_url(normalize_database_url(os.environ["TEST_DATABASE_URL"]))
     if database:
+        database = own_database(url, database)
         admin = make_engine(url.render_as_string(hide_password=False)).execution_options(
             isolation_level="AUTOCOMMIT")
         with admin.connect() as conn:

@@ -14,6 +14,7 @@ from server import loadtest
 from server.app import create_app
 from server.config import Settings, normalize_database_url
 from server.db import make_engine, migrate, session_factory
+from tests.conftest import own_database
 from tests.server_fixtures import make_study
 
 
@@ -34,7 +35,8 @@ def test_sigkill_in_the_middle_loses_and_doubles_nothing():
 if os.environ.get("TEST_DATABASE_URL"):  # a PostgreSQL scenario: defined only where PostgreSQL is configured
 
     def test_postgresql_outage_answers_503_and_loses_nothing():
-        url = make_url(normalize_database_url(os.environ["TEST_DATABASE_URL"])).set(database="test_animstudy_load")
+        url = make_url(normalize_database_url(os.environ["TEST_DATABASE_URL"]))
+        url = url.set(database=own_database(url, "test_animstudy_load"))
         report = loadtest.run("postgresql", participants=8, workers=2, concurrency=8, outage_at=0.3, outage_s=3,
                               time_limit=120, pg_url=url.render_as_string(hide_password=False),
                               progress=lambda _m: None)
