@@ -54,6 +54,10 @@ METRES_PER_CMU_UNIT = UNITS["cmu"][0]  # CMU's BVH unit (1 / 0.45 inch)
 LOOP_BLEND_S = 0.2  # a gait loop fades in from the mocap's next cycle over this long (seam C1)
 TURN_EASE_S = 0.2  # a ping-pong keyframe clip slows to rest over this long at each turn (no bounce)
 CROUCH_START = 0.02  # the crouch starts where the hips have gone 2 % of its depth down
+#: Foot planting turns no thigh of a reference and bends no knee more or less than its source does by more than
+#: this (degrees), half the fidelity gate's limit (:data:`anim_core.clips.fidelity.POSE_LIMIT_DEG`): a foot that
+#: still slides as it lands is held only as far as the leg reaches it posed as in the motion (the Bandai Namco run).
+PLANT_LEG_TOLERANCE_DEG = 0.5 * fidelity.POSE_LIMIT_DEG
 
 
 class ConfigError(ValueError):
@@ -326,7 +330,7 @@ def _planted(source: Source, clip: KeyframeClip, src_t: Array) -> KeyframeClip:
     root = clip.root_translation[keys] - velocity * clip.times[keys, None]
     feet = [tuple(int(j) for j in sk.indices(foot)) for foot in FEET]
     rot = plant_feet(sk, clip.rotations[keys], root, legs, down, 1.0 / (clip.times[1] - clip.times[0]), feet,
-                     periodic=loop, ground_velocity=velocity, up_axis=UP)
+                     periodic=loop, ground_velocity=velocity, up_axis=UP, max_leg_change_deg=PLANT_LEG_TOLERANCE_DEG)
     if loop:
         rot = np.concatenate([rot, rot[:1]])
     return KeyframeClip(sk, clip.times, rot, clip.root_translation, clip.mode, clip.in_place, clip.up_axis,
