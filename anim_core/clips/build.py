@@ -466,6 +466,64 @@ def build_animation(source: Source, fps: int, conditions: Sequence[Condition],
     return _gate(source, measured, src_t)
 
 
+#: Kind ``other``: the tolerances (mm) :func:`suggest_tolerance` tries in turn, the default first, and the largest
+#: share of the reference's stored bytes the cheapest condition (the hybrid through the picked keys, increment 0)
+#: may take for the suggestion to count as cheap.
+SUGGESTED_TOLERANCES_MM = (DEFAULT_TOLERANCE_MM, 30.0, 50.0, 80.0, 120.0)
+CHEAP_BYTE_RATIO = 0.5
+
+
+@dataclass(frozen=True)
+class ToleranceSuggestion:
+    """A ``tolerance_mm`` for kind ``other`` and what building the animation with it gave: the hybrid's (increment
+    0) keys and stored bytes against the reference's."""
+
+    tolerance_mm: float
+    keys: int
+    reference_keys: int
+    bytes: int
+    reference_bytes: int
+
+    @property
+    def key_ratio(self) -> float:
+        return self.keys / self.reference_keys
+
+    @property
+    def byte_ratio(self) -> float:
+        return self.bytes / self.reference_bytes
+
+    @property
+    def cheap(self) -> bool:
+        return self.byte_ratio <= CHEAP_BYTE_RATIO
+
+    def describe(self) -> str:
+        measured = (f"built: the hybrid (increment 0) has {self.keys} of the reference's {self.reference_keys} keys "
+                    f"(key ratio {self.key_ratio:.2f}) and stores {self.bytes} of its {self.reference_bytes} bytes "
+                    f"(byte ratio {self.byte_ratio:.2f})")
+        if self.cheap:
+            return f"tolerance_mm = {self.tolerance_mm:g}  ({measured})"
+        return (f"tolerance_mm = {self.tolerance_mm:g}  ({measured}; even so the hybrid is not cheap: more than "
+                f"{CHEAP_BYTE_RATIO:.0%} of the reference's bytes - the motion has little to leave out; give 'keys')")
+
+
+def suggest_tolerance(source: Source, fps: int) -> ToleranceSuggestion:
+    """The smallest of :data:`SUGGESTED_TOLERANCES_MM` at which the animation ``source`` (kind ``other``) builds a
+    hybrid (increment 0) that stores at most :data:`CHEAP_BYTE_RATIO` of the reference's bytes, measured by
+    building the reference and that hybrid (through the fidelity gate: :class:`ConfigError` if it fails); the
+    largest tried if none does (:attr:`ToleranceSuggestion.cheap` is false then)."""
+    conditions = (Condition.parse("keyframe", REFERENCE), Condition.parse("hybrid0", "hybrid", {"increment": 0}))
+    suggestion = None
+    for tolerance in SUGGESTED_TOLERANCES_MM:
+        config = replace(source.config, kind="other", tolerance_mm=tolerance)
+        reference, hybrid = build_animation(replace(source, config=config), fps, conditions)
+        suggestion = ToleranceSuggestion(tolerance, int(hybrid.key_times.size), int(reference.key_times.size),
+                                         int(hybrid.metrics["bytes"]), int(reference.metrics["bytes"]))
+        if suggestion.cheap:
+            break
+    assert suggestion is not None
+    return suggestion
+
+
 def _source_poses(source: Source, times: Array) -> Array:
     """``(T, 31, 3)`` the source's own forward kinematics at source times (s from ``config.frames[0]``), linear
     between its frames."""
