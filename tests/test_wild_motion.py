@@ -344,3 +344,31 @@ def test_gltf_with_one_influence_set_unnamed_joints_and_partial_animation(charac
     (_, same), = read_motions(ours)  # the file as our exporter wrote it, joints named
     err = np.abs(character_positions(character, out.bvh) - character_positions(character, same.bvh)).max()
     assert err < 1e-6, err
+
+
+def test_a_one_cycle_take_cut_just_before_a_passing_builds_every_hybrid(character, data):
+    """A take of exactly one gait cycle (its last pose its first), at 30 fps, cut one frame before the left foot
+    falls behind the right, as the Bandai Namco run is: the passing is the very next frame, and keys one frame apart
+    left the hybrid's increment 1 nothing to insert ("keys ... fall on the same source frames").  The second key is
+    the first passing or full extension at least two frames on: every hybrid of the thesis builds."""
+    bvh = read_bvh(data / "mocap" / "cmu" / "02_01_walk.bvh.gz")
+    bvh = dataclasses.replace(bvh, motion=bvh.motion[1::4], frame_time=4 * bvh.frame_time)  # 30 fps
+    rot, root = bvh.pose_arrays()
+    pos = bvh.posed_skeleton().forward_kinematics(rot, root)[1]
+    sk = bvh.skeleton
+    lead = pos[:, sk.index("LeftFoot"), 2] - pos[:, sk.index("RightFoot"), 2]  # CMU 02_01 walks along +z
+    behind = np.flatnonzero((lead[:-1] > 0) & (lead[1:] <= 0))
+    a, b = int(behind[0]), int(behind[1])  # the frames just before two passings: one whole cycle
+    rot, root = rot[a:b + 1].copy(), root[a:b + 1]
+    rot[-1] = rot[0]  # the take's last pose is its first again
+    take = bvh.with_poses(rot, root)
+    conditions = (*CONDITIONS[:1], *(Condition.parse(f"hybrid{i}", "hybrid", {"increment": i}) for i in range(3)))
+    out = normalize_bvh(take)
+    cfg = AnimationConfig("take", "gait", take.source, (0, take.n_frames - 1), "loop", True)
+    source = source_from_bvh(out.bvh, character, cfg, ("LHipJoint", "RHipJoint"), out.metres_per_unit,
+                             out.source_positions)
+    clips = build_animation(source, 30, conditions)
+    assert [c.condition for c in clips] == ["keyframe", "hybrid0", "hybrid1", "hybrid2"]
+    start, passing, end = clips[0].source["key_frames"][0], clips[0].source["key_frames"][1], b - a
+    assert start == 0 and passing >= 2 and clips[0].source["cycle_frames"] == [0, end]
+    assert all(c.fidelity.ok for c in clips), [(c.id, c.fidelity) for c in clips]

@@ -206,10 +206,15 @@ def pick_gait(source: Source) -> tuple[int, int, int]:
     first = source.config.frames[0]
     if len(steps) < 2 and _loops(pos):
         # A take of exactly one cycle (its last pose is its first again, as the Bandai Namco runs are cut): the
-        # cycle is the whole take, passing where the left foot falls behind the right.
-        behind = np.flatnonzero((lead[:-1] > 0.0) & (lead[1:] <= 0.0))
-        if behind.size:
-            return first, first + int(behind[0]) + 1, first + len(lead) - 1
+        # cycle is the whole take, wherever in the stride it was cut.  Its second key is the first passing (the
+        # lead changes sign) or full extension (the feet furthest apart) after its first frame, whichever comes
+        # first; not the very next frame: a take cut just before a passing (the Bandai run) would put the keys one
+        # frame apart, too close for the hybrid's increments.
+        size = np.abs(lead)
+        events = [k for k in range(2, len(lead) - 1)
+                  if (lead[k - 1] > 0.0) != (lead[k] > 0.0) or (size[k] >= size[k - 1] and size[k] > size[k + 1])]
+        if events:
+            return first, first + events[0], first + len(lead) - 1
     if len(steps) < 2:
         raise ConfigError(f"[animations.{name}]: no whole gait cycle found in frames {source.config.frames}; "
                           f"give 'cycle' and 'keys' in the clip set file")
