@@ -133,13 +133,13 @@ def plant_feet(skeleton: Skeleton, local_rotations: ArrayLike, root_translation:
     for f, chain in enumerate(legs):  # one solve per leg over all frames
         active = frames[weights[:, f] > 0]
         if active.size:
-            ik = {"pole": pos[active, chain[1]], "hinge": _hinge(skeleton, local_rotations, root, chain)}
+            pole, hinge = pos[active, chain[1]], _hinge(skeleton, local_rotations, root, chain)
             target = targets[active, f]
             if max_leg_change_deg is not None:
-                target = leg_limited_targets(skeleton, rot[active], root[active], chain, target,
-                                             weights[active, f], np.radians(max_leg_change_deg), **ik)
-            rot[active] = two_bone_ik(skeleton, rot[active], root[active], chain, target, weight=weights[active, f],
-                                      **ik)
+                target = leg_limited_targets(skeleton, rot[active], root[active], chain, target, weights[active, f],
+                                             np.radians(max_leg_change_deg), pole, hinge)
+            rot[active] = two_bone_ik(skeleton, rot[active], root[active], chain, target, pole=pole,
+                                      weight=weights[active, f], hinge=hinge)
     return rot
 
 
@@ -153,22 +153,20 @@ def _leg_angles(skeleton: Skeleton, rot: Array, root: Array, chain: tuple[int, i
 
 
 def leg_limited_targets(skeleton: Skeleton, rot: Array, root: Array, chain: tuple[int, int, int], targets: Array,
-                        weights: Array, tolerance: float, **ik: object) -> Array:
-    """``(T, 3)`` ankle targets for :func:`anim_core.methods.ik.two_bone_ik` (keyword arguments ``ik``) on the poses
-    ``rot``/``root`` such that the solved leg's thigh turns by at most ``tolerance`` radians and its knee bends
-    within ``tolerance`` of the animated bend: each target moves from the animated ankle towards the given one
-    as far as that holds (bisection on the solve; the thigh and the knee are the leg's angles that the fidelity
-    gate compares with the source, :mod:`anim_core.clips.fidelity`).  Targets the leg reaches within the
-    tolerance are returned unchanged."""
+                        weights: Array, tolerance: float, pole: Array, hinge: Array | None) -> Array:
+    """``(T, 3)`` ankle targets for :func:`anim_core.methods.ik.two_bone_ik` (with ``weights``, ``pole (T, 3)``
+    and ``hinge``, as :func:`plant_feet` solves) on the poses ``rot``/``root`` such that the solved leg's thigh
+    turns by at most ``tolerance`` radians and its knee bends within ``tolerance`` of the animated bend: each
+    target moves from the animated ankle towards the given one as far as that holds (bisection on the solve; the
+    thigh and the knee are the leg's angles that the fidelity gate compares with the source,
+    :mod:`anim_core.clips.fidelity`).  Targets the leg reaches within the tolerance are returned unchanged."""
     thigh0, bend0 = _leg_angles(skeleton, rot, root, chain)
     ankle = skeleton.forward_kinematics(rot, root)[1][:, chain[2]]
     way = targets - ankle
 
     def fits(s: Array, frames: NDArray[np.intp]) -> NDArray[np.bool_]:
-        weight = weights[frames]
         solved = two_bone_ik(skeleton, rot[frames], root[frames], chain, ankle[frames] + s[:, None] * way[frames],
-                             weight=weight, **{k: (v[frames] if isinstance(v, np.ndarray) and v.ndim == 2 else v)
-                                               for k, v in ik.items()})
+                             pole=pole[frames], weight=weights[frames], hinge=hinge)
         thigh, bend = _leg_angles(skeleton, solved, root[frames], chain)
         turn = np.arccos(np.clip(np.sum(thigh * thigh0[frames], axis=-1), -1.0, 1.0))
         return (turn <= tolerance) & (np.abs(bend - bend0[frames]) <= tolerance)
