@@ -207,12 +207,14 @@ def pick_gait(source: Source) -> tuple[int, int, int]:
     if len(steps) < 2 and _loops(pos):
         # A take of exactly one cycle (its last pose is its first again, as the Bandai Namco runs are cut): the
         # cycle is the whole take, wherever in the stride it was cut.  Its second key is the first passing (the
-        # lead changes sign) or full extension (the feet furthest apart) after its first frame, whichever comes
-        # first; not the very next frame: a take cut just before a passing (the Bandai run) would put the keys one
-        # frame apart, too close for the hybrid's increments.
+        # lead changes sign) or full extension (the feet furthest apart: a peak of the lead's size, at least half
+        # its largest, as for the steps above) after its first frame, whichever comes first; not the very next
+        # frame: a take cut just before a passing (the Bandai run) would put the keys one frame apart, too close
+        # for the hybrid's increments.
         size = np.abs(lead)
         events = [k for k in range(2, len(lead) - 1)
-                  if (lead[k - 1] > 0.0) != (lead[k] > 0.0) or (size[k] >= size[k - 1] and size[k] > size[k + 1])]
+                  if (lead[k - 1] > 0.0) != (lead[k] > 0.0)
+                  or (size[k] >= size[k - 1] and size[k] > size[k + 1] and size[k] >= 0.5 * size.max())]
         if events:
             return first, first + events[0], first + len(lead) - 1
     if len(steps) < 2:
