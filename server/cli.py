@@ -10,7 +10,10 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from anim_core.clips.sources import MotionReport
 
 from .config import Settings
 
@@ -29,8 +32,9 @@ def _source_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--up", choices=["y", "z"], default=None, help="up axis of the file (default: detected)")
 
 
-def clips_inspect(path: Path, mapping: Path | None, units: str | None, up_axis: str | None) -> int:
-    """Print what a BVH or glTF file holds and how it maps onto the character (``animstudy clips inspect``)."""
+def clips_inspect(data_dir: Path, path: Path, mapping: Path | None, units: str | None, up_axis: str | None) -> int:
+    """Print what a BVH or glTF file holds and how it maps onto the character (``animstudy clips inspect``); for a
+    motion suggested as kind ``other``, a ``tolerance_mm`` measured by building it (:func:`_tolerance_line`)."""
     from anim_core.clips.sources import format_report, inspect_source
     from anim_core.rig.rigmap import read_mapping_file
 
@@ -41,8 +45,29 @@ def clips_inspect(path: Path, mapping: Path | None, units: str | None, up_axis: 
         reports = inspect_source(path, explicit, units, up_axis)
     except (ValueError, OSError) as exc:  # BvhError, GltfError and RigMapError name the file (and line)
         return _fail(str(exc))
-    print(format_report(path, reports))
+    print(format_report(path, reports, [_tolerance_line(data_dir, path, r) if r.kind == "other" else None
+                                        for r in reports]))
     return 0
+
+
+def _tolerance_line(data_dir: Path, path: Path, report: MotionReport) -> str:
+    """The suggested ``tolerance_mm`` of a kind-``other`` motion, with the key and byte ratio of the hybrid it
+    builds on the clip set's character (:func:`anim_core.clips.build.suggest_tolerance`), or why there is none."""
+    from anim_core.clips.build import AnimationConfig, source_from_bvh, suggest_tolerance
+    from server.assets import AssetError
+    from server.clipset.build import load_character
+    from server.clipset.config import load_config
+
+    n = report.normalized
+    try:
+        clip_set = load_config()
+        character, _ = load_character(data_dir, clip_set.character)
+        config = AnimationConfig(Path(report.name).stem or "motion", "other", str(path), report.frames, "pingpong",
+                                 False)
+        source = source_from_bvh(n.bvh, character, config, clip_set.relocate, n.metres_per_unit, n.source_positions)
+        return suggest_tolerance(source, clip_set.fps).describe()
+    except (AssetError, ValueError) as exc:  # ConfigError (the gate, the key picking) names the animation
+        return f"tolerance_mm: none suggested, building the motion failed: {exc}"
 
 
 def clips_convert(data_dir: Path, path: Path, out: Path, mapping: Path | None, units: str | None,
@@ -893,7 +918,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
                       max(1, args.workers), args.study or [], args.width, args.height, not args.no_shadows,
                       args.every_clip)
     if args.clips_command == "inspect":
-        return clips_inspect(args.file, args.mapping, args.units, args.up)
+        return clips_inspect(settings.data, args.file, args.mapping, args.units, args.up)
     if args.clips_command == "export":
         return clips_export(settings.data, args.clips or settings.var / "clips", args.clip, args.out)
     if args.clips_command == "convert":

@@ -177,3 +177,36 @@ def test_convert_writes_the_motion_on_the_character(data, tmp_path, capsys):
     code, _, err = run(["clips", "convert", str(source), str(tmp_path / "walk.fbx")], capsys)
     assert code == 2 and "walk.fbx: export writes .glb, .gltf, .bvh or .bvh.gz" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["walk.bvh", "walk.glb"]
+
+
+def test_inspect_suggests_a_tolerance_whose_hybrid_is_cheaper_with_its_measured_ratios(data, tmp_path, capsys):
+    """Kind ``other`` (issue 24): the suggested ``tolerance_mm`` is said with the key and byte ratio of the hybrid
+    (increment 0) it builds, and building the clip set with it gives those keys and a hybrid that is cheaper."""
+    from anim_core.math.quat import quat_from_axis_angle, quat_mul
+    from server.clipset.build import build_clip_set
+    from server.clipset.config import inline_config
+
+    bvh = read_bvh(data / "mocap" / "cmu" / "113_21_idle_30fps.bvh.gz")
+    rot, root = bvh.pose_arrays()
+    j = bvh.skeleton.index("RightArm")
+    wave = 1.0 * np.sin(np.arange(bvh.n_frames) / bvh.fps * 2 * np.pi * 0.7)  # an arm waving at 0.7 Hz
+    rot[:, j] = quat_mul(quat_from_axis_angle([0.0, 0.0, 1.0], wave), rot[:, j])
+    path = tmp_path / "wave.bvh"
+    path.write_text(format_bvh(bvh.with_poses(rot, root)))
+    code, out, err = run(["clips", "inspect", str(path)], capsys)
+    assert code == 0 and err == ""
+    frames = re.search(r'kind = "other", frames (\d+)\.\.(\d+)', out)
+    assert frames, out
+    m = re.search(r"tolerance_mm = (\d+)  \(built: the hybrid \(increment 0\) has (\d+) of the reference's (\d+) keys "
+                  r"\(key ratio ([\d.]+)\) and stores (\d+) of its (\d+) bytes \(byte ratio ([\d.]+)\)\)", out)
+    assert m, out
+    tolerance, keys, ref_keys, key_ratio, size, ref_size, byte_ratio = m.groups()
+    assert float(byte_ratio) <= 0.5 and float(key_ratio) < 1.0
+    config = inline_config({"wave": {"kind": "other", "source": str(path), "tolerance_mm": int(tolerance),
+                                     "frames": [int(frames[1]), int(frames[2])]}},
+                           [{"id": "keyframe", "method": "keyframe"},
+                            {"id": "hybrid0", "method": "hybrid", "params": {"increment": 0}}], "test")
+    reference, hybrid = build_clip_set(data, config)
+    assert (hybrid.key_times.size, reference.key_times.size) == (int(keys), int(ref_keys))
+    assert (hybrid.metrics["bytes"], reference.metrics["bytes"]) == (int(size), int(ref_size))
+    assert int(size) < int(ref_size)

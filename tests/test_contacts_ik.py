@@ -241,3 +241,41 @@ def test_quat_between_turns_one_direction_into_the_other(rng):
     opposite = Q.quat_between([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]], [[0.0, -2.0, 0.0], [-1.0, 0.0, 0.0]])
     np.testing.assert_allclose(Q.rotate(opposite, [[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]),
                                [[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0]], atol=1e-12)
+
+
+def _leg_angles(sk, rot, root):
+    """Per frame: the thigh's direction (unit) and the knee's bend (degrees) of the leg (1, 2, 3)."""
+    _, p = sk.forward_kinematics(rot, root)
+    thigh, shin = p[:, 2] - p[:, 1], p[:, 3] - p[:, 2]
+    thigh /= np.linalg.norm(thigh, axis=1, keepdims=True)
+    shin /= np.linalg.norm(shin, axis=1, keepdims=True)
+    return thigh, np.degrees(np.arccos(np.clip(np.sum(thigh * shin, axis=1), -1, 1)))
+
+
+def test_plant_feet_holds_a_landing_foot_only_as_far_as_the_leg_keeps_its_pose():
+    """A bent leg (knee 34 degrees) whose foot slides on at 2 m/s while it is down, as a 30 fps run's feet do as they
+    land: held in place, the leg is pulled straight (the Bandai Namco run: knee 0 against the source's 48
+    degrees).  With max_leg_change_deg the hold gives way: no thigh turns and no knee bend changes by more than
+    that, and the foot is still held as far as the leg allows (it travels less than animated)."""
+    sk = leg()
+    n = 40
+    root = np.zeros((n, 3))
+    root[:, 2] = np.arange(n) / FPS * 2.0
+    rot = Q.identity((n, 5))
+    rot[:, 2] = Q.quat_from_axis_angle([1.0, 0, 0], 0.6)
+    down = np.zeros((n, 1), bool)
+    down[12:30] = True
+    thigh0, bend0 = _leg_angles(sk, rot, root)
+    free = plant_feet(sk, rot, root, [(1, 2, 3)], down, FPS, blend_frames=3, rest_speed=np.inf)
+    assert np.abs(_leg_angles(sk, free, root)[1] - bend0).max() > 25.0  # unlimited: the knee is pulled straight
+    out = plant_feet(sk, rot, root, [(1, 2, 3)], down, FPS, blend_frames=3, rest_speed=np.inf, max_leg_change_deg=10.0)
+    thigh, bend = _leg_angles(sk, out, root)
+    assert np.abs(bend - bend0).max() <= 10.0 + 1e-3
+    assert np.degrees(np.arccos(np.clip(np.sum(thigh * thigh0, axis=1), -1, 1))).max() <= 10.0 + 1e-3
+    ankle = sk.forward_kinematics(out, root)[1][:, 3, [0, 2]]
+    assert np.linalg.norm(ankle[29] - ankle[12]) < 17 * 2.0 / FPS - 0.1  # animated: 1.13 m; held back by 0.1 m+
+    # Where the held foot is within reach of the animated pose's tolerance the limit changes nothing.
+    slow = root / 20.0  # 0.1 m/s: the hold moves the ankle by under 2 cm
+    np.testing.assert_array_equal(
+        plant_feet(sk, rot, slow, [(1, 2, 3)], down, FPS, blend_frames=3, max_leg_change_deg=10.0),
+        plant_feet(sk, rot, slow, [(1, 2, 3)], down, FPS, blend_frames=3))

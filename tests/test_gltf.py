@@ -265,3 +265,51 @@ def test_every_mesh_bound_to_the_skin_is_part_of_the_body(exported, tmp_path):
     assert asset.vertices.shape == (2 * n, 3) and len(asset.faces) == 2 * len(rt.faces)
     np.testing.assert_allclose(asset.vertices[n:], rt.mesh.vertices, atol=1e-6)
     assert np.array_equal(asset.faces[len(rt.faces):], rt.faces + n)
+
+
+def _blender_layout(doc: dict, scale: list[float]) -> dict:
+    """``doc`` rearranged as Blender's exporter writes a rigged character: one "Armature" node at the scene's root,
+    holding both the root joint and the skinned mesh's node, with the object's scale on it; the skin names no
+    ``skeleton`` node (it is optional), and the mesh node carries a scale of its own, which glTF says to ignore
+    for a skinned mesh."""
+    doc = json.loads(json.dumps(doc))
+    roots = doc["scenes"][0]["nodes"]
+    mesh_node = next(k for k, n in enumerate(doc["nodes"]) if "skin" in n)
+    doc["nodes"][mesh_node]["scale"] = [1.0, 2.0, 1.0]
+    doc["nodes"].append({"name": "Armature", "children": roots, "scale": scale})
+    doc["scenes"][0]["nodes"] = [len(doc["nodes"]) - 1]
+    doc["skins"][0].pop("skeleton", None)
+    return doc
+
+
+def test_a_non_uniform_scale_above_the_skin_is_refused_saying_what_to_do(exported, tmp_path, capsys):
+    """issue 24: a node above the skeleton with a non-uniform scale (an exporter's "Armature" object scaled
+    unevenly in the scene) would stretch each bone by how it is turned, which no rigid skeleton plays: `clips
+    inspect` refuses it naming the file, the node and its scale and saying how to fix the export (no traceback);
+    the same layout with a uniform scale reads as the plain file does."""
+    from server.cli import main
+
+    rt, rot, root, _, paths, _ = exported
+    doc = json.loads(paths[1].read_text())
+    path = tmp_path / "blender.gltf"
+    path.write_text(json.dumps(_blender_layout(doc, [1.0, 1.0, 1.0])))
+    asset = read_gltf(path)
+    np.testing.assert_allclose(asset.skeleton.offsets, rt.skeleton.offsets, atol=1e-6)
+    np.testing.assert_allclose(asset.vertices, rt.mesh.vertices, atol=1e-6)  # the mesh node's scale is ignored
+    (anim,) = asset.animations
+    p0 = rt.skeleton.forward_kinematics(rot, root)[1]
+    assert np.abs(asset.skeleton.forward_kinematics(anim.rotations, anim.root_translation)[1] - p0).max() < 1e-5
+    assert main(["clips", "inspect", str(path)]) == 0
+    capsys.readouterr()
+
+    path.write_text(json.dumps(_blender_layout(doc, [1.0, 1.0, 1.3])))
+    with pytest.raises(GltfError, match=r"blender\.gltf: node 'Armature' above the skeleton has scale \[1\.0, 1\.0, "
+                                        r"1\.3\]; only a uniform positive scale .*Apply > Scale"):
+        read_gltf(path)
+    assert main(["clips", "inspect", str(path)]) == 2
+    out = capsys.readouterr()
+    assert out.out == "" and "Traceback" not in out.err
+    assert out.err.startswith("error: blender.gltf: node 'Armature'") and "export again" in out.err
+    path.write_text(json.dumps(_blender_layout(doc, [-1.0, 1.0, 1.0])))  # a mirror
+    with pytest.raises(GltfError, match=r"'Armature' above the skeleton has scale \[-1\.0, 1\.0, 1\.0\]"):
+        read_gltf(path)

@@ -54,6 +54,10 @@ METRES_PER_CMU_UNIT = UNITS["cmu"][0]  # CMU's BVH unit (1 / 0.45 inch)
 LOOP_BLEND_S = 0.2  # a gait loop fades in from the mocap's next cycle over this long (seam C1)
 TURN_EASE_S = 0.2  # a ping-pong keyframe clip slows to rest over this long at each turn (no bounce)
 CROUCH_START = 0.02  # the crouch starts where the hips have gone 2 % of its depth down
+#: Foot planting turns no thigh of a reference and bends no knee more or less than its source does by more than
+#: this (degrees), half the fidelity gate's limit (:data:`anim_core.clips.fidelity.POSE_LIMIT_DEG`): a foot that
+#: still slides as it lands is held only as far as the leg reaches it posed as in the motion (the Bandai Namco run).
+PLANT_LEG_TOLERANCE_DEG = 0.5 * fidelity.POSE_LIMIT_DEG
 
 
 class ConfigError(ValueError):
@@ -202,10 +206,17 @@ def pick_gait(source: Source) -> tuple[int, int, int]:
     first = source.config.frames[0]
     if len(steps) < 2 and _loops(pos):
         # A take of exactly one cycle (its last pose is its first again, as the Bandai Namco runs are cut): the
-        # cycle is the whole take, passing where the left foot falls behind the right.
-        behind = np.flatnonzero((lead[:-1] > 0.0) & (lead[1:] <= 0.0))
-        if behind.size:
-            return first, first + int(behind[0]) + 1, first + len(lead) - 1
+        # cycle is the whole take, wherever in the stride it was cut.  Its second key is the first passing (the
+        # lead changes sign) or full extension (the feet furthest apart: a peak of the lead's size, at least half
+        # its largest, as for the steps above) after its first frame, whichever comes first; not the very next
+        # frame: a take cut just before a passing (the Bandai run) would put the keys one frame apart, too close
+        # for the hybrid's increments.
+        size = np.abs(lead)
+        events = [k for k in range(2, len(lead) - 1)
+                  if (lead[k - 1] > 0.0) != (lead[k] > 0.0)
+                  or (size[k] >= size[k - 1] and size[k] > size[k + 1] and size[k] >= 0.5 * size.max())]
+        if events:
+            return first, first + events[0], first + len(lead) - 1
     if len(steps) < 2:
         raise ConfigError(f"[animations.{name}]: no whole gait cycle found in frames {source.config.frames}; "
                           f"give 'cycle' and 'keys' in the clip set file")
@@ -326,7 +337,7 @@ def _planted(source: Source, clip: KeyframeClip, src_t: Array) -> KeyframeClip:
     root = clip.root_translation[keys] - velocity * clip.times[keys, None]
     feet = [tuple(int(j) for j in sk.indices(foot)) for foot in FEET]
     rot = plant_feet(sk, clip.rotations[keys], root, legs, down, 1.0 / (clip.times[1] - clip.times[0]), feet,
-                     periodic=loop, ground_velocity=velocity, up_axis=UP)
+                     periodic=loop, ground_velocity=velocity, up_axis=UP, max_leg_change_deg=PLANT_LEG_TOLERANCE_DEG)
     if loop:
         rot = np.concatenate([rot, rot[:1]])
     return KeyframeClip(sk, clip.times, rot, clip.root_translation, clip.mode, clip.in_place, clip.up_axis,
@@ -460,6 +471,64 @@ def build_animation(source: Source, fps: int, conditions: Sequence[Condition],
         if stored is not None:
             c.metrics["bytes"] = stored
     return _gate(source, measured, src_t)
+
+
+#: Kind ``other``: the tolerances (mm) :func:`suggest_tolerance` tries in turn, the default first, and the largest
+#: share of the reference's stored bytes the cheapest condition (the hybrid through the picked keys, increment 0)
+#: may take for the suggestion to count as cheap.
+SUGGESTED_TOLERANCES_MM = (DEFAULT_TOLERANCE_MM, 30.0, 50.0, 80.0, 120.0)
+CHEAP_BYTE_RATIO = 0.5
+
+
+@dataclass(frozen=True)
+class ToleranceSuggestion:
+    """A ``tolerance_mm`` for kind ``other`` and what building the animation with it gave: the hybrid's (increment
+    0) keys and stored bytes against the reference's."""
+
+    tolerance_mm: float
+    keys: int
+    reference_keys: int
+    bytes: int
+    reference_bytes: int
+
+    @property
+    def key_ratio(self) -> float:
+        return self.keys / self.reference_keys
+
+    @property
+    def byte_ratio(self) -> float:
+        return self.bytes / self.reference_bytes
+
+    @property
+    def cheap(self) -> bool:
+        return self.byte_ratio <= CHEAP_BYTE_RATIO
+
+    def describe(self) -> str:
+        measured = (f"built: the hybrid (increment 0) has {self.keys} of the reference's {self.reference_keys} keys "
+                    f"(key ratio {self.key_ratio:.2f}) and stores {self.bytes} of its {self.reference_bytes} bytes "
+                    f"(byte ratio {self.byte_ratio:.2f})")
+        if self.cheap:
+            return f"tolerance_mm = {self.tolerance_mm:g}  ({measured})"
+        return (f"tolerance_mm = {self.tolerance_mm:g}  ({measured}; even so the hybrid is not cheap: more than "
+                f"{CHEAP_BYTE_RATIO:.0%} of the reference's bytes - the motion has little to leave out; give 'keys')")
+
+
+def suggest_tolerance(source: Source, fps: int) -> ToleranceSuggestion:
+    """The smallest of :data:`SUGGESTED_TOLERANCES_MM` at which the animation ``source`` (kind ``other``) builds a
+    hybrid (increment 0) that stores at most :data:`CHEAP_BYTE_RATIO` of the reference's bytes, measured by
+    building the reference and that hybrid (through the fidelity gate: :class:`ConfigError` if it fails); the
+    largest tried if none does (:attr:`ToleranceSuggestion.cheap` is false then)."""
+    conditions = (Condition.parse("keyframe", REFERENCE), Condition.parse("hybrid0", "hybrid", {"increment": 0}))
+    suggestion = None
+    for tolerance in SUGGESTED_TOLERANCES_MM:
+        config = replace(source.config, kind="other", tolerance_mm=tolerance)
+        reference, hybrid = build_animation(replace(source, config=config), fps, conditions)
+        suggestion = ToleranceSuggestion(tolerance, int(hybrid.key_times.size), int(reference.key_times.size),
+                                         int(hybrid.metrics["bytes"]), int(reference.metrics["bytes"]))
+        if suggestion.cheap:
+            break
+    assert suggestion is not None
+    return suggestion
 
 
 def _source_poses(source: Source, times: Array) -> Array:

@@ -13,7 +13,7 @@ its line, :class:`~anim_core.io.gltf.GltfError`, :class:`~anim_core.rig.rigmap.R
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -170,10 +170,12 @@ def inspect_source(path: str | os.PathLike[str], explicit: Mapping[str, str] | N
     return [_report(name, out) for name, out in read_motions(path, explicit, units, up_axis, max_frame_joints)]
 
 
-def format_report(path: str | os.PathLike[str], reports: list[MotionReport]) -> str:
-    """Plain-text report of :func:`inspect_source` for the terminal."""
+def format_report(path: str | os.PathLike[str], reports: list[MotionReport],
+                  tolerances: Sequence[str | None] | None = None) -> str:
+    """Plain-text report of :func:`inspect_source` for the terminal; ``tolerances``: per report a line on the
+    suggested ``tolerance_mm`` (kind ``other``) or ``None``."""
     lines = []
-    for r in reports:
+    for k, r in enumerate(reports):
         n = r.normalized
         m = n.mapping
         lines += [f"{Path(path).name}: {r.name}",
@@ -187,8 +189,10 @@ def format_report(path: str | os.PathLike[str], reports: list[MotionReport]) -> 
                   "  foot contacts (frames [start, stop)):"]
         for foot, phases in r.contacts.items():
             lines.append(f"    {foot:<5} {', '.join(f'{a}-{b}' for a, b in phases) or 'none'}")
-        lines += [f"  suggested   kind = \"{r.kind}\", frames {r.frames[0]}..{r.frames[1]}  ({r.reason})",
-                  "  mapping (character joint <- file joint: why):"]
+        lines.append(f"  suggested   kind = \"{r.kind}\", frames {r.frames[0]}..{r.frames[1]}  ({r.reason})")
+        if tolerances is not None and tolerances[k] is not None:
+            lines.append(f"              {tolerances[k]}")
+        lines.append("  mapping (character joint <- file joint: why):")
         for d in m.decisions:
             lines.append(f"    {d.canonical:<16} <- {d.source or '(none)'}: {d.reason}")
         if m.unmapped:

@@ -253,7 +253,9 @@ def _read_gltf(path: Path, fps: float, max_frame_joints: int) -> GltfAsset:
     trs = [_node_trs(nodes[n]) for n in order]
     for k, (_, _, s) in enumerate(trs):
         if np.abs(s - 1.0).max() > 1e-4:
-            raise r.fail(f"joint {names[k]!r} has scale {s.tolist()}; only unscaled joints are supported")
+            raise r.fail(f"joint {names[k]!r} has scale {s.tolist()}; only unscaled joints are supported: "
+                         f"apply the scale to the rig before exporting (Blender: Object > Apply > Scale in the "
+                         f"rest pose)")
     offsets = np.array([t for t, _, _ in trs])
     rest = np.array([q for _, q, _ in trs])
     # The root takes the transform of the nodes above it.  A uniform scale there (Blender's "Armature" at 0.01 over
@@ -264,8 +266,12 @@ def _read_gltf(path: Path, fps: float, max_frame_joints: int) -> GltfAsset:
     while j >= 0:
         t, q, s = _node_trs(nodes[j])
         if not (s.min() > 0 and np.ptp(s) <= 1e-4 * s.max()):
+            # A non-uniform scale stretches each bone by how it is turned, which changes as it moves: no skeleton of
+            # rigid bones (this one, the character's) can play that.
             raise r.fail(f"node {nodes[j].name!r} above the skeleton has scale {s.tolist()}; only a uniform "
-                         f"positive scale is supported there")
+                         f"positive scale is supported there (a non-uniform or mirroring scale stretches the bones "
+                         f"as they turn). Apply the scale to the rig before exporting (Blender: select the "
+                         f"armature, Object > Apply > Scale) and export again")
         above_pos, above_rot = t + s[0] * rotate(q, above_pos), quat_mul(q, above_rot)
         above_scale *= float(s[0])
         j = int(parent[j])

@@ -10,6 +10,11 @@ hip-knee-ankle moves the leg, the knee bending about its hinge estimated on the 
 (:func:`anim_core.methods.ik.hinge_axis`): towards its animated position while the leg is well bent, in its animated
 plane where the leg is (nearly) straight and that position says nothing about where the knee points.  Over
 ``blend_frames`` frames on each side of a phase the IK weight eases in and out (smoothstep), so the leg never jumps.
+
+With ``max_leg_change_deg`` the hold gives way where it would turn a thigh or change a knee's bend by more than
+that: the ankle's target moves from the animated ankle towards the held place only as far as the leg stays within
+that angle of its animated pose (:func:`leg_limited_targets`).  A take whose feet still slide as they land (a 30 fps
+run) would otherwise have its leg pulled straight to reach a foothold the motion never had.
 """
 
 from __future__ import annotations
@@ -101,7 +106,7 @@ def plant_feet(skeleton: Skeleton, local_rotations: ArrayLike, root_translation:
                legs: Sequence[tuple[int, int, int]], down: ArrayLike, fps: float,
                feet: Sequence[Sequence[int]] | None = None, periodic: bool = False,
                ground_velocity: ArrayLike | None = None, up_axis: int = 1, blend_frames: int = 5,
-               max_speed: float = 0.4, rest_speed: float = 0.5) -> Array:
+               max_speed: float = 0.4, rest_speed: float = 0.5, max_leg_change_deg: float | None = None) -> Array:
     """Local rotations ``(T, J, 4)`` with each leg's ankle held in place while its foot is down.
 
     ``legs``: per foot the chain ``(hip, knee, ankle)`` (joint indices); ``down``: ``(T, F)`` contact per frame
@@ -115,6 +120,9 @@ def plant_feet(skeleton: Skeleton, local_rotations: ArrayLike, root_translation:
     skims the floor, not a step, and is left alone (holding it would drag the swinging foot back).
     Each knee bends about its hinge estimated on ``local_rotations`` (:func:`anim_core.methods.ik.hinge_axis`; a leg
     straight in every pose has none and is solved without), so it never flips or bends backwards near full reach.
+    ``max_leg_change_deg``: no thigh turns by more than this, no knee bends more or less than its animated bend by
+    more than this; where holding the foot would need more, it is held only part of the way
+    (:func:`leg_limited_targets`; ``None``: no limit).
     """
     rot = np.array(local_rotations, dtype=np.float64)
     targets, weights = foot_targets(skeleton, rot, root_translation, legs, down, fps, feet, periodic,
@@ -125,10 +133,55 @@ def plant_feet(skeleton: Skeleton, local_rotations: ArrayLike, root_translation:
     for f, chain in enumerate(legs):  # one solve per leg over all frames
         active = frames[weights[:, f] > 0]
         if active.size:
-            rot[active] = two_bone_ik(skeleton, rot[active], root[active], chain, targets[active, f],
-                                      pole=pos[active, chain[1]], weight=weights[active, f],
-                                      hinge=_hinge(skeleton, local_rotations, root, chain))
+            pole, hinge = pos[active, chain[1]], _hinge(skeleton, local_rotations, root, chain)
+            target = targets[active, f]
+            if max_leg_change_deg is not None:
+                target = leg_limited_targets(skeleton, rot[active], root[active], chain, target, weights[active, f],
+                                             np.radians(max_leg_change_deg), pole, hinge)
+            rot[active] = two_bone_ik(skeleton, rot[active], root[active], chain, target, pole=pole,
+                                      weight=weights[active, f], hinge=hinge)
     return rot
+
+
+def _leg_angles(skeleton: Skeleton, rot: Array, root: Array, chain: tuple[int, int, int]) -> tuple[Array, Array]:
+    """``(T, 3)`` the thigh's unit direction and ``(T,)`` the knee's bend (radians, 0: straight) of poses ``rot``."""
+    pos = skeleton.forward_kinematics(rot, root)[1]
+    thigh, shin = pos[:, chain[1]] - pos[:, chain[0]], pos[:, chain[2]] - pos[:, chain[1]]
+    thigh /= np.linalg.norm(thigh, axis=-1, keepdims=True)
+    shin /= np.linalg.norm(shin, axis=-1, keepdims=True)
+    return thigh, np.arccos(np.clip(np.sum(thigh * shin, axis=-1), -1.0, 1.0))
+
+
+def leg_limited_targets(skeleton: Skeleton, rot: Array, root: Array, chain: tuple[int, int, int], targets: Array,
+                        weights: Array, tolerance: float, pole: Array, hinge: Array | None) -> Array:
+    """``(T, 3)`` ankle targets for :func:`anim_core.methods.ik.two_bone_ik` (with ``weights``, ``pole (T, 3)``
+    and ``hinge``, as :func:`plant_feet` solves) on the poses ``rot``/``root`` such that the solved leg's thigh
+    turns by at most ``tolerance`` radians and its knee bends within ``tolerance`` of the animated bend: each
+    target moves from the animated ankle towards the given one as far as that holds (bisection on the solve; the
+    thigh and the knee are the leg's angles that the fidelity gate compares with the source,
+    :mod:`anim_core.clips.fidelity`).  Targets the leg reaches within the tolerance are returned unchanged."""
+    thigh0, bend0 = _leg_angles(skeleton, rot, root, chain)
+    ankle = skeleton.forward_kinematics(rot, root)[1][:, chain[2]]
+    way = targets - ankle
+
+    def fits(s: Array, frames: NDArray[np.intp]) -> NDArray[np.bool_]:
+        solved = two_bone_ik(skeleton, rot[frames], root[frames], chain, ankle[frames] + s[:, None] * way[frames],
+                             pole=pole[frames], weight=weights[frames], hinge=hinge)
+        thigh, bend = _leg_angles(skeleton, solved, root[frames], chain)
+        turn = np.arccos(np.clip(np.sum(thigh * thigh0[frames], axis=-1), -1.0, 1.0))
+        return (turn <= tolerance) & (np.abs(bend - bend0[frames]) <= tolerance)
+
+    out = np.array(targets, dtype=np.float64)
+    bad = np.flatnonzero(~fits(np.ones(len(targets)), np.arange(len(targets))))
+    if bad.size == 0:
+        return out
+    lo, hi = np.zeros(bad.size), np.ones(bad.size)
+    for _ in range(16):  # to 1/65536 of the way
+        mid = 0.5 * (lo + hi)
+        ok = fits(mid, bad)
+        lo, hi = np.where(ok, mid, lo), np.where(ok, hi, mid)
+    out[bad] = ankle[bad] + lo[:, None] * way[bad]
+    return out
 
 
 def _hinge(skeleton: Skeleton, local_rotations: ArrayLike, root: Array, chain: tuple[int, int, int]) -> Array | None:
