@@ -280,3 +280,56 @@ def test_study_create_builds_conditions_given_inline(tmp_path, monkeypatch, caps
         'conditions = ["hybrid_c2_0"]', 'conditions = ["hybrid_ik0"]'))
     assert cli.main(["study", "create", str(lacking)]) == 2
     assert "hybrid_ik0 are not in the study's clip set" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("how", ["merge", "rebuild"])
+def test_a_build_killed_halfway_leaves_the_previous_clip_set(tmp_path, data, monkeypatch, how):
+    """A rebuild of the clip set (other frames of its animation) that dies after writing its first clip: the
+    manifest and every file it names keep their bytes and load; the next build goes through."""
+    from server.clipset import manifest as clip_manifest
+    from server.clipset.manifest import MANIFEST, merge_clip_set, read_clip, read_clip_manifest
+
+    source = tmp_path / "base.bvh"
+    source.write_bytes(excerpt(data, frames=120))
+
+    def clips(first: int, last: int) -> list:
+        config = tmp_path / f"base{first}.toml"
+        config.write_text(CLIPSET.format(source=source, first=first, last=last), encoding="utf-8")
+        return build_clip_set(data, load_config(config))
+
+    clips_dir = tmp_path / "clips"
+    write_clip_set(clips(40, 100), clips_dir)
+
+    def hashes() -> dict[str, str]:
+        return {f.name: sha(f.read_bytes()) for f in clips_dir.iterdir() if not f.name.startswith(".")}
+
+    before = hashes()
+    assert len(before) == 3  # the manifest and two clips
+    rebuilt = clips(30, 110)
+    write = merge_clip_set if how == "merge" else write_clip_set
+    real, calls = clip_manifest.np.savez_compressed, []
+
+    def dies_on_the_second(*args, **kwargs):
+        calls.append(args[0])
+        if len(calls) == 2:
+            raise KeyboardInterrupt("killed")  # as SIGINT would
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(clip_manifest.np, "savez_compressed", dies_on_the_second)
+    with pytest.raises(KeyboardInterrupt):
+        write(clips_dir, rebuilt) if how == "merge" else write(rebuilt, clips_dir)
+    monkeypatch.setattr(clip_manifest.np, "savez_compressed", real)
+    assert {k: v for k, v in hashes().items() if k in before} == before
+    old = read_clip_manifest(clips_dir)
+    assert [read_clip(clips_dir, c.id)[0] for c in old.clips] == list(old.clips)
+
+    write(clips_dir, rebuilt) if how == "merge" else write(rebuilt, clips_dir)
+    new = read_clip_manifest(clips_dir)
+    assert new.clips != old.clips and (clips_dir / MANIFEST).read_bytes() != b""
+    for c in new.clips:
+        _, arrays = read_clip(clips_dir, c.id)
+        assert arrays["times"].shape == (c.frames,)
+    files = {f.name for f in clips_dir.iterdir() if f.suffix == ".npz" and not f.name.startswith(".")}
+    # the previous files are removed once the new manifest is in place (leftovers of the killed build aside)
+    assert {c.file for c in new.clips} <= files and not files & ({c.file for c in old.clips} - {c.file for c in
+                                                                                              new.clips})
