@@ -6,12 +6,16 @@ missing; ``gc`` deletes exactly the files nothing uses."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import hashlib
 import io
+import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy.orm import Session
 
 from server import cli
 from server.app import create_app
@@ -19,6 +23,7 @@ from server.clipset.build import build_clip_set
 from server.clipset.config import load_config
 from server.clipset.manifest import write_clip_set
 from server.config import Settings
+from server.db import migrate
 from server.deps import get_session
 from server.media.build import MEDIA_NAME, render_media
 from server.media.manifest import read_render_manifest
@@ -28,7 +33,9 @@ from server.stimuli import service as stimulus_sets
 from server.studies import service
 from server.studies.design import Design
 from server.studies.service import clip_set_index, required_pairs
-from tests.server_fixtures import answer_all, fake_media, start, study_file, write_fake_media
+from server.studies.studyfile import parse_study_text
+from tests.conftest import DATABASES, _fresh_engine
+from tests.server_fixtures import RESEARCHER, answer_all, fake_media, start, study_file, write_fake_media
 from tests.test_uploads import SECRET, excerpt, login
 
 TINY = RenderSettings(width=64, height=48, shadows=False)
@@ -333,3 +340,114 @@ def test_a_build_killed_halfway_leaves_the_previous_clip_set(tmp_path, data, mon
     # the previous files are removed once the new manifest is in place (leftovers of the killed build aside)
     assert {c.file for c in new.clips} <= files and not files & ({c.file for c in old.clips} - {c.file for c in
                                                                                               new.clips})
+
+
+# --- the API builds too ---------------------------------------------------------------------------------------------
+
+API_CLIPS = '''[clips.animations.idle]
+kind = "idle"
+source = "{source}"
+frames = {frames}
+
+[[clips.conditions]]
+id = "keyframe"
+method = "keyframe"
+
+[[clips.conditions]]
+id = "hybrid0"
+method = "hybrid"
+params = {{ increment = 0 }}
+'''
+
+
+def api_study_text(slug: str, source: str = "mocap/cmu/113_21_idle_30fps.bvh.gz", frames: str = "[40, 100]",
+                   condition: str = "hybrid0") -> str:
+    """future-work.toml with the idle motion of the data directory and its conditions inline."""
+    text = FUTURE_WORK.read_text().replace('slug = "future-work"', f'slug = "{slug}"')
+    text = text.replace('animations = ["walk", "crouch"]', 'animations = ["idle"]').replace(
+        'conditions = ["hybrid0", "hybrid_ik0", "hybrid_c2_0"]', f'conditions = ["{condition}"]')
+    return text.replace('[clips]\nset = "../server/clipset/conditions16.toml"\n',
+                        API_CLIPS.format(source=source, frames=frames))
+
+
+def wait_for(client: TestClient, slug: str, headers: dict) -> dict:
+    deadline = time.monotonic() + 600
+    while True:
+        job = client.get(f"/api/v1/studies/{slug}/assets/build", headers=headers).json()
+        if job["state"] in ("done", "failed") or time.monotonic() > deadline:
+            return job
+        time.sleep(0.5)
+
+
+@pytest.mark.parametrize("kind", DATABASES)
+def test_the_api_creates_a_study_whose_clips_are_given_inline(kind, tmp_path, tmp_path_factory, data):
+    """POST /studies/file with inline [clips]: 202 with the draft and its build job, which builds the clips and
+    renders the videos in its own process; then the study opens with them.  Bad [clips] are a 422 naming the
+    field (nothing created) or a failed job with the reason and no server path."""
+    engine = _fresh_engine(kind, tmp_path_factory, database="test_animstudy_api_clips")
+    settings = Settings(var_dir=tmp_path / "var", data_dir=data, secret_key=SECRET)
+    try:
+        migrate(engine)
+        # the server's videos are 64x48 without shadows: the study's are rendered alike
+        settings.media_dir.mkdir(parents=True)
+        (settings.media_dir / "manifest.json").write_text(fake_media().model_copy(update={
+            "settings": dataclasses.asdict(TINY)}
+        ).model_dump_json())
+        with Session(engine) as db:
+            create_researcher(db, *RESEARCHER)
+        app = create_app(settings, engine, run_migrations=False)
+        with TestClient(app) as client:
+            headers = login(client, *RESEARCHER)
+
+            def post(text: str) -> Any:
+                return client.post("/api/v1/studies/file", content=text.encode(), headers=headers)
+
+            bad = [(api_study_text("b1", condition="hybrid_ik0"), "hybrid_ik0 are not in the study's clip set"),
+                   (api_study_text("b2", source="mocap/none.bvh"), "data directory has no file 'mocap/none.bvh'"),
+                   (api_study_text("b3", source=str(data / "mocap/cmu/113_21_idle_30fps.bvh.gz")),
+                    "no absolute path"),
+                   (api_study_text("b4").replace('[clips.animations.idle]', '[clips.animations.Idle]'),
+                    "an animation name is 1..32 lower-case"),
+                   (FUTURE_WORK.read_text().replace('"future-work"', '"b5"'), "clips.set: a clip-set file")]
+            for text, reason in bad:
+                r = post(text)
+                assert r.status_code == 422 and reason in r.text, r.text
+                assert str(tmp_path) not in r.text and str(data) not in r.text
+            # the same through the JSON endpoint
+            r = client.post("/api/v1/studies", json=parse_study_text(bad[0][0], "x").model_dump(mode="json"),
+                            headers=headers)
+            assert r.status_code == 422 and bad[0][1] in r.text, r.text
+            assert [s["slug"] for s in client.get("/api/v1/studies", headers=headers).json()] == []
+
+            r = post(api_study_text("idle"))
+            assert r.status_code == 202, r.text
+            assert r.json()["study"]["slug"] == "idle" and r.json()["build"]["state"] == "queued"
+            # one build at a time: a second study file is refused and not created
+            r = post(api_study_text("second"))
+            assert r.status_code == 409 and "a build is running" in r.text, r.text
+            assert client.get("/api/v1/studies/second/definition", headers=headers).status_code == 404
+            assert client.post("/api/v1/studies/idle/open", headers=headers).status_code == 409  # nothing to show
+            job = wait_for(client, "idle", headers)
+            log = (settings.assets_dir / "1" / "build.log").read_text()
+            assert (job["state"], job["stage"], job["error"]) == ("done", "done", None), (job, log)
+            r = client.post("/api/v1/studies/idle/open", headers=headers)
+            assert r.status_code == 200, r.text
+            with Session(engine) as db:
+                study = service.get_study(db, "idle")
+                content = stimulus_sets.content_of(study.stimulus_set)
+                assert {(c.animation, c.condition) for c in content.clips} == {("idle", "keyframe"),
+                                                                              ("idle", "hybrid0")}
+                assert stimulus_sets.missing(content, settings.media_dir) == []
+                assert content.render["width"] == 64
+                assert len(study.comparisons) == 2  # the test comparison and the catch trial
+            assert not (settings.assets_dir / "1" / "study-clips.json").exists()
+
+            # frames the file does not have: found by the build, the job fails with the reason, no server path
+            r = post(api_study_text("late", frames="[40, 99999]"))
+            assert r.status_code == 202, r.text
+            job = wait_for(client, "late", headers)
+            assert job["state"] == "failed" and "99999" in job["error"], job
+            assert str(tmp_path) not in job["error"] and str(data) not in job["error"]
+            assert client.post("/api/v1/studies/late/open", headers=headers).status_code == 409
+    finally:
+        engine.dispose()

@@ -5,7 +5,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Depends, Query, Request, status
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import PlainTextResponse, Response
+from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
@@ -13,7 +13,7 @@ from server.deps import ResearcherDep, SessionDep, SettingsDep
 from server.errors import Conflict, Unprocessable
 from server.media.manifest import ManifestError, RenderManifest, read_render_manifest
 from server.researchers.models import Researcher
-from server.uploads.service import usable_animations
+from server.uploads.service import create_building, job_json, usable_animations
 
 from . import pilot, service
 from .columns import data_dictionary_markdown
@@ -48,15 +48,22 @@ def usable(session: Session, settings: Any, researcher: Researcher, media: Rende
     return usable_animations(session, settings, researcher, sorted({a for a, _ in media.clip_index()}))
 
 
-@router.post("/studies", response_model=StudySummary, status_code=status.HTTP_201_CREATED)
-def create_study(body: StudyFile, session: SessionDep, settings: SettingsDep,
-                 researcher: ResearcherDep) -> StudySummary:
-    """A draft study from a study file's content (as JSON) over the rendered videos (``animstudy study create``
-    renders what is missing; here the videos must exist)."""
+BUILDING = {202: {"description": "a study file with inline [clips]: the draft study and the build job that builds "
+                                  "and renders its clips (poll GET /studies/{slug}/assets/build)",
+                   "content": {"application/json": {"example": {"study": {"slug": "..."},
+                                                                "build": {"state": "queued"}}}}}}
+
+
+@router.post("/studies", response_model=StudySummary, status_code=status.HTTP_201_CREATED, responses=BUILDING)
+def create_study(body: StudyFile, request: Request, session: SessionDep, settings: SettingsDep,
+                 researcher: ResearcherDep) -> StudySummary | JSONResponse:
+    """A draft study from a study file's content (as JSON) over the rendered videos.  With inline ``[clips]``
+    the clips it needs are built and rendered by a build job first: 202 with the draft and the job, whose
+    progress ``GET /studies/{slug}/assets/build`` shows; the study gets its comparisons when the job is done."""
     if body.clips is not None:
-        raise Unprocessable("clips.set: a study file that names its clip set is created with `animstudy study "
-                            "create FILE` on the server, which builds and renders its clips; through the API a "
-                            "study uses the server's clip set and its own uploads")
+        study, job = create_building(session, settings, request.app.state.engine, body, researcher)
+        return JSONResponse({"study": service.study_summary(session, study).model_dump(mode="json"),
+                             "build": job_json(job)}, status_code=status.HTTP_202_ACCEPTED)
     media = render_manifest(settings)
     return service.study_summary(session, service.create_study(session, media, body, owner=researcher,
                                                  media_dir=settings.media_dir, clips_dir=settings.clips_dir,
@@ -74,18 +81,18 @@ async def study_file_text(request: Request) -> str:
         raise Unprocessable("the study file is not UTF-8 text") from None
 
 
-@router.post("/studies/file", response_model=StudySummary, status_code=status.HTTP_201_CREATED,
+@router.post("/studies/file", response_model=StudySummary, status_code=status.HTTP_201_CREATED, responses=BUILDING,
              openapi_extra={"requestBody": {"required": True,
                                             "content": {"text/plain": {"schema": {"type": "string"}}}}})
-def create_study_from_file(text: Annotated[str, Depends(study_file_text)], session: SessionDep,
-                           settings: SettingsDep, researcher: ResearcherDep) -> StudySummary:
+def create_study_from_file(text: Annotated[str, Depends(study_file_text)], request: Request, session: SessionDep,
+                           settings: SettingsDep, researcher: ResearcherDep) -> StudySummary | JSONResponse:
     """As ``POST /studies``, from the study file itself (TOML text as the body): errors name field and line."""
     try:
         study_file = parse_study_text(text, "the study file")
     except StudyFileError as exc:
         raise RequestValidationError([{"loc": ("body",), "msg": e, "type": "value_error"} for e in exc.errors]
                                      ) from None
-    return create_study(study_file, session, settings, researcher)
+    return create_study(study_file, request, session, settings, researcher)
 
 
 @router.get("/studies/{slug}/definition", response_model=StudyFile)
