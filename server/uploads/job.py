@@ -155,16 +155,18 @@ def _reading(asset: StudyAsset, path: Path) -> dict[str, Any]:
 # --- merging into the clip set -----------------------------------------------------------------------------------
 
 def check_names(clips_dir: Path, assets: Sequence[StudyAsset], asset_file: Callable[[StudyAsset], Path]) -> None:
-    """An asset may not take the name of an animation of the clip set that comes from another file."""
+    """An asset may not take the name of an animation of the clip set that comes from another file.  The clip set
+    is the server's, one namespace for every researcher: the name may be another researcher's upload, so the
+    message is the same whoever's it is and says nothing of it (not that it is an upload, nor whose, nor that it
+    exists)."""
     manifest = current_clip_set(clips_dir)
     if manifest is None:
         return
     sources = {c.animation: str(c.source.get("file")) for c in manifest.clips}
     for a in assets:
         if a.name in sources and sources[a.name] != str(asset_file(a)):
-            # Not where it comes from: that may be another researcher's upload.
-            raise BuildError(f"asset {a.filename!r}: the server has an animation {a.name!r} already; delete the "
-                             "asset and upload it again with another name")
+            raise BuildError(f"asset {a.filename!r}: {a.name!r} cannot be the name of an uploaded animation on this "
+                             "server; delete the asset and upload it again with another name (API: name=)")
 
 
 def merge_clips(clips_dir: Path, built: list[Any]) -> Path:
