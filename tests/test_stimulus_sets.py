@@ -32,6 +32,7 @@ from server.researchers.service import create_researcher
 from server.stimuli import service as stimulus_sets
 from server.studies import service
 from server.studies.design import Design
+from server.studies.pipeline import render_manifest_dirs
 from server.studies.service import clip_set_index, required_pairs
 from server.studies.studyfile import parse_study_text
 from tests.conftest import DATABASES, _fresh_engine
@@ -430,6 +431,18 @@ def test_the_api_creates_a_study_whose_clips_are_given_inline(kind, tmp_path, tm
             job = wait_for(client, "idle", headers)
             log = (settings.assets_dir / "1" / "build.log").read_text()
             assert (job["state"], job["stage"], job["error"]) == ("done", "done", None), (job, log)
+            with Session(engine) as db:
+                built = stimulus_sets.content_of(service.get_study(db, "idle").stimulus_set)
+            # the draft's design changes over its own clip set (the server's has an "idle" of other videos)
+            r = client.patch("/api/v1/studies/idle", json={"design": {"practice": "hybrid0"}}, headers=headers)
+            assert r.status_code == 200, r.text
+            with Session(engine) as db:
+                study = service.get_study(db, "idle")
+                assert [c.kind for c in study.comparisons] == ["test", "catch", "practice"]
+                assert stimulus_sets.content_of(study.stimulus_set).clips == built.clips
+            r = client.post("/api/v1/studies/idle/assets", params={"filename": "sway.bvh"},
+                            content=excerpt(data, frames=45), headers=headers)
+            assert r.status_code == 409 and "its own clip set" in r.text, r.text
             r = client.post("/api/v1/studies/idle/open", headers=headers)
             assert r.status_code == 200, r.text
             with Session(engine) as db:
@@ -439,8 +452,18 @@ def test_the_api_creates_a_study_whose_clips_are_given_inline(kind, tmp_path, tm
                                                                               ("idle", "hybrid0")}
                 assert stimulus_sets.missing(content, settings.media_dir) == []
                 assert content.render["width"] == 64
-                assert len(study.comparisons) == 2  # the test comparison and the catch trial
-            assert not (settings.assets_dir / "1" / "study-clips.json").exists()
+                assert len(study.comparisons) == 3  # test, catch and practice
+            # gc: the study's videos are kept (pinned, and listed by its clip set's render manifest); an orphan goes
+            orphan = settings.media_dir / f"{sha(b'orphan')[:24]}.mp4"
+            orphan.write_bytes(b"old")
+            pinned = set(content.hashes())
+            with Session(engine) as db:
+                dry = stimulus_sets.collect(db, settings.media_dir, render_manifest_dirs(settings), dry_run=True)
+                assert [f.name for f in dry.files] == [orphan.name] and orphan.exists()
+                done = stimulus_sets.collect(db, settings.media_dir, render_manifest_dirs(settings))
+            assert [f.name for f in done.files] == [orphan.name] and not orphan.exists()
+            assert pinned <= {f.name for f in settings.media_dir.iterdir()}
+            assert stimulus_sets.missing(content, settings.media_dir) == []
 
             # frames the file does not have: found by the build, the job fails with the reason, no server path
             r = post(api_study_text("late", frames="[40, 99999]"))

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Depends, Query, Request, status
@@ -13,9 +14,10 @@ from server.deps import ResearcherDep, SessionDep, SettingsDep
 from server.errors import Conflict, Unprocessable
 from server.media.manifest import ManifestError, RenderManifest, read_render_manifest
 from server.researchers.models import Researcher
-from server.uploads.service import create_building, job_json, usable_animations
+from server.uploads.job import scrub
+from server.uploads.service import create_building, job_json, study_clips, usable_animations
 
-from . import pilot, service
+from . import pilot, pipeline, service
 from .columns import data_dictionary_markdown
 from .models import StudyState
 from .page import Page
@@ -34,12 +36,13 @@ def list_studies(session: SessionDep, researcher: ResearcherDep) -> list[StudySu
     return [service.study_summary(session, s) for s in service.visible_studies(session, researcher)]
 
 
-def render_manifest(settings: Any) -> RenderManifest:
-    """409 when the videos are missing or their manifest is old or corrupt (the message says to render)."""
+def render_manifest(settings: Any, folder: Path | None = None) -> RenderManifest:
+    """The render manifest of the server's clip set (or the one in ``folder``); 409 when the videos are missing
+    or their manifest is old or corrupt (the message says to render, and names no server path)."""
     try:
-        return read_render_manifest(settings.media_dir)
+        return read_render_manifest(folder or settings.media_dir)
     except ManifestError as exc:
-        raise Conflict(f"{exc}; `animstudy study create` renders what a study needs") from None
+        raise Conflict(scrub(f"{exc}; `animstudy study create` renders what a study needs", settings)) from None
 
 
 def usable(session: Session, settings: Any, researcher: Researcher, media: RenderManifest) -> set[str]:
@@ -107,10 +110,16 @@ def patch_study(slug: str, session: SessionDep, settings: SettingsDep, researche
     """Title, texts, scale, questions and recruitment until the study first opens; the design while it is a
     draft; otherwise 409."""
     study = service.managed_study(session, slug, researcher)
-    media = render_manifest(settings) if "design" in body else None
+    media, clips_dir, animations = None, settings.clips_dir, None
+    if "design" in body:
+        if (clips := study_clips(settings, study.id)) is not None:  # over its own clip set (data-dir motions)
+            place = pipeline.inline_place(settings, clips, "the study file")
+            media, clips_dir = render_manifest(settings, place.render_dir), place.clips_dir
+        else:
+            media = render_manifest(settings)
+            animations = usable(session, settings, researcher, media)
     try:
-        service.update_study(session, study, body, media, settings.media_dir, settings.clips_dir,
-                             usable(session, settings, researcher, media) if media is not None else None)
+        service.update_study(session, study, body, media, settings.media_dir, clips_dir, animations)
     except ValidationError as exc:
         session.rollback()
         raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in exc.errors()]) from None

@@ -43,9 +43,10 @@ from server.config import Settings
 from server.db import make_engine, session_factory, utcnow
 from server.errors import ServiceError
 from server.studies.models import Study, StudyState
+from server.studies.studyfile import Clips
 
 from .models import BuildJob, BuildState, StudyAsset
-from .service import asset_path, pending_clips
+from .service import asset_path, study_clips
 
 STAGES = ("queued", "building", "rendering", "study", "done")
 
@@ -247,8 +248,9 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
         assets = list(session.scalars(select(StudyAsset).where(StudyAsset.study_id == job.study_id)
                                       .order_by(StudyAsset.id)))
         session.expunge_all()
-    if pending_clips(settings, study.id).is_file():
-        return _run_clips(settings, factory, study.id, progress)
+    clips = study_clips(settings, study.id)
+    if clips is not None:
+        return _run_clips(settings, factory, study.id, clips, progress)
     if not assets:
         raise BuildError("the study has no assets")
     files = {a.id: asset_path(settings, a) for a in assets}
@@ -322,23 +324,18 @@ def _render(settings: Settings, place: Any, pairs: list[tuple[str, str]], render
     return media
 
 
-def _run_clips(settings: Settings, factory: sessionmaker[Session], study_id: int, progress: Progress) -> None:
+def _run_clips(settings: Settings, factory: sessionmaker[Session], study_id: int, clips: Clips,
+               progress: Progress) -> None:
     """The job of a study created through the API from a study file with inline ``[clips]``
     (:func:`server.uploads.service.create_building`): what :func:`server.studies.pipeline.prepare` does for
     ``animstudy study create`` (the clips the design needs built into the clip set of those ``[clips]``, their
     videos rendered, at the size of the videos there already), then the study's comparisons and stimulus set."""
+    from server.clipset.manifest import MANIFEST
     from server.media.build import rendered_settings
     from server.studies import pipeline
     from server.studies.design import Design
     from server.studies.service import show_design
-    from server.studies.studyfile import Clips
 
-    pending = pending_clips(settings, study_id)
-    try:
-        clips = Clips.model_validate_json(pending.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise BuildError(f"the study's [clips] cannot be read ({type(exc).__name__}); delete the study and create "
-                         "it again") from None
     with factory() as session:
         design = Design.model_validate(draft(session, study_id).design)
     place = pipeline.inline_place(settings, clips, "the study file")
@@ -350,13 +347,12 @@ def _run_clips(settings: Settings, factory: sessionmaker[Session], study_id: int
              message=f"{built} clips built")
     with factory() as session:
         pairs = pipeline.pairs(session, place, design, settings.media_dir)
-    before = place.render_dir if (place.render_dir / "manifest.json").is_file() else settings.media_dir
+    before = place.render_dir if (place.render_dir / MANIFEST).is_file() else settings.media_dir
     media = _render(settings, place, pairs, rendered_settings(before), progress)
     progress(stage="study", done=0, total=1, message="making the study's comparisons over the videos")
     with factory() as session:
         study = draft(session, study_id)
         show_design(session, study, media, settings.media_dir, place.clips_dir)
-    pending.unlink(missing_ok=True)
     progress(stage="study", done=1, total=1, message=f"the study shows {', '.join(design.animations)}")
 
 

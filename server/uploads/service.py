@@ -32,7 +32,7 @@ from server.errors import Conflict, NotFound, Unprocessable
 from server.researchers.models import Researcher
 from server.studies.models import Study, StudyState
 from server.studies.service import managed_study
-from server.studies.studyfile import StudyFile
+from server.studies.studyfile import Clips, StudyFile
 
 from .models import AnimationShare, BuildJob, BuildState, StudyAsset
 
@@ -446,10 +446,10 @@ def check_no_build(session: Session) -> None:
 
 
 def start_build(session: Session, settings: Settings, engine: Engine, study: Study) -> BuildJob:
-    """Queue the build of the study's assets (or of the ``[clips]`` it was created with, :func:`pending_clips`)
+    """Queue the build of the study's assets (or of the ``[clips]`` it was created with, :func:`study_clips`)
     and start its process (``python -m server.uploads.job ID``); 409 if the study has nothing to build or a build
     is running."""
-    if not list_assets(session, study) and not pending_clips(settings, study.id).is_file():
+    if not list_assets(session, study) and not study_clips_path(settings, study.id).is_file():
         raise Conflict(f"study {study.slug!r} has no assets to build; upload a BVH or glTF file first")
     check_no_build(session)
     return _launch(session, settings, engine, study)
@@ -478,13 +478,32 @@ def _launch(session: Session, settings: Settings, engine: Engine, study: Study) 
 
 # --- a study file's [clips], built by the job -----------------------------------------------------------------
 
-#: Beside a study's uploads: the ``[clips]`` of the study file it was created with through the API, until the
-#: build job has built and rendered them and made the study's comparisons (then it is removed).
-PENDING_CLIPS = "study-clips.json"
+#: Beside a study's uploads: the ``[clips]`` of the study file it was created with through the API, its clip set
+#: (its build job builds and renders it; a change of its design is made over it).
+STUDY_CLIPS = "study-clips.json"
 
 
-def pending_clips(settings: Settings, study_id: int) -> Path:
-    return settings.study_assets_dir(study_id) / PENDING_CLIPS
+def study_clips_path(settings: Settings, study_id: int) -> Path:
+    return settings.study_assets_dir(study_id) / STUDY_CLIPS
+
+
+def study_clips(settings: Settings, study_id: int) -> Clips | None:
+    """The ``[clips]`` a study was created with through the API, None for a study over the server's clip set."""
+    path = study_clips_path(settings, study_id)
+    try:
+        return Clips.model_validate_json(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:  # written by create_building only
+        raise Conflict(f"the study's [clips] cannot be read ({type(exc).__name__}); delete the study and create "
+                       "it again") from None
+
+
+def check_takes_uploads(settings: Settings, study: Study) -> None:
+    """409 for a study with its own clip set: uploads are built into the server's."""
+    if study_clips_path(settings, study.id).is_file():
+        raise Conflict(f"study {study.slug!r} has its own clip set ([clips] of its study file); uploads go into a "
+                       "study over the server's clip set")
 
 
 def check_data_file(settings: Settings, name: str | None, where: str) -> None:
@@ -532,7 +551,7 @@ def create_building(session: Session, settings: Settings, engine: Engine, study_
     study = new_draft(session, study_file, owner)
     session.add(study)
     session.commit()
-    path = pending_clips(settings, study.id)
+    path = study_clips_path(settings, study.id)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(clips.model_dump_json(exclude_none=True), encoding="utf-8")
