@@ -535,6 +535,8 @@ def create_building(session: Session, settings: Settings, engine: Engine, study_
     from server.studies.service import new_draft
 
     clips = study_file.clips
+    if clips is None:
+        raise ValueError("create_building is for a study file with [clips]")
     if clips.set is not None:
         raise Unprocessable("clips.set: a clip-set file names files on the server; through the API give the "
                             "clip set inline ([[clips.conditions]] and/or [clips.animations.<name>], motions from "
@@ -550,12 +552,18 @@ def create_building(session: Session, settings: Settings, engine: Engine, study_
     pipeline.check_design(config, study_file.design)
     study = new_draft(session, study_file, owner)
     session.add(study)
-    session.commit()
+    session.flush()  # its id names the folder of its [clips]
     path = study_clips_path(settings, study.id)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(clips.model_dump_json(exclude_none=True), encoding="utf-8")
-    tmp.replace(path)
+    try:  # the study and its [clips], both or neither
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp")
+        tmp.write_text(clips.model_dump_json(exclude_none=True), encoding="utf-8")
+        tmp.replace(path)
+        session.commit()
+    except BaseException:
+        session.rollback()
+        path.unlink(missing_ok=True)
+        raise
     return study, _launch(session, settings, engine, study)
 
 
