@@ -287,7 +287,12 @@
     const r = await api("/studies/file", { method: "POST", headers: { "Content-Type": "application/toml" },
                                            body: await file.text() });
     $("create-errors").textContent = r.ok ? "" : await problems(r);
-    if (r.ok) { e.target.reset(); await refresh(); }
+    if (!r.ok) return;
+    // 202: the study file gives its clips ([clips]); the build job makes them: show its progress
+    const building = r.status === 202 ? (await r.json()).study.slug : null;
+    e.target.reset();
+    await refresh();
+    if (building) await showAssets(building);
   });
 
   Researcher.start(refresh, () => { $("studies").hidden = true; });

@@ -6,12 +6,16 @@ missing; ``gc`` deletes exactly the files nothing uses."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import hashlib
 import io
+import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy.orm import Session
 
 from server import cli
 from server.app import create_app
@@ -19,6 +23,7 @@ from server.clipset.build import build_clip_set
 from server.clipset.config import load_config
 from server.clipset.manifest import write_clip_set
 from server.config import Settings
+from server.db import migrate
 from server.deps import get_session
 from server.media.build import MEDIA_NAME, render_media
 from server.media.manifest import read_render_manifest
@@ -27,8 +32,11 @@ from server.researchers.service import create_researcher
 from server.stimuli import service as stimulus_sets
 from server.studies import service
 from server.studies.design import Design
+from server.studies.pipeline import render_manifest_dirs
 from server.studies.service import clip_set_index, required_pairs
-from tests.server_fixtures import answer_all, fake_media, start, study_file, write_fake_media
+from server.studies.studyfile import parse_study_text
+from tests.conftest import DATABASES, _fresh_engine
+from tests.server_fixtures import RESEARCHER, answer_all, fake_media, start, study_file, write_fake_media
 from tests.test_uploads import SECRET, excerpt, login
 
 TINY = RenderSettings(width=64, height=48, shadows=False)
@@ -280,3 +288,189 @@ def test_study_create_builds_conditions_given_inline(tmp_path, monkeypatch, caps
         'conditions = ["hybrid_c2_0"]', 'conditions = ["hybrid_ik0"]'))
     assert cli.main(["study", "create", str(lacking)]) == 2
     assert "hybrid_ik0 are not in the study's clip set" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("how", ["merge", "rebuild"])
+def test_a_build_killed_halfway_leaves_the_previous_clip_set(tmp_path, data, monkeypatch, how):
+    """A rebuild of the clip set (other frames of its animation) that dies after writing its first clip: the
+    manifest and every file it names keep their bytes and load; the next build goes through."""
+    from server.clipset import manifest as clip_manifest
+    from server.clipset.manifest import MANIFEST, merge_clip_set, read_clip, read_clip_manifest
+
+    source = tmp_path / "base.bvh"
+    source.write_bytes(excerpt(data, frames=120))
+
+    def clips(first: int, last: int) -> list:
+        config = tmp_path / f"base{first}.toml"
+        config.write_text(CLIPSET.format(source=source, first=first, last=last), encoding="utf-8")
+        return build_clip_set(data, load_config(config))
+
+    clips_dir = tmp_path / "clips"
+    write_clip_set(clips(40, 100), clips_dir)
+
+    def hashes() -> dict[str, str]:
+        return {f.name: sha(f.read_bytes()) for f in clips_dir.iterdir() if not f.name.startswith(".")}
+
+    before = hashes()
+    assert len(before) == 3  # the manifest and two clips
+    rebuilt = clips(30, 110)
+    write = merge_clip_set if how == "merge" else write_clip_set
+    real, calls = clip_manifest.np.savez_compressed, []
+
+    def dies_on_the_second(*args, **kwargs):
+        calls.append(args[0])
+        if len(calls) == 2:
+            raise KeyboardInterrupt("killed")  # as SIGINT would
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(clip_manifest.np, "savez_compressed", dies_on_the_second)
+    with pytest.raises(KeyboardInterrupt):
+        write(clips_dir, rebuilt) if how == "merge" else write(rebuilt, clips_dir)
+    monkeypatch.setattr(clip_manifest.np, "savez_compressed", real)
+    assert {k: v for k, v in hashes().items() if k in before} == before
+    old = read_clip_manifest(clips_dir)
+    assert [read_clip(clips_dir, c.id)[0] for c in old.clips] == list(old.clips)
+
+    write(clips_dir, rebuilt) if how == "merge" else write(rebuilt, clips_dir)
+    new = read_clip_manifest(clips_dir)
+    assert new.clips != old.clips and (clips_dir / MANIFEST).read_bytes() != b""
+    for c in new.clips:
+        _, arrays = read_clip(clips_dir, c.id)
+        assert arrays["times"].shape == (c.frames,)
+    files = {f.name for f in clips_dir.iterdir() if f.suffix == ".npz" and not f.name.startswith(".")}
+    # the previous files are removed once the new manifest is in place (leftovers of the killed build aside)
+    assert {c.file for c in new.clips} <= files and not files & ({c.file for c in old.clips} - {c.file for c in
+                                                                                              new.clips})
+
+
+# --- the API builds too ---------------------------------------------------------------------------------------------
+
+API_CLIPS = '''[clips.animations.idle]
+kind = "idle"
+source = "{source}"
+frames = {frames}
+
+[[clips.conditions]]
+id = "keyframe"
+method = "keyframe"
+
+[[clips.conditions]]
+id = "hybrid0"
+method = "hybrid"
+params = {{ increment = 0 }}
+'''
+
+
+def api_study_text(slug: str, source: str = "mocap/cmu/113_21_idle_30fps.bvh.gz", frames: str = "[40, 100]",
+                   condition: str = "hybrid0") -> str:
+    """future-work.toml with the idle motion of the data directory and its conditions inline."""
+    text = FUTURE_WORK.read_text().replace('slug = "future-work"', f'slug = "{slug}"')
+    text = text.replace('animations = ["walk", "crouch"]', 'animations = ["idle"]').replace(
+        'conditions = ["hybrid0", "hybrid_ik0", "hybrid_c2_0"]', f'conditions = ["{condition}"]')
+    return text.replace('[clips]\nset = "../server/clipset/conditions16.toml"\n',
+                        API_CLIPS.format(source=source, frames=frames))
+
+
+def wait_for(client: TestClient, slug: str, headers: dict) -> dict:
+    deadline = time.monotonic() + 600
+    while True:
+        job = client.get(f"/api/v1/studies/{slug}/assets/build", headers=headers).json()
+        if job["state"] in ("done", "failed") or time.monotonic() > deadline:
+            return job
+        time.sleep(0.5)
+
+
+@pytest.mark.parametrize("kind", DATABASES)
+def test_the_api_creates_a_study_whose_clips_are_given_inline(kind, tmp_path, tmp_path_factory, data):
+    """POST /studies/file with inline [clips]: 202 with the draft and its build job, which builds the clips and
+    renders the videos in its own process; then the study opens with them.  Bad [clips] are a 422 naming the
+    field (nothing created) or a failed job with the reason and no server path."""
+    engine = _fresh_engine(kind, tmp_path_factory, database="test_animstudy_api_clips")
+    settings = Settings(var_dir=tmp_path / "var", data_dir=data, secret_key=SECRET)
+    try:
+        migrate(engine)
+        # the server's videos are 64x48 without shadows: the study's are rendered alike
+        settings.media_dir.mkdir(parents=True)
+        (settings.media_dir / "manifest.json").write_text(fake_media().model_copy(update={
+            "settings": dataclasses.asdict(TINY)}
+        ).model_dump_json())
+        with Session(engine) as db:
+            create_researcher(db, *RESEARCHER)
+        app = create_app(settings, engine, run_migrations=False)
+        with TestClient(app) as client:
+            headers = login(client, *RESEARCHER)
+
+            def post(text: str) -> Any:
+                return client.post("/api/v1/studies/file", content=text.encode(), headers=headers)
+
+            bad = [(api_study_text("b1", condition="hybrid_ik0"), "hybrid_ik0 are not in the study's clip set"),
+                   (api_study_text("b2", source="mocap/none.bvh"), "data directory has no file 'mocap/none.bvh'"),
+                   (api_study_text("b3", source=str(data / "mocap/cmu/113_21_idle_30fps.bvh.gz")),
+                    "no absolute path"),
+                   (api_study_text("b4").replace('[clips.animations.idle]', '[clips.animations.Idle]'),
+                    "an animation name is 1..32 lower-case"),
+                   (FUTURE_WORK.read_text().replace('"future-work"', '"b5"'), "clips.set: a clip-set file")]
+            for text, reason in bad:
+                r = post(text)
+                assert r.status_code == 422 and reason in r.text, r.text
+                assert str(tmp_path) not in r.text and str(data) not in r.text
+            # the same through the JSON endpoint
+            r = client.post("/api/v1/studies", json=parse_study_text(bad[0][0], "x").model_dump(mode="json"),
+                            headers=headers)
+            assert r.status_code == 422 and bad[0][1] in r.text, r.text
+            assert [s["slug"] for s in client.get("/api/v1/studies", headers=headers).json()] == []
+
+            r = post(api_study_text("idle"))
+            assert r.status_code == 202, r.text
+            assert r.json()["study"]["slug"] == "idle" and r.json()["build"]["state"] == "queued"
+            # one build at a time: a second study file is refused and not created
+            r = post(api_study_text("second"))
+            assert r.status_code == 409 and "a build is running" in r.text, r.text
+            assert client.get("/api/v1/studies/second/definition", headers=headers).status_code == 404
+            assert client.post("/api/v1/studies/idle/open", headers=headers).status_code == 409  # nothing to show
+            job = wait_for(client, "idle", headers)
+            log = (settings.assets_dir / "1" / "build.log").read_text()
+            assert (job["state"], job["stage"], job["error"]) == ("done", "done", None), (job, log)
+            with Session(engine) as db:
+                built = stimulus_sets.content_of(service.get_study(db, "idle").stimulus_set)
+            # the draft's design changes over its own clip set (the server's has an "idle" of other videos)
+            r = client.patch("/api/v1/studies/idle", json={"design": {"practice": "hybrid0"}}, headers=headers)
+            assert r.status_code == 200, r.text
+            with Session(engine) as db:
+                study = service.get_study(db, "idle")
+                assert [c.kind for c in study.comparisons] == ["test", "catch", "practice"]
+                assert stimulus_sets.content_of(study.stimulus_set).clips == built.clips
+            r = client.post("/api/v1/studies/idle/assets", params={"filename": "sway.bvh"},
+                            content=excerpt(data, frames=45), headers=headers)
+            assert r.status_code == 409 and "its own clip set" in r.text, r.text
+            r = client.post("/api/v1/studies/idle/open", headers=headers)
+            assert r.status_code == 200, r.text
+            with Session(engine) as db:
+                study = service.get_study(db, "idle")
+                content = stimulus_sets.content_of(study.stimulus_set)
+                assert {(c.animation, c.condition) for c in content.clips} == {("idle", "keyframe"),
+                                                                              ("idle", "hybrid0")}
+                assert stimulus_sets.missing(content, settings.media_dir) == []
+                assert content.render["width"] == 64
+                assert len(study.comparisons) == 3  # test, catch and practice
+            # gc: the study's videos are kept (pinned, and listed by its clip set's render manifest); an orphan goes
+            orphan = settings.media_dir / f"{sha(b'orphan')[:24]}.mp4"
+            orphan.write_bytes(b"old")
+            pinned = set(content.hashes())
+            with Session(engine) as db:
+                dry = stimulus_sets.collect(db, settings.media_dir, render_manifest_dirs(settings), dry_run=True)
+                assert [f.name for f in dry.files] == [orphan.name] and orphan.exists()
+                done = stimulus_sets.collect(db, settings.media_dir, render_manifest_dirs(settings))
+            assert [f.name for f in done.files] == [orphan.name] and not orphan.exists()
+            assert pinned <= {f.name for f in settings.media_dir.iterdir()}
+            assert stimulus_sets.missing(content, settings.media_dir) == []
+
+            # frames the file does not have: found by the build, the job fails with the reason, no server path
+            r = post(api_study_text("late", frames="[40, 99999]"))
+            assert r.status_code == 202, r.text
+            job = wait_for(client, "late", headers)
+            assert job["state"] == "failed" and "99999" in job["error"], job
+            assert str(tmp_path) not in job["error"] and str(data) not in job["error"]
+            assert client.post("/api/v1/studies/late/open", headers=headers).status_code == 409
+    finally:
+        engine.dispose()

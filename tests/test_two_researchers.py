@@ -94,6 +94,25 @@ def test_two_researchers(kind, tmp_path, tmp_path_factory, data):
                 assert A not in text and str(settings.var) not in text and str(tmp_path) not in text
             assert client.delete("/api/v1/studies/bstudy", headers=b).status_code == 204
 
+            # B names an upload as A's private animation: B's build is refused with what it says for any name B
+            # cannot take (here the server's "base"), nothing of A's.
+            assert create(client, b, "bnames", ["base"]).status_code == 201
+            with Session(engine) as db:
+                bnames_id = db.scalar(select(Study.id).where(Study.slug == "bnames"))
+            errors = {}
+            for name in ("private_sway", "base"):
+                r = client.post("/api/v1/studies/bnames/assets", params={"filename": "mine.bvh", "name": name},
+                                content=excerpt(data, frames=60, start=20), headers=b)
+                assert r.status_code == 201, r.text
+                failed = run_build(engine, settings, bnames_id)
+                assert failed.state == "failed", failed.error
+                errors[name] = failed.error
+                assert client.delete(f"/api/v1/studies/bnames/assets/{name}", headers=b).status_code == 204
+            assert errors["private_sway"] == errors["base"].replace("'base'", "'private_sway'"), errors
+            for word in ("already", "exists", A, "astudy", "Private Sway", str(settings.var)):
+                assert word not in errors["private_sway"], errors
+            assert client.delete("/api/v1/studies/bnames", headers=b).status_code == 204
+
             # A shares it with B by name: now B's study over it is created and opened.
             r = client.post("/api/v1/studies/astudy/assets/private_sway/shares", json={"email": B}, headers=a)
             assert r.status_code == 200 and r.json()["shared_with"] == [B], r.text

@@ -8,6 +8,7 @@ rebuild the clip set.
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 from typing import Any, Literal, TypeVar
@@ -42,7 +43,8 @@ class Units(_Model):
 
 
 class ClipEntry(_Model):
-    """One clip: ``file`` (``<id>.npz`` beside the manifest) holds its arrays (docs/reference/manifests.md)."""
+    """One clip: ``file`` (``<id>.npz``, or ``<id>.<hash>.npz`` when it replaced one, beside the manifest) holds
+    its arrays (docs/reference/manifests.md)."""
 
     id: str
     animation: str
@@ -85,32 +87,72 @@ class ClipManifest(_Model):
         return next((c for c in self.clips if c.animation == animation and c.condition == condition), None)
 
 
-def entry(c: BuiltClip) -> ClipEntry:
+def entry(c: BuiltClip, file: str | None = None) -> ClipEntry:
     return ClipEntry(id=c.id, animation=c.animation, kind=c.kind, condition=c.condition, method=c.method,
                      params=c.params, key_count=int(c.key_times.size), duration_s=c.duration_s, fps=c.fps,
                      frames=c.n_frames, playback=c.playback, in_place=c.in_place, root_speed_mps=c.root_speed_mps,
                      metrics=c.metrics, source={k: v for k, v in c.source.items() if k != "character"},
-                     file=f"{c.id}.npz")
+                     file=file or f"{c.id}.npz")
+
+
+def _readable(clips_dir: Path) -> ClipManifest | None:
+    """The manifest in ``clips_dir`` if there is a readable one (its files are then kept until it is replaced)."""
+    try:
+        return read_clip_manifest(clips_dir) if (clips_dir / MANIFEST).exists() else None
+    except ManifestError:
+        return None
+
+
+def _write_clips(clips_dir: Path, clips: list[BuiltClip], current: ClipManifest | None) -> dict[str, str]:
+    """Write each clip's ``.npz`` under a name the current manifest does not use (``<id>.npz``, or
+    ``<id>.<hash>.npz`` while the current manifest names that one), through a temporary file; returns clip id ->
+    file name.  No file the current manifest names is touched: a build killed before the manifest is replaced
+    leaves the clip set as it was."""
+    used = {e.file for e in current.clips} if current is not None else set()
+    files = {}
+    for c in clips:
+        tmp = clips_dir / f".{c.id}.tmp.npz"
+        np.savez_compressed(tmp, **c.arrays())
+        name = f"{c.id}.npz"
+        if name in used:
+            name = f"{c.id}.{hashlib.sha256(tmp.read_bytes()).hexdigest()[:12]}.npz"
+        tmp.replace(clips_dir / name)
+        files[c.id] = name
+    return files
+
+
+def _drop_replaced(clips_dir: Path, before: ClipManifest | None, after: ClipManifest) -> None:
+    """Remove the files of the previous manifest that the new one does not name (after the switch to it)."""
+    if before is None:
+        return
+    keep = {e.file for e in after.clips}
+    for e in before.clips:
+        if e.file not in keep and Path(e.file).name == e.file:
+            (clips_dir / e.file).unlink(missing_ok=True)
 
 
 def write_clip_set(clips: list[BuiltClip], out: Path) -> Path:
-    """Write ``<id>.npz`` per clip and ``manifest.json``; returns the manifest path."""
+    """Write one ``.npz`` per clip and ``manifest.json`` (replacing a clip set there: its files stay until the new
+    manifest has replaced its manifest, see :func:`_write_clips`); returns the manifest path."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     records = [c.source.get("character") for c in clips]
     if any(r != records[0] for r in records):
         raise ValueError("the clips of one clip set were built for different characters")
     character = CharacterEntry.model_validate(records[0]) if records and records[0] else None
-    manifest = ClipManifest(character=character, clips=[entry(c) for c in clips])
-    for c in clips:
-        np.savez_compressed(out / f"{c.id}.npz", **c.arrays())
-    return write_json(out / MANIFEST, manifest)
+    before = _readable(out)
+    files = _write_clips(out, clips, before)
+    manifest = ClipManifest(character=character, clips=[entry(c, files[c.id]) for c in clips])
+    path = write_json(out / MANIFEST, manifest)
+    _drop_replaced(out, before, manifest)
+    return path
 
 
 def merge_clip_set(clips_dir: Path, built: list[BuiltClip]) -> Path:
     """Add built clips to the clip set in ``clips_dir`` (created if there is none), replacing the clips of the
-    same animations; each ``.npz`` is written under a temporary name and renamed, the manifest last, so readers
-    see the old clip set or the new one.  ManifestError if the clip set there is unreadable (merging into it would
+    same animations; each ``.npz`` is written under a name the current manifest does not use
+    (:func:`_write_clips`) and the manifest replaced last, so readers, and a build killed halfway, see the old clip
+    set or the new one.  ManifestError if the clip set there is unreadable (merging into it would
     drop its clips) or was built for another character."""
     clips_dir = Path(clips_dir)
     clips_dir.mkdir(parents=True, exist_ok=True)
@@ -125,13 +167,13 @@ def merge_clip_set(clips_dir: Path, built: list[BuiltClip]) -> Path:
         raise ManifestError("the new clips were built for another character than the clip set's; rebuild the "
                             "clip set (`animstudy clips build`)")
     character = built_for if built else recorded
-    for c in built:
-        tmp = clips_dir / f".{c.id}.tmp.npz"
-        np.savez_compressed(tmp, **c.arrays())
-        tmp.replace(clips_dir / f"{c.id}.npz")
+    files = _write_clips(clips_dir, built, current)
     replaced = {c.animation for c in built}
-    entries = [e for e in old if e.animation not in replaced] + [entry(c) for c in built]
-    return write_json(clips_dir / MANIFEST, ClipManifest(character=character, clips=entries))
+    entries = [e for e in old if e.animation not in replaced] + [entry(c, files[c.id]) for c in built]
+    manifest = ClipManifest(character=character, clips=entries)
+    path = write_json(clips_dir / MANIFEST, manifest)
+    _drop_replaced(clips_dir, current, manifest)
+    return path
 
 
 def write_json(path: Path, model: BaseModel) -> Path:

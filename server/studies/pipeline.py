@@ -124,11 +124,8 @@ def build_animations(data_dir: Path, config: ClipSetConfig, wanted: dict[str, tu
     return [dataclasses.replace(c, source={**c.source, "character": record}) for c in built]
 
 
-def build(data_dir: Path, config: ClipSetConfig, clips_dir: Path, design: Design,
-          progress: Progress = lambda _m: None) -> int:
-    """Build the clips of ``design`` that the clip set in ``clips_dir`` lacks, from ``config``; returns how many
-    clips were built.  An animation is built with every condition it already had plus the ones needed (the
-    reference first: the others are made from it).  422 naming what ``config`` does not have."""
+def check_design(config: ClipSetConfig, design: Design) -> list[str]:
+    """The conditions ``design`` needs (:func:`needed_conditions`), or 422 naming what ``config`` does not have."""
     conditions = needed_conditions(design)
     by_id = {c.id: c for c in config.conditions}
     if unknown := [c for c in conditions if c not in by_id]:
@@ -137,6 +134,15 @@ def build(data_dir: Path, config: ClipSetConfig, clips_dir: Path, design: Design
     if unknown := [a for a in design.animations if a not in config.animations]:
         raise Unprocessable(f"design.animations: {', '.join(unknown)} are not in the study's clip set (it has "
                             f"{', '.join(config.animations)})")
+    return conditions
+
+
+def build(data_dir: Path, config: ClipSetConfig, clips_dir: Path, design: Design,
+          progress: Progress = lambda _m: None) -> int:
+    """Build the clips of ``design`` that the clip set in ``clips_dir`` lacks, from ``config``; returns how many
+    clips were built.  An animation is built with every condition it already had plus the ones needed (the
+    reference first: the others are made from it).  422 naming what ``config`` does not have."""
+    conditions = check_design(config, design)
     try:
         current = read_clip_manifest(clips_dir).clips if (clips_dir / MANIFEST).is_file() else []
     except ManifestError:

@@ -1,11 +1,12 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Depends, Query, Request, status
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import PlainTextResponse, Response
+from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
@@ -13,9 +14,10 @@ from server.deps import ResearcherDep, SessionDep, SettingsDep
 from server.errors import Conflict, Unprocessable
 from server.media.manifest import ManifestError, RenderManifest, read_render_manifest
 from server.researchers.models import Researcher
-from server.uploads.service import usable_animations
+from server.uploads.job import scrub
+from server.uploads.service import create_building, job_json, study_clips, usable_animations
 
-from . import pilot, service
+from . import pilot, pipeline, service
 from .columns import data_dictionary_markdown
 from .models import StudyState
 from .page import Page
@@ -34,12 +36,13 @@ def list_studies(session: SessionDep, researcher: ResearcherDep) -> list[StudySu
     return [service.study_summary(session, s) for s in service.visible_studies(session, researcher)]
 
 
-def render_manifest(settings: Any) -> RenderManifest:
-    """409 when the videos are missing or their manifest is old or corrupt (the message says to render)."""
+def render_manifest(settings: Any, folder: Path | None = None) -> RenderManifest:
+    """The render manifest of the server's clip set (or the one in ``folder``); 409 when the videos are missing
+    or their manifest is old or corrupt (the message says to render, and names no server path)."""
     try:
-        return read_render_manifest(settings.media_dir)
+        return read_render_manifest(folder or settings.media_dir)
     except ManifestError as exc:
-        raise Conflict(f"{exc}; `animstudy study create` renders what a study needs") from None
+        raise Conflict(scrub(f"{exc}; `animstudy study create` renders what a study needs", settings)) from None
 
 
 def usable(session: Session, settings: Any, researcher: Researcher, media: RenderManifest) -> set[str]:
@@ -48,15 +51,22 @@ def usable(session: Session, settings: Any, researcher: Researcher, media: Rende
     return usable_animations(session, settings, researcher, sorted({a for a, _ in media.clip_index()}))
 
 
-@router.post("/studies", response_model=StudySummary, status_code=status.HTTP_201_CREATED)
-def create_study(body: StudyFile, session: SessionDep, settings: SettingsDep,
-                 researcher: ResearcherDep) -> StudySummary:
-    """A draft study from a study file's content (as JSON) over the rendered videos (``animstudy study create``
-    renders what is missing; here the videos must exist)."""
+BUILDING = {202: {"description": "a study file with inline [clips]: the draft study and the build job that builds "
+                                  "and renders its clips (poll GET /studies/{slug}/assets/build)",
+                   "content": {"application/json": {"example": {"study": {"slug": "..."},
+                                                                "build": {"state": "queued"}}}}}}
+
+
+@router.post("/studies", response_model=StudySummary, status_code=status.HTTP_201_CREATED, responses=BUILDING)
+def create_study(body: StudyFile, request: Request, session: SessionDep, settings: SettingsDep,
+                 researcher: ResearcherDep) -> StudySummary | JSONResponse:
+    """A draft study from a study file's content (as JSON) over the rendered videos.  With inline ``[clips]``
+    the clips it needs are built and rendered by a build job first: 202 with the draft and the job, whose
+    progress ``GET /studies/{slug}/assets/build`` shows; the study gets its comparisons when the job is done."""
     if body.clips is not None:
-        raise Unprocessable("clips.set: a study file that names its clip set is created with `animstudy study "
-                            "create FILE` on the server, which builds and renders its clips; through the API a "
-                            "study uses the server's clip set and its own uploads")
+        study, job = create_building(session, settings, request.app.state.engine, body, researcher)
+        return JSONResponse({"study": service.study_summary(session, study).model_dump(mode="json"),
+                             "build": job_json(job)}, status_code=status.HTTP_202_ACCEPTED)
     media = render_manifest(settings)
     return service.study_summary(session, service.create_study(session, media, body, owner=researcher,
                                                  media_dir=settings.media_dir, clips_dir=settings.clips_dir,
@@ -74,18 +84,18 @@ async def study_file_text(request: Request) -> str:
         raise Unprocessable("the study file is not UTF-8 text") from None
 
 
-@router.post("/studies/file", response_model=StudySummary, status_code=status.HTTP_201_CREATED,
+@router.post("/studies/file", response_model=StudySummary, status_code=status.HTTP_201_CREATED, responses=BUILDING,
              openapi_extra={"requestBody": {"required": True,
                                             "content": {"text/plain": {"schema": {"type": "string"}}}}})
-def create_study_from_file(text: Annotated[str, Depends(study_file_text)], session: SessionDep,
-                           settings: SettingsDep, researcher: ResearcherDep) -> StudySummary:
+def create_study_from_file(text: Annotated[str, Depends(study_file_text)], request: Request, session: SessionDep,
+                           settings: SettingsDep, researcher: ResearcherDep) -> StudySummary | JSONResponse:
     """As ``POST /studies``, from the study file itself (TOML text as the body): errors name field and line."""
     try:
         study_file = parse_study_text(text, "the study file")
     except StudyFileError as exc:
         raise RequestValidationError([{"loc": ("body",), "msg": e, "type": "value_error"} for e in exc.errors]
                                      ) from None
-    return create_study(study_file, session, settings, researcher)
+    return create_study(study_file, request, session, settings, researcher)
 
 
 @router.get("/studies/{slug}/definition", response_model=StudyFile)
@@ -100,10 +110,16 @@ def patch_study(slug: str, session: SessionDep, settings: SettingsDep, researche
     """Title, texts, scale, questions and recruitment until the study first opens; the design while it is a
     draft; otherwise 409."""
     study = service.managed_study(session, slug, researcher)
-    media = render_manifest(settings) if "design" in body else None
+    media, clips_dir, animations = None, settings.clips_dir, None
+    if "design" in body:
+        if (clips := study_clips(settings, study.id)) is not None:  # over its own clip set (data-dir motions)
+            place = pipeline.inline_place(settings, clips, "the study file")
+            media, clips_dir = render_manifest(settings, place.render_dir), place.clips_dir
+        else:
+            media = render_manifest(settings)
+            animations = usable(session, settings, researcher, media)
     try:
-        service.update_study(session, study, body, media, settings.media_dir, settings.clips_dir,
-                             usable(session, settings, researcher, media) if media is not None else None)
+        service.update_study(session, study, body, media, settings.media_dir, clips_dir, animations)
     except ValidationError as exc:
         session.rollback()
         raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in exc.errors()]) from None

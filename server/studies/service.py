@@ -109,14 +109,19 @@ def create_study(session: Session, media: RenderManifest, study_file: StudyFile,
     the clip set in ``clips_dir`` (or is ``stimulus_set``, the set ``media`` was made from: an imported study's).
     ``animations``: the ones its owner may use (default: all; the others are unknown to them, see
     ``server.uploads.service.usable_animations``)."""
-    if session.scalar(select(Study.id).where(Study.slug == study_file.slug)) is not None:
-        raise Conflict(f"a study with slug {study_file.slug!r} exists already")
-    study = Study(slug=study_file.slug, state=StudyState.draft, owner_id=owner.id if owner else None,
-                  **_columns(study_file))
+    study = new_draft(session, study_file, owner)
     _build_comparisons(session, study, media, study_file.design, media_dir, clips_dir, animations, stimulus_set)
     session.add(study)
     session.commit()
     return study
+
+
+def new_draft(session: Session, study_file: StudyFile, owner: Researcher | None) -> Study:
+    """The row of a new draft study, nothing shown yet (409 if the slug is taken); not added to the session."""
+    if session.scalar(select(Study.id).where(Study.slug == study_file.slug)) is not None:
+        raise Conflict(f"a study with slug {study_file.slug!r} exists already")
+    return Study(slug=study_file.slug, state=StudyState.draft, owner_id=owner.id if owner else None,
+                 **_columns(study_file))
 
 
 def _build_comparisons(session: Session, study: Study, media: RenderManifest, design: Design,
@@ -157,6 +162,17 @@ def _build_comparisons(session: Session, study: Study, media: RenderManifest, de
     content = given or stimulus_sets.make_content(media, [s.clip_id for s in study.stimuli], needed, media_dir,
                                                   clips_dir)
     study.stimulus_set = stimulus_sets.store(session, content)
+
+
+def show_design(session: Session, study: Study, media: RenderManifest, media_dir: Path | None,
+                clips_dir: Path | None) -> Study:
+    """A draft's comparisons and stimulus set for its own design over ``media`` (a study created through the API
+    with inline ``[clips]``, once its build job has rendered them)."""
+    if study.state != StudyState.draft:
+        raise Conflict(f"study {study.slug!r} is {study.state}, no longer a draft")
+    _build_comparisons(session, study, media, Design.model_validate(study.design), media_dir, clips_dir)
+    session.commit()
+    return study
 
 
 def get_study(session: Session, slug: str) -> Study:

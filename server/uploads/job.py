@@ -43,9 +43,10 @@ from server.config import Settings
 from server.db import make_engine, session_factory, utcnow
 from server.errors import ServiceError
 from server.studies.models import Study, StudyState
+from server.studies.studyfile import Clips
 
 from .models import BuildJob, BuildState, StudyAsset
-from .service import asset_path
+from .service import asset_path, study_clips
 
 STAGES = ("queued", "building", "rendering", "study", "done")
 
@@ -155,16 +156,18 @@ def _reading(asset: StudyAsset, path: Path) -> dict[str, Any]:
 # --- merging into the clip set -----------------------------------------------------------------------------------
 
 def check_names(clips_dir: Path, assets: Sequence[StudyAsset], asset_file: Callable[[StudyAsset], Path]) -> None:
-    """An asset may not take the name of an animation of the clip set that comes from another file."""
+    """An asset may not take the name of an animation of the clip set that comes from another file.  The clip set
+    is the server's, one namespace for every researcher: the name may be another researcher's upload, so the
+    message is the same whoever's it is and says nothing of it (not that it is an upload, nor whose, nor that it
+    exists)."""
     manifest = current_clip_set(clips_dir)
     if manifest is None:
         return
     sources = {c.animation: str(c.source.get("file")) for c in manifest.clips}
     for a in assets:
         if a.name in sources and sources[a.name] != str(asset_file(a)):
-            # Not where it comes from: that may be another researcher's upload.
-            raise BuildError(f"asset {a.filename!r}: the server has an animation {a.name!r} already; delete the "
-                             "asset and upload it again with another name")
+            raise BuildError(f"asset {a.filename!r}: {a.name!r} cannot be the name of an uploaded animation on this "
+                             "server; delete the asset and upload it again with another name (API: name=)")
 
 
 def merge_clips(clips_dir: Path, built: list[Any]) -> Path:
@@ -229,7 +232,7 @@ def draft(session: Session, study_id: int) -> Study:
 
 
 def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progress: Progress) -> None:
-    from server.media.build import plan, rendered_settings
+    from server.media.build import rendered_settings
     from server.studies import pipeline
     from server.studies.design import Design
     from server.studies.pipeline import AnimationError, build_animations
@@ -245,6 +248,9 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
         assets = list(session.scalars(select(StudyAsset).where(StudyAsset.study_id == job.study_id)
                                       .order_by(StudyAsset.id)))
         session.expunge_all()
+    clips = study_clips(settings, study.id)
+    if clips is not None:
+        return _run_clips(settings, factory, study.id, clips, progress)
     if not assets:
         raise BuildError("the study has no assets")
     files = {a.id: asset_path(settings, a) for a in assets}
@@ -279,9 +285,25 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
         new_design = design.model_copy(update={"animations": animations})
         Design.model_validate(new_design.model_dump())
         pairs = pipeline.pairs(session, place, new_design, settings.media_dir)
-    render = rendered_settings(settings.media_dir)
-    todo = [o for j in plan(settings.data, settings.clips_dir, settings.media_dir, render, settings.secret,
-                            pairs).jobs for o in j.outputs]
+    media = _render(settings, place, pairs, rendered_settings(settings.media_dir), progress, every_clip=True)
+
+    progress(stage="study", done=0, total=1, message="adding the animations to the study's design")
+    with factory() as session:
+        study = draft(session, study.id)
+        update_study(session, study, {"design": new_design.model_dump()}, media, settings.media_dir,
+                     settings.clips_dir)
+    progress(stage="study", done=1, total=1, message=f"the design shows {', '.join(animations)}")
+
+
+def _render(settings: Settings, place: Any, pairs: list[tuple[str, str]], render: Any, progress: Progress,
+            every_clip: bool = False) -> Any:
+    """Stage ``rendering``: :func:`server.studies.pipeline.render` with one worker process (the server keeps a
+    core), its videos counted as they arrive; returns the render manifest of ``place``."""
+    from server.media.build import plan
+    from server.studies import pipeline
+
+    todo = [o for j in plan(settings.data, place.clips_dir, settings.media_dir, render, settings.secret, pairs,
+                            every_clip=every_clip).jobs for o in j.outputs]
     progress(stage="rendering", done=0, total=len(todo), message=f"{len(todo)} videos to render")
     stop = threading.Event()
 
@@ -292,20 +314,46 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
 
     watcher = threading.Thread(target=watch, daemon=True)
     watcher.start()
-    try:  # one worker process: the server keeps a core
+    try:
         media = pipeline.render(settings, place, pairs, render, lambda m: progress(message=m), workers=1,
-                                every_clip=True)
+                                every_clip=every_clip)
     finally:
         stop.set()
         watcher.join()
     progress(stage="rendering", done=len(todo), total=len(todo))
+    return media
 
-    progress(stage="study", done=0, total=1, message="adding the animations to the study's design")
+
+def _run_clips(settings: Settings, factory: sessionmaker[Session], study_id: int, clips: Clips,
+               progress: Progress) -> None:
+    """The job of a study created through the API from a study file with inline ``[clips]``
+    (:func:`server.uploads.service.create_building`): what :func:`server.studies.pipeline.prepare` does for
+    ``animstudy study create`` (the clips the design needs built into the clip set of those ``[clips]``, their
+    videos rendered, at the size of the videos there already), then the study's comparisons and stimulus set."""
+    from server.clipset.manifest import MANIFEST
+    from server.media.build import rendered_settings
+    from server.studies import pipeline
+    from server.studies.design import Design
+    from server.studies.service import show_design
+
     with factory() as session:
-        study = draft(session, study.id)
-        update_study(session, study, {"design": new_design.model_dump()}, media, settings.media_dir,
-                     settings.clips_dir)
-    progress(stage="study", done=1, total=1, message=f"the design shows {', '.join(animations)}")
+        design = Design.model_validate(draft(session, study_id).design)
+    place = pipeline.inline_place(settings, clips, "the study file")
+    if place.config is None:  # an inline clip set is always described: not reached
+        raise BuildError("the study's [clips] describe no clip set")
+    progress(stage="building", done=0, total=len(design.animations), message="building the clips the design needs")
+    built = pipeline.build(settings.data, place.config, place.clips_dir, design, lambda m: progress(message=m))
+    progress(stage="building", done=len(design.animations), total=len(design.animations),
+             message=f"{built} clips built")
+    with factory() as session:
+        pairs = pipeline.pairs(session, place, design, settings.media_dir)
+    before = place.render_dir if (place.render_dir / MANIFEST).is_file() else settings.media_dir
+    media = _render(settings, place, pairs, rendered_settings(before), progress)
+    progress(stage="study", done=0, total=1, message="making the study's comparisons over the videos")
+    with factory() as session:
+        study = draft(session, study_id)
+        show_design(session, study, media, settings.media_dir, place.clips_dir)
+    progress(stage="study", done=1, total=1, message=f"the study shows {', '.join(design.animations)}")
 
 
 def limit_memory(megabytes: int) -> None:

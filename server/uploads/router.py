@@ -78,6 +78,7 @@ async def upload_asset(slug: str, request: Request, session: SessionDep, setting
 
     def check() -> Any:
         study = service.draft_study(session, slug, researcher)
+        service.check_takes_uploads(settings, study)
         service.check_free(session, study, filename, animation)
         # No transaction stays open while the body arrives (on SQLite it would hold the write lock).
         session.rollback()

@@ -32,6 +32,7 @@ from server.errors import Conflict, NotFound, Unprocessable
 from server.researchers.models import Researcher
 from server.studies.models import Study, StudyState
 from server.studies.service import managed_study
+from server.studies.studyfile import Clips, StudyFile
 
 from .models import AnimationShare, BuildJob, BuildState, StudyAsset
 
@@ -436,15 +437,25 @@ def job_environment(settings: Settings, engine: Engine) -> dict[str, str]:
     return env
 
 
-def start_build(session: Session, settings: Settings, engine: Engine, study: Study) -> BuildJob:
-    """Queue the build of the study's assets and start its process (``python -m server.uploads.job ID``); 409 if
-    the study has no assets or a build (of any study: they share the clip set and the videos) is running."""
-    if not list_assets(session, study):
-        raise Conflict(f"study {study.slug!r} has no assets to build; upload a BVH or glTF file first")
+def check_no_build(session: Session) -> None:
+    """409 while a build (of any study: they share the clip sets and the videos) is running."""
     running = active_jobs(session)
     if running:
         slug = session.get(Study, running[0].study_id)
         raise Conflict(f"a build is running (study {slug.slug if slug else '?'!r}); wait until it has finished")
+
+
+def start_build(session: Session, settings: Settings, engine: Engine, study: Study) -> BuildJob:
+    """Queue the build of the study's assets (or of the ``[clips]`` it was created with, :func:`study_clips`)
+    and start its process (``python -m server.uploads.job ID``); 409 if the study has nothing to build or a build
+    is running."""
+    if not list_assets(session, study) and not study_clips_path(settings, study.id).is_file():
+        raise Conflict(f"study {study.slug!r} has no assets to build; upload a BVH or glTF file first")
+    check_no_build(session)
+    return _launch(session, settings, engine, study)
+
+
+def _launch(session: Session, settings: Settings, engine: Engine, study: Study) -> BuildJob:
     job = BuildJob(study_id=study.id, state=BuildState.queued, stage="queued", message="starting")
     session.add(job)
     session.commit()
@@ -463,6 +474,97 @@ def start_build(session: Session, settings: Settings, engine: Engine, study: Stu
     job.pid = proc.pid
     session.commit()
     return job
+
+
+# --- a study file's [clips], built by the job -----------------------------------------------------------------
+
+#: Beside a study's uploads: the ``[clips]`` of the study file it was created with through the API, its clip set
+#: (its build job builds and renders it; a change of its design is made over it).
+STUDY_CLIPS = "study-clips.json"
+
+
+def study_clips_path(settings: Settings, study_id: int) -> Path:
+    return settings.study_assets_dir(study_id) / STUDY_CLIPS
+
+
+def study_clips(settings: Settings, study_id: int) -> Clips | None:
+    """The ``[clips]`` a study was created with through the API, None for a study over the server's clip set."""
+    path = study_clips_path(settings, study_id)
+    try:
+        return Clips.model_validate_json(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:  # written by create_building only
+        raise Conflict(f"the study's [clips] cannot be read ({type(exc).__name__}); delete the study and create "
+                       "it again") from None
+
+
+def check_takes_uploads(settings: Settings, study: Study) -> None:
+    """409 for a study with its own clip set: uploads are built into the server's."""
+    if study_clips_path(settings, study.id).is_file():
+        raise Conflict(f"study {study.slug!r} has its own clip set ([clips] of its study file); uploads go into a "
+                       "study over the server's clip set")
+
+
+def check_data_file(settings: Settings, name: str | None, where: str) -> None:
+    """422 unless ``name`` is a file of the server's data directory given relative to it (through the API no
+    other file of the server may be read; the message never shows a server path)."""
+    from server.assets import AssetError, resolve
+
+    if name is None:
+        return
+    path = Path(name)
+    if path.is_absolute() or ".." in path.parts:
+        raise Unprocessable(f"{where}: a file of the server's data directory, named relative to it (e.g. "
+                            "'mocap/cmu/113_21_idle_30fps.bvh.gz'); no absolute path or '..'")
+    try:
+        resolve(settings.data, name)
+    except AssetError:
+        raise Unprocessable(f"{where}: the server's data directory has no file {name!r}") from None
+
+
+def create_building(session: Session, settings: Settings, engine: Engine, study_file: StudyFile,
+                    owner: Researcher) -> tuple[Study, BuildJob]:
+    """A draft study from a study file with inline ``[clips]`` and the build job that builds and renders its
+    clips and then makes its comparisons (poll it as any build job).  What can be checked now is, as 422 naming
+    the field: the clip set given inline (the motions must be files of the data directory), the design against
+    it; 409 if a build is running or the slug is taken.  Nothing is created then."""
+    from anim_core.clips.build import ConfigError
+    from server.clipset.config import inline_config
+    from server.studies import pipeline
+    from server.studies.service import new_draft
+
+    clips = study_file.clips
+    if clips is None:
+        raise ValueError("create_building is for a study file with [clips]")
+    if clips.set is not None:
+        raise Unprocessable("clips.set: a clip-set file names files on the server; through the API give the "
+                            "clip set inline ([[clips.conditions]] and/or [clips.animations.<name>], motions from "
+                            "the server's data directory), or run `animstudy study create FILE` on the server")
+    check_no_build(session)
+    try:
+        config = inline_config(clips.animations, clips.conditions, "the study file")
+    except ConfigError as exc:
+        raise Unprocessable(str(exc)) from None
+    for name, animation in (clips.animations or {}).items():
+        check_data_file(settings, animation.get("source"), f"clips.animations.{name}.source")
+        check_data_file(settings, animation.get("mapping"), f"clips.animations.{name}.mapping")
+    pipeline.check_design(config, study_file.design)
+    study = new_draft(session, study_file, owner)
+    session.add(study)
+    session.flush()  # its id names the folder of its [clips]
+    path = study_clips_path(settings, study.id)
+    try:  # the study and its [clips], both or neither
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp")
+        tmp.write_text(clips.model_dump_json(exclude_none=True), encoding="utf-8")
+        tmp.replace(path)
+        session.commit()
+    except BaseException:
+        session.rollback()
+        path.unlink(missing_ok=True)
+        raise
+    return study, _launch(session, settings, engine, study)
 
 
 def job_json(job: BuildJob | None) -> dict[str, Any] | None:
