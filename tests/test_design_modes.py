@@ -117,8 +117,10 @@ def test_adaptive_choice_depends_on_the_votes(db):
 
     conditions = ["keyframe", *FOUR]
     empty = next_batch(posterior([], conditions), seed=5)
-    # Many votes on keyframe-hybrid0 and hybrid1-hybrid2: those pairs are known, the others are not.
-    votes = [GradedComparison(str(p), x, y, s) for p in range(30)
+    # Many votes on keyframe-hybrid0 and hybrid1-hybrid2: those pairs are known, the others are not.  The answers
+    # vary (0, 1, 1, 2 in turn) as people's do: had every vote been the same answer, the ordinal model could not
+    # place the cut points and those two differences would stay as uncertain as before any vote.
+    votes = [GradedComparison(str(p), x, y, s * (0, 1, 1, 2)[p % 4]) for p in range(30)
              for x, y, s in (("keyframe", "hybrid0", 1), ("hybrid1", "hybrid2", -1))]
     informed = next_batch(posterior(votes, conditions), seed=5)
     assert (0, 1) not in informed.pairs and (2, 3) not in informed.pairs
