@@ -13,11 +13,11 @@ on the same observers.
 
 Equal precision: all-pairs with BASE participants sets the target; every other design is run at a grid of
 participant counts (about 0.4 to 1.3 times all-pairs' trials) and the trials at which it reaches the target are
-interpolated on the fitted line log(MSE) = a - b log(trials) (least squares over the grid; the mean squared
-error of a fixed design falls about as 1/trials).  The 90 % interval of the saving is the bootstrap over the
-simulated studies (the same resample for every design of a row).  A second precision, the "centred" error
-(the errors after removing their mean per study: how well the scale's shape is found, whichever condition is the
-anchor), is reported beside it; the goal is read on the first.
+interpolated on the line log(MSE) = a - b log(trials) fitted (least squares) to the three grid points nearest
+the target (the mean squared error of a fixed design falls about as 1/trials).  The 90 % interval of the saving
+is the bootstrap over the simulated studies (the same resample for every design of a row).  A second precision,
+the "centred" error (the errors after removing their mean per study: how well the scale's shape is found,
+whichever condition is the anchor), is reported beside it; the goal is read on the first.
 
     .venv/bin/python bench/design_savings.py [--seeds 60] [--base 10] [--sizes 4 6 8] [--span 2.5]
         [--criterion precision|information] [--json out.json]
@@ -43,6 +43,7 @@ from server.studies.simulate import Observers, simulate
 SPAN = 2.5
 GRID = (0.4, 0.6, 0.8, 1.0, 1.3)  # the other designs' trials, as shares of all-pairs' trials
 BOOT = 1000
+NEAR = 3
 
 
 def squared_errors(design: Design, truth: dict[str, float], participants: int, seeds: int,
@@ -70,8 +71,11 @@ def pooled(errors: np.ndarray, rows: np.ndarray | slice = slice(None)) -> float:
 
 
 def trials_at(target: float, trials: np.ndarray, mse: np.ndarray) -> tuple[float, float]:
-    """The trials at which the line log(mse) = a - b log(trials), fitted to the grid, reaches ``target``; and b."""
-    slope, intercept = np.polyfit(np.log(trials), np.log(mse), 1)
+    """The trials at which the line log(mse) = a - b log(trials), fitted to the NEAR grid points closest to
+    ``target``, reaches it; and b.  Only the near points: with few participants a study can be nearly separated
+    and its maximum likelihood values huge, a point far off the line that must not bend it at the target."""
+    near = np.argsort(np.abs(np.log(mse) - np.log(target)))[:NEAR]
+    slope, intercept = np.polyfit(np.log(trials[near]), np.log(mse[near]), 1)
     return float(np.exp((np.log(target) - intercept) / slope)), float(-slope)
 
 
@@ -107,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
                                                                       args.seeds, observers)
             row = {"conditions": n, "design": "all-pairs", "participants": [args.base], "trials": [base_trials],
                    "rmse": [math.sqrt(pooled(base_a))], "rmse_centred": [math.sqrt(pooled(base_c))],
-                   "failed": base_failed}
+                   "failed": base_failed, "per_study_mse": [np.nanmean(base_a, axis=1).tolist()]}
             rows.append(row)
             print(f"N={n} all-pairs: {args.base} participants, {base_trials} trials, RMSE {row['rmse'][0]:.3f} "
                   f"(centred {row['rmse_centred'][0]:.3f}), {base_failed} conditions without a value", flush=True)
@@ -119,7 +123,8 @@ def main(argv: list[str] | None = None) -> int:
                 out = {"conditions": n, "design": mode, "participants": counts, "trials": trials.tolist(),
                        "rmse": [math.sqrt(pooled(g[0])) for g in grid],
                        "rmse_centred": [math.sqrt(pooled(g[1])) for g in grid],
-                       "failed": sum(g[3] for g in grid)}
+                       "failed": sum(g[3] for g in grid),
+                       "per_study_mse": [np.nanmean(g[0], axis=1).tolist() for g in grid]}
                 for key, k, base in (("", 0, base_a), ("_centred", 1, base_c)):
                     needed, slope = trials_at(pooled(base), trials, np.array([pooled(g[k]) for g in grid]))
                     saved = []
