@@ -19,7 +19,7 @@ is the bootstrap over the simulated studies (the same resample for every design 
 the "centred" error (the errors after removing their mean per study: how well the scale's shape is found,
 whichever condition is the anchor), is reported beside it; the goal is read on the first.
 
-    .venv/bin/python bench/design_savings.py [--seeds 60] [--base 10] [--sizes 4 6 8] [--span 2.5]
+    PYTHONPATH=. .venv/bin/python bench/design_savings.py [--seeds 60] [--base 10] [--sizes 4 6 8] [--span 2.5]
         [--criterion precision|information] [--json out.json]
 
 Prints the measured points and the table for docs/designs.md; every number is measured in the run.
