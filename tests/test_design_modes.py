@@ -128,6 +128,22 @@ def test_adaptive_choice_depends_on_the_votes(db):
     assert next_batch(posterior(votes, conditions), seed=5) == informed  # reproducible
 
 
+def test_adaptive_batches_aim_at_the_values_against_the_reference():
+    """The tree is chosen for what the results report, each condition against the reference: before any vote that
+    is every condition against it (ASAP's information-gain tree was any tree the seed picked); with conditions far
+    apart, a chain of neighbours, never a pair whose answer is sure to be "much better"."""
+    from server.studies.adaptive import next_batch, posterior
+    from server.studies.simulate import simulate
+
+    conditions = ["keyframe", *FOUR]
+    for seed in range(5):
+        assert next_batch(posterior([], conditions), seed).pairs == ((0, 1), (0, 2), (0, 3))
+    votes = simulate(Design(mode="all-pairs", reference="keyframe", conditions=FOUR, animations=["walk"]),
+                     {c: 12.0 * i for i, c in enumerate(conditions)}, 10, seed=3).votes["walk"]
+    for seed in range(3):
+        assert next_batch(posterior(votes, conditions), seed).pairs == ((0, 1), (1, 2), (2, 3))
+
+
 def test_results_show_the_scale_pair_counts_and_adaptive_rounds(client, db, researcher_headers):
     make_study(db, _design("adaptive"), slug="adaptive")
     for i in range(3):
