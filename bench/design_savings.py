@@ -17,7 +17,9 @@ interpolated on the line log(MSE) = a - b log(trials) fitted (least squares) to 
 the target (the mean squared error of a fixed design falls about as 1/trials).  The 90 % interval of the saving
 is the bootstrap over the simulated studies (the same resample for every design of a row).  A second precision,
 the "centred" error (the errors after removing their mean per study: how well the scale's shape is found,
-whichever condition is the anchor), is reported beside it; the goal is read on the first.
+whichever condition is the anchor), is reported beside it, and so is the saving for the mean over studies of each
+study's RMSE (the first version's aggregation: it weighs a rare bad study less than the pooled error does); the
+goal is read on the first.
 
     PYTHONPATH=. .venv/bin/python bench/design_savings.py [--seeds 60] [--base 10] [--sizes 4 6 8] [--span 2.5]
         [--criterion precision|information] [--json out.json]
@@ -68,6 +70,11 @@ def squared_errors(design: Design, truth: dict[str, float], participants: int, s
 
 def pooled(errors: np.ndarray, rows: np.ndarray | slice = slice(None)) -> float:
     return float(np.nanmean(errors[rows]))
+
+
+def mean_rmse(errors: np.ndarray) -> float:
+    """The mean over studies of each study's RMSE (how the first version of this bench aggregated)."""
+    return float(np.mean(np.sqrt(np.nanmean(errors, axis=1))))
 
 
 def trials_at(target: float, trials: np.ndarray, mse: np.ndarray) -> tuple[float, float]:
@@ -135,21 +142,26 @@ def main(argv: list[str] | None = None) -> int:
                     out["slope" + key] = slope
                     out["saved" + key] = 1 - needed / base_trials
                     out["saved_90" + key] = [float(np.percentile(saved, 5)), float(np.percentile(saved, 95))]
+                # The first version's aggregation, the mean over studies of each study's RMSE, beside it.
+                out["saved_mean_rmse"] = 1 - trials_at(mean_rmse(base_a) ** 2, trials,
+                                                       np.array([mean_rmse(g[0]) ** 2 for g in grid]))[0] / base_trials
                 rows.append(out)
                 points = ", ".join(f"{p}: {r:.3f}" for p, r in zip(counts, out["rmse"], strict=True))
                 print(f"N={n} {mode}: RMSE by participants {{{points}}}; all-pairs' precision at "
                       f"{out['trials_needed']:.0f} trials: {100 * out['saved']:.0f} % fewer "
                       f"(90 % {100 * out['saved_90'][0]:.0f}..{100 * out['saved_90'][1]:.0f}); centred: "
                       f"{100 * out['saved_centred']:.0f} % ({100 * out['saved_90_centred'][0]:.0f}.."
-                      f"{100 * out['saved_90_centred'][1]:.0f}); {out['failed']} conditions without a value",
+                      f"{100 * out['saved_90_centred'][1]:.0f}); mean of the studies' RMSE: "
+                      f"{100 * out['saved_mean_rmse']:.0f} %; "
+                      f"{out['failed']} conditions without a value",
                       flush=True)
             print(f"  ({time.perf_counter() - started:.0f} s wall, {time.process_time() - cpu:.0f} s CPU)",
                   flush=True)
     print(f"\nspan {args.span:g} logit units, observers {observers}, {args.seeds} simulated studies per point, "
           f"all-pairs with {args.base} participants, adaptive criterion {args.criterion}")
     print("\n| conditions | all-pairs: trials, RMSE | design | trials for the same RMSE | trials saved (90 % interval) "
-          "| saved, centred RMSE |")
-    print("|---|---|---|---|---|---|")
+          "| saved, centred RMSE | saved, mean of the studies' RMSE |")
+    print("|---|---|---|---|---|---|---|")
     base = {}
     for r in rows:
         if r["design"] == "all-pairs":
@@ -157,7 +169,8 @@ def main(argv: list[str] | None = None) -> int:
             continue
         print(f"| {r['conditions']} | {base['trials'][0]}, {base['rmse'][0]:.3f} | {r['design']} | "
               f"{r['trials_needed']:.0f} | {100 * r['saved']:.0f} % ({100 * r['saved_90'][0]:.0f} to "
-              f"{100 * r['saved_90'][1]:.0f} %) | {100 * r['saved_centred']:.0f} % |")
+              f"{100 * r['saved_90'][1]:.0f} %) | {100 * r['saved_centred']:.0f} % | "
+              f"{100 * r['saved_mean_rmse']:.0f} % |")
     if args.json:
         with open(args.json, "w", encoding="utf-8") as f:
             json.dump({"seeds": args.seeds, "base": args.base, "span": args.span, "criterion": args.criterion,
