@@ -1,16 +1,17 @@
 """Issue 27's "done when": a six-condition study (issue 16's conditions of the walk, studies/adaptive-walk.toml)
 runs adaptively in the browser with simulated and real votes, and the dashboard shows the scale with intervals.
 
-The clip set of server/clipset/conditions16.toml is built and the study's videos rendered small (160 x 120, no
-shadows) with the real commands; simulated participants vote through the service layer (the same code the API
-calls), then a participant in Chromium gets the batch the adaptive design chooses from those votes, watches every
-video and votes; the dashboard then shows the scale of the six conditions with intervals.  Screenshots go to
-var/test-artifacts/browser/.
+The clips of the study (the walk in the six conditions, cut out of server/clipset/conditions16.toml) are built
+and its videos rendered small (160 x 120, no shadows) with the real commands; simulated participants vote through
+the service layer (the same code the API calls), then a participant in Chromium gets the batch the adaptive
+design chooses from those votes, watches every video and votes; the dashboard then shows the scale of the six
+conditions with intervals.  Screenshots go to var/test-artifacts/browser/.
 """
 
 from __future__ import annotations
 
 import random
+import re
 import tomllib
 from pathlib import Path
 
@@ -36,6 +37,29 @@ STUDY = REPO / "studies" / "adaptive-walk.toml"
 SIMULATED = 6
 
 
+def study_clip_set(folder: Path) -> Path:
+    """conditions16.toml cut down to the study's animation and conditions (the whole set, 4 animations x 14
+    conditions, took most of the test's time to build), written into ``folder``."""
+    design = tomllib.loads(STUDY.read_text(encoding="utf-8"))["design"]
+    wanted = {design["reference"], *design["conditions"]}
+    sections = re.split(r"(?m)^(?=\[)", CLIP_SET.read_text(encoding="utf-8"))
+    kept = [sections[0]]  # fps
+    for section in sections[1:]:
+        header = section.split("\n", 1)[0].strip()
+        if header.startswith("[animations.") and header.removeprefix("[animations.").rstrip("]") not in \
+                design["animations"]:
+            continue
+        if header == "[[conditions]]" and tomllib.loads(section.removeprefix(header))["id"] not in wanted:
+            continue
+        kept.append(section)
+    path = folder / "adaptive-walk-clips.toml"
+    path.write_text("".join(kept), encoding="utf-8")
+    config = tomllib.loads(path.read_text(encoding="utf-8"))
+    assert set(config["animations"]) == set(design["animations"])
+    assert {c["id"] for c in config["conditions"]} == wanted
+    return path
+
+
 @pytest.fixture(scope="module")
 def site(data, tmp_path_factory):
     if not Path(CHROMIUM).exists():
@@ -47,7 +71,7 @@ def site(data, tmp_path_factory):
         for key, value in env.items():
             mp.setenv(key, value)
         mp.delenv("DATABASE_URL", raising=False)
-        run("clips", "build", "--config", str(CLIP_SET))
+        run("clips", "build", "--config", str(study_clip_set(var)))
         run("render", "--width", "160", "--height", "120", "--no-shadows", "--study", str(STUDY))
         run("study", "create", str(STUDY), "--open")
         settings = Settings()

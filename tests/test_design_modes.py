@@ -117,13 +117,31 @@ def test_adaptive_choice_depends_on_the_votes(db):
 
     conditions = ["keyframe", *FOUR]
     empty = next_batch(posterior([], conditions), seed=5)
-    # Many votes on keyframe-hybrid0 and hybrid1-hybrid2: those pairs are known, the others are not.
-    votes = [GradedComparison(str(p), x, y, s) for p in range(30)
+    # Many votes on keyframe-hybrid0 and hybrid1-hybrid2: those pairs are known, the others are not.  The answers
+    # vary (0, 1, 1, 2 in turn) as people's do: had every vote been the same answer, the ordinal model could not
+    # place the cut points and those two differences would stay as uncertain as before any vote.
+    votes = [GradedComparison(str(p), x, y, s * (0, 1, 1, 2)[p % 4]) for p in range(30)
              for x, y, s in (("keyframe", "hybrid0", 1), ("hybrid1", "hybrid2", -1))]
     informed = next_batch(posterior(votes, conditions), seed=5)
     assert (0, 1) not in informed.pairs and (2, 3) not in informed.pairs
     assert informed != empty or (0, 1) not in empty.pairs
     assert next_batch(posterior(votes, conditions), seed=5) == informed  # reproducible
+
+
+def test_adaptive_batches_aim_at_the_values_against_the_reference():
+    """The tree is chosen for what the results report, each condition against the reference: before any vote that
+    is every condition against it (ASAP's information-gain tree was any tree the seed picked); with conditions far
+    apart, a chain of neighbours, never a pair whose answer is sure to be "much better"."""
+    from server.studies.adaptive import next_batch, posterior
+    from server.studies.simulate import simulate
+
+    conditions = ["keyframe", *FOUR]
+    for seed in range(5):
+        assert next_batch(posterior([], conditions), seed).pairs == ((0, 1), (0, 2), (0, 3))
+    votes = simulate(Design(mode="all-pairs", reference="keyframe", conditions=FOUR, animations=["walk"]),
+                     {c: 12.0 * i for i, c in enumerate(conditions)}, 10, seed=3).votes["walk"]
+    for seed in range(3):
+        assert next_batch(posterior(votes, conditions), seed).pairs == ((0, 1), (1, 2), (2, 3))
 
 
 def test_results_show_the_scale_pair_counts_and_adaptive_rounds(client, db, researcher_headers):

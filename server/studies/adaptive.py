@@ -2,18 +2,26 @@
 
 Mikhailiuk, Wilmot, Perez-Ortiz, Yue, Mantiuk (2021), "Active sampling for pairwise comparisons via approximate
 message passing and information gain maximization" (ASAP): a round shows a batch of N-1 pairs of the N
-conditions, the minimum spanning tree of the comparison graph weighted by the inverse of each pair's expected
-information gain, so that one round links every condition and spends its trials where they tell most.
+conditions that form a spanning tree of the comparison graph, so that one round links every condition and spends
+its trials where they tell most.
 
 Here the model is the ordinal Bradley-Terry model of :mod:`server.studies.ranking` (the cumulative logit model of
 the 5-point answers, the anchor condition at 0).  The posterior of the scale values is its Laplace approximation:
 the maximum a posteriori values under a weak normal prior (``PRIOR_SD`` logit units, which keeps them finite
 with few or one-sided answers) and the inverse of the posterior precision, estimated as the prior precision plus
 the outer product of the per-vote scores (the BHHH estimate of the Fisher information: one pass over the votes,
-where a numerical Hessian would take one per parameter).  A pair's expected information
-gain is the mutual information between the next answer to it and the scale difference of its two conditions
-(``H(E p) - E H(p)``, by Gauss-Hermite quadrature over the posterior of the difference), the cut points held at
-their estimates.
+where a numerical Hessian would take one per parameter).
+
+Which tree: ASAP weights every pair by its expected information gain about the whole scale (the mutual
+information between the next answer and the scale, :func:`information_gain`).  What a study reports, though, is
+each condition's value against the anchor, so the tree is chosen for that (:func:`next_batch`): greedily, the pair
+whose answers are expected to shrink the summed posterior variances of the conditions against the anchor most
+(the Fisher information of the pair's answers, averaged over the posterior of its difference, as a rank-one
+update of the covariance), among the pairs joining two parts of the tree not yet linked, the covariance updated
+after each pick (Kruskal's algorithm on gains that account for the pairs already in the batch).  Pairs of
+near-equal conditions carry more information per answer than pairs of far-apart ones (an answer to a pair 6
+logit units apart is almost surely "much better"), and the anchor's pairs count more for the anchored values;
+both enter through this one criterion.  Measured against ASAP's information-gain tree in docs/designs.md.
 
 Everything here is a pure function of the votes and a seed: the pairs a session was given can be recomputed from
 the study's vote log (the votes answered before the session started) and the session's stored seed.
@@ -106,15 +114,6 @@ def information_gain(post: Posterior, first: int, second: int) -> float:
     return float(-(marginal * np.log(marginal)).sum() - _WEIGHTS @ conditional)
 
 
-def gain_matrix(post: Posterior) -> np.ndarray:
-    """(N, N) symmetric: the expected information gain of every pair (0 on the diagonal)."""
-    n = len(post.conditions)
-    gains = np.zeros((n, n))
-    for i, j in combinations(range(n), 2):
-        gains[i, j] = gains[j, i] = information_gain(post, i, j)
-    return gains
-
-
 @dataclass(frozen=True)
 class Batch:
     """One round: the N-1 pairs to show (indices into the conditions, first < second) and their gains."""
@@ -127,13 +126,56 @@ class Batch:
         return float(sum(self.gains))
 
 
-def next_batch(post: Posterior, seed: int) -> Batch:
-    """The minimum spanning tree over 1 / expected information gain (ASAP's batch of N-1 pairs).  Equal gains
-    (e.g. before any vote) are ordered by a tiny seeded perturbation, so the seed decides among equal trees."""
+def answer_information(delta: np.ndarray, cuts: np.ndarray) -> np.ndarray:
+    """Fisher information (per logit unit squared) of one answer about the scale difference ``delta``."""
+    cdf, pdf = _cdf_pdf(cuts[None, :] - delta[:, None], "logit")
+    zeros, ones = np.zeros((delta.size, 1)), np.ones((delta.size, 1))
+    p = np.clip(np.diff(np.concatenate([zeros, cdf, ones], axis=1), axis=1), 1e-300, 1.0)
+    dp = np.diff(np.concatenate([zeros, pdf, zeros], axis=1), axis=1)
+    return (dp * dp / p).sum(axis=1)
+
+
+def next_batch(post: Posterior, seed: int, showings: int = 2) -> Batch:
+    """The spanning tree of N-1 pairs expected to shrink the variances of the conditions against the anchor
+    most (see the module's text); ``showings``: answers a participant gives to each pair of the batch.  Equal
+    gains (e.g. before any vote) are ordered by a tiny seeded perturbation, so the seed decides among equal
+    trees.  The batch's ``gains`` are the pairs' expected information gains (nats), what the dashboard shows."""
     n = len(post.conditions)
     if n < 2:
         return Batch((), ())
-    gains = gain_matrix(post)
+    first, second = np.triu_indices(n, 1)
+    cov = post.cov.copy()
+    spread = np.sqrt(np.maximum(cov[first, first] + cov[second, second] - 2 * cov[first, second], 0.0))
+    delta = post.mean[second] - post.mean[first]
+    expected = answer_information((delta[:, None] + spread[:, None] * _NODES[None, :]).ravel(), post.cuts)
+    weight = showings * (expected.reshape(delta.size, _NODES.size) @ _WEIGHTS)
+    jitter = 1 + np.random.default_rng(seed).uniform(0, 1e-6, delta.size)
+    part = np.arange(n)  # the part of the tree each condition is in
+    chosen = []
+    for _ in range(n - 1):
+        moved = cov[:, second] - cov[:, first]  # (N, pairs): cov @ x for every pair's x = e_second - e_first
+        against_anchor = moved[1:] - moved[0]
+        variance = moved[second, np.arange(delta.size)] - moved[first, np.arange(delta.size)]  # x' cov x
+        gain = weight * (against_anchor * against_anchor).sum(axis=0) / (1 + weight * variance) * jitter
+        gain[part[first] == part[second]] = -np.inf
+        k = int(np.argmax(gain))
+        cov = cov - weight[k] * np.outer(moved[:, k], moved[:, k]) / (1 + weight[k] * variance[k])
+        part[part == part[second[k]]] = part[first[k]]
+        chosen.append((int(first[k]), int(second[k])))
+    pairs = sorted(chosen)
+    return Batch(tuple(pairs), tuple(information_gain(post, i, j) for i, j in pairs))
+
+
+def information_tree(post: Posterior, seed: int, showings: int = 2) -> Batch:
+    """ASAP's own batch: the minimum spanning tree over 1 / expected information gain (the criterion this module
+    used before :func:`next_batch`; kept so that ``bench/design_savings.py --criterion information`` can measure
+    the two against each other).  ``showings`` is unused: the gain of one answer ranks the pairs the same."""
+    n = len(post.conditions)
+    if n < 2:
+        return Batch((), ())
+    gains = np.zeros((n, n))
+    for i, j in combinations(range(n), 2):
+        gains[i, j] = gains[j, i] = information_gain(post, i, j)
     jitter = np.random.default_rng(seed).uniform(0, 1e-6, (n, n))
     weights = np.triu(1 / np.maximum(gains, 1e-12) * (1 + jitter + jitter.T), 1)
     tree = minimum_spanning_tree(weights).tocoo()

@@ -76,7 +76,7 @@ def study_votes(session: Session, study: Study, before: datetime | None = None
 def adaptive_batches(design: Design, votes: dict[str, list[GradedComparison]], seed: int) -> dict[str, Batch]:
     """Per animation, the batch of pairs (indices into ``design.all_conditions()``) for a session with ``seed``."""
     conditions = design.all_conditions()
-    return {a: next_batch(posterior(votes.get(a, []), conditions), seed + i)
+    return {a: next_batch(posterior(votes.get(a, []), conditions), seed + i, 2 * design.repeats)
             for i, a in enumerate(design.animations)}
 
 

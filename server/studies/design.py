@@ -9,7 +9,8 @@ Modes (``Design.mode``):
   consecutive slices of one seeded cyclic order of the pairs, so every pair is shown equally often (±1) over
   participants (see ``server.studies.sessions``).
 - ``adaptive``: each participant sees the N-1 pairs (N conditions) of a spanning tree chosen from the answers so
-  far by expected information gain (ASAP's batches; ``server.studies.adaptive``).
+  far, the one expected to make the values against the reference most precise (ASAP-style batches;
+  ``server.studies.adaptive``).
 
 Side balance is by construction in every mode: each comparison a participant sees is shown ``2 * repeats`` times,
 ``repeats`` times with its first condition (the "reference" of the comparison) on each side.

@@ -69,12 +69,14 @@ def simulate(design: Design, truth: dict[str, float], participants: int, seed: i
              observers: Observers = Observers()) -> SimulatedStudy:
     """``participants`` simulated observers through ``design``; ``truth``: condition -> true scale value (logit
     units; the same for every animation; the reference's value is subtracted)."""
-    rng = np.random.default_rng(seed)
     conditions = design.all_conditions()
     mu = {c: truth[c] - truth[design.reference] for c in conditions}
     votes: dict[str, list[GradedComparison]] = defaultdict(list)
     trials = 0
     for p in range(participants):
+        # One random stream per simulated person: participant p of study ``seed`` has the same taste, bias and
+        # noise whatever the design and the number of participants, so designs are compared on the same people.
+        rng = np.random.default_rng([seed, p])
         session_seed = int(rng.integers(2**62))
         taste = {c: rng.normal(0, observers.taste_sd) for c in conditions}
         bias, noise = rng.normal(0, observers.side_sd), math.exp(rng.normal(0, observers.noise_sd))
