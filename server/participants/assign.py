@@ -13,10 +13,11 @@ from datetime import datetime
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, aliased
 
-from server.studies.assign import adaptive_batches, incomplete_pairs, other_ids, pair_comparisons
+from server.studies.assign import adaptive_batches, incomplete_pairs, pair_comparisons
 from server.studies.design import ComparisonIds, Design
 from server.studies.models import Comparison, ComparisonKind, Stimulus, Study
 from server.studies.ranking import GradedComparison
+from server.studies.service import comparison_ids
 
 from .models import ParticipantSession, Trial, Vote
 
@@ -49,7 +50,7 @@ def session_comparisons(session: Session, study: Study, seed: int, started_at: d
     """The comparisons a new session of ``study`` (to be stored with ``seed`` and ``created_at = started_at``)
     draws its trials from."""
     design = Design.model_validate(study.design)
-    catch, practice = other_ids(study)
+    every = comparison_ids(study)  # catch and practice comparisons are the same in every mode
     ids = pair_comparisons(study)
     if design.mode == "incomplete":
         position = sessions_started(session, study)
@@ -60,7 +61,7 @@ def session_comparisons(session: Session, study: Study, seed: int, started_at: d
         chosen = [ids[(a, conditions[i], conditions[j])] for a, b in batches.items() for i, j in b.pairs]
     else:
         chosen = list(ids.values())
-    return ComparisonIds(sorted(chosen), catch, practice)
+    return ComparisonIds(sorted(chosen), every.catch, every.practice)
 
 
 @dataclass(frozen=True)

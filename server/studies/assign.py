@@ -26,12 +26,6 @@ def pair_comparisons(study: Study) -> dict[PairKey, int]:
             if c.kind == ComparisonKind.test}
 
 
-def other_ids(study: Study) -> tuple[list[int], int | None]:
-    catch = [c.id for c in study.comparisons if c.kind == ComparisonKind.catch]
-    practice = [c.id for c in study.comparisons if c.kind == ComparisonKind.practice]
-    return catch, practice[0] if practice else None
-
-
 def incomplete_pairs(design: Design, slug: str, position: int) -> list[PairKey]:
     """The pairs of the ``position``-th session (0-based) of an incomplete design: per animation a slice of
     ``pairs_per_animation()`` pairs of a cyclic order of all pairs (seeded by the study's slug and the animation,

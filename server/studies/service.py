@@ -253,6 +253,7 @@ def remove_study(session: Session, study: Study, settings: Settings) -> None:
 
 
 def comparison_ids(study: Study) -> ComparisonIds:
+    """The ids of the study's test, catch and practice comparisons, in their order."""
     by_kind: dict[str, list[int]] = {k: [] for k in ComparisonKind}
     for c in study.comparisons:
         by_kind[c.kind].append(c.id)
