@@ -205,7 +205,8 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies
     from server.clipset.build import build_clip_set
     from server.clipset.manifest import MANIFEST, write_clip_set
     from server.errors import Unprocessable
-    from server.media.build import MediaError, render_media
+    from server.media.build import render_media
+    from server.media.errors import MediaError
     from server.media.scene import RenderSettings
     from server.studies.service import clip_set_index, required_pairs
     from server.studies.studyfile import THESIS_FILE, StudyFileError, load_study_file
@@ -291,7 +292,7 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
     from server.assets import AssetError
     from server.clipset.manifest import MANIFEST
     from server.errors import ServiceError
-    from server.media.build import MediaError
+    from server.media.errors import MediaError
     from server.media.scene import RenderSettings
     from server.research import export
     from server.research.service import study_summary
@@ -501,7 +502,7 @@ def serve(settings: Settings, host: str, port: int, workers: int) -> int:
     from server.assets import AssetError
     from server.db import make_engine, migrate, session_factory
     from server.errors import ServiceError
-    from server.media.build import MediaError
+    from server.media.errors import MediaError
 
     engine = make_engine(settings.sqlalchemy_url)
     try:
@@ -546,7 +547,8 @@ def bench_render(settings: Settings, width: int, height: int, animations: list[s
     from server.assets import AssetError
     from server.clipset.build import build_clip_set
     from server.clipset.manifest import write_clip_set
-    from server.media.build import MediaError, plan, run_on_dask
+    from server.media.build import plan, run_on_dask
+    from server.media.errors import MediaError
     from server.media.scene import RenderSettings
     from server.studies.service import clip_set_index, required_pairs
     from server.studies.studyfile import thesis_study

@@ -32,6 +32,7 @@ from server.clipset.build import configured_character, record_config
 from server.clipset.config import CharacterConfig
 from server.clipset.manifest import ClipEntry, ManifestError, read_clip_manifest
 
+from .errors import MediaError
 from .manifest import RenderedClip, RenderedPair, RenderManifest, read_render_manifest, write_render_manifest
 from .scene import Framing, RenderSettings, frame_motion
 
@@ -42,10 +43,6 @@ MEDIA_NAME = re.compile(r"^[0-9a-f]{24}\.(mp4|jpg)$")
 DIVIDER_PX = 4
 DIVIDER_RGB = (58, 60, 64)
 BODY_PADDING_M = 0.12  # how far the skin reaches beyond the joints, for framing and shadow bounds
-
-
-class MediaError(ValueError):
-    """The clip set to render is missing or inconsistent."""
 
 
 @dataclass(frozen=True)
@@ -449,12 +446,12 @@ def _value(value: Any) -> Any:
 
 def run_on_dask(p: Plan, out_dir: Path, scheduler: str | None, workers: int,
                  progress: Callable[[str], None]) -> list[list[tuple[str, float]]]:
-    """One :func:`render_task` per job on the cluster (see :mod:`server.cluster`), the character sent once;
+    """One :func:`render_task` per job on the cluster (see :mod:`server.media.cluster`), the character sent once;
     each job's files are stored as it finishes, so a job interrupted later renders only what is still missing.
     A failed task fails the render naming its clip, after the others have finished and been stored."""
     from distributed import as_completed as dask_completed
 
-    from server.cluster import dask_client
+    from .cluster import dask_client
 
     with dask_client(scheduler, min(workers, len(p.jobs))) as client, client.as_current():
         # The character goes to the cluster once per job, as a task of its own rather than scattered data: a

@@ -9,10 +9,11 @@ from fastapi.responses import PlainTextResponse, Response
 from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
-from server.deps import ResearcherDep, SessionDep, SettingsDep
+from server.deps import SessionDep, SettingsDep
 from server.errors import Conflict, Unprocessable
 from server.media.manifest import ManifestError, RenderManifest, read_render_manifest
 from server.participants import service as participants
+from server.researchers.deps import ResearcherDep
 from server.researchers.models import Researcher
 from server.studies import pilot, service
 from server.studies.columns import data_dictionary_markdown
