@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from server import cluster
 from server.clipset.build import build_clip_set
 from server.clipset.config import load_config
 from server.clipset.manifest import write_clip_set
+from server.media import cluster
 from server.media.build import read_clip_set, render_media
 from server.media.errors import MediaError
 from server.media.manifest import MANIFEST
