@@ -1,5 +1,5 @@
 """The exports of a study's votes: CSV and JSON rows (one per vote, with every participant's screening outcome),
-and the analysed test votes for sureal and pwcmp.  The columns are :mod:`server.studies.columns`'."""
+and the analysed test votes for sureal and pwcmp.  The columns are :mod:`server.studies.columns`'s."""
 
 from __future__ import annotations
 
