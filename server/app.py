@@ -20,9 +20,9 @@ from .media.router import router as media_router
 from .pages import STATIC_DIR
 from .pages import router as pages_router
 from .participants.router import router as participants_router
+from .research.router import router as studies_router
 from .researchers.router import router as researchers_router
 from .security import RETRY_AFTER_S, LoginLimiter, Protect, RateLimiter
-from .studies.router import router as studies_router
 from .uploads.router import router as uploads_router
 from .uploads.router import upload_route
 

@@ -230,7 +230,8 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies
     from server.clipset.build import build_clip_set
     from server.clipset.manifest import MANIFEST, write_clip_set
     from server.errors import Unprocessable
-    from server.media.build import MediaError, render_media
+    from server.media.build import render_media
+    from server.media.errors import MediaError
     from server.media.scene import RenderSettings
     from server.studies.service import clip_set_index, required_pairs
     from server.studies.studyfile import THESIS_FILE, StudyFileError, load_study_file
@@ -316,8 +317,10 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
     from server.assets import AssetError
     from server.clipset.manifest import MANIFEST
     from server.errors import ServiceError
-    from server.media.build import MediaError
+    from server.media.errors import MediaError
     from server.media.scene import RenderSettings
+    from server.research import export
+    from server.research.service import study_summary
     from server.researchers.models import Researcher
     from server.researchers.service import normalize_email
     from server.studies import pipeline, service
@@ -376,7 +379,7 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                     print(f"note: {test} is identical to {ref} (same arrays): that comparison shows one clip on "
                           "both sides, like a catch trial")
             elif command == "list":
-                rows = [service.study_summary(session, s) for s in session.scalars(select(Study).order_by(Study.id))]
+                rows = [study_summary(session, s) for s in session.scalars(select(Study).order_by(Study.id))]
                 print(f"{'slug':24} {'state':7} {'started':>7} {'completed':>9} {'votes':>6}  title")
                 for r in rows:
                     print(f"{r.slug:24} {r.state:7} {r.started:7d} {r.completed:9d} {r.votes:6d}  {r.title}")
@@ -410,10 +413,10 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                       f"{study.stimulus_set.digest[:12]}; participant link: /s/{study.slug}")
             elif command == "export":
                 study = service.get_study(session, args.slug)
-                text = {"csv": lambda: service.export_csv(session, study),
-                        "json": lambda: json.dumps(service.export_document(session, study), indent=1) + "\n",
-                        "sureal": lambda: json.dumps(service.export_sureal(session, study), indent=1) + "\n",
-                        "pwcmp": lambda: service.export_pwcmp_csv(session, study)}[args.format]()
+                text = {"csv": lambda: export.export_csv(session, study),
+                        "json": lambda: json.dumps(export.export_document(session, study), indent=1) + "\n",
+                        "sureal": lambda: json.dumps(export.export_sureal(session, study), indent=1) + "\n",
+                        "pwcmp": lambda: export.export_pwcmp_csv(session, study)}[args.format]()
                 if args.out:
                     args.out.write_text(text, encoding="utf-8")
                     rows = text.count(chr(10)) - 1 if args.format in ("csv", "pwcmp") else "the"
@@ -524,7 +527,7 @@ def serve(settings: Settings, host: str, port: int, workers: int) -> int:
     from server.assets import AssetError
     from server.db import make_engine, migrate, session_factory
     from server.errors import ServiceError
-    from server.media.build import MediaError
+    from server.media.errors import MediaError
 
     engine = make_engine(settings.sqlalchemy_url)
     try:
@@ -569,7 +572,8 @@ def bench_render(settings: Settings, width: int, height: int, animations: list[s
     from server.assets import AssetError
     from server.clipset.build import build_clip_set
     from server.clipset.manifest import write_clip_set
-    from server.media.build import MediaError, plan, run_on_dask
+    from server.media.build import plan, run_on_dask
+    from server.media.errors import MediaError
     from server.media.scene import RenderSettings
     from server.studies.service import clip_set_index, required_pairs
     from server.studies.studyfile import thesis_study

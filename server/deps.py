@@ -1,4 +1,5 @@
-"""Dependencies shared by the routers (``Annotated`` aliases)."""
+"""Dependencies shared by the routers (``Annotated`` aliases); the logged-in researcher is
+:data:`server.researchers.deps.ResearcherDep`."""
 
 from __future__ import annotations
 
@@ -7,13 +8,11 @@ from collections.abc import AsyncIterator
 from typing import Annotated
 
 from fastapi import Depends, Request
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer, OAuth2PasswordBearer
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
 from .config import Settings
 from .errors import TooManyRequests
-from .researchers.models import Researcher
-from .researchers.service import researcher_from_token
 
 
 async def get_settings(request: Request) -> Settings:
@@ -40,18 +39,12 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 SessionDep = Annotated[Session, Depends(get_session, scope="function")]
 
 _participant_bearer = HTTPBearer(auto_error=False, description="the token returned when the session was created")
-_researcher_bearer = OAuth2PasswordBearer(tokenUrl="/api/v1/auth/token", auto_error=False)
 
 
 async def participant_token(
         credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_participant_bearer)]) -> str | None:
     """The bearer token; the endpoint checks it (``authorize``) together with its other queries."""
     return credentials.credentials if credentials else None
-
-
-def current_researcher(session: SessionDep, settings: SettingsDep,
-                       token: Annotated[str | None, Depends(_researcher_bearer)]) -> Researcher:
-    return researcher_from_token(session, token, settings.secret)
 
 
 def _trusted(address: str, networks: tuple) -> bool:
@@ -87,4 +80,3 @@ async def limit_new_sessions(request: Request, session: SessionDep) -> None:
 
 
 ParticipantTokenDep = Annotated[str | None, Depends(participant_token)]
-ResearcherDep = Annotated[Researcher, Depends(current_researcher)]

@@ -1,5 +1,5 @@
-"""A simulated panel for the screening tests: export rows (``service.export_rows``'s shape) of good observers and
-of planted bad ones (random, straight-lining, inverted, too fast)."""
+"""A simulated panel for the screening tests: export rows (``server.research.export.export_rows``'s shape) of good
+observers and of planted bad ones (random, straight-lining, inverted, too fast)."""
 
 from __future__ import annotations
 

@@ -23,9 +23,9 @@ from server.app import create_app
 from server.config import Settings
 from server.db import make_engine, session_factory
 from server.participants import service
+from server.participants.assign import session_batches
 from server.participants.models import ParticipantSession
 from server.researchers.service import create_researcher
-from server.studies.assign import session_batches
 from server.studies.models import Study
 from server.studies.scale import CHOICES
 from tests.server_fixtures import live_server

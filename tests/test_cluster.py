@@ -17,11 +17,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from server import cluster
 from server.clipset.build import build_clip_set
 from server.clipset.config import load_config
 from server.clipset.manifest import write_clip_set
-from server.media.build import MediaError, read_clip_set, render_media
+from server.media import cluster
+from server.media.build import read_clip_set, render_media
+from server.media.errors import MediaError
 from server.media.manifest import MANIFEST
 from server.media.scene import RenderSettings
 from server.studies.service import clip_set_index, required_pairs

@@ -10,7 +10,7 @@ from anim_core.math.clip import KeyframeClip
 from anim_core.math.quat import quat_angle, quat_from_rotvec, quat_mul
 from anim_core.math.skeleton import Skeleton
 from anim_core.methods.c2spline import PeriodicC2Spline, c2_from_squad
-from anim_core.methods.compression import quantization_bound_deg, quantize_rotations, quantized_clip, reduce_keys
+from anim_core.methods.compression import QuantizedTracks, quantize_rotations, quantized_clip, reduce_keys
 from anim_core.methods.hybrid import SquadClip
 from anim_core.methods.ik import two_bone_ik
 
@@ -20,6 +20,13 @@ def _random_walk_keys(rng, k, j, step=0.35):
     for i in range(1, k):
         q[i] = quat_mul(q[i - 1], quat_from_rotvec(rng.normal(size=(j, 3)) * step))
     return q
+
+
+def quantization_bound_deg(tracks: QuantizedTracks) -> np.ndarray:
+    """``(J,)`` largest angle in degrees between a stored local rotation and its dequantized one (the bound
+    derived in :mod:`anim_core.methods.compression`'s docstring); assumes the half-step error is below 1."""
+    e = 0.5 * np.linalg.norm(tracks.step, axis=-1)
+    return np.degrees(2.0 * np.arcsin(np.minimum(e, 1.0)))
 
 
 def _chain(n=4):

@@ -9,10 +9,11 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
+from server.participants.assign import session_batches
 from server.participants.service import start_session
-from server.studies.assign import pair_comparisons, session_batches
+from server.research.export import export_rows
+from server.studies.assign import pair_comparisons
 from server.studies.design import Design
-from server.studies.service import export_rows
 from tests.server_fixtures import answer_all, make_study, start
 from tests.test_design import _old_trial_order
 
@@ -175,8 +176,9 @@ def test_results_show_the_scale_pair_counts_and_adaptive_rounds(client, db, rese
 def test_a_draft_stored_before_the_modes_can_still_be_edited(db):
     """Designs stored before issue 27 have no mode: they read as reference designs and editing another section of
     such a draft is not taken for a design change."""
+    from server.participants.service import update_study
     from server.studies.models import StudyState
-    from server.studies.service import definition, update_study
+    from server.studies.service import definition
 
     study = make_study(db, state=StudyState.draft)
     study.design = {k: v for k, v in study.design.items() if k not in ("mode", "pairs_per_session")}

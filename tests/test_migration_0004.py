@@ -13,6 +13,7 @@ from sqlalchemy.orm import Session
 from server.db import migrate
 from server.participants import service as participants
 from server.participants.models import ParticipantSession
+from server.research.export import export_rows
 from server.studies import service
 from server.studies.models import Study
 from tests.conftest import DATABASES, _fresh_engine
@@ -135,7 +136,7 @@ def test_0004_keeps_every_vote_score_video_and_export_row(kind, tmp_path_factory
                                         "FROM votes ORDER BY id")).all() == old_votes
         with Session(engine) as db:
             study = db.get(Study, study_id)
-            new_rows = list(service.export_rows(db, study))
+            new_rows = list(export_rows(db, study))
             assert len(new_rows) == len(old_rows)
             for old, new in zip(old_rows, new_rows, strict=True):
                 expected = _old_to_new(old)

@@ -10,6 +10,7 @@ import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
 from server.db import migrate
+from server.research.export import export_rows
 from server.studies import service
 from server.studies.models import Study
 from tests.conftest import DATABASES, _fresh_engine
@@ -55,7 +56,7 @@ def test_0005_adds_the_page_and_keeps_everything(kind, tmp_path_factory):
             page = service.definition(db.get(Study, study_id)).page
             assert (page.lang, page.dir, page.device_gate.min_scale) == ("en", "ltr", 0.8)
             assert page.chrome.submit == "Submit vote" and page.chrome.next == "Continue"
-            rows = list(service.export_rows(db, db.get(Study, study_id)))
+            rows = list(export_rows(db, db.get(Study, study_id)))
             assert rows and all(r["viewport_width"] is None and r["video_scaled"] is None for r in rows)
     finally:
         engine.dispose()

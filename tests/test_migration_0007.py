@@ -12,6 +12,7 @@ import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
 from server.db import downgrade, migrate
+from server.research.export import export_rows
 from server.stimuli.service import SetContent
 from server.studies import service
 from server.studies.models import Study
@@ -69,7 +70,7 @@ def test_0007_pins_every_study_to_the_bytes_it_shows(kind, tmp_path_factory, tmp
             for name, sha in hashes.items():
                 assert sha == hashlib.sha256((media / name).read_bytes()).hexdigest(), name
             # The export names the bytes each vote was given on: the pair video played, and each side's clip.
-            rows = list(service.export_rows(db, study))
+            rows = list(export_rows(db, study))
             assert rows and all(r["stimulus_set"] == study.stimulus_set.digest for r in rows)
             clip_video = {(s.animation, s.condition): s.video for s in study.stimuli}
             for r in rows:
@@ -105,7 +106,7 @@ def test_0007_without_the_files_records_no_hash_and_the_study_keeps_running(kind
             assert study.state == "open"
             content = SetContent.model_validate(study.stimulus_set.content)
             assert set(content.hashes().values()) == {None}
-            rows = list(service.export_rows(db, study))
+            rows = list(export_rows(db, study))
             assert rows and {r["left_video"] for r in rows} == {None}
             with pytest.raises(service.Conflict, match="stimulus set is incomplete"):
                 service.open_study(db, study, tmp_path / "nothing-here")

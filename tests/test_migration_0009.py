@@ -12,8 +12,9 @@ from sqlalchemy.orm import Session
 
 from server.db import downgrade, migrate
 from server.participants.models import ParticipantSession
+from server.research.export import export_rows
 from server.studies.models import Study
-from server.studies.service import export_rows, screening_rules
+from server.studies.service import screening_rules
 from tests.conftest import DATABASES, _fresh_engine
 from tests.test_migration_0004 import populate_0003
 from tests.test_migration_0005 import dump

@@ -18,9 +18,10 @@ from server.media.build import render_media
 from server.media.manifest import read_render_manifest
 from server.media.scene import RenderSettings
 from server.participants.models import ParticipantSession, PlaybackEvent, Vote
+from server.research.export import export_rows
 from server.studies.models import StudyState
 from server.studies.page import Chrome
-from server.studies.service import clip_set_index, create_study, export_rows, required_pairs, set_state
+from server.studies.service import clip_set_index, create_study, required_pairs, set_state
 from server.studies.studyfile import load_study_file, thesis_study
 from tests.conftest import _fresh_engine
 from tests.server_fixtures import live_server

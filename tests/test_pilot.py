@@ -101,10 +101,11 @@ def test_a_drafts_design_change_and_deletion_take_its_pilot_sessions_along(clien
     r = start_pilot(client, token)
     sid, headers = r.json()["session_id"], {"Authorization": f"Bearer {r.json()['token']}"}
     answer_all(client, sid, headers)
+    from server.participants.service import update_study
     from server.studies import service
     from tests.server_fixtures import fake_media
     study = service.get_study(db, "thesis")
-    service.update_study(db, study, {"design": {"conditions": ["hybrid1"]}}, fake_media())
+    update_study(db, study, {"design": {"conditions": ["hybrid1"]}}, fake_media())
     assert db.get(ParticipantSession, sid) is None
     sid = start_pilot(client, token).json()["session_id"]
     assert client.delete("/api/v1/studies/thesis", headers=researcher_headers).status_code == 204

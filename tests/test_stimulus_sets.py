@@ -28,6 +28,7 @@ from server.deps import get_session
 from server.media.build import MEDIA_NAME, render_media
 from server.media.manifest import read_render_manifest
 from server.media.scene import RenderSettings
+from server.participants.service import update_study
 from server.researchers.service import create_researcher
 from server.stimuli import service as stimulus_sets
 from server.studies import service
@@ -157,13 +158,13 @@ def test_a_draft_rebuilds_its_set_and_an_opened_study_keeps_it(db, tmp_path):
     study = service.create_study(db, media, study_file(slug="draft"), media_dir=media_dir)
     first = study.stimulus_set.digest
     smaller = {"design": {**study.design, "animations": ["walk", "run"]}}
-    service.update_study(db, study, smaller, media, media_dir)
+    update_study(db, study, smaller, media, media_dir)
     assert study.stimulus_set.digest != first
     assert {c.animation for c in stimulus_sets.content_of(study.stimulus_set).clips} == {"walk", "run"}
     service.open_study(db, study, media_dir)
     pinned = study.stimulus_set.digest
     with pytest.raises(service.Conflict):
-        service.update_study(db, study, {"design": {**study.design, "animations": ["walk"]}}, media, media_dir)
+        update_study(db, study, {"design": {**study.design, "animations": ["walk"]}}, media, media_dir)
     assert study.stimulus_set.digest == pinned
 
 

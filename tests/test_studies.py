@@ -13,6 +13,7 @@ from itertools import pairwise
 import pytest
 
 from server import cli
+from server.research.export import export_rows
 from server.researchers.service import create_researcher
 from server.studies import service
 from server.studies.design import Design, trial_order
@@ -180,7 +181,7 @@ def test_recruitment_parameters_completion_url_and_screening(client, db, researc
 
     kept = {ps.id: ps.external for ps in db.query(ParticipantSession)}
     assert set(map(json.dumps, kept.values())) == {json.dumps({"PROLIFIC_PID": "pid/1 x", "STUDY_ID": "s1"})}
-    rows = list(service.export_rows(db, service.get_study(db, "gait")))
+    rows = list(export_rows(db, service.get_study(db, "gait")))
     assert service.export_columns(service.get_study(db, "gait"))[-2:] == ["PROLIFIC_PID", "STUDY_ID"]
     assert len(rows) == 20 and {(r["PROLIFIC_PID"], r["STUDY_ID"]) for r in rows} == {("pid/1 x", "s1")}
     assert "OTHER" not in rows[0]

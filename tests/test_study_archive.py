@@ -18,6 +18,7 @@ from server import cli
 from server.app import create_app
 from server.config import Settings
 from server.db import migrate
+from server.research.export import export_rows
 from server.studies import service
 from server.studies.archive import ArchiveError, export_archive, import_archive
 from server.studies.models import Study
@@ -72,7 +73,7 @@ def test_round_trip_onto_an_empty_server(archived, second):
         for t in trials:
             assert client.get(t["video_url"]).status_code == 200
     with Session(engine) as db:
-        rows = list(service.export_rows(db, service.get_study(db, "rerun")))
+        rows = list(export_rows(db, service.get_study(db, "rerun")))
     assert len(rows) == len(trials) == 16
     assert {r["stimulus_set"] for r in rows} == {study.stimulus_set.digest}
     hashes = {sha for c in shown(study, media) for sha in c[4:]}

@@ -13,7 +13,7 @@ For each animation (an :class:`AnimationConfig`, read from the clip-set file by 
    grid whose length is a whole number of frames (the stretch is time-scaled by under half a frame to fit; a gait
    cycle also gets an even number of frames so its mirrored half-cycle lands on the grid, and it fades in from the
    mocap's next cycle so the loop is C1; a ping-pong clip eases to rest at its turns); the feet are kept planted
-   where the source's feet are down (two-bone IK after retargeting) (:func:`reference_animation`);
+   where the source's feet are down (two-bone IK after retargeting) (:func:`_reference`);
 4. builds each condition's clip with its registered method from that reference and its base keys, with exactly
    its period;
 5. samples every clip on the same grid (one loop, or one forward-and-back period), puts the floor under the
@@ -360,15 +360,10 @@ def _on_grid(t: float, start: float, stop: float, clip: KeyframeClip) -> float:
     return clip.nearest_key_time((t - start) / (stop - start) * clip.duration)
 
 
-def reference_animation(source: Source, fps: int) -> tuple[Animation, dict[str, Any]]:
-    """The reference keyframe clip of one animation on the frame grid, with its base keys, as builders receive it
-    (:class:`~anim_core.methods.conditions.Animation`); and what the manifest records of the source."""
-    animation, source_info, _ = _reference(source, fps)
-    return animation, source_info
-
-
 def _reference(source: Source, fps: int) -> tuple[Animation, dict[str, Any], Array]:
-    """:func:`reference_animation` and the source times (s from ``config.frames[0]``) of the reference's keys."""
+    """The reference keyframe clip of one animation on the frame grid, with its base keys, as builders receive it
+    (:class:`~anim_core.methods.conditions.Animation`); what the manifest records of the source; and the source
+    times (s from ``config.frames[0]``) of the reference's keys."""
     cfg = source.config
     t = source.time_of
     if cfg.kind == "gait":

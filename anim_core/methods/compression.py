@@ -15,12 +15,13 @@ ends the search, so it costs ``O(K L)`` poses for segments of ``L`` keys.
 
 **Quantization** (:func:`quantize_rotations`, per-track range quantization as in ACL's range reduction): each
 component of each joint's (sign-continuous) quaternion track is stored as an unsigned ``bits``-bit integer over the
-track's own ``[min, max]``; playback dequantizes and normalizes.  The error of one local rotation is bounded by
-:func:`quantization_bound_deg`: each component is off by at most half a step ``(max - min) / (2^bits - 1) / 2``, so the
-4-D error ``e`` is at most half the norm of the four steps, the normalized quaternion is at most ``asin(e)`` away
-on the unit sphere and the rotation at most ``2 asin(e)``.  A global rotation is off by at most the sum of the
-bounds of the joint and its ancestors (the angle of a product is at most the sum of the angles).  The clip keeps its
-tracks (:class:`QuantizedClip`), so the crowd runtime can hold the integers rather than the float keys.
+track's own ``[min, max]``; playback dequantizes and normalizes.  The error of one local rotation is bounded (the
+tests hold every clip to this bound): each component is off by at most half a step ``(max - min) / (2^bits - 1) /
+2``, so the 4-D error ``e`` is at most half the norm of the four steps, the normalized quaternion is at most
+``asin(e)`` away on the unit sphere and the rotation at most ``2 asin(e)``.  A global rotation is off by at most the
+sum of the bounds of the joint and its ancestors (the angle of a product is at most the sum of the angles).  The
+clip keeps its tracks (:class:`QuantizedClip`), so the crowd runtime can hold the integers rather than the float
+keys.
 """
 
 from __future__ import annotations
@@ -103,13 +104,6 @@ def quantize_rotations(rotations: Array, bits: int) -> QuantizedTracks:
     safe = np.where(step > 0, step, 1.0)
     codes = np.clip(np.rint((q - low) / safe), 0, levels).astype(np.uint32)
     return QuantizedTracks(codes, low, step, bits)
-
-
-def quantization_bound_deg(tracks: QuantizedTracks) -> Array:
-    """``(J,)`` largest angle in degrees between a stored local rotation and its dequantized one (module
-    docstring); assumes the half-step error is below 1."""
-    e = 0.5 * np.linalg.norm(tracks.step, axis=-1)
-    return np.degrees(2.0 * np.arcsin(np.minimum(e, 1.0)))
 
 
 @dataclass(frozen=True, eq=False)

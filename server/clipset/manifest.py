@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Literal, TypeVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError
 
 from anim_core.clips.record import BuiltClip
 from anim_core.methods.conditions import Kind
@@ -43,8 +43,10 @@ class Units(_Model):
 
 
 class ClipEntry(_Model):
-    """One clip: ``file`` (``<id>.npz``, or ``<id>.<hash>.npz`` when it replaced one, beside the manifest) holds
-    its arrays (docs/reference/manifests.md)."""
+    """One clip of a clip set, the one record of it on the server: the builder writes it, the renderer, the
+    pipeline and the stimulus sets read it.  ``file`` (``<id>.npz``, or ``<id>.<hash>.npz`` when it replaced one,
+    beside the manifest) holds its arrays (docs/reference/manifests.md); :attr:`path` and :attr:`digest` are known
+    once it was read from a directory."""
 
     id: str
     animation: str
@@ -62,6 +64,23 @@ class ClipEntry(_Model):
     metrics: dict[str, float | int | None]
     source: dict[str, Any]
     file: str
+    _dir: Path | None = PrivateAttr(default=None)
+    _digest: str | None = PrivateAttr(default=None)
+
+    @property
+    def path(self) -> Path:
+        """The clip's ``.npz`` file (the entry must come from :func:`read_clip_manifest`)."""
+        if self._dir is None:
+            raise ValueError(f"the clip {self.id!r} was not read from a clip set directory")
+        return self._dir / self.file
+
+    @property
+    def digest(self) -> str:
+        """sha256 of the clip's arrays (names, dtypes, shapes, bytes), read once: clips with equal arrays share their
+        videos.  Taken from the file rather than the manifest, so that arrays changed on disk are rendered anew."""
+        if self._digest is None:
+            self._digest = arrays_digest(self.path)
+        return self._digest
 
 
 class CharacterEntry(_Model):
@@ -207,8 +226,23 @@ def read_json(path: Path, model: type[M], what: str, rebuild: str) -> M:
 
 
 def read_clip_manifest(clips_dir: Path) -> ClipManifest:
-    """The manifest of the clip set in ``clips_dir``."""
-    return read_json(Path(clips_dir) / MANIFEST, ClipManifest, "clip manifest", "animstudy clips build")
+    """The manifest of the clip set in ``clips_dir``; its entries know their files (:attr:`ClipEntry.path`)."""
+    manifest = read_json(Path(clips_dir) / MANIFEST, ClipManifest, "clip manifest", "animstudy clips build")
+    for c in manifest.clips:
+        c._dir = Path(clips_dir)
+    return manifest
+
+
+def arrays_digest(path: Path) -> str:
+    """sha256 of the arrays of an ``.npz`` file: names, dtypes, shapes and bytes."""
+    h = hashlib.sha256()
+    with np.load(path) as arrays:
+        for name in sorted(arrays.files):
+            a = arrays[name]
+            h.update(name.encode())
+            h.update(str(a.dtype).encode() + str(a.shape).encode())
+            h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
 
 
 def read_clip(clips_dir: Path, clip_id: str) -> tuple[ClipEntry, dict[str, np.ndarray]]:
@@ -219,7 +253,7 @@ def read_clip(clips_dir: Path, clip_id: str) -> tuple[ClipEntry, dict[str, np.nd
     if entry is None:
         raise ManifestError(f"the clip set in {clips_dir} has no clip {clip_id!r}; it has "
                             f"{', '.join(c.id for c in manifest.clips)}")
-    path = Path(clips_dir) / entry.file
+    path = entry.path
     try:
         with np.load(path, allow_pickle=False) as z:
             missing = [name for name in CLIP_ARRAYS if name not in z.files]

@@ -30,8 +30,9 @@ from anim_core.rig.gltf_character import MappedCharacter
 from server.assets import AssetError
 from server.clipset.build import configured_character, record_config
 from server.clipset.config import CharacterConfig
-from server.clipset.manifest import ManifestError, read_clip_manifest
+from server.clipset.manifest import ClipEntry, ManifestError, read_clip_manifest
 
+from .errors import MediaError
 from .manifest import RenderedClip, RenderedPair, RenderManifest, read_render_manifest, write_render_manifest
 from .scene import Framing, RenderSettings, frame_motion
 
@@ -42,28 +43,6 @@ MEDIA_NAME = re.compile(r"^[0-9a-f]{24}\.(mp4|jpg)$")
 DIVIDER_PX = 4
 DIVIDER_RGB = (58, 60, 64)
 BODY_PADDING_M = 0.12  # how far the skin reaches beyond the joints, for framing and shadow bounds
-
-
-class MediaError(ValueError):
-    """The clip set to render is missing or inconsistent."""
-
-
-@dataclass(frozen=True)
-class ClipFile:
-    """A clip of the clip set, as the manifest of ``animstudy clips build`` describes it."""
-
-    id: str
-    animation: str
-    condition: str
-    method: str
-    params: dict[str, Any]
-    path: Path
-    fps: int
-    frames: int
-    playback: str
-    in_place: bool
-    root_speed_mps: float
-    digest: str  # sha256 of the clip's arrays
 
 
 @dataclass(frozen=True)
@@ -89,7 +68,7 @@ class AnimationJob:
 
     animation: str
     data_dir: Path
-    clips: dict[str, ClipFile]
+    clips: dict[str, ClipEntry]
     outputs: list[Output]
     settings: RenderSettings
     framing: Framing
@@ -97,17 +76,6 @@ class AnimationJob:
     out_dir: Path
     n_frames: int = field(default=0)
     character: CharacterConfig = field(default=CharacterConfig())
-
-
-def _digest_arrays(path: Path) -> str:
-    h = hashlib.sha256()
-    with np.load(path) as arrays:
-        for name in sorted(arrays.files):
-            a = arrays[name]
-            h.update(name.encode())
-            h.update(str(a.dtype).encode() + str(a.shape).encode())
-            h.update(np.ascontiguousarray(a).tobytes())
-    return h.hexdigest()
 
 
 def rendered_settings(media_dir: Path) -> RenderSettings:
@@ -125,13 +93,13 @@ def rendered_settings(media_dir: Path) -> RenderSettings:
     return RenderSettings(width=width, height=height, shadows=shadows)
 
 
-def read_clip_set(clips_dir: Path) -> list[ClipFile]:
+def read_clip_set(clips_dir: Path) -> list[ClipEntry]:
     """The clips listed in the clip manifest of ``clips_dir`` (:mod:`server.clipset.manifest`)."""
     try:
-        manifest = read_clip_manifest(clips_dir)
-        return [ClipFile(e.id, e.animation, e.condition, e.method, e.params, Path(clips_dir) / e.file, e.fps,
-                         e.frames, e.playback, e.in_place, e.root_speed_mps, _digest_arrays(Path(clips_dir) / e.file))
-                for e in manifest.clips]
+        clips = read_clip_manifest(clips_dir).clips
+        for c in clips:
+            c.digest  # noqa: B018 - every file is read here, so that a missing or broken one is a MediaError
+        return clips
     except ManifestError as exc:
         raise MediaError(str(exc)) from None
     except FileNotFoundError as exc:
@@ -141,7 +109,7 @@ def read_clip_set(clips_dir: Path) -> list[ClipFile]:
         raise MediaError(f"the clip set in {clips_dir} is unreadable ({exc!r}); rebuild it") from None
 
 
-def identical_clips(clips: Sequence[ClipFile]) -> dict[str, str]:
+def identical_clips(clips: Sequence[ClipEntry]) -> dict[str, str]:
     """Clip id -> the first clip of ``clips`` with the same arrays (itself for the first), e.g. a key reduction
     that kept every key of its reference."""
     first: dict[str, str] = {}
@@ -152,12 +120,12 @@ def _name(secret: bytes, key: str) -> str:
     return hmac.new(secret, key.encode(), hashlib.sha256).hexdigest()[:24]
 
 
-def _key(scene: dict[str, Any], layout: str, clips: Sequence[ClipFile]) -> str:
+def _key(scene: dict[str, Any], layout: str, clips: Sequence[ClipEntry]) -> str:
     text = json.dumps({"scene": scene, "layout": layout, "clips": [c.digest for c in clips]}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def grid_spacing(clip: ClipFile, settings: RenderSettings) -> float:
+def grid_spacing(clip: ClipEntry, settings: RenderSettings) -> float:
     """Grid spacing that a looping in-place walk scrolls by a whole number of cells per cycle (a seamless loop)."""
     if not clip.in_place or clip.root_speed_mps <= 0:
         return settings.grid_spacing_m
@@ -165,7 +133,7 @@ def grid_spacing(clip: ClipFile, settings: RenderSettings) -> float:
     return stride / max(1, round(stride / settings.grid_spacing_m))
 
 
-def _rendered_frames(clip: ClipFile) -> int:
+def _rendered_frames(clip: ClipEntry) -> int:
     """Frames actually rendered: the backward half of a ping-pong period repeats the forward half."""
     return clip.frames // 2 + 1 if clip.playback == "pingpong" else clip.frames
 
@@ -175,7 +143,7 @@ class Plan:
     jobs: list[AnimationJob]
     clip_outputs: dict[str, Output]
     pair_outputs: dict[tuple[str, str], Output]
-    clips: dict[str, ClipFile]
+    clips: dict[str, ClipEntry]
 
     @property
     def outputs(self) -> list[Output]:
@@ -359,7 +327,7 @@ def run_job(job: AnimationJob, arrays: Arrays | None = None, character: Characte
     # Frames are kept and tiled as the encoder's YUV 4:2:0 planes: half the memory, and one conversion per frame.
     divider = yuv420(np.broadcast_to(np.array(DIVIDER_RGB, np.uint8), (s.height, DIVIDER_PX, 3)))
 
-    def frames_of(clip: ClipFile) -> Iterator[tuple[int, Planes, NDArray[np.uint8] | None]]:
+    def frames_of(clip: ClipEntry) -> Iterator[tuple[int, Planes, NDArray[np.uint8] | None]]:
         """(frame, planes, RGB or None) in playback order.  The second half of a ping-pong period is the first
         half backwards (frame f shows the pose of frame T - f), so only the first half is rendered."""
         a = arrays[clip.id]
@@ -478,12 +446,12 @@ def _value(value: Any) -> Any:
 
 def run_on_dask(p: Plan, out_dir: Path, scheduler: str | None, workers: int,
                  progress: Callable[[str], None]) -> list[list[tuple[str, float]]]:
-    """One :func:`render_task` per job on the cluster (see :mod:`server.cluster`), the character sent once;
+    """One :func:`render_task` per job on the cluster (see :mod:`server.media.cluster`), the character sent once;
     each job's files are stored as it finishes, so a job interrupted later renders only what is still missing.
     A failed task fails the render naming its clip, after the others have finished and been stored."""
     from distributed import as_completed as dask_completed
 
-    from server.cluster import dask_client
+    from .cluster import dask_client
 
     with dask_client(scheduler, min(workers, len(p.jobs))) as client, client.as_current():
         # The character goes to the cluster once per job, as a task of its own rather than scattered data: a

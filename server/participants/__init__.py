@@ -1,1 +1,1 @@
-"""Participants: anonymous sessions, their trials and votes."""
+"""Participants: anonymous sessions, their trials and votes, and every query of them."""

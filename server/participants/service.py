@@ -1,4 +1,5 @@
-"""The participant's journey: consent, demographics, trials, exactly-once votes, withdrawal."""
+"""The participant's journey (consent, demographics, trials, exactly-once votes, withdrawal) and everything else
+that reads or deletes sessions, trials and votes: the counts, the vote log, pilot sessions."""
 
 from __future__ import annotations
 
@@ -6,23 +7,37 @@ import hashlib
 import json
 import secrets
 import uuid
+from collections.abc import Collection, Iterator, Mapping
 from dataclasses import dataclass
 from datetime import datetime
+from pathlib import Path
 from typing import Any, Literal
 
 from sqlalchemy import JSON, bindparam, delete, func, select
 from sqlalchemy.dialects import postgresql, sqlite
-from sqlalchemy.orm import Session, joinedload
+from sqlalchemy.engine import Row
+from sqlalchemy.orm import Session, aliased, joinedload
 
+from server.config import Settings
 from server.db import utcnow
 from server.errors import Conflict, Forbidden, NotFound, TooManyRequests, Unauthorized
-from server.studies.assign import session_comparisons
+from server.media.manifest import RenderManifest
 from server.studies.design import Design, trial_order
-from server.studies.models import Study, StudyState
-from server.studies.scale import score
-from server.studies.service import failed_catch_trials, recruitment, session_outcome
+from server.studies.models import Comparison, ComparisonKind, Stimulus, Study, StudyState
+from server.studies.scale import MAX_SCORE, score
+from server.studies.screening import ParticipantScreening
+from server.studies.service import (
+    check_deletable,
+    recruitment,
+    redesigns,
+    remove_study,
+    revise_study,
+    revision,
+    screening_rules,
+)
 from server.studies.studyfile import Question
 
+from .assign import session_comparisons
 from .models import ParticipantSession, PlaybackEvent, SessionState, Trial, Vote
 
 
@@ -146,7 +161,7 @@ def questions_answered(ps: ParticipantSession) -> bool:
 
 
 def outcome(session: Session, ps: ParticipantSession) -> str:
-    """``completed`` or ``screened_out`` (:func:`server.studies.service.session_outcome`) of a finished session."""
+    """``completed`` or ``screened_out`` (:func:`session_outcome`) of a finished session."""
     failed = failed_catch_trials(session, ps.study, ps.id).get(ps.id, 0)
     return session_outcome(ps.study, SessionState.completed, failed) or "completed"
 
@@ -285,3 +300,141 @@ def record_event(session: Session, ps: ParticipantSession, kind: str, trial_key:
     session.add(event)
     session.commit()
     return event
+
+
+def failed_catch_trials(session: Session, study: Study, session_id: str | None = None) -> dict[str, int]:
+    """Failed catch trials per participant session of ``study`` (or of the one session ``session_id``): a
+    'significantly better' answer when both sides show the same clip.  Sessions without a failure are absent."""
+    query = (select(Trial.session_id, func.count(Vote.id)).join(Vote, Vote.trial_id == Trial.id)
+             .join(Comparison, Trial.comparison_id == Comparison.id)
+             .where(Comparison.study_id == study.id, Comparison.kind == ComparisonKind.catch,
+                    func.abs(Vote.score) == MAX_SCORE).group_by(Trial.session_id))
+    if session_id is not None:
+        query = query.where(Trial.session_id == session_id)
+    return {sid: n for sid, n in session.execute(query).all()}
+
+
+def session_outcome(study: Study, state: str, failed_catch: int) -> str | None:
+    """What a finished session's participant is told (and which completion code or link they get):
+    ``completed``, or ``screened_out`` when the study screens by catch trials (``[screening] rules``) and more
+    were failed than it allows; None for a session that has not finished.  The other rules are applied to the
+    results and exports only: most compare a participant with the panel, which grows after they leave."""
+    if state != SessionState.completed:
+        return None
+    if "catch" not in screening_rules(study).rules:
+        return "completed"
+    return "screened_out" if failed_catch > recruitment(study).catch_failures_allowed else "completed"
+
+
+def pilot_counts(session: Session, study: Study) -> dict[str, int]:
+    """Sessions, trials, votes and playback events of the study's pilot sessions."""
+    ids = select(ParticipantSession.id).where(ParticipantSession.study_id == study.id,
+                                              ParticipantSession.pilot.is_(True))
+    count = {name: session.scalar(select(func.count()).select_from(model).where(column.in_(ids))) or 0
+             for name, model, column in (("sessions", ParticipantSession, ParticipantSession.id),
+                                         ("trials", Trial, Trial.session_id), ("votes", Vote, Vote.session_id),
+                                         ("events", PlaybackEvent, PlaybackEvent.session_id))}
+    return count
+
+
+def delete_pilot_sessions(session: Session, study: Study, commit: bool = True) -> dict[str, int]:
+    """Delete every pilot session of ``study`` and every row it made, in one transaction; what was deleted."""
+    deleted = pilot_counts(session, study)
+    ids = select(ParticipantSession.id).where(ParticipantSession.study_id == study.id,
+                                              ParticipantSession.pilot.is_(True)).scalar_subquery()
+    # explicitly, children first: the database's ON DELETE CASCADE would do, but this says what goes
+    session.execute(delete(PlaybackEvent).where(PlaybackEvent.session_id.in_(ids)))
+    session.execute(delete(Vote).where(Vote.session_id.in_(ids)))
+    session.execute(delete(Trial).where(Trial.session_id.in_(ids)))
+    session.execute(delete(ParticipantSession).where(ParticipantSession.study_id == study.id,
+                                                     ParticipantSession.pilot.is_(True)))
+    if commit:
+        session.commit()
+    return deleted
+
+
+def update_study(session: Session, study: Study, changes: Mapping[str, Any], media: RenderManifest | None = None,
+                 media_dir: Path | None = None, clips_dir: Path | None = None,
+                 animations: Collection[str] | None = None) -> Study:
+    """Apply a partial study file (:func:`server.studies.service.revision` says what may change when); a new
+    design deletes the draft's pilot sessions first: their trials show the old comparisons."""
+    updated = revision(study, changes, media)
+    if redesigns(study, updated):
+        delete_pilot_sessions(session, study, commit=False)
+    return revise_study(session, study, updated, media, media_dir, clips_dir, animations)
+
+
+def delete_study(session: Session, study: Study, settings: Settings) -> None:
+    """A draft that never opened (:func:`server.studies.service.remove_study`) with its pilot sessions, a draft's
+    only ones: their trials hold its comparisons."""
+    check_deletable(study)
+    delete_pilot_sessions(session, study, commit=False)
+    remove_study(session, study, settings)
+
+
+def participant_counts(session: Session, study: Study, include_pilot: bool = False,
+                       records: Mapping[str, ParticipantScreening] | None = None) -> dict[str, int]:
+    """``started``: every session created (withdrawn included); ``completed``: finished and not withdrawn;
+    ``screened_out``: of those, the ones whose votes are not analysed, by the screening ``records`` (the caller
+    has them: :func:`server.research.service.participant_counts`) or, without them, by catch trials alone;
+    ``pilot``: the researcher's preview sessions, which count in the others only with ``include_pilot``."""
+    query = select(ParticipantSession.state, ParticipantSession.pilot, func.count()).where(
+        ParticipantSession.study_id == study.id).group_by(ParticipantSession.state, ParticipantSession.pilot)
+    by_state: dict[str, int] = {}
+    pilot = 0
+    for state, is_pilot, n in session.execute(query).all():
+        pilot += n if is_pilot else 0
+        if include_pilot or not is_pilot:
+            by_state[state] = by_state.get(state, 0) + n
+    if records is not None:
+        screened = sum(r.screened_out for r in records.values())
+    else:  # the cheap count, without reading every vote
+        failed = failed_catch_trials(session, study)
+        query = select(ParticipantSession.id).where(
+            ParticipantSession.study_id == study.id, ParticipantSession.state == SessionState.completed,
+            ParticipantSession.id.in_(failed))
+        if not include_pilot:
+            query = query.where(ParticipantSession.pilot.is_(False))
+        completed = session.scalars(query) if failed else []
+        screened = sum(session_outcome(study, SessionState.completed, failed[sid]) == "screened_out"
+                       for sid in completed)
+    return {"started": sum(by_state.values()), "completed": by_state.get(SessionState.completed, 0),
+            "screened_out": screened, "withdrawn": by_state.get(SessionState.withdrawn, 0),
+            "active": by_state.get(SessionState.active, 0), "pilot": pilot}
+
+
+def vote_count(session: Session, study: Study) -> int:
+    """The votes of the study's participants (pilot sessions left out)."""
+    return session.scalar(select(func.count(Vote.id)).join(ParticipantSession).where(
+        ParticipantSession.study_id == study.id, ParticipantSession.pilot.is_(False))) or 0
+
+
+def completion_times(session: Session, study: Study, include_pilot: bool = False) -> list[float]:
+    """Seconds from start to finish of every completed session (pilot sessions only with ``include_pilot``)."""
+    return [(ps.completed_at - ps.created_at).total_seconds() for ps in session.scalars(
+        select(ParticipantSession).where(ParticipantSession.study_id == study.id,
+                                         ParticipantSession.state == SessionState.completed,
+                                         *([] if include_pilot else [ParticipantSession.pilot.is_(False)])))]
+
+
+def vote_records(session: Session, study: Study, include_pilot: bool = False) -> Iterator[Row[Any]]:
+    """Every vote of ``study`` in session and trial order, with its trial, its session and what the comparison
+    showed (kind; reference animation and condition, test condition; both clips, videos, frames and fps; the two
+    pair videos): the rows :func:`server.research.export.screened_rows` turns into the export."""
+    reference, test = aliased(Stimulus), aliased(Stimulus)
+    query = (
+        select(Vote, Trial, ParticipantSession, Comparison.kind, reference.animation, reference.condition,
+               test.condition, reference.clip_id, test.clip_id, reference.video, test.video,
+               Comparison.video_reference_left, Comparison.video_reference_right, reference.frames,
+               reference.fps, test.frames, test.fps)
+        .join(Trial, Vote.trial_id == Trial.id)
+        .join(ParticipantSession, Trial.session_id == ParticipantSession.id)
+        .join(Comparison, Trial.comparison_id == Comparison.id)
+        .join(reference, Comparison.reference_id == reference.id)
+        .join(test, Comparison.test_id == test.id)
+        .where(ParticipantSession.study_id == study.id)
+        .order_by(ParticipantSession.created_at, ParticipantSession.id, Trial.index)
+    )
+    if not include_pilot:
+        query = query.where(ParticipantSession.pilot.is_(False))
+    yield from session.execute(query)

@@ -4,7 +4,7 @@ not shadow a column) and the data dictionary (``GET /api/v1/data-dictionary`` an
 :func:`data_dictionary_markdown`) are made from.
 
 A new column is one more :class:`ExportColumn` appended to :data:`COLUMNS` (existing names never change: analysis
-scripts read them), and the row :func:`server.studies.service.export_rows` writes gets the value.
+scripts read them), and the row :func:`server.research.export.export_rows` writes gets the value.
 """
 
 from __future__ import annotations

@@ -4,7 +4,8 @@ The link is the participant link with ``?preview=<token>``; the token (a JWT sig
 researcher logins are) names the study and expires.  Sessions started with it are marked ``pilot``: they may start
 while the study is a draft (as well as open), they are left out of the results, the counts and the exports unless
 asked for (``?pilot=true``), and one action deletes them with every row they made (trials, votes, playback
-events).  Changing a draft's design deletes its pilot sessions first: their trials show the old comparisons.
+events: :func:`server.participants.service.delete_pilot_sessions`).  Changing a draft's design deletes its pilot
+sessions first: their trials show the old comparisons.
 """
 
 from __future__ import annotations
@@ -13,12 +14,11 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 
 import jwt
-from sqlalchemy import delete, func, select
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from server.db import utcnow
 from server.errors import Conflict, Forbidden, NotFound
-from server.participants.models import ParticipantSession, PlaybackEvent, Trial, Vote
 
 from .models import Study, StudyState
 
@@ -54,33 +54,6 @@ def check_preview(study: Study, token: str, secret: bytes) -> None:
         raise Forbidden("this preview link belongs to another study")
     if study.state not in PREVIEW_STATES:
         raise Conflict(f"study {study.slug!r} is {study.state}: pilot sessions start only while it is a draft or open")
-
-
-def pilot_counts(session: Session, study: Study) -> dict[str, int]:
-    """Sessions, trials, votes and playback events of the study's pilot sessions."""
-    ids = select(ParticipantSession.id).where(ParticipantSession.study_id == study.id,
-                                              ParticipantSession.pilot.is_(True))
-    count = {name: session.scalar(select(func.count()).select_from(model).where(column.in_(ids))) or 0
-             for name, model, column in (("sessions", ParticipantSession, ParticipantSession.id),
-                                         ("trials", Trial, Trial.session_id), ("votes", Vote, Vote.session_id),
-                                         ("events", PlaybackEvent, PlaybackEvent.session_id))}
-    return count
-
-
-def delete_pilot_sessions(session: Session, study: Study, commit: bool = True) -> dict[str, int]:
-    """Delete every pilot session of ``study`` and every row it made, in one transaction; what was deleted."""
-    deleted = pilot_counts(session, study)
-    ids = select(ParticipantSession.id).where(ParticipantSession.study_id == study.id,
-                                              ParticipantSession.pilot.is_(True)).scalar_subquery()
-    # explicitly, children first: the database's ON DELETE CASCADE would do, but this says what goes
-    session.execute(delete(PlaybackEvent).where(PlaybackEvent.session_id.in_(ids)))
-    session.execute(delete(Vote).where(Vote.session_id.in_(ids)))
-    session.execute(delete(Trial).where(Trial.session_id.in_(ids)))
-    session.execute(delete(ParticipantSession).where(ParticipantSession.study_id == study.id,
-                                                     ParticipantSession.pilot.is_(True)))
-    if commit:
-        session.commit()
-    return deleted
 
 
 def previewed_study(session: Session, slug: str, token: str, secret: bytes) -> Study:

@@ -1,10 +1,10 @@
 """Observer screening: which participants' answers to leave out, by the rules a study chooses (``[screening]``).
 
-Pure functions over the export rows (``service.export_rows``: one mapping per vote).  Only finished (completed)
-sessions are screened; a rule looks at a participant's *test* trials (practice and catch trials excluded),
-except ``catch``, which looks only at catch trials.  A comparison is one animation in one test condition against
-one reference condition; its score is from the test condition's point of view (-2..+2, see ``scale``), and each
-participant sees it ``2 * repeats`` times (sides swapped): those showings are the repetitions ``r`` of the
+Pure functions over the export rows (``server.research.export.export_rows``: one mapping per vote).  Only finished
+(completed) sessions are screened; a rule looks at a participant's *test* trials (practice and catch trials
+excluded), except ``catch``, which looks only at catch trials.  A comparison is one animation in one test condition
+against one reference condition; its score is from the test condition's point of view (-2..+2, see ``scale``), and
+each participant sees it ``2 * repeats`` times (sides swapped): those showings are the repetitions ``r`` of the
 standards' x[e, s, r] (stimulus e, subject s).
 
 The rules (``RULES``), each with the standard it follows and its default threshold:

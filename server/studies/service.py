@@ -1,16 +1,14 @@
-"""Creating studies from study files over the rendered clip set, editing, opening and closing them, exporting
-their votes."""
+"""Creating studies from study files over the rendered clip set, editing, opening and closing them: the study
+definition, which knows nothing of its participants (:mod:`server.participants` builds on it)."""
 
 from __future__ import annotations
 
-import csv
-import io
 import shutil
-from collections.abc import Collection, Iterator, Mapping
+from collections.abc import Collection, Mapping
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import func, select
+from sqlalchemy import select
 from sqlalchemy.orm import Session, aliased, object_session
 
 from server.config import Settings
@@ -18,17 +16,13 @@ from server.db import utcnow
 from server.errors import Conflict, NotFound, Unprocessable
 from server.media.build import identical_clips, read_clip_set, rendered_pairs
 from server.media.manifest import RenderManifest
-from server.participants.models import ParticipantSession, SessionState, Trial, Vote
 from server.researchers.models import Researcher
 from server.stimuli import service as stimulus_sets
 
 from .columns import EXPORT_COLUMNS, QUESTIONS_BEFORE
 from .design import ComparisonIds, Design
 from .models import Comparison, ComparisonKind, Stimulus, Study, StudyState
-from .pilot import delete_pilot_sessions
-from .scale import CHOICE_SCORES, MAX_SCORE, other_side
-from .schemas import StudySummary
-from .screening import ParticipantScreening, Screening, screen
+from .screening import Screening
 from .studyfile import Recruitment, StudyFile, Texts
 
 StimulusKey = tuple[str, str]  # (animation, condition)
@@ -216,14 +210,12 @@ def default_study(session: Session) -> Study | None:
     return session.scalar(select(Study).where(Study.state == StudyState.open).order_by(Study.id).limit(1))
 
 
-def update_study(session: Session, study: Study, changes: Mapping[str, Any],
-                 media: RenderManifest | None = None, media_dir: Path | None = None,
-                 clips_dir: Path | None = None, animations: Collection[str] | None = None) -> Study:
-    """Apply a partial study file (sections are merged into the current ones): ``screening`` at any time (it
-    changes the analysis, not what participants see); ``title``, ``texts``, ``scale``,
-    ``questions`` and ``recruitment`` until the study first opens; ``design`` only while it is a draft that never
-    opened (its comparisons are rebuilt over ``media``, the render manifest).  Otherwise 409: participants saw it
-    as it is.  An invalid result raises pydantic's ValidationError (the API answers 422)."""
+def revision(study: Study, changes: Mapping[str, Any], media: RenderManifest | None = None) -> StudyFile:
+    """The study file that a partial study file makes of the study's (sections are merged into the current ones):
+    ``screening`` at any time (it changes the analysis, not what participants see); ``title``, ``texts``,
+    ``scale``, ``questions`` and ``recruitment`` until the study first opens; ``design`` only while it is a draft
+    that never opened and ``media``, the render manifest, is given.  Otherwise 409: participants saw it as it is.
+    An invalid result raises pydantic's ValidationError (the API answers 422).  Nothing is stored."""
     if study.opened_at is not None and set(changes) - {"screening"}:
         raise Conflict(f"study {study.slug!r} has been open: participants saw it as it is; create a new study "
                        "(only [screening], which participants never see, can still change)")
@@ -236,10 +228,23 @@ def update_study(session: Session, study: Study, changes: Mapping[str, Any],
         merge = isinstance(current.get(key), dict) and isinstance(value, dict)
         current[key] = {**current[key], **value} if merge else value
     updated = StudyFile.model_validate(current)
-    if updated.design != Design.model_validate(study.design):  # designs stored before a field existed compare equal
-        if study.state != StudyState.draft or media is None:
-            raise Conflict("the design can change only while the study is a draft")
-        delete_pilot_sessions(session, study, commit=False)  # their trials show the old comparisons
+    if redesigns(study, updated) and (study.state != StudyState.draft or media is None):
+        raise Conflict("the design can change only while the study is a draft")
+    return updated
+
+
+def redesigns(study: Study, updated: StudyFile) -> bool:
+    """Whether ``updated`` changes the study's design, so that its comparisons are built anew."""
+    return updated.design != Design.model_validate(study.design)  # designs stored before a field existed compare equal
+
+
+def revise_study(session: Session, study: Study, updated: StudyFile, media: RenderManifest | None = None,
+                 media_dir: Path | None = None, clips_dir: Path | None = None,
+                 animations: Collection[str] | None = None) -> Study:
+    """Store ``updated`` (a :func:`revision` of the study), rebuilding the comparisons over ``media`` when the design
+    changed.  What showed the old comparisons goes first: :func:`server.participants.service.update_study`."""
+    if redesigns(study, updated):
+        assert media is not None  # revision refuses a redesign without it
         _build_comparisons(session, study, media, updated.design, media_dir, clips_dir, animations)
     for key, value in _columns(updated).items():
         setattr(study, key, value)
@@ -247,18 +252,24 @@ def update_study(session: Session, study: Study, changes: Mapping[str, Any],
     return study
 
 
-def delete_study(session: Session, study: Study, settings: Settings) -> None:
-    """A draft that never opened, with its uploaded files (their rows go with the study)."""
+def check_deletable(study: Study) -> None:
+    """409 unless ``study`` is a draft that never opened: only those can be deleted."""
     if study.state != StudyState.draft or study.opened_at is not None:
         raise Conflict(f"study {study.slug!r} is {study.state}; only a draft that never opened can be deleted")
+
+
+def remove_study(session: Session, study: Study, settings: Settings) -> None:
+    """A draft that never opened, with its uploaded files (their rows go with the study).  Its pilot sessions go
+    first: :func:`server.participants.service.delete_study`."""
+    check_deletable(study)
     study_id = study.id
-    delete_pilot_sessions(session, study, commit=False)  # a draft's only sessions; their trials hold comparisons
     session.delete(study)
     session.commit()
     shutil.rmtree(settings.study_assets_dir(study_id), ignore_errors=True)
 
 
 def comparison_ids(study: Study) -> ComparisonIds:
+    """The ids of the study's test, catch and practice comparisons, in their order."""
     by_kind: dict[str, list[int]] = {k: [] for k in ComparisonKind}
     for c in study.comparisons:
         by_kind[c.kind].append(c.id)
@@ -305,74 +316,12 @@ def texts(study: Study) -> Texts:
     return Texts.model_validate({**study.texts, "consent_version": study.consent_version})
 
 
-def failed_catch_trials(session: Session, study: Study, session_id: str | None = None) -> dict[str, int]:
-    """Failed catch trials per participant session of ``study`` (or of the one session ``session_id``): a
-    'significantly better' answer when both sides show the same clip.  Sessions without a failure are absent."""
-    query = (select(Trial.session_id, func.count(Vote.id)).join(Vote, Vote.trial_id == Trial.id)
-             .join(Comparison, Trial.comparison_id == Comparison.id)
-             .where(Comparison.study_id == study.id, Comparison.kind == ComparisonKind.catch,
-                    func.abs(Vote.score) == MAX_SCORE).group_by(Trial.session_id))
-    if session_id is not None:
-        query = query.where(Trial.session_id == session_id)
-    return {sid: n for sid, n in session.execute(query).all()}
-
-
-def session_outcome(study: Study, state: str, failed_catch: int) -> str | None:
-    """What a finished session's participant is told (and which completion code or link they get):
-    ``completed``, or ``screened_out`` when the study screens by catch trials (``[screening] rules``) and more
-    were failed than it allows; None for a session that has not finished.  The other rules are applied to the
-    results and exports only: most compare a participant with the panel, which grows after they leave."""
-    if state != SessionState.completed:
-        return None
-    if "catch" not in screening_rules(study).rules:
-        return "completed"
-    return "screened_out" if failed_catch > recruitment(study).catch_failures_allowed else "completed"
-
-
 def export_columns(study: Study) -> list[str]:
     """The fixed columns, with one per question of the study (its id) before ``answered_at`` and one per accepted
     URL parameter (its name, e.g. ``PROLIFIC_PID``) at the end."""
     base = list(EXPORT_COLUMNS)
     at = base.index(QUESTIONS_BEFORE)
     return base[:at] + [q["id"] for q in study.questions] + base[at:] + list(study.recruitment["parameters"])
-
-
-# A text cell beginning with one of these is a formula (or becomes one) in Excel, LibreOffice and Google Sheets:
-# leading spaces and line breaks are skipped by some of them, and the full-width forms (U+FF1D ＝ and its
-# neighbours) are read as the ASCII ones by others.
-FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r", "\n", " ", "\uff1d", "\uff0b", "\uff0d", "\uff20")
-
-
-def csv_cell(value: object) -> object:
-    """A value as a CSV cell: booleans ``true``/``false``, None empty, and text that a spreadsheet would evaluate
-    (participant-supplied ids could be ``=HYPERLINK(...)``) prefixed with ``'``, which spreadsheets show as text.
-    Numbers stay numbers: a score of -2 is not text."""
-    if isinstance(value, bool):
-        return str(value).lower()
-    if value is None:
-        return ""
-    if isinstance(value, str) and value.startswith(FORMULA_STARTS):
-        return "'" + value
-    return value
-
-
-def export_csv(session: Session, study: Study, include_pilot: bool = False) -> str:
-    """The export as CSV (cells as :func:`csv_cell` writes them)."""
-    buffer = io.StringIO()
-    # RFC 4180 line ends: with "\n" alone the csv module would not quote a value holding a bare "\r", and every
-    # reader would split the row there.
-    writer = csv.DictWriter(buffer, fieldnames=export_columns(study), lineterminator="\r\n")
-    writer.writeheader()
-    for row in export_rows(session, study, include_pilot):
-        writer.writerow({k: csv_cell(v) for k, v in row.items()})
-    return buffer.getvalue()
-
-
-def export_document(session: Session, study: Study, include_pilot: bool = False) -> dict[str, Any]:
-    """The export as one JSON document: the study, the columns, the rows."""
-    return {"study": {"slug": study.slug, "title": study.title, "state": study.state, "design": study.design,
-                      "consent_version": study.consent_version, "questions": study.questions},
-            "columns": export_columns(study), "votes": list(export_rows(session, study, include_pilot))}
 
 
 def pairs_in_use(session: Session) -> list[tuple[str, str]]:
@@ -399,174 +348,3 @@ def screening_rules(study: Study) -> Screening:
     return Screening.model_validate(study.screening or {})
 
 
-def screened_rows(session: Session, study: Study, include_pilot: bool = False
-                  ) -> tuple[list[dict[str, Any]], dict[str, ParticipantScreening]]:
-    """The export rows (see :func:`export_rows`) and every completed participant's screening record, by the
-    study's ``[screening]`` rules (``screening.screen``).  Pilot sessions only with ``include_pilot``."""
-    reference, test = aliased(Stimulus), aliased(Stimulus)
-    questions = [q["id"] for q in study.questions]
-    parameters = list(study.recruitment["parameters"])
-    query = (
-        select(Vote, Trial, ParticipantSession, Comparison.kind, reference.animation, reference.condition,
-               test.condition, reference.clip_id, test.clip_id, reference.video, test.video,
-               Comparison.video_reference_left, Comparison.video_reference_right, reference.frames,
-               reference.fps, test.frames, test.fps)
-        .join(Trial, Vote.trial_id == Trial.id)
-        .join(ParticipantSession, Trial.session_id == ParticipantSession.id)
-        .join(Comparison, Trial.comparison_id == Comparison.id)
-        .join(reference, Comparison.reference_id == reference.id)
-        .join(test, Comparison.test_id == test.id)
-        .where(ParticipantSession.study_id == study.id)
-        .order_by(ParticipantSession.created_at, ParticipantSession.id, Trial.index)
-    )
-    if not include_pilot:
-        query = query.where(ParticipantSession.pilot.is_(False))
-    pinned = study.stimulus_set
-    content = stimulus_sets.content_of(pinned) if pinned is not None else None
-    hashes = content.hashes() if content is not None else {}
-    # clips built in spite of the fidelity gate (accept_unfaithful) mark every vote on them
-    unfaithful = {c.id for c in content.clips if c.metrics.get("unfaithful")} if content is not None else set()
-    mode = study.design.get("mode", "reference")  # designs stored before issue 27 have no mode
-    rows: list[dict[str, Any]] = []
-    playback: dict[tuple[str, str, str], float] = {}
-    for (vote, trial, ps, kind, animation, ref_condition, test_condition, ref_clip, test_clip, ref_video, test_video,
-         pair_ref_left, pair_ref_right, ref_frames, ref_fps, test_frames, test_fps) in session.execute(query):
-        # one playback of the pair video: until the longer of its two clips has ended
-        playback[(animation, ref_condition, test_condition)] = 1000 * max(ref_frames / ref_fps,
-                                                                          test_frames / test_fps)
-        left, right = (ref_video, test_video) if trial.reference_side == "left" else (test_video, ref_video)
-        left_condition, right_condition = ((ref_condition, test_condition) if trial.reference_side == "left"
-                                           else (test_condition, ref_condition))
-        pair = pair_ref_left if trial.reference_side == "left" else pair_ref_right
-        answers, external, device = ps.answers or {}, ps.external or {}, ps.device or {}
-        rows.append({
-            "session_id": ps.id, "trial_index": trial.index, "practice": trial.practice,
-            "catch": kind == ComparisonKind.catch, "animation": animation, "reference_condition": ref_condition,
-            "test_condition": test_condition, "reference_side": trial.reference_side,
-            "test_side": other_side(trial.reference_side), "choice": vote.choice, "score": vote.score,
-            "rt_ms": vote.rt_ms, **{q: answers.get(q) for q in questions},
-            "answered_at": vote.answered_at.isoformat(), "consent_version": ps.consent_version,
-            "session_state": ps.state, "outcome": None,
-            "viewport_width": device.get("viewport_width"),
-            "viewport_height": device.get("viewport_height"), "device_pixel_ratio": device.get("device_pixel_ratio"),
-            "video_scale": device.get("scale"), "video_scaled": device.get("scaled"),
-            "unfaithful": ref_clip in unfaithful or test_clip in unfaithful,
-            "left_video": hashes.get(left), "right_video": hashes.get(right), "pair_video": hashes.get(pair),
-            "stimulus_set": pinned.digest if pinned is not None else None,
-            "design_mode": mode, "left_condition": left_condition,
-            "right_condition": right_condition,
-            "screened_by": None, "pilot": ps.pilot,
-            **{p: external.get(p) for p in parameters},
-        })
-    records = screen(rows, screening_rules(study), recruitment(study).catch_failures_allowed, playback)
-    for row in rows:
-        record = records.get(row["session_id"])
-        if record is not None:  # a completed session
-            row["outcome"] = "screened_out" if record.screened_out else "completed"
-            row["screened_by"] = ";".join(record.flagged_by) or None
-    return rows, records
-
-
-def export_rows(session: Session, study: Study, include_pilot: bool = False) -> Iterator[dict[str, Any]]:
-    """One row per vote (withdrawn participants' votes no longer exist), in session and trial order; ``outcome``
-    and ``screened_by`` by the study's screening rules; pilot sessions only with ``include_pilot``."""
-    yield from screened_rows(session, study, include_pilot)[0]
-
-
-def _analysed_test_rows(session: Session, study: Study, include_pilot: bool) -> list[dict[str, Any]]:
-    """Test trials of the participants who finished and were not screened out (the subject model's input)."""
-    rows, _ = screened_rows(session, study, include_pilot)
-    return [r for r in rows if not r["practice"] and not r["catch"] and r["outcome"] == "completed"]
-
-
-def export_sureal(session: Session, study: Study, include_pilot: bool = False) -> dict[str, Any]:
-    """The analysed test votes as a ``sureal`` dataset (its JSON form: ``sureal --dataset FILE.json``, or
-    ``sureal.tools.misc.import_json_file``): a comparison (animation, reference, test condition) is a distorted
-    video, its animation the content, each participant's side-swapped showings the repetitions of their score;
-    scores -2..+2 from the test condition's point of view."""
-    rows = _analysed_test_rows(session, study, include_pilot)
-    comparisons = sorted({(r["animation"], r["reference_condition"], r["test_condition"]) for r in rows})
-    animations = sorted({a for a, _, _ in comparisons})
-    scores: dict[tuple[str, str, str], dict[str, list[int]]] = {c: {} for c in comparisons}
-    for r in rows:
-        key = (r["animation"], r["reference_condition"], r["test_condition"])
-        scores[key].setdefault(r["session_id"], []).append(r["score"])
-    return {
-        "dataset_name": study.slug,
-        "ref_videos": [{"content_id": i, "content_name": a, "path": a} for i, a in enumerate(animations)],
-        "dis_videos": [{"asset_id": i, "content_id": animations.index(a), "path": f"{a}/{test}-vs-{ref}",
-                        "animation": a, "reference_condition": ref, "test_condition": test,
-                        "os": scores[(a, ref, test)]}
-                       for i, (a, ref, test) in enumerate(comparisons)],
-    }
-
-
-PWCMP_COLUMNS = ("observer", "session", "scene", "cond1", "cond2", "selection")
-
-
-def export_pwcmp_csv(session: Session, study: Study, include_pilot: bool = False) -> str:
-    """The analysed test votes as pairwise comparisons in pwcmp's table (observer, session, scene, cond1, cond2,
-    selection): cond1 the condition shown left, cond2 the one shown right, selection 1 or 2 for the side the
-    participant preferred (slightly or much); "equal" answers are left out, as pwcmp models a forced choice.
-    Works for any design: it reads each trial's two conditions."""
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\r\n")
-    writer.writerow(PWCMP_COLUMNS)
-    for r in _analysed_test_rows(session, study, include_pilot):
-        left, right = ((r["reference_condition"], r["test_condition"]) if r["reference_side"] == "left"
-                       else (r["test_condition"], r["reference_condition"]))
-        raw = CHOICE_SCORES[r["choice"]]
-        if raw:
-            writer.writerow([csv_cell(v) for v in (r["session_id"], 1, r["animation"], left, right,
-                                                   1 if raw > 0 else 2)])
-    return buffer.getvalue()
-
-
-def participant_counts(session: Session, study: Study, include_pilot: bool = False,
-                       records: Mapping[str, ParticipantScreening] | None = None) -> dict[str, int]:
-    """``started``: every session created (withdrawn included); ``completed``: finished and not withdrawn;
-    ``screened_out``: of those, the ones whose votes are not analysed (by the study's screening rules; ``records``
-    if the caller has them); ``pilot``: the researcher's preview sessions, which count in the others only with
-    ``include_pilot``."""
-    query = select(ParticipantSession.state, ParticipantSession.pilot, func.count()).where(
-        ParticipantSession.study_id == study.id).group_by(ParticipantSession.state, ParticipantSession.pilot)
-    by_state: dict[str, int] = {}
-    pilot = 0
-    for state, is_pilot, n in session.execute(query).all():
-        pilot += n if is_pilot else 0
-        if include_pilot or not is_pilot:
-            by_state[state] = by_state.get(state, 0) + n
-    if records is None:
-        rules = screening_rules(study).rules
-        if rules == ["catch"]:  # the cheap count, without reading every vote
-            failed = failed_catch_trials(session, study)
-            query = select(ParticipantSession.id).where(
-                ParticipantSession.study_id == study.id, ParticipantSession.state == SessionState.completed,
-                ParticipantSession.id.in_(failed))
-            if not include_pilot:
-                query = query.where(ParticipantSession.pilot.is_(False))
-            completed = session.scalars(query) if failed else []
-            screened = sum(session_outcome(study, SessionState.completed, failed[sid]) == "screened_out"
-                           for sid in completed)
-        else:
-            records = screened_rows(session, study, include_pilot)[1]
-    if records is not None:
-        screened = sum(r.screened_out for r in records.values())
-    return {"started": sum(by_state.values()), "completed": by_state.get(SessionState.completed, 0),
-            "screened_out": screened, "withdrawn": by_state.get(SessionState.withdrawn, 0),
-            "active": by_state.get(SessionState.active, 0), "pilot": pilot}
-
-
-def study_summary(session: Session, study: Study) -> StudySummary:
-    """The study as its list and the command line show it: state, owner, participant and vote counts, what may
-    still be edited."""
-    counts = participant_counts(session, study)
-    votes = session.scalar(select(func.count(Vote.id)).join(ParticipantSession).where(
-        ParticipantSession.study_id == study.id, ParticipantSession.pilot.is_(False))) or 0
-    never_opened = study.opened_at is None
-    return StudySummary(slug=study.slug, title=study.title, state=study.state,
-                        owner=study.owner.email if study.owner else None, started=counts["started"],
-                        completed=counts["completed"], votes=votes, trials_total=trials_total(study),
-                        participant_url=f"/s/{study.slug}",
-                        editable={"texts": never_opened, "recruitment": never_opened,
-                                  "design": never_opened and study.state == StudyState.draft})

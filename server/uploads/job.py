@@ -233,10 +233,10 @@ def draft(session: Session, study_id: int) -> Study:
 
 def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progress: Progress) -> None:
     from server.media.build import rendered_settings
+    from server.participants.service import update_study
     from server.studies import pipeline
     from server.studies.design import Design
     from server.studies.pipeline import AnimationError, build_animations
-    from server.studies.service import update_study
 
     place = pipeline.server_place(settings)
 

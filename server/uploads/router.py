@@ -16,8 +16,9 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field
 
-from server.deps import ResearcherDep, SessionDep, SettingsDep
+from server.deps import SessionDep, SettingsDep
 from server.errors import PayloadTooLarge, Unprocessable
+from server.researchers.deps import ResearcherDep
 from server.security import StreamedRoute
 from server.studies.service import managed_study
 

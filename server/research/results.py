@@ -11,20 +11,21 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from server.participants.models import ParticipantSession, SessionState
+from server.participants.assign import session_batches, sessions_started
+from server.participants.service import completion_times
 from server.stimuli import service as stimulus_sets
+from server.studies import scale
+from server.studies.interval_scale import study_scales
+from server.studies.models import Study
+from server.studies.screening import flagged_counts, opinion_array
+from server.studies.service import screening_rules
+from server.studies.statistics import analyse
+from server.studies.subject_model import fit
 
-from . import scale
-from .assign import session_batches
-from .interval_scale import study_scales
-from .models import Study
-from .screening import flagged_counts, opinion_array
-from .service import participant_counts, screened_rows, screening_rules
-from .statistics import analyse
-from .subject_model import fit
+from .export import screened_rows
+from .service import participant_counts
 
 
 def _read_json(path: Path) -> Any:
@@ -51,9 +52,7 @@ _ROUNDS: dict[tuple[int, int, int], list[dict[str, Any]]] = {}
 
 def adaptive_rounds(session: Session, study: Study, n_votes: int) -> list[dict[str, Any]]:
     """Per session of an adaptive study, in order: the votes before it and the information its batch promised."""
-    sessions = session.scalar(select(func.count()).select_from(ParticipantSession).where(
-        ParticipantSession.study_id == study.id)) or 0
-    key = (study.id, sessions, n_votes)
+    key = (study.id, sessions_started(session, study), n_votes)
     if key not in _ROUNDS:
         if len(_ROUNDS) > 16:
             _ROUNDS.clear()
@@ -167,10 +166,7 @@ def study_results(session: Session, study: Study, benchmark_path: Path,
         "ITU-T P.910 Annex E / P.913 12.6 maximum likelihood (sureal's MLE): score = comparison score + "
         "participant bias + participant inconsistency + animation ambiguity, over the finished, kept participants")
     results["pilot_included"] = include_pilot
-    durations = [(ps.completed_at - ps.created_at).total_seconds() for ps in session.scalars(
-        select(ParticipantSession).where(ParticipantSession.study_id == study.id,
-                                         ParticipantSession.state == SessionState.completed,
-                                         *([] if include_pilot else [ParticipantSession.pilot.is_(False)])))]
+    durations = completion_times(session, study, include_pilot)
     results["overview"] = {
         "slug": study.slug, "title": study.title, "state": study.state,
         "reference": study.design["reference"], "conditions": study.design["conditions"],

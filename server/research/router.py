@@ -10,20 +10,24 @@ from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
-from server.deps import ResearcherDep, SessionDep, SettingsDep
+from server.deps import SessionDep, SettingsDep
 from server.errors import Conflict, Unprocessable
 from server.media.manifest import ManifestError, RenderManifest, read_render_manifest
+from server.participants import service as participants
+from server.researchers.deps import ResearcherDep
 from server.researchers.models import Researcher
+from server.studies import pilot, pipeline, service
+from server.studies.columns import data_dictionary_markdown
+from server.studies.models import StudyState
+from server.studies.page import Page
+from server.studies.schemas import ExportJson, StudyPublic, StudyStateRead, StudySummary
+from server.studies.studyfile import StudyFile, StudyFileError, parse_study_text
 from server.uploads.job import scrub
 from server.uploads.service import create_building, job_json, study_clips, usable_animations
 
-from . import pilot, pipeline, service
-from .columns import data_dictionary_markdown
-from .models import StudyState
-from .page import Page
+from . import export
 from .results import study_results
-from .schemas import ExportJson, StudyPublic, StudyStateRead, StudySummary
-from .studyfile import StudyFile, StudyFileError, parse_study_text
+from .service import study_summary
 
 router = APIRouter(prefix="/api/v1", tags=["studies"])
 MAX_STUDY_FILE_BYTES = 200_000
@@ -33,7 +37,7 @@ PilotQuery = Annotated[bool, Query(description="include the researcher's pilot (
 @router.get("/studies", response_model=list[StudySummary])
 def list_studies(session: SessionDep, researcher: ResearcherDep) -> list[StudySummary]:
     """The researcher's studies (an admin's: every study), with their participant counts."""
-    return [service.study_summary(session, s) for s in service.visible_studies(session, researcher)]
+    return [study_summary(session, s) for s in service.visible_studies(session, researcher)]
 
 
 def render_manifest(settings: Any, folder: Path | None = None) -> RenderManifest:
@@ -65,10 +69,10 @@ def create_study(body: StudyFile, request: Request, session: SessionDep, setting
     progress ``GET /studies/{slug}/assets/build`` shows; the study gets its comparisons when the job is done."""
     if body.clips is not None:
         study, job = create_building(session, settings, request.app.state.engine, body, researcher)
-        return JSONResponse({"study": service.study_summary(session, study).model_dump(mode="json"),
+        return JSONResponse({"study": study_summary(session, study).model_dump(mode="json"),
                              "build": job_json(job)}, status_code=status.HTTP_202_ACCEPTED)
     media = render_manifest(settings)
-    return service.study_summary(session, service.create_study(session, media, body, owner=researcher,
+    return study_summary(session, service.create_study(session, media, body, owner=researcher,
                                                  media_dir=settings.media_dir, clips_dir=settings.clips_dir,
                                                  animations=usable(session, settings, researcher, media)))
 
@@ -119,16 +123,16 @@ def patch_study(slug: str, session: SessionDep, settings: SettingsDep, researche
             media = render_manifest(settings)
             animations = usable(session, settings, researcher, media)
     try:
-        service.update_study(session, study, body, media, settings.media_dir, clips_dir, animations)
+        participants.update_study(session, study, body, media, settings.media_dir, clips_dir, animations)
     except ValidationError as exc:
         session.rollback()
         raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in exc.errors()]) from None
-    return service.study_summary(session, study)
+    return study_summary(session, study)
 
 
 @router.delete("/studies/{slug}", status_code=status.HTTP_204_NO_CONTENT)
 def delete_study(slug: str, session: SessionDep, settings: SettingsDep, researcher: ResearcherDep) -> Response:
-    service.delete_study(session, service.managed_study(session, slug, researcher), settings)
+    participants.delete_study(session, service.managed_study(session, slug, researcher), settings)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
@@ -168,20 +172,20 @@ def close_study(slug: str, session: SessionDep, researcher: ResearcherDep) -> St
             responses={200: {"content": {"text/csv": {}}}})
 def export_csv(slug: str, session: SessionDep, researcher: ResearcherDep, pilot: PilotQuery = False) -> Response:
     study = service.managed_study(session, slug, researcher)
-    return Response(service.export_csv(session, study, pilot), media_type="text/csv; charset=utf-8",
+    return Response(export.export_csv(session, study, pilot), media_type="text/csv; charset=utf-8",
                     headers={"Content-Disposition": f'attachment; filename="{study.slug}-votes.csv"'})
 
 
 @router.get("/studies/{slug}/export.json", response_model=ExportJson)
 def export_json(slug: str, session: SessionDep, researcher: ResearcherDep, pilot: PilotQuery = False) -> ExportJson:
-    return ExportJson(**service.export_document(session, service.managed_study(session, slug, researcher), pilot))
+    return ExportJson(**export.export_document(session, service.managed_study(session, slug, researcher), pilot))
 
 
 @router.get("/studies/{slug}/export.sureal.json")
 def export_sureal(slug: str, session: SessionDep, researcher: ResearcherDep, pilot: PilotQuery = False) -> Response:
     """The analysed votes as a dataset for Netflix's sureal (``sureal --dataset FILE.json --models MLE ...``)."""
     study = service.managed_study(session, slug, researcher)
-    return Response(json.dumps(service.export_sureal(session, study, pilot), indent=1),
+    return Response(json.dumps(export.export_sureal(session, study, pilot), indent=1),
                     media_type="application/json",
                     headers={"Content-Disposition": f'attachment; filename="{study.slug}-sureal.json"'})
 
@@ -191,7 +195,7 @@ def export_sureal(slug: str, session: SessionDep, researcher: ResearcherDep, pil
 def export_pwcmp(slug: str, session: SessionDep, researcher: ResearcherDep, pilot: PilotQuery = False) -> Response:
     """The analysed votes as pairwise comparisons for pwcmp (observer, session, scene, cond1, cond2, selection)."""
     study = service.managed_study(session, slug, researcher)
-    return Response(service.export_pwcmp_csv(session, study, pilot), media_type="text/csv; charset=utf-8",
+    return Response(export.export_pwcmp_csv(session, study, pilot), media_type="text/csv; charset=utf-8",
                     headers={"Content-Disposition": f'attachment; filename="{study.slug}-pwcmp.csv"'})
 
 
@@ -203,13 +207,13 @@ def preview(slug: str, session: SessionDep, settings: SettingsDep, researcher: R
     if study.state not in pilot.PREVIEW_STATES:
         raise Conflict(f"study {slug!r} is {study.state}: pilot sessions start only while it is a draft or open")
     link = pilot.preview_link(study, settings.secret)
-    return {"url": link.url, "expires_at": link.expires_at.isoformat(), **pilot.pilot_counts(session, study)}
+    return {"url": link.url, "expires_at": link.expires_at.isoformat(), **participants.pilot_counts(session, study)}
 
 
 @router.delete("/studies/{slug}/pilot-sessions")
 def delete_pilot_sessions(slug: str, session: SessionDep, researcher: ResearcherDep) -> dict[str, int]:
     """Delete every pilot session of the study with every row it made; answers what was deleted."""
-    return pilot.delete_pilot_sessions(session, service.managed_study(session, slug, researcher))
+    return participants.delete_pilot_sessions(session, service.managed_study(session, slug, researcher))
 
 
 @router.get("/data-dictionary", response_class=PlainTextResponse)

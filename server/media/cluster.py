@@ -16,7 +16,7 @@ from contextlib import contextmanager
 from importlib.metadata import PackageNotFoundError, version
 from typing import TYPE_CHECKING
 
-from server.media.build import MediaError
+from .errors import MediaError
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)  # how long a job waits for a cluster without 
 
 class ClusterError(MediaError):
     """The Dask cluster cannot run the job (unreachable, no workers, other versions); the message says which.
-    A :class:`~server.media.build.MediaError`: every command that renders reports it as one."""
+    A :class:`~server.media.errors.MediaError`: every command that renders reports it as one."""
 
 
 def package_version() -> str:

@@ -1,0 +1,67 @@
+"""The packages of ``server`` and ``anim_core`` import each other in one direction only (docs/architecture.md): read
+from the import statements of the source, lazy imports inside functions included."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def package_imports(top: str) -> dict[str, set[str]]:
+    """Package (``server.studies``; a top-level module such as ``server.cli`` counts as one) -> the other packages
+    of ``top`` it imports."""
+    graph: dict[str, set[str]] = {}
+    for path in sorted((ROOT / top).rglob("*.py")):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        module = parts[:-1] if parts[-1] == "__init__" else parts
+        package = ".".join(module[:2])
+        targets = graph.setdefault(package, set())
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom):
+                here = parts[:-1]  # the folder a relative import starts from
+                base = here[:len(here) - node.level + 1] if node.level else ()
+                name = ".".join([*base, *([node.module] if node.module else [])])
+                names = [name, *(f"{name}.{a.name}" for a in node.names)]  # `from server import cli` too
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                continue
+            for name in names:
+                if name.split(".")[0] == top and len(name.split(".")) > 1:
+                    targets.add(".".join(name.split(".")[:2]))
+        targets.discard(package)
+    return graph
+
+
+def circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Every package that reaches itself, with the way back (one path per package)."""
+    found = []
+    for start in sorted(graph):
+        stack, seen = [(start, [start])], set()
+        while stack:
+            node, path = stack.pop()
+            for nxt in sorted(graph.get(node, ())):
+                if nxt == start:
+                    found.append([*path, start])
+                    stack = []
+                    break
+                if nxt not in seen:
+                    seen.add(nxt)
+                    stack.append((nxt, [*path, nxt]))
+    return found
+
+
+@pytest.mark.parametrize("top", ["server", "anim_core"])
+def test_no_package_imports_one_that_imports_it_back(top):
+    graph = package_imports(top)
+    assert len(graph) > 5  # the source was read
+    assert circles(graph) == []
+
+
+def test_the_study_definition_knows_nothing_of_participants_research_or_uploads():
+    assert package_imports("server")["server.studies"].isdisjoint(
+        {"server.participants", "server.research", "server.uploads"})
