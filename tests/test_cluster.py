@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import socket
 import subprocess
 import sys
@@ -66,15 +67,18 @@ def local_render(data, clips_dir, pairs, tmp_path_factory):
 def dask_cluster(tmp_path_factory):
     """``dask scheduler`` and two ``dask worker`` processes (no nanny: the worker is the process killed)."""
     logs = tmp_path_factory.mktemp("dask-logs")
+    # The workers import this checkout's code (the one under test), not whatever the `dask` script finds first.
+    root = str(Path(__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
     address = f"tcp://127.0.0.1:{_port()}"
     port = address.rsplit(":", 1)[1]
     procs = {"scheduler": subprocess.Popen([str(DASK), "scheduler", "--host", "127.0.0.1", "--port", port,
                                             "--no-dashboard"], stdout=(logs / "scheduler.log").open("wb"),
-                                           stderr=subprocess.STDOUT)}
+                                           stderr=subprocess.STDOUT, env=env)}
     for name in ("w1", "w2"):
         procs[name] = subprocess.Popen([str(DASK), "worker", address, "--name", name, "--nthreads", "1",
                                         "--no-nanny", "--no-dashboard", "--death-timeout", "60"],
-                                       stdout=(logs / f"{name}.log").open("wb"), stderr=subprocess.STDOUT)
+                                       stdout=(logs / f"{name}.log").open("wb"), stderr=subprocess.STDOUT, env=env)
     from distributed import Client
 
     client = None
@@ -170,7 +174,7 @@ def test_a_failing_clip_is_named_and_the_other_jobs_are_stored(data, clips_dir, 
     run = {e[k] for e in [*manifest["clips"].values(), *manifest["pairs"]]
            if (e.get("clip") or e["left"]).startswith("run-") for k in ("video", "poster")}
     stored, local = _files(out), _files(local_render)
-    assert run and run <= stored.keys(), messages
+    assert run and run <= stored.keys(), "\n".join(messages)
     assert all(stored[n] == local[n] for n in run)
 
 
