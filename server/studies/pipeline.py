@@ -176,20 +176,23 @@ def pairs(session: Session, place: Place, design: Design, media_dir: Path) -> li
 
 
 def render(settings: Settings, place: Place, wanted: list[tuple[str, str]], render_settings: RenderSettings,
-           progress: Progress = lambda _m: None, workers: int = 2, every_clip: bool = False) -> RenderManifest:
+           progress: Progress = lambda _m: None, workers: int = 2, every_clip: bool = False,
+           videos_done: Callable[[int, int], None] = lambda _d, _t: None) -> RenderManifest:
     """Render what is missing of ``wanted`` and the clips they show (``every_clip``: every clip) into the media
-    directory; returns the render manifest of ``place``."""
+    directory; returns the render manifest of ``place``.  ``videos_done``: as for
+    :func:`server.media.build.render_media`."""
     from server.media.build import render_media
 
     render_media(settings.data, place.clips_dir, settings.media_dir, settings.secret, render_settings,
                  pairs=wanted, workers=workers, every_clip=every_clip, progress=progress,
-                 manifest_dir=place.render_dir, scheduler=settings.dask_scheduler)
+                 manifest_dir=place.render_dir, scheduler=settings.dask_scheduler, videos_done=videos_done)
     return read_render_manifest(place.render_dir)
 
 
 def prepare(settings: Settings, session: Session, study_file: StudyFile, study_path: Path | None = None,
             render_settings: RenderSettings | None = None, progress: Progress = lambda _m: None,
-            workers: int = 2) -> tuple[RenderManifest, Place]:
+            workers: int = 2, videos_done: Callable[[int, int], None] = lambda _d, _t: None
+            ) -> tuple[RenderManifest, Place]:
     """Build and render what ``study_file`` needs that is missing; returns the render manifest to create it over
     and the place of its clip set (pass ``place.clips_dir`` to ``create_study``)."""
     from server.clipset.build import build_clip_set
@@ -208,7 +211,7 @@ def prepare(settings: Settings, session: Session, study_file: StudyFile, study_p
     before = place.render_dir if (place.render_dir / MANIFEST).is_file() else settings.media_dir
     chosen = render_settings or rendered_settings(before)
     return render(settings, place, pairs(session, place, study_file.design, settings.media_dir), chosen, progress,
-                  workers), place
+                  workers, videos_done=videos_done), place
 
 
 def render_manifest_dirs(settings: Settings) -> list[Path]:

@@ -44,7 +44,7 @@ from server.db import make_engine, session_factory, utcnow
 from server.errors import ServiceError
 from server.studies.models import Study, StudyState
 
-from .models import BuildJob, BuildState, StudyAsset
+from .models import BuildJob, BuildState, JobKind, StudyAsset
 from .service import asset_path
 
 STAGES = ("queued", "building", "rendering", "study", "done")
@@ -55,12 +55,15 @@ class BuildError(Exception):
 
 
 class Progress:
-    """Writes the job's progress to its row (one short transaction per update)."""
+    """Writes the job's progress to its row (one short transaction per update); ``settings``: messages scrubbed
+    of server paths (a researcher reads them); ``echo``: each message printed too (a command's job)."""
 
-    def __init__(self, factory: sessionmaker[Session], job_id: int, settings: Settings | None = None) -> None:
+    def __init__(self, factory: sessionmaker[Session], job_id: int, settings: Settings | None = None,
+                 echo: Callable[[str], None] | None = None) -> None:
         self.factory = factory
         self.job_id = job_id
         self.settings = settings
+        self.echo = echo
         self._lock = threading.Lock()
 
     def __call__(self, stage: str | None = None, done: int | None = None, total: int | None = None,
@@ -68,6 +71,8 @@ class Progress:
         changes = {k: v for k, v in (("stage", stage), ("done", done), ("total", total), ("message", message))
                    if v is not None}
         changes.update(values)
+        if self.echo is not None and message:
+            self.echo(message)
         for key in ("message", "error"):
             if key in changes and self.settings is not None:
                 changes[key] = scrub(str(changes[key]), self.settings)
@@ -190,8 +195,21 @@ def scrub(message: str, settings: Settings) -> str:
     return message
 
 
-def run(settings: Settings, factory: sessionmaker[Session], job_id: int) -> None:
-    """Run the job ``job_id`` to its end; every failure is stored in the job (never raised)."""
+def run(settings: Settings, factory: sessionmaker[Session], job_id: int,
+        echo: Callable[[str], None] | None = None) -> None:
+    """Run the job ``job_id`` to its end (from what is missing, when it is resumed); every failure is stored in
+    the job (never raised).  A command's job (:class:`JobKind` render, study) runs :func:`commands.run_command`;
+    ``echo`` prints its messages."""
+    with factory() as session:
+        job = session.get(BuildJob, job_id)
+        kind, params = (job.kind, job.params) if job is not None else (JobKind.upload, None)
+    if kind != JobKind.upload:
+        from .commands import run_command
+
+        progress = Progress(factory, job_id, echo=echo)
+        progress(state=BuildState.running, stage="building", message=f"{kind} job {job_id}", pid=os.getpid())
+        finish(progress, lambda: run_command(settings, factory, job_id, kind, params or {}, progress))
+        return
     progress = Progress(factory, job_id, settings)
     lock_path = settings.assets_dir / ".build.lock"
     lock_path.parent.mkdir(parents=True, exist_ok=True)
@@ -203,19 +221,24 @@ def run(settings: Settings, factory: sessionmaker[Session], job_id: int) -> None
                      "has finished", finished_at=utcnow())
             return
         progress(state=BuildState.running, stage="building", message="reading the assets", pid=os.getpid())
-        try:
-            _run(settings, factory, job_id, progress)
-        except Exception as exc:  # every failure ends the job with its message, none is a traceback to the user
-            if isinstance(exc, ServiceError):
-                message = exc.detail
-            elif isinstance(exc, BuildError | ValueError):
-                message = str(exc)
-            else:
-                message = f"{type(exc).__name__}: {exc}"
-                traceback.print_exc()  # into the job's log, beside the assets
-            progress(state=BuildState.failed, error=message, finished_at=utcnow())
-            return
-        progress(state=BuildState.done, stage="done", message="done", finished_at=utcnow())
+        finish(progress, lambda: _run(settings, factory, job_id, progress))
+
+
+def finish(progress: Progress, work: Callable[[], None]) -> None:
+    """Run ``work`` and store the job's outcome: done, or failed with the message of what went wrong."""
+    try:
+        work()
+    except Exception as exc:  # every failure ends the job with its message, none is a traceback to the user
+        if isinstance(exc, ServiceError):
+            message = exc.detail
+        elif isinstance(exc, BuildError | ValueError):
+            message = str(exc)
+        else:
+            message = f"{type(exc).__name__}: {exc}"
+            traceback.print_exc()  # into the job's log
+        progress(state=BuildState.failed, error=message, finished_at=utcnow())
+        return
+    progress(state=BuildState.done, stage="done", message="done", finished_at=utcnow())
 
 
 def draft(session: Session, study_id: int) -> Study:
@@ -229,7 +252,7 @@ def draft(session: Session, study_id: int) -> Study:
 
 
 def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progress: Progress) -> None:
-    from server.media.build import plan, rendered_settings
+    from server.media.build import rendered_settings
     from server.studies import pipeline
     from server.studies.design import Design
     from server.studies.pipeline import AnimationError, build_animations
@@ -280,25 +303,9 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
         Design.model_validate(new_design.model_dump())
         pairs = pipeline.pairs(session, place, new_design, settings.media_dir)
     render = rendered_settings(settings.media_dir)
-    todo = [o for j in plan(settings.data, settings.clips_dir, settings.media_dir, render, settings.secret,
-                            pairs).jobs for o in j.outputs]
-    progress(stage="rendering", done=0, total=len(todo), message=f"{len(todo)} videos to render")
-    stop = threading.Event()
-
-    def watch() -> None:  # a finished video is renamed into place: count them
-        while not stop.wait(1.0):
-            done = sum((settings.media_dir / o.video).is_file() for o in todo)
-            progress(done=done)
-
-    watcher = threading.Thread(target=watch, daemon=True)
-    watcher.start()
-    try:  # one worker process: the server keeps a core
-        media = pipeline.render(settings, place, pairs, render, lambda m: progress(message=m), workers=1,
-                                every_clip=True)
-    finally:
-        stop.set()
-        watcher.join()
-    progress(stage="rendering", done=len(todo), total=len(todo))
+    # One worker process: the server keeps a core.
+    media = pipeline.render(settings, place, pairs, render, lambda m: progress(message=m), workers=1,
+                            every_clip=True, videos_done=rendering(progress))
 
     progress(stage="study", done=0, total=1, message="adding the animations to the study's design")
     with factory() as session:
@@ -306,6 +313,14 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
         update_study(session, study, {"design": new_design.model_dump()}, media, settings.media_dir,
                      settings.clips_dir)
     progress(stage="study", done=1, total=1, message=f"the design shows {', '.join(animations)}")
+
+
+def rendering(progress: Progress) -> Callable[[int, int], None]:
+    """The job's per-video progress (stage ``rendering``) as :func:`server.media.build.render_media` reports it."""
+    def videos_done(done: int, total: int) -> None:
+        progress(stage="rendering", done=done, total=total,
+                 **({"message": f"{total} videos to render"} if done == 0 else {}))
+    return videos_done
 
 
 def limit_memory(megabytes: int) -> None:
@@ -324,7 +339,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     limit_memory(settings.build_memory_mb)
     engine = make_engine(settings.sqlalchemy_url)
     try:
-        run(settings, session_factory(engine), int(argv[0]))
+        run(settings, session_factory(engine), int(argv[0]), echo=lambda m: print(m, flush=True))  # into its log
     finally:
         engine.dispose()
     return 0
