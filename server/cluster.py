@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import os
+import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from importlib.metadata import PackageNotFoundError, version
@@ -19,7 +20,7 @@ from typing import TYPE_CHECKING
 from server.media.build import MediaError
 
 if TYPE_CHECKING:
-    from distributed import Client
+    from distributed import Client, Future
 
 CONNECT_TIMEOUT_S = 10.0
 WORKERS_TIMEOUT_S = 60.0
@@ -65,6 +66,17 @@ def check_versions(client: Client, address: str) -> None:
         listed = ", ".join(f"{worker} has animstudy {v}" for worker, v in sorted(other.items()))
         raise ClusterError(f"Dask workers with another animstudy version than this side's {PACKAGE_VERSION}: "
                            f"{listed}; install the same version on every worker")
+
+
+def _value(value: object) -> object:
+    return value
+
+
+def share(client: Client, value: object, name: str) -> Future:
+    """``value`` (the character) on the cluster once, for every task of a job to take as an argument: as a task
+    of its own rather than scattered data, since a scattered value lost with its worker cannot be recovered and a
+    task's result is computed again."""
+    return client.submit(_value, value, pure=False, key=f"{name}-{uuid.uuid4().hex[:8]}")
 
 
 @contextmanager

@@ -216,3 +216,23 @@ def test_a_render_restarted_mid_job_renders_only_what_is_missing(data, clips_dir
     assert f"{total} videos, {len(stored_before)} up to date, {missing} to render" in messages[0], messages
     assert f"rendered {missing} videos" in "\n".join(messages), messages
     assert _files(out) == _files(local_render)
+
+
+def test_a_clip_set_builds_on_the_cluster_as_in_this_process(data, clips_dir, dask_cluster):
+    """One task per animation on the real cluster (each reads no file: the motion comes read with the task);
+    the clips are the ones built in this process (the clip set of the module), array for array."""
+    address, _observer, _procs = dask_cluster
+    config = load_config()
+    small = dataclasses.replace(config, animations={k: config.animations[k] for k in ("run", "idle")},
+                                conditions=config.conditions[:2])
+    messages: list[str] = []
+    built = build_clip_set(data, small, progress=messages.append, scheduler=address)
+    assert "building 2 animations on Dask" in messages, messages
+    local = {c.id: c for c in read_clip_set(clips_dir)}
+    assert [c.id for c in built] == list(local)
+    for clip in built:
+        with np.load(local[clip.id].path) as stored:
+            arrays = clip.arrays()
+            assert sorted(arrays) == sorted(stored.files)
+            for name in stored.files:
+                np.testing.assert_array_equal(arrays[name], stored[name], err_msg=f"{clip.id} {name}")

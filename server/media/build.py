@@ -494,10 +494,6 @@ class PeakMemory:
             self._thread.join()
 
 
-def _value(value: Any) -> Any:
-    return value
-
-
 def run_on_dask(p: Plan, out_dir: Path, scheduler: str | None, workers: int,
                 progress: Callable[[str], None], stored: Callable[[str], None] = lambda _name: None
                 ) -> list[list[tuple[str, float]]]:
@@ -509,16 +505,13 @@ def run_on_dask(p: Plan, out_dir: Path, scheduler: str | None, workers: int,
     pair: more frames in all than one task per animation, but as many tasks as videos to spread over workers."""
     from distributed import as_completed as dask_completed
 
-    from server.cluster import dask_client
+    from server.cluster import dask_client, share
 
     tasks = [t for j in p.jobs for t in j.video_tasks()]
     # Longest first, so that the last task to start is a short one.
     tasks.sort(key=lambda t: -t.n_frames)
     with dask_client(scheduler, min(workers, len(tasks))) as client, client.as_current():
-        # The character goes to the cluster once per job, as a task of its own rather than scattered data: a
-        # scattered value lost with its worker cannot be recovered, a task's result is computed again.
-        shared = {c: client.submit(_value, job_character(j), pure=False, key=f"character-{uuid.uuid4().hex[:8]}")
-                  for c, j in {j.character: j for j in p.jobs}.items()}
+        shared = {c: share(client, job_character(j), "character") for c, j in {j.character: j for j in p.jobs}.items()}
         futures = {client.submit(render_task, t, job_arrays(t), shared[t.character], pure=False,
                                  key=f"render-{t.animation}-{t.outputs[0].name[:8]}-{uuid.uuid4().hex[:8]}"): t
                    for t in tasks}

@@ -58,7 +58,8 @@ def render_job(settings: Settings, factory: sessionmaker[Session], params: dict[
     clips_dir, out = Path(params["clips_dir"]), Path(params["out"])
     if not (clips_dir / MANIFEST).is_file():
         progress(stage="building", message=f"no clip set in {clips_dir}: building it")
-        write_clip_set(build_clip_set(settings.data, progress=lambda m: progress(message=m)), clips_dir)
+        write_clip_set(build_clip_set(settings.data, progress=lambda m: progress(message=m),
+                                      scheduler=settings.dask_scheduler, workers=params["workers"]), clips_dir)
     needed = []
     for path in map(Path, params["studies"]):
         design = _study_file(path).design

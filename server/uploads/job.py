@@ -252,10 +252,11 @@ def draft(session: Session, study_id: int) -> Study:
 
 
 def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progress: Progress) -> None:
+    from server.clipset.build import AnimationError
     from server.media.build import rendered_settings
     from server.studies import pipeline
     from server.studies.design import Design
-    from server.studies.pipeline import AnimationError, build_animations
+    from server.studies.pipeline import build_animations
     from server.studies.service import update_study
 
     place = pipeline.server_place(settings)
@@ -289,7 +290,7 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
 
     try:
         built = build_animations(settings.data, config, dict.fromkeys(config.animations, config.conditions),
-                                 lambda m: progress(message=m.strip()), each)
+                                 lambda m: progress(message=m.strip()), each, settings.dask_scheduler)
     except AnimationError as exc:  # ConfigError, AssetError of an asset: they name the field and the file
         raise BuildError(f"asset {exc}") from None
     merge_clips(settings.clips_dir, built)
