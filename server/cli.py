@@ -126,8 +126,9 @@ def _fmt(value: float | None, digits: int) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
-def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
-    """Build the clip set, write it to ``out`` and print its metric table."""
+def clips_build(data_dir: Path, out: Path, config: Path | None, scheduler: str | None = None) -> int:
+    """Build the clip set, write it to ``out`` and print its metric table.  One Dask task per animation, on the
+    cluster at ``scheduler`` or a local one of 2 workers (docs/cluster.md)."""
     from anim_core.clips.build import ConfigError
     from anim_core.clips.measure import clip_warnings
     from server.assets import AssetError
@@ -138,7 +139,8 @@ def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
     started = time.perf_counter()
     try:
         cfg = load_config(config) if config else load_config()
-        clips = build_clip_set(data_dir, cfg, progress=lambda msg: print(msg, flush=True))
+        clips = build_clip_set(data_dir, cfg, progress=lambda msg: print(msg, flush=True), scheduler=scheduler,
+                               workers=2)
         manifest = write_clip_set(clips, out)
     except (AssetError, ConfigError) as exc:
         return _fail(str(exc))
@@ -868,7 +870,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
         return clips_export(settings.data, args.clips or settings.var / "clips", args.clip, args.out)
     if args.clips_command == "convert":
         return clips_convert(settings.data, args.file, args.out, args.mapping, args.units, args.up)
-    return clips_build(settings.data, args.out or settings.var / "clips", args.config)
+    return clips_build(settings.data, args.out or settings.var / "clips", args.config, settings.dask_scheduler)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
