@@ -319,8 +319,7 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
 def rendering(progress: Progress) -> Callable[[int, int], None]:
     """The job's per-video progress (stage ``rendering``) as :func:`server.media.build.render_media` reports it."""
     def videos_done(done: int, total: int) -> None:
-        progress(stage="rendering", done=done, total=total,
-                 **({"message": f"{total} videos to render"} if done == 0 else {}))
+        progress(stage="rendering", done=done, total=total)
     return videos_done
 
 
