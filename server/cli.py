@@ -537,8 +537,11 @@ def bench_render(settings: Settings, width: int, height: int, animations: list[s
                 out.mkdir()
                 p = plan(settings.data, clips_dir, out, render_settings, settings.secret, pairs, animations)
                 frames = sum(j.n_frames for j in p.jobs)
-                print(f"{workers} worker(s): {sum(len(j.outputs) for j in p.jobs)} videos, {frames} frames, "
-                      f"{len(p.jobs)} tasks at {width}x{height}", flush=True)
+                tasks = [t for j in p.jobs for t in j.video_tasks()]
+                # A pair task renders both of its clips: the clip shown in several pairs is rendered once per pair.
+                print(f"{workers} worker(s): {len(tasks)} videos (one task each), {frames} frames of the study, "
+                      f"{sum(t.n_frames for t in tasks)} frames rendered by the tasks, at {width}x{height}",
+                      flush=True)
                 started = time.perf_counter()
                 run_on_dask(p, out, None, workers, lambda m: print(m, flush=True))
                 seconds = time.perf_counter() - started
