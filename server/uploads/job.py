@@ -19,6 +19,10 @@ Stages (``build_jobs.stage``; ``done``/``total`` count each stage's steps):
 
 One build runs at a time on a var directory (an ``flock`` on ``<assets dir>/.build.lock``): all share the clip
 set and the videos.
+
+The same runner runs the jobs of the commands ``render`` and ``study create`` (``build_jobs.kind``;
+:mod:`server.uploads.commands`), and any job that ``animstudy serve`` resumes
+(:func:`server.uploads.service.resume_lost_jobs`).
 """
 
 from __future__ import annotations
