@@ -200,8 +200,9 @@ def prepare(settings: Settings, session: Session, study_file: StudyFile, study_p
     # The size and shadows of the videos there already, so that a study's videos look alike.
     before = place.render_dir if (place.render_dir / MANIFEST).is_file() else settings.media_dir
     chosen = render_settings or rendered_settings(before)
-    return render(settings, place, pairs(session, place, study_file.design, settings.media_dir), chosen, progress,
-                  workers, videos_done=videos_done), place
+    wanted = pairs(session, place, study_file.design, settings.media_dir)
+    session.commit()  # no transaction held while rendering: a job's progress is written meanwhile (SQLite locks)
+    return render(settings, place, wanted, chosen, progress, workers, videos_done=videos_done), place
 
 
 def render_manifest_dirs(settings: Settings) -> list[Path]:

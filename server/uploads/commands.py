@@ -95,6 +95,7 @@ def study_job(settings: Settings, factory: sessionmaker[Session], job_id: int, p
         if session.scalar(select(Study.id).where(Study.slug == study_file.slug)) is not None:
             raise BuildError(f"a study with slug {study_file.slug!r} exists already")
         owner = session.get(Researcher, params["owner_id"]) if params.get("owner_id") is not None else None
+        session.commit()  # no transaction held while building: the job's progress is written meanwhile
         media, place = pipeline.prepare(settings, session, study_file, path, size,
                                         progress=lambda m: progress(message=m), videos_done=rendering(progress))
         progress(stage="study", done=0, total=1, message=f"creating study {study_file.slug!r}")
