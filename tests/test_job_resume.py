@@ -112,3 +112,47 @@ def test_a_render_killed_mid_job_is_resumed_and_renders_only_what_was_missing(ki
     manifest = read_render_manifest(out)
     assert {p.video for p in manifest.pairs} | {c.video for c in manifest.clips.values()} == set(after)
     engine.dispose()
+
+
+@pytest.mark.parametrize("kind", DATABASES)
+def test_a_clip_that_fails_fails_the_job_naming_it_and_the_other_videos_are_stored(kind, data, clips_dir, tmp_path,
+                                                                                   tmp_path_factory, monkeypatch,
+                                                                                   capsys):
+    import numpy as np
+
+    from server.cli import main
+    from server.media.build import read_clip_set
+
+    database = None
+    if kind == "postgresql":
+        database = f"{__import__('sqlalchemy').make_url(os.environ['TEST_DATABASE_URL']).database}_failing"
+    engine = _fresh_engine(kind, tmp_path_factory, database=database)
+    broken = tmp_path / "clips"
+    broken.mkdir()
+    for f in clips_dir.iterdir():
+        (broken / f.name).write_bytes(f.read_bytes())
+    bad = next(c for c in read_clip_set(broken) if c.animation == "idle" and c.condition != "keyframe")
+    arrays = dict(np.load(bad.path))
+    arrays["world_rotations"] = arrays["world_rotations"][:, :3]  # joints missing: the renderer cannot skin it
+    with bad.path.open("wb") as f:
+        np.savez(f, **arrays)
+    study = tmp_path / "small.toml"
+    text = (ROOT / "studies" / "example.toml").read_text(encoding="utf-8")
+    study.write_text(text.replace('conditions = ["hybrid1", "hybrid2"]', 'conditions = ["hybrid0"]')
+                     .replace('animations = ["walk", "run"]', 'animations = ["run", "idle"]'), encoding="utf-8")
+    for key, value in {"DATABASE_URL": engine.url.render_as_string(hide_password=False),
+                       "ANIMSTUDY_VAR_DIR": str(tmp_path / "var"), "ANIMSTUDY_SECRET_KEY": SECRET}.items():
+        monkeypatch.setenv(key, value)
+    monkeypatch.delenv("ANIMSTUDY_DASK_SCHEDULER", raising=False)
+    out = tmp_path / "media"
+    assert main(["render", "--clips", str(broken), "--out", str(out), "--study", str(study), "--workers", "2",
+                 "--width", "96", "--height", "72", "--no-shadows"]) == 2
+    assert f"rendering clip {bad.id} (idle) failed" in capsys.readouterr().err
+    with Session(engine) as session:
+        job = session.scalars(select(BuildJob)).one()
+        assert job.state == BuildState.failed and f"clip {bad.id}" in job.error
+        # Every video that does not show the broken clip was rendered and stored.
+        failed = job.error.count("rendering clip")
+        assert failed >= 2 and job.done == job.total - failed, job.error  # its own video and its pairs fail
+    assert len(_videos(out)) == job.done
+    engine.dispose()
