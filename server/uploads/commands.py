@@ -20,7 +20,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from server.config import Settings
 
-from .job import BuildError, Progress, rendering
+from .job import BuildError, Progress, rendering, run
 from .models import BuildJob, BuildState, JobKind
 
 
@@ -109,9 +109,7 @@ def study_job(settings: Settings, factory: sessionmaker[Session], job_id: int, p
 def run_in_this_process(settings: Settings, kind: JobKind, params: dict[str, Any],
                         echo: Callable[[str], None] = lambda m: print(m, flush=True)) -> BuildJob:
     """Make a command's job and run it here (its ``pid`` this process's); returns the finished row."""
-    from server.db import make_engine, migrate, session_factory, utcnow
-
-    from .job import run
+    from server.db import make_engine, migrate, session_factory
 
     engine = make_engine(settings.sqlalchemy_url)
     try:
@@ -119,7 +117,7 @@ def run_in_this_process(settings: Settings, kind: JobKind, params: dict[str, Any
         factory = session_factory(engine)
         with factory() as session:
             job = BuildJob(kind=kind, params=params, state=BuildState.queued, stage="queued", message="starting",
-                           pid=os.getpid(), created_at=utcnow(), updated_at=utcnow())
+                           pid=os.getpid())
             session.add(job)
             session.commit()
             job_id = job.id
