@@ -169,13 +169,18 @@ def test_a_failing_clip_is_named_and_the_other_jobs_are_stored(data, clips_dir, 
     messages: list[str] = []
     with pytest.raises(MediaError, match=f"clip {bad.id}"):
         render_media(data, broken, out, SECRET, TINY, pairs=pairs, scheduler=address, progress=messages.append)
-    # The other animation's videos were stored, and are the local render's.
+    # Every video that does not show the broken clip was stored (one task per video: the same animation's too),
+    # and is the local render's; the ones that show it are not.
     manifest = json.loads((local_render / MANIFEST).read_text())
-    run = {e[k] for e in [*manifest["clips"].values(), *manifest["pairs"]]
-           if (e.get("clip") or e["left"]).startswith("run-") for k in ("video", "poster")}
+    entries = [*({**e, "shows": [e["clip"]]} for e in manifest["clips"].values()),
+               *({**e, "shows": [e["left"], e["right"]]} for e in manifest["pairs"])]
+    fine = {e[k] for e in entries if bad.id not in e["shows"] for k in ("video", "poster")}
+    broken_videos = {e["video"] for e in entries if bad.id in e["shows"]}
     stored, local = _files(out), _files(local_render)
-    assert run and run <= stored.keys(), "\n".join(messages)
-    assert all(stored[n] == local[n] for n in run)
+    assert any(e["shows"][0].startswith("idle-") and bad.id not in e["shows"] for e in entries)
+    assert fine == stored.keys(), "\n".join(messages)
+    assert all(stored[n] == local[n] for n in fine)
+    assert broken_videos and not broken_videos & stored.keys()
 
 
 RESTARTED = """
