@@ -503,6 +503,8 @@ def run_on_dask(p: Plan, out_dir: Path, scheduler: str | None, workers: int,
 
     A pair task renders both of its clips, so a clip shown in several pairs (the reference) is rendered once per
     pair: more frames in all than one task per animation, but as many tasks as videos to spread over workers."""
+    from concurrent.futures import CancelledError
+
     from distributed import as_completed as dask_completed
 
     from server.cluster import dask_client, share
@@ -515,11 +517,14 @@ def run_on_dask(p: Plan, out_dir: Path, scheduler: str | None, workers: int,
         futures = {client.submit(render_task, t, job_arrays(t), shared[t.character], pure=False,
                                  key=f"render-{t.animation}-{t.outputs[0].name[:8]}-{uuid.uuid4().hex[:8]}"): t
                    for t in tasks}
-        results, failures = [], []
+        results, failures, lost = [], [], 0
         for future in dask_completed(futures):
             task = futures[future]
             try:
                 files = future.result()
+            except CancelledError:  # the scheduler went away: every task still to finish is cancelled
+                lost += 1
+                continue
             except Exception as exc:  # the task's own error, or its workers kept dying
                 failures.append(str(exc) if isinstance(exc, MediaError) else
                                 f"rendering {task.animation} ({', '.join(task.outputs[0].clips)}) failed: "
@@ -530,6 +535,10 @@ def run_on_dask(p: Plan, out_dir: Path, scheduler: str | None, workers: int,
             stored(task.outputs[0].name)
             results.append([(f.name, 0.0) for f in files if f.name.endswith(".mp4")])
             progress(f"  {task.animation}: {task.outputs[0].video} stored ({len(results)}/{len(tasks)} videos)")
+    if lost:
+        failures.insert(0, f"lost the Dask scheduler {scheduler or '(local cluster)'} mid-job: {lost} of "
+                           f"{len(tasks)} videos not rendered, {len(results)} stored; run it again once the "
+                           "scheduler is back, and it renders only the missing ones")
     if failures:
         raise RenderError("; ".join(failures))
     return results
