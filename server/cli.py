@@ -151,8 +151,9 @@ def _fmt(value: float | None, digits: int) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
-def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
-    """Build the clip set, write it to ``out`` and print its metric table."""
+def clips_build(data_dir: Path, out: Path, config: Path | None, scheduler: str | None = None) -> int:
+    """Build the clip set, write it to ``out`` and print its metric table.  One Dask task per animation, on the
+    cluster at ``scheduler`` or a local one of 2 workers (docs/cluster.md)."""
     from anim_core.clips.build import ConfigError
     from anim_core.clips.measure import clip_warnings
     from server.assets import AssetError
@@ -163,7 +164,8 @@ def clips_build(data_dir: Path, out: Path, config: Path | None) -> int:
     started = time.perf_counter()
     try:
         cfg = load_config(config) if config else load_config()
-        clips = build_clip_set(data_dir, cfg, progress=lambda msg: print(msg, flush=True))
+        clips = build_clip_set(data_dir, cfg, progress=lambda msg: print(msg, flush=True), scheduler=scheduler,
+                               workers=2)
         manifest = write_clip_set(clips, out)
     except (AssetError, ConfigError) as exc:
         return _fail(str(exc))
@@ -224,61 +226,23 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies
            width: int, height: int, shadows: bool, every_clip: bool = False) -> int:
     """Render the clip set's videos into ``out`` (building the clip set first if it is missing): the pairs the
     ``studies`` files (default: the thesis study file) show, the pairs of every study in the database, and the
-    clips of those pairs (``every_clip``: every clip)."""
-    from anim_core.clips.build import ConfigError
-    from server.assets import AssetError
-    from server.clipset.build import build_clip_set
-    from server.clipset.manifest import MANIFEST, write_clip_set
-    from server.errors import Unprocessable
-    from server.media.build import render_media
-    from server.media.errors import MediaError
-    from server.media.scene import RenderSettings
-    from server.studies.service import clip_set_index, required_pairs
+    clips of those pairs (``every_clip``: every clip).  A job of the database (kind ``render``,
+    :mod:`server.uploads.commands`): resumed by ``animstudy serve`` if this process dies mid-job."""
     from server.studies.studyfile import THESIS_FILE, StudyFileError, load_study_file
+    from server.uploads.commands import run_in_this_process
+    from server.uploads.models import BuildState, JobKind
 
     files = studies or [THESIS_FILE]
     try:
-        designs = [load_study_file(f).design for f in files]
+        for f in files:
+            load_study_file(f)
     except StudyFileError as exc:
         return _fail(f"{exc.source} is not a valid study file: {'; '.join(exc.errors)}")
-    try:
-        if not (clips_dir / MANIFEST).is_file():
-            print(f"no clip set in {clips_dir}: building it", flush=True)
-            try:
-                write_clip_set(build_clip_set(settings.data, progress=lambda m: print(m, flush=True)), clips_dir)
-            except ConfigError as exc:
-                return _fail(str(exc))
-        needed = []
-        for path, design in zip(files, designs, strict=True):
-            try:
-                needed += required_pairs(design, clip_set_index(clips_dir))
-            except Unprocessable as exc:
-                return _fail(f"{path}: {exc.detail}")
-        # The studies' own pairs too, so that the render manifest (what new studies are made over) lists them.
-        pairs = list(dict.fromkeys([*needed, *_pairs_in_use(settings)]))
-        render_media(settings.data, clips_dir, out, settings.secret,
-                     RenderSettings(width=width, height=height, shadows=shadows), pairs=pairs,
-                     workers=workers, every_clip=every_clip, progress=lambda m: print(m, flush=True),
-                     scheduler=settings.dask_scheduler)
-    except (AssetError, MediaError) as exc:
-        return _fail(str(exc))
-    except OSError as exc:
-        return _fail(f"cannot write videos to {out}: {exc}")
-    return 0
-
-
-def _pairs_in_use(settings: Settings) -> list[tuple[str, str]]:
-    """The pair videos the studies in the database show (none without a database)."""
-    from server.db import make_engine, migrate, session_factory
-    from server.studies.service import pairs_in_use
-
-    engine = make_engine(settings.sqlalchemy_url)
-    try:
-        migrate(engine, media_dir=settings.media_dir, clips_dir=settings.clips_dir)
-        with session_factory(engine)() as session:
-            return pairs_in_use(session)
-    finally:
-        engine.dispose()
+    job = run_in_this_process(settings, JobKind.render, {
+        "out": str(Path(out).resolve()), "clips_dir": str(Path(clips_dir).resolve()),
+        "studies": [str(Path(f).resolve()) for f in files], "workers": workers, "every_clip": every_clip,
+        "settings": {"width": width, "height": height, "shadows": shadows}})
+    return 0 if job.state == BuildState.done else _fail(f"{job.error} (job {job.id})")
 
 
 def prepare_study(settings: Settings, session_factory: object) -> None:
@@ -316,9 +280,7 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
     from anim_core.clips.build import ConfigError
     from server.assets import AssetError
     from server.clipset.manifest import MANIFEST
-    from server.errors import ServiceError
-    from server.media.errors import MediaError
-    from server.media.scene import RenderSettings
+    from server.errors import MediaError, ServiceError
     from server.research import export
     from server.research.service import study_summary
     from server.researchers.models import Researcher
@@ -326,6 +288,8 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
     from server.studies import pipeline, service
     from server.studies.models import Study, StudyState
     from server.studies.studyfile import StudyFile, StudyFileError, load_study_file
+    from server.uploads.commands import run_in_this_process
+    from server.uploads.models import BuildState, JobKind
 
     command = args.study_command
     if command == "schema":
@@ -365,14 +329,15 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                     return _fail(f"a study with slug {study_file.slug!r} exists already")
                 size = None
                 if args.width or args.height or args.no_shadows:
-                    size = RenderSettings(width=args.width or 640, height=args.height or 480,
-                                          shadows=not args.no_shadows)
-                media, place = pipeline.prepare(settings, session, study_file, args.file, size,
-                                                progress=lambda m: print(m, flush=True))
-                study = service.create_study(session, media, study_file, owner, media_dir=settings.media_dir,
-                                             clips_dir=place.clips_dir)
-                if args.open:
-                    service.open_study(session, study, settings.media_dir)
+                    size = {"width": args.width or 640, "height": args.height or 480, "shadows": not args.no_shadows}
+                session.rollback()  # no transaction open while the job writes (SQLite would lock)
+                job = run_in_this_process(settings, JobKind.study, {
+                    "file": str(Path(args.file).resolve()), "owner_id": owner.id if owner else None,
+                    "open": bool(args.open), "settings": size})
+                if job.state != BuildState.done or job.study_id is None:
+                    return _fail(f"{job.error} (job {job.id})")
+                study = session.get(Study, job.study_id)
+                place = pipeline.study_place(settings, study_file, args.file)
                 print(f"created study {study.slug!r} ({study.state}, {service.trials_total(study)} trials per "
                       f"participant); participant link: /s/{study.slug}")
                 for test, ref in service.identical_comparisons(study_file.design, place.clips_dir):
@@ -526,8 +491,8 @@ def serve(settings: Settings, host: str, port: int, workers: int) -> int:
     from anim_core.clips.build import ConfigError
     from server.assets import AssetError
     from server.db import make_engine, migrate, session_factory
-    from server.errors import ServiceError
-    from server.media.errors import MediaError
+    from server.errors import MediaError, ServiceError
+    from server.uploads.service import resume_lost_jobs
 
     engine = make_engine(settings.sqlalchemy_url)
     try:
@@ -535,6 +500,10 @@ def serve(settings: Settings, host: str, port: int, workers: int) -> int:
         factory = session_factory(engine)
         prepare_study(settings, factory)
         ensure_researcher(settings, factory)
+        with factory() as session:  # jobs whose process ended mid-job (this server's, a command's) go on
+            for job in resume_lost_jobs(session, settings, engine):
+                print(f"resumed {job.kind} job {job.id} (pid {job.pid}): it renders what is still missing",
+                      flush=True)
     except (AssetError, ConfigError, MediaError, ServiceError) as exc:
         return _fail(str(exc))
     finally:
@@ -572,8 +541,8 @@ def bench_render(settings: Settings, width: int, height: int, animations: list[s
     from server.assets import AssetError
     from server.clipset.build import build_clip_set
     from server.clipset.manifest import write_clip_set
+    from server.errors import MediaError
     from server.media.build import plan, run_on_dask
-    from server.media.errors import MediaError
     from server.media.scene import RenderSettings
     from server.studies.service import clip_set_index, required_pairs
     from server.studies.studyfile import thesis_study
@@ -594,8 +563,11 @@ def bench_render(settings: Settings, width: int, height: int, animations: list[s
                 out.mkdir()
                 p = plan(settings.data, clips_dir, out, render_settings, settings.secret, pairs, animations)
                 frames = sum(j.n_frames for j in p.jobs)
-                print(f"{workers} worker(s): {sum(len(j.outputs) for j in p.jobs)} videos, {frames} frames, "
-                      f"{len(p.jobs)} tasks at {width}x{height}", flush=True)
+                tasks = [t for j in p.jobs for t in j.video_tasks()]
+                # A pair task renders both of its clips: the clip shown in several pairs is rendered once per pair.
+                print(f"{workers} worker(s): {len(tasks)} videos (one task each), {frames} frames of the study, "
+                      f"{sum(t.n_frames for t in tasks)} frames rendered by the tasks, at {width}x{height}",
+                      flush=True)
                 started = time.perf_counter()
                 run_on_dask(p, out, None, workers, lambda m: print(m, flush=True))
                 seconds = time.perf_counter() - started
@@ -927,7 +899,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
         return clips_export(settings.data, args.clips or settings.var / "clips", args.clip, args.out)
     if args.clips_command == "convert":
         return clips_convert(settings.data, args.file, args.out, args.mapping, args.units, args.up)
-    return clips_build(settings.data, args.out or settings.var / "clips", args.config)
+    return clips_build(settings.data, args.out or settings.var / "clips", args.config, settings.dask_scheduler)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -42,3 +42,8 @@ class PayloadTooLarge(ServiceError):
     """A request body over its limit (an upload over ``ANIMSTUDY_UPLOAD_MAX_BYTES``)."""
 
     status_code = 413
+
+
+class MediaError(ValueError):
+    """The clip set to render is missing or inconsistent, or the cluster that renders it cannot run the job (the
+    message says which).  Not an HTTP error: a command reports it as one line, a job stores it as its error."""

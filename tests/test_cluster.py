@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import socket
 import subprocess
 import sys
@@ -17,12 +18,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from server import cluster
 from server.clipset.build import build_clip_set
 from server.clipset.config import load_config
 from server.clipset.manifest import write_clip_set
-from server.media import cluster
+from server.errors import MediaError
 from server.media.build import read_clip_set, render_media
-from server.media.errors import MediaError
 from server.media.manifest import MANIFEST
 from server.media.scene import RenderSettings
 from server.studies.service import clip_set_index, required_pairs
@@ -67,15 +68,18 @@ def local_render(data, clips_dir, pairs, tmp_path_factory):
 def dask_cluster(tmp_path_factory):
     """``dask scheduler`` and two ``dask worker`` processes (no nanny: the worker is the process killed)."""
     logs = tmp_path_factory.mktemp("dask-logs")
+    # The workers import this checkout's code (the one under test), not whatever the `dask` script finds first.
+    root = str(Path(__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
     address = f"tcp://127.0.0.1:{_port()}"
     port = address.rsplit(":", 1)[1]
     procs = {"scheduler": subprocess.Popen([str(DASK), "scheduler", "--host", "127.0.0.1", "--port", port,
                                             "--no-dashboard"], stdout=(logs / "scheduler.log").open("wb"),
-                                           stderr=subprocess.STDOUT)}
+                                           stderr=subprocess.STDOUT, env=env)}
     for name in ("w1", "w2"):
         procs[name] = subprocess.Popen([str(DASK), "worker", address, "--name", name, "--nthreads", "1",
                                         "--no-nanny", "--no-dashboard", "--death-timeout", "60"],
-                                       stdout=(logs / f"{name}.log").open("wb"), stderr=subprocess.STDOUT)
+                                       stdout=(logs / f"{name}.log").open("wb"), stderr=subprocess.STDOUT, env=env)
     from distributed import Client
 
     client = None
@@ -166,13 +170,18 @@ def test_a_failing_clip_is_named_and_the_other_jobs_are_stored(data, clips_dir, 
     messages: list[str] = []
     with pytest.raises(MediaError, match=f"clip {bad.id}"):
         render_media(data, broken, out, SECRET, TINY, pairs=pairs, scheduler=address, progress=messages.append)
-    # The other animation's videos were stored, and are the local render's.
+    # Every video that does not show the broken clip was stored (one task per video: the same animation's too),
+    # and is the local render's; the ones that show it are not.
     manifest = json.loads((local_render / MANIFEST).read_text())
-    run = {e[k] for e in [*manifest["clips"].values(), *manifest["pairs"]]
-           if (e.get("clip") or e["left"]).startswith("run-") for k in ("video", "poster")}
+    entries = [*({**e, "shows": [e["clip"]]} for e in manifest["clips"].values()),
+               *({**e, "shows": [e["left"], e["right"]]} for e in manifest["pairs"])]
+    fine = {e[k] for e in entries if bad.id not in e["shows"] for k in ("video", "poster")}
+    broken_videos = {e["video"] for e in entries if bad.id in e["shows"]}
     stored, local = _files(out), _files(local_render)
-    assert run and run <= stored.keys(), messages
-    assert all(stored[n] == local[n] for n in run)
+    assert any(e["shows"][0].startswith("idle-") and bad.id not in e["shows"] for e in entries)
+    assert fine == stored.keys(), "\n".join(messages)
+    assert all(stored[n] == local[n] for n in fine)
+    assert broken_videos and not broken_videos & stored.keys()
 
 
 RESTARTED = """
@@ -213,3 +222,23 @@ def test_a_render_restarted_mid_job_renders_only_what_is_missing(data, clips_dir
     assert f"{total} videos, {len(stored_before)} up to date, {missing} to render" in messages[0], messages
     assert f"rendered {missing} videos" in "\n".join(messages), messages
     assert _files(out) == _files(local_render)
+
+
+def test_a_clip_set_builds_on_the_cluster_as_in_this_process(data, clips_dir, dask_cluster):
+    """One task per animation on the real cluster (each reads no file: the motion comes read with the task);
+    the clips are the ones built in this process (the clip set of the module), array for array."""
+    address, _observer, _procs = dask_cluster
+    config = load_config()
+    small = dataclasses.replace(config, animations={k: config.animations[k] for k in ("run", "idle")},
+                                conditions=config.conditions[:2])
+    messages: list[str] = []
+    built = build_clip_set(data, small, progress=messages.append, scheduler=address)
+    assert "building 2 animations on Dask" in messages, messages
+    local = {c.id: c for c in read_clip_set(clips_dir)}
+    assert [c.id for c in built] == list(local)
+    for clip in built:
+        with np.load(local[clip.id].path) as stored:
+            arrays = clip.arrays()
+            assert sorted(arrays) == sorted(stored.files)
+            for name in stored.files:
+                np.testing.assert_array_equal(arrays[name], stored[name], err_msg=f"{clip.id} {name}")

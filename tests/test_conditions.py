@@ -25,8 +25,8 @@ from anim_core.methods.conditions import (
 from server.clipset.build import build_clip_set
 from server.clipset.config import DEFAULT_CONFIG, load_config
 from server.clipset.manifest import MANIFEST, VERSION, ClipManifest, ManifestError, read_clip_manifest, write_clip_set
+from server.errors import MediaError
 from server.media.build import read_clip_set, render_media
-from server.media.errors import MediaError
 from server.media.scene import RenderSettings
 
 WALK = """

@@ -23,8 +23,8 @@ from server.assets import character as load_makehuman
 from server.clipset.build import build_clip_set
 from server.clipset.config import ConfigError, load_config
 from server.clipset.manifest import read_clip_manifest, write_clip_set
+from server.errors import MediaError
 from server.media.build import render_media
-from server.media.errors import MediaError
 from server.media.manifest import MANIFEST
 from server.media.scene import RenderSettings
 from tests.test_rigmap import Z_UP, convention_table

@@ -76,8 +76,10 @@ def two_instances(request, tmp_path_factory, tmp_path) -> Iterator[tuple[list[st
     procs, bases = [], []
     try:
         for i in (1, 2):
+            # PYTHONPATH: the instances run this checkout's code (the one that migrated the database above).
             env = {**os.environ, "DATABASE_URL": url, "ANIMSTUDY_VAR_DIR": str(tmp_path / f"var{i}"),
-                   "ANIMSTUDY_SECRET_KEY": "two-instances-secret-0123456789abcdef01"}
+                   "ANIMSTUDY_SECRET_KEY": "two-instances-secret-0123456789abcdef01",
+                   "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
             env.pop("ANIMSTUDY_SESSIONS_PER_MINUTE", None)
             proc, base = _serve(env, tmp_path / f"serve{i}.log")  # both start at once (the schema is current)
             procs.append(proc)

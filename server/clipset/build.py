@@ -90,6 +90,11 @@ def load_source(data_dir: Path, character: Character, config: AnimationConfig, r
     """One animation's motion file (under the data directory, or an absolute path), read, mapped onto the
     canonical skeleton with the entry's ``mapping``/``units``/``up_axis``, retargeted and turned (errors name the
     entry, the field and the file)."""
+    return _retargeted(read_source(data_dir, config), character, config, relocate)
+
+
+def read_source(data_dir: Path, config: AnimationConfig) -> Normalized:
+    """The file part of :func:`load_source`: the motion file read and mapped onto the canonical skeleton."""
     where = f"[animations.{config.name}]"
     path = assets.verify(data_dir, config.source)
     try:
@@ -105,6 +110,11 @@ def load_source(data_dir: Path, character: Character, config: AnimationConfig, r
         raise
     except (ValueError, OSError) as exc:  # BvhError (with its line), GltfError and RigMapError name the file
         raise AssetError(f"{where} source: {exc}") from None
+    return normalized
+
+
+def _retargeted(normalized: Normalized, character: Character, config: AnimationConfig,
+                relocate: tuple[str, ...]) -> Source:
     return source_from_bvh(normalized.bvh, character, config, relocate, normalized.metres_per_unit,
                            normalized.source_positions)
 
@@ -118,18 +128,78 @@ def animation_clips(data_dir: Path, character: Character, config: AnimationConfi
     return build_animation(load_source(data_dir, character, config, relocate), fps, conditions, progress)
 
 
+class AnimationError(ValueError):
+    """Building one animation's clips failed; the message starts with its name, ``cause`` is the error (an
+    AssetError or ConfigError naming the file or the field)."""
+
+    def __init__(self, animation: str, cause: Exception) -> None:
+        super().__init__(f"{animation!r}: {cause}")
+        self.animation = animation
+        self.cause = cause
+
+
+def clips_task(normalized: Normalized, character: Character, config: AnimationConfig, fps: int,
+               conditions: Sequence[Condition], relocate: tuple[str, ...]) -> list[BuiltClip]:
+    """A pure task: one animation's clips from its motion as read (a worker reads no file)."""
+    return build_animation(_retargeted(normalized, character, config, relocate), fps, conditions)
+
+
+def build_each(data_dir: Path, character: Character, wanted: Sequence[tuple[AnimationConfig, Sequence[Condition]]],
+               fps: int, relocate: tuple[str, ...], progress: Callable[[str], None] = lambda _msg: None,
+               each: Callable[[int, str], None] = lambda _k, _name: None, scheduler: str | None = None,
+               workers: int = 1) -> list[BuiltClip]:
+    """The clips of each animation of ``wanted`` (in its conditions), in order: the motion files read here, the
+    clips built by one Dask task per animation (:mod:`server.cluster`: the cluster at ``scheduler``, else a local
+    one of ``workers`` processes; in this process when ``workers`` is 1), the character sent once.
+    :class:`AnimationError` names the first animation (in order) that failed."""
+    sources = []
+    for k, (cfg, conditions) in enumerate(wanted):
+        each(k, cfg.name)
+        try:
+            sources.append((cfg, conditions, read_source(data_dir, cfg)))
+        except ValueError as exc:
+            raise AnimationError(cfg.name, exc) from None
+    if not scheduler and (workers <= 1 or len(sources) <= 1):
+        built = []
+        for cfg, conditions, normalized in sources:
+            try:
+                built += build_animation(_retargeted(normalized, character, cfg, relocate), fps, conditions,
+                                         progress)
+            except ValueError as exc:
+                raise AnimationError(cfg.name, exc) from None
+        return built
+    from server.cluster import dask_client, share
+
+    with dask_client(scheduler, min(workers, len(sources))) as client:
+        shared = share(client, character, "character")
+        futures = [client.submit(clips_task, normalized, shared, cfg, fps, tuple(conditions), relocate,
+                                 pure=False) for cfg, conditions, normalized in sources]
+        progress(f"building {len(futures)} animations on Dask")
+        built = []
+        for (cfg, _conditions, _normalized), future in zip(sources, futures, strict=True):
+            try:
+                built += future.result()
+            except ValueError as exc:  # the task's own error (ConfigError, ...), raised again here
+                raise AnimationError(cfg.name, exc) from None
+            progress(f"{cfg.name}: clips built")
+    return built
+
+
 def build_clip_set(data_dir: Path, config: ClipSetConfig | None = None,
-                   progress: Callable[[str], None] = lambda _msg: None) -> list[BuiltClip]:
+                   progress: Callable[[str], None] = lambda _msg: None, scheduler: str | None = None,
+                   workers: int = 1) -> list[BuiltClip]:
     """All clips of the set (animations x conditions), in manifest order: animation by animation, the reference
-    first."""
+    first; on Dask as :func:`build_each` says (default: in this process)."""
     config = config or load_config()
     assets.check_data_dir(data_dir)
     progress("loading the character")
     character, record = load_character(data_dir, config.character, progress)
-    clips: list[BuiltClip] = []
-    for k, (name, cfg) in enumerate(config.animations.items(), 1):
-        progress(f"[{k}/{len(config.animations)}] {name}: {cfg.source}")
-        clips.extend(animation_clips(data_dir, character, cfg, config.fps, config.conditions, config.relocate,
-                                     progress))
+    try:
+        clips = build_each(data_dir, character, [(cfg, config.conditions) for cfg in config.animations.values()],
+                           config.fps, config.relocate, progress, lambda k, name: progress(
+                               f"[{k + 1}/{len(config.animations)}] {name}: {config.animations[name].source}"),
+                           scheduler, workers)
+    except AnimationError as exc:  # as it was raised: its message names the entry
+        raise exc.cause from None
     # Every clip records the character it was built for; the manifest keeps it once (``character``).
     return [dataclasses.replace(c, source={**c.source, "character": record}) for c in clips]

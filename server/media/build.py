@@ -31,8 +31,8 @@ from server.assets import AssetError
 from server.clipset.build import configured_character, record_config
 from server.clipset.config import CharacterConfig
 from server.clipset.manifest import ClipEntry, ManifestError, read_clip_manifest
+from server.errors import MediaError
 
-from .errors import MediaError
 from .manifest import RenderedClip, RenderedPair, RenderManifest, read_render_manifest, write_render_manifest
 from .scene import Framing, RenderSettings, frame_motion
 
@@ -73,9 +73,18 @@ class AnimationJob:
     settings: RenderSettings
     framing: Framing
     grid_spacing_m: float
+    # Shadow and culling bounds (min xyz, max xyz) of every clip of the animation: a task given some of its clips
+    # renders the pixels a job given all of them does.
+    bounds: tuple[float, ...]
     out_dir: Path
     n_frames: int = field(default=0)
     character: CharacterConfig = field(default=CharacterConfig())
+
+    def video_tasks(self) -> list[AnimationJob]:
+        """One job per output (a Dask task per video): its clips only, the animation's framing and bounds."""
+        return [dataclasses.replace(self, clips={i: self.clips[i] for i in o.clips}, outputs=[o],
+                                    n_frames=sum(_rendered_frames(self.clips[i]) for i in set(o.clips)))
+                for o in self.outputs]
 
 
 def rendered_settings(media_dir: Path) -> RenderSettings:
@@ -131,6 +140,12 @@ def grid_spacing(clip: ClipEntry, settings: RenderSettings) -> float:
         return settings.grid_spacing_m
     stride = clip.root_speed_mps * clip.frames / clip.fps
     return stride / max(1, round(stride / settings.grid_spacing_m))
+
+
+def _bounds(positions: NDArray[Any]) -> NDArray[np.float64]:
+    """Shadow and culling bounds of joint positions: their box, widened by 0.3 m for the skin."""
+    everything = positions.reshape(-1, 3)
+    return np.array([everything.min(axis=0) - 0.3, everything.max(axis=0) + 0.3])
 
 
 def _rendered_frames(clip: ClipEntry) -> int:
@@ -192,6 +207,7 @@ def plan(data_dir: Path, clips_dir: Path, out_dir: Path, settings: RenderSetting
         group = {i: c for i, c in clips.items() if c.animation == animation}
         positions = np.concatenate([np.load(c.path)["world_positions"] for c in group.values()])
         framing = frame_motion(positions, settings, padding=BODY_PADDING_M)
+        bounds = _bounds(positions)
         spacing = grid_spacing(next(iter(group.values())), settings)
         scene = {"settings": settings.as_dict(), "character": character, "framing": asdict(framing),
                  "grid_spacing_m": spacing, "divider": [DIVIDER_PX, *DIVIDER_RGB]}
@@ -213,8 +229,8 @@ def plan(data_dir: Path, clips_dir: Path, out_dir: Path, settings: RenderSetting
         missing = [o for o in distinct if not exists(o)]
         if missing:
             n_frames = sum(_rendered_frames(clips[i]) for i in {i for o in missing for i in o.clips})
-            jobs.append(AnimationJob(animation, data_dir, group, missing, settings, framing, spacing, out_dir,
-                                     n_frames, body))
+            jobs.append(AnimationJob(animation, data_dir, group, missing, settings, framing, spacing,
+                                     tuple(bounds.ravel().tolist()), out_dir, n_frames, body))
     return Plan(sorted(jobs, key=lambda j: -j.n_frames), clip_outputs, pair_outputs, clips)
 
 
@@ -292,10 +308,11 @@ def store_rendered(out_dir: Path, files: Sequence[RenderedFile]) -> None:
         os.replace(tmp, out_dir / f.name)
 
 
-def run_job(job: AnimationJob, arrays: Arrays | None = None, character: Character | None = None
-            ) -> list[tuple[str, float]]:
+def run_job(job: AnimationJob, arrays: Arrays | None = None, character: Character | None = None,
+            stored: Callable[[str], None] = lambda _name: None) -> list[tuple[str, float]]:
     """Render the job's outputs into ``job.out_dir``; returns (output name, seconds) per finished video.
-    ``arrays`` and ``character``: given as values (default: read from the clip files and the data directory)."""
+    ``arrays`` and ``character``: given as values (default: read from the clip files and the data directory);
+    ``stored`` is called with each video's name once it is in place."""
     from anim_core.rig.character import bind_mesh
 
     from .renderer import ClipRenderer
@@ -307,9 +324,8 @@ def run_job(job: AnimationJob, arrays: Arrays | None = None, character: Characte
     character = character if character is not None else job_character(job)
     mesh = bind_mesh(character, [str(n) for n in first["joint_names"]], first["bind_rotations"],
                      first["bind_positions"])
-    everything = np.concatenate([a["world_positions"].reshape(-1, 3) for a in arrays.values()])
-    bounds = np.array([everything.min(axis=0) - 0.3, everything.max(axis=0) + 0.3])
-    renderer = ClipRenderer(mesh, character.faces, job.framing, job.settings, bounds, job.grid_spacing_m)
+    renderer = ClipRenderer(mesh, character.faces, job.framing, job.settings, np.reshape(job.bounds, (2, 3)),
+                            job.grid_spacing_m)
     s = job.settings
     pairs = [o for o in job.outputs if len(o.clips) == 2]
     # Pairs need both sides at once: keep the frames of the clip shared by most pairs (the keyframe clip) and of
@@ -344,51 +360,57 @@ def run_job(job: AnimationJob, arrays: Arrays | None = None, character: Characte
     kept: dict[str, list[Planes]] = {}
     first_rgb: dict[str, NDArray[np.uint8]] = {}  # for the posters of pairs
     done: list[tuple[str, float]] = []
-    for k, clip_id in enumerate(order, 1):
-        clip = job.clips[clip_id]
-        print(f"  {job.animation}: rendering clip {k}/{len(order)} ({clip.frames} frames)", flush=True)
-        single = next((o for o in job.outputs if o.clips == (clip_id,)), None)
-        # Pairs that can be written while this clip renders: the other side is held, or it is this clip.
-        ready = [o for o in pairs if clip_id in o.clips and all(i == clip_id or i in kept for i in o.clips)]
-        writers = {}
-        if single is not None:
-            writers[single.name] = VideoWriter(job.out_dir / single.video, s.width, s.height, clip.fps)
-        for o in ready:
-            writers[o.name] = VideoWriter(job.out_dir / o.video, 2 * s.width + DIVIDER_PX, s.height, clip.fps)
-        frames: list[Planes] = []
-        t0 = time.perf_counter()
-        try:
-            for f, planes, rgb in frames_of(clip):
-                if f == 0:
-                    first_rgb[clip_id] = rgb
-                if single is not None:
-                    writers[single.name].write(planes)
+    # A render that fails must not leave its GL context behind: the next task in this worker process would find
+    # no valid context.
+    try:
+        for k, clip_id in enumerate(order, 1):
+            clip = job.clips[clip_id]
+            print(f"  {job.animation}: rendering clip {k}/{len(order)} ({clip.frames} frames)", flush=True)
+            single = next((o for o in job.outputs if o.clips == (clip_id,)), None)
+            # Pairs that can be written while this clip renders: the other side is held, or it is this clip.
+            ready = [o for o in pairs if clip_id in o.clips and all(i == clip_id or i in kept for i in o.clips)]
+            writers = {}
+            if single is not None:
+                writers[single.name] = VideoWriter(job.out_dir / single.video, s.width, s.height, clip.fps)
+            for o in ready:
+                writers[o.name] = VideoWriter(job.out_dir / o.video, 2 * s.width + DIVIDER_PX, s.height, clip.fps)
+            frames: list[Planes] = []
+            t0 = time.perf_counter()
+            try:
+                for f, planes, rgb in frames_of(clip):
                     if f == 0:
-                        write_poster(job.out_dir / single.poster, rgb)
-                for o in ready:
-                    left = planes if o.clips[0] == clip_id else kept[o.clips[0]][f]
-                    right = planes if o.clips[1] == clip_id else kept[o.clips[1]][f]
-                    writers[o.name].write(hstack_planes(left, divider, right))
-                    if f == 0:
-                        bar = np.broadcast_to(np.array(DIVIDER_RGB, np.uint8), (s.height, DIVIDER_PX, 3))
-                        poster = np.concatenate([first_rgb[o.clips[0]], bar, first_rgb[o.clips[1]]], axis=1)
-                        write_poster(job.out_dir / o.poster, poster)
-                if clip_id in held:
-                    frames.append(planes)
-        except BaseException as exc:
+                        first_rgb[clip_id] = rgb
+                    if single is not None:
+                        writers[single.name].write(planes)
+                        if f == 0:
+                            write_poster(job.out_dir / single.poster, rgb)
+                    for o in ready:
+                        left = planes if o.clips[0] == clip_id else kept[o.clips[0]][f]
+                        right = planes if o.clips[1] == clip_id else kept[o.clips[1]][f]
+                        writers[o.name].write(hstack_planes(left, divider, right))
+                        if f == 0:
+                            bar = np.broadcast_to(np.array(DIVIDER_RGB, np.uint8), (s.height, DIVIDER_PX, 3))
+                            poster = np.concatenate([first_rgb[o.clips[0]], bar, first_rgb[o.clips[1]]], axis=1)
+                            write_poster(job.out_dir / o.poster, poster)
+                    if clip_id in held:
+                        frames.append(planes)
+            except BaseException as exc:
+                for w in writers.values():
+                    w.abort()
+                if isinstance(exc, Exception) and not isinstance(exc, RenderError):
+                    raise RenderError(f"rendering clip {clip_id} ({job.animation}) failed: "
+                                      f"{type(exc).__name__}: {exc}") from exc
+                raise
             for w in writers.values():
-                w.abort()
-            if isinstance(exc, Exception) and not isinstance(exc, RenderError):
-                raise RenderError(f"rendering clip {clip_id} ({job.animation}) failed: "
-                                  f"{type(exc).__name__}: {exc}") from exc
-            raise
-        for w in writers.values():
-            w.close()
-        done += [(name, time.perf_counter() - t0) for name in writers]
-        if clip_id in held:
-            kept[clip_id] = frames
-        _release_memory()
-    renderer.close()
+                w.close()
+            done += [(name, time.perf_counter() - t0) for name in writers]
+            for name in writers:
+                stored(name)
+            if clip_id in held:
+                kept[clip_id] = frames
+            _release_memory()
+    finally:
+        renderer.close()
     print(f"  {job.animation}: {len(done)} videos in {time.perf_counter() - started:.1f} s", flush=True)
     return done
 
@@ -440,40 +462,51 @@ class PeakMemory:
             self._thread.join()
 
 
-def _value(value: Any) -> Any:
-    return value
-
-
 def run_on_dask(p: Plan, out_dir: Path, scheduler: str | None, workers: int,
-                 progress: Callable[[str], None]) -> list[list[tuple[str, float]]]:
-    """One :func:`render_task` per job on the cluster (see :mod:`server.media.cluster`), the character sent once;
-    each job's files are stored as it finishes, so a job interrupted later renders only what is still missing.
-    A failed task fails the render naming its clip, after the others have finished and been stored."""
+                progress: Callable[[str], None], stored: Callable[[str], None] = lambda _name: None
+                ) -> list[list[tuple[str, float]]]:
+    """One :func:`render_task` per video on the cluster (see :mod:`server.cluster`), the character sent once per
+    job; each video is stored as it finishes, so a render interrupted later renders only what is still missing.
+    A failed task fails the render naming its clip, after the others have finished and been stored.
+
+    A pair task renders both of its clips, so a clip shown in several pairs (the reference) is rendered once per
+    pair: more frames in all than one task per animation, but as many tasks as videos to spread over workers."""
+    from concurrent.futures import CancelledError
+
     from distributed import as_completed as dask_completed
 
-    from .cluster import dask_client
+    from server.cluster import dask_client, share
 
-    with dask_client(scheduler, min(workers, len(p.jobs))) as client, client.as_current():
-        # The character goes to the cluster once per job, as a task of its own rather than scattered data: a
-        # scattered value lost with its worker cannot be recovered, a task's result is computed again.
-        characters = {j.character: j for j in p.jobs}
-        shared = {c: client.submit(_value, job_character(j), pure=False, key=f"character-{uuid.uuid4().hex[:8]}")
-                  for c, j in characters.items()}
-        futures = {client.submit(render_task, j, job_arrays(j), shared[j.character], pure=False,
-                                 key=f"render-{j.animation}-{uuid.uuid4().hex[:8]}"): j for j in p.jobs}
-        results, failures = [], []
+    tasks = [t for j in p.jobs for t in j.video_tasks()]
+    # Longest first, so that the last task to start is a short one.
+    tasks.sort(key=lambda t: -t.n_frames)
+    with dask_client(scheduler, min(workers, len(tasks))) as client, client.as_current():
+        shared = {c: share(client, job_character(j), "character") for c, j in {j.character: j for j in p.jobs}.items()}
+        futures = {client.submit(render_task, t, job_arrays(t), shared[t.character], pure=False,
+                                 key=f"render-{t.animation}-{t.outputs[0].name[:8]}-{uuid.uuid4().hex[:8]}"): t
+                   for t in tasks}
+        results, failures, lost = [], [], 0
         for future in dask_completed(futures):
-            job = futures[future]
+            task = futures[future]
             try:
                 files = future.result()
+            except CancelledError:  # the scheduler went away: every task still to finish is cancelled
+                lost += 1
+                continue
             except Exception as exc:  # the task's own error, or its workers kept dying
                 failures.append(str(exc) if isinstance(exc, MediaError) else
-                                f"rendering {job.animation} failed: {type(exc).__name__}: {exc}")
-                progress(f"  {job.animation}: FAILED ({failures[-1]})")
+                                f"rendering {task.animation} ({', '.join(task.outputs[0].clips)}) failed: "
+                                f"{type(exc).__name__}: {exc}")
+                progress(f"  {task.animation}: FAILED ({failures[-1]})")
                 continue
             store_rendered(out_dir, files)
+            stored(task.outputs[0].name)
             results.append([(f.name, 0.0) for f in files if f.name.endswith(".mp4")])
-            progress(f"  {job.animation}: {len(results[-1])} videos stored ({len(results)}/{len(p.jobs)} jobs)")
+            progress(f"  {task.animation}: {task.outputs[0].video} stored ({len(results)}/{len(tasks)} videos)")
+    if lost:
+        failures.insert(0, f"lost the Dask scheduler {scheduler or '(local cluster)'} mid-job: {lost} of "
+                           f"{len(tasks)} videos not rendered, {len(results)} stored; run it again once the "
+                           "scheduler is back, and it renders only the missing ones")
     if failures:
         raise RenderError("; ".join(failures))
     return results
@@ -483,13 +516,16 @@ def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
                  settings: RenderSettings | None = None, pairs: Sequence[tuple[str, str]] = (),
                  workers: int = 2, animations: Sequence[str] | None = None, every_clip: bool = True,
                  progress: Callable[[str], None] = lambda _m: None, manifest_dir: Path | None = None,
-                 scheduler: str | None = None) -> Path:
+                 scheduler: str | None = None, videos_done: Callable[[int, int], None] = lambda _d, _t: None
+                 ) -> Path:
     """Render what is missing of :func:`plan` and write the manifest; returns the manifest path.  Nothing
     rendered before is deleted or replaced (``animstudy gc`` collects what no study uses).  The manifest goes
     into ``manifest_dir`` (default ``out_dir``): the videos of several clip sets share one media directory.
 
     ``scheduler`` (``ANIMSTUDY_DASK_SCHEDULER``): the jobs run on that Dask cluster; otherwise on a local Dask
-    cluster of ``workers`` processes, or in this process when ``workers`` is 1."""
+    cluster of ``workers`` processes, or in this process when ``workers`` is 1.  ``videos_done(done, total)`` is
+    called before the first video and after each one is stored (``total``: the videos missing; a job's progress).
+    """
     settings = settings or RenderSettings()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -497,16 +533,23 @@ def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
     p = plan(data_dir, clips_dir, out_dir, settings, secret, pairs, animations, every_clip)
     todo = sum(len(j.outputs) for j in p.jobs)
     videos = len({o.name for o in p.outputs})  # clips with identical arrays share theirs
-    where = f"Dask scheduler {scheduler}" if scheduler else f"{min(workers, max(1, len(p.jobs)))} workers"
+    where = f"Dask scheduler {scheduler}" if scheduler else f"{min(workers, max(1, todo))} workers"
     progress(f"{videos} videos, {videos - todo} up to date, {todo} to render "
              f"({sum(j.n_frames for j in p.jobs)} frames, {where})")
+    finished: list[str] = []
+
+    def stored(name: str) -> None:
+        finished.append(name)
+        videos_done(len(finished), todo)
+
+    videos_done(0, todo)
     if p.jobs:
         with PeakMemory() as memory:
             if workers <= 1 and not scheduler:
                 _init_worker()
-                results = [run_job(j) for j in p.jobs]
+                results = [run_job(j, stored=stored) for j in p.jobs]
             else:
-                results = run_on_dask(p, out_dir, scheduler, workers, progress)
+                results = run_on_dask(p, out_dir, scheduler, workers, progress, stored)
         progress(f"rendered {sum(len(r) for r in results)} videos in {time.perf_counter() - started:.1f} s, "
                  f"peak memory {memory.peak_bytes / 2**20:.0f} MiB (all processes)")
     manifest_dir = Path(manifest_dir or out_dir)

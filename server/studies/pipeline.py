@@ -94,32 +94,20 @@ def needed_conditions(design: Design) -> list[str]:
                                                                         else [])]))
 
 
-class AnimationError(ValueError):
-    """Building one animation's clips failed; the message starts with its name."""
-
-    def __init__(self, animation: str, cause: Exception) -> None:
-        super().__init__(f"{animation!r}: {cause}")
-        self.animation = animation
-
-
 def build_animations(data_dir: Path, config: ClipSetConfig, wanted: dict[str, tuple[Condition, ...]],
                      progress: Progress = lambda _m: None,
-                     each: Callable[[int, str], None] = lambda _k, _name: None) -> list[BuiltClip]:
+                     each: Callable[[int, str], None] = lambda _k, _name: None, scheduler: str | None = None,
+                     workers: int = 1) -> list[BuiltClip]:
     """The clips of each animation of ``wanted`` in its conditions (the reference among them), on the character
-    of ``config``, loaded and verified once.  AssetError/ConfigError of the character as they are; of an
-    animation as :class:`AnimationError`.  Nothing is written."""
-    from server.clipset.build import animation_clips, load_character
+    of ``config``, loaded and verified once; one Dask task per animation
+    (:func:`server.clipset.build.build_each`; default: in this process).  AssetError/ConfigError of the character
+    as they are; of an animation as :class:`AnimationError`.  Nothing is written."""
+    from server.clipset.build import build_each, load_character
 
     progress("loading the character")
     character, record = load_character(data_dir, config.character, progress)
-    built: list[BuiltClip] = []
-    for k, (name, conditions) in enumerate(wanted.items()):
-        each(k, name)
-        try:
-            built += animation_clips(data_dir, character, config.animations[name], config.fps, conditions,
-                                     config.relocate, progress)
-        except ValueError as exc:
-            raise AnimationError(name, exc) from None
+    built = build_each(data_dir, character, [(config.animations[name], c) for name, c in wanted.items()],
+                       config.fps, config.relocate, progress, each, scheduler, workers)
     # Every clip records the character it was built for; the manifest keeps it once.
     return [dataclasses.replace(c, source={**c.source, "character": record}) for c in built]
 
@@ -138,7 +126,7 @@ def check_design(config: ClipSetConfig, design: Design) -> list[str]:
 
 
 def build(data_dir: Path, config: ClipSetConfig, clips_dir: Path, design: Design,
-          progress: Progress = lambda _m: None) -> int:
+          progress: Progress = lambda _m: None, scheduler: str | None = None, workers: int = 1) -> int:
     """Build the clips of ``design`` that the clip set in ``clips_dir`` lacks, from ``config``; returns how many
     clips were built.  An animation is built with every condition it already had plus the ones needed (the
     reference first: the others are made from it).  422 naming what ``config`` does not have."""
@@ -159,7 +147,7 @@ def build(data_dir: Path, config: ClipSetConfig, clips_dir: Path, design: Design
         keep = have.get(name, set()) | set(conditions)
         wanted[name] = tuple(c for c in config.conditions if c.id in keep or c.method == REFERENCE)
     built = build_animations(data_dir, config, wanted, progress, lambda k, name: progress(
-        f"[{k + 1}/{len(todo)}] {name}: building {len(wanted[name])} clips"))
+        f"[{k + 1}/{len(todo)}] {name}: building {len(wanted[name])} clips"), scheduler, workers)
     try:
         merge_clip_set(clips_dir, built)
     except ManifestError as exc:
@@ -182,20 +170,23 @@ def pairs(session: Session, place: Place, design: Design, media_dir: Path) -> li
 
 
 def render(settings: Settings, place: Place, wanted: list[tuple[str, str]], render_settings: RenderSettings,
-           progress: Progress = lambda _m: None, workers: int = 2, every_clip: bool = False) -> RenderManifest:
+           progress: Progress = lambda _m: None, workers: int = 2, every_clip: bool = False,
+           videos_done: Callable[[int, int], None] = lambda _d, _t: None) -> RenderManifest:
     """Render what is missing of ``wanted`` and the clips they show (``every_clip``: every clip) into the media
-    directory; returns the render manifest of ``place``."""
+    directory; returns the render manifest of ``place``.  ``videos_done``: as for
+    :func:`server.media.build.render_media`."""
     from server.media.build import render_media
 
     render_media(settings.data, place.clips_dir, settings.media_dir, settings.secret, render_settings,
                  pairs=wanted, workers=workers, every_clip=every_clip, progress=progress,
-                 manifest_dir=place.render_dir, scheduler=settings.dask_scheduler)
+                 manifest_dir=place.render_dir, scheduler=settings.dask_scheduler, videos_done=videos_done)
     return read_render_manifest(place.render_dir)
 
 
 def prepare(settings: Settings, session: Session, study_file: StudyFile, study_path: Path | None = None,
             render_settings: RenderSettings | None = None, progress: Progress = lambda _m: None,
-            workers: int = 2) -> tuple[RenderManifest, Place]:
+            workers: int = 2, videos_done: Callable[[int, int], None] = lambda _d, _t: None
+            ) -> tuple[RenderManifest, Place]:
     """Build and render what ``study_file`` needs that is missing; returns the render manifest to create it over
     and the place of its clip set (pass ``place.clips_dir`` to ``create_study``)."""
     from server.clipset.build import build_clip_set
@@ -205,16 +196,19 @@ def prepare(settings: Settings, session: Session, study_file: StudyFile, study_p
     if place.config is None:
         if not (place.clips_dir / MANIFEST).is_file():
             progress(f"building the server's clip set in {place.clips_dir}")
-            write_clip_set(build_clip_set(settings.data, progress=progress), place.clips_dir)
+            write_clip_set(build_clip_set(settings.data, progress=progress, scheduler=settings.dask_scheduler,
+                                          workers=workers), place.clips_dir)
     else:
         what = study_file.clips.set if study_file.clips and study_file.clips.set else "given in the study file"
         progress(f"clip set {what} -> {place.clips_dir}")
-        build(settings.data, place.config, place.clips_dir, study_file.design, progress)
+        build(settings.data, place.config, place.clips_dir, study_file.design, progress, settings.dask_scheduler,
+              workers)
     # The size and shadows of the videos there already, so that a study's videos look alike.
     before = place.render_dir if (place.render_dir / MANIFEST).is_file() else settings.media_dir
     chosen = render_settings or rendered_settings(before)
-    return render(settings, place, pairs(session, place, study_file.design, settings.media_dir), chosen, progress,
-                  workers), place
+    wanted = pairs(session, place, study_file.design, settings.media_dir)
+    session.commit()  # no transaction held while rendering: a job's progress is written meanwhile (SQLite locks)
+    return render(settings, place, wanted, chosen, progress, workers, videos_done=videos_done), place
 
 
 def render_manifest_dirs(settings: Settings) -> list[Path]:

@@ -19,6 +19,10 @@ Stages (``build_jobs.stage``; ``done``/``total`` count each stage's steps):
 
 One build runs at a time on a var directory (an ``flock`` on ``<assets dir>/.build.lock``): all share the clip
 set and the videos.
+
+The same runner runs the jobs of the commands ``render`` and ``study create`` (``build_jobs.kind``;
+:mod:`server.uploads.commands`), and any job that ``animstudy serve`` resumes
+(:func:`server.uploads.service.resume_lost_jobs`).
 """
 
 from __future__ import annotations
@@ -45,7 +49,7 @@ from server.errors import ServiceError
 from server.studies.models import Study, StudyState
 from server.studies.studyfile import Clips
 
-from .models import BuildJob, BuildState, StudyAsset
+from .models import BuildJob, BuildState, JobKind, StudyAsset
 from .service import asset_path, study_clips
 
 STAGES = ("queued", "building", "rendering", "study", "done")
@@ -56,12 +60,15 @@ class BuildError(Exception):
 
 
 class Progress:
-    """Writes the job's progress to its row (one short transaction per update)."""
+    """Writes the job's progress to its row (one short transaction per update); ``settings``: messages scrubbed
+    of server paths (a researcher reads them); ``echo``: each message printed too (a command's job)."""
 
-    def __init__(self, factory: sessionmaker[Session], job_id: int, settings: Settings | None = None) -> None:
+    def __init__(self, factory: sessionmaker[Session], job_id: int, settings: Settings | None = None,
+                 echo: Callable[[str], None] | None = None) -> None:
         self.factory = factory
         self.job_id = job_id
         self.settings = settings
+        self.echo = echo
         self._lock = threading.Lock()
 
     def __call__(self, stage: str | None = None, done: int | None = None, total: int | None = None,
@@ -69,6 +76,8 @@ class Progress:
         changes = {k: v for k, v in (("stage", stage), ("done", done), ("total", total), ("message", message))
                    if v is not None}
         changes.update(values)
+        if self.echo is not None and message:
+            self.echo(message)
         for key in ("message", "error"):
             if key in changes and self.settings is not None:
                 changes[key] = scrub(str(changes[key]), self.settings)
@@ -193,8 +202,21 @@ def scrub(message: str, settings: Settings) -> str:
     return message
 
 
-def run(settings: Settings, factory: sessionmaker[Session], job_id: int) -> None:
-    """Run the job ``job_id`` to its end; every failure is stored in the job (never raised)."""
+def run(settings: Settings, factory: sessionmaker[Session], job_id: int,
+        echo: Callable[[str], None] | None = None) -> None:
+    """Run the job ``job_id`` to its end (from what is missing, when it is resumed); every failure is stored in
+    the job (never raised).  A command's job (:class:`JobKind` render, study) runs :func:`commands.run_command`;
+    ``echo`` prints its messages."""
+    with factory() as session:
+        job = session.get(BuildJob, job_id)
+        kind, params = (job.kind, job.params) if job is not None else (JobKind.upload, None)
+    if kind != JobKind.upload:
+        from .commands import run_command
+
+        progress = Progress(factory, job_id, echo=echo)
+        progress(state=BuildState.running, stage="building", message=f"{kind} job {job_id}", pid=os.getpid())
+        finish(progress, lambda: run_command(settings, factory, job_id, kind, params or {}, progress))
+        return
     progress = Progress(factory, job_id, settings)
     lock_path = settings.assets_dir / ".build.lock"
     lock_path.parent.mkdir(parents=True, exist_ok=True)
@@ -206,19 +228,24 @@ def run(settings: Settings, factory: sessionmaker[Session], job_id: int) -> None
                      "has finished", finished_at=utcnow())
             return
         progress(state=BuildState.running, stage="building", message="reading the assets", pid=os.getpid())
-        try:
-            _run(settings, factory, job_id, progress)
-        except Exception as exc:  # every failure ends the job with its message, none is a traceback to the user
-            if isinstance(exc, ServiceError):
-                message = exc.detail
-            elif isinstance(exc, BuildError | ValueError):
-                message = str(exc)
-            else:
-                message = f"{type(exc).__name__}: {exc}"
-                traceback.print_exc()  # into the job's log, beside the assets
-            progress(state=BuildState.failed, error=message, finished_at=utcnow())
-            return
-        progress(state=BuildState.done, stage="done", message="done", finished_at=utcnow())
+        finish(progress, lambda: _run(settings, factory, job_id, progress))
+
+
+def finish(progress: Progress, work: Callable[[], None]) -> None:
+    """Run ``work`` and store the job's outcome: done, or failed with the message of what went wrong."""
+    try:
+        work()
+    except Exception as exc:  # every failure ends the job with its message, none is a traceback to the user
+        if isinstance(exc, ServiceError):
+            message = exc.detail
+        elif isinstance(exc, BuildError | ValueError):
+            message = str(exc)
+        else:
+            message = f"{type(exc).__name__}: {exc}"
+            traceback.print_exc()  # into the job's log
+        progress(state=BuildState.failed, error=message, finished_at=utcnow())
+        return
+    progress(state=BuildState.done, stage="done", message="done", finished_at=utcnow())
 
 
 def draft(session: Session, study_id: int) -> Study:
@@ -232,11 +259,12 @@ def draft(session: Session, study_id: int) -> Study:
 
 
 def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progress: Progress) -> None:
+    from server.clipset.build import AnimationError
     from server.media.build import rendered_settings
     from server.participants.service import update_study
     from server.studies import pipeline
     from server.studies.design import Design
-    from server.studies.pipeline import AnimationError, build_animations
+    from server.studies.pipeline import build_animations
 
     place = pipeline.server_place(settings)
 
@@ -272,7 +300,7 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
 
     try:
         built = build_animations(settings.data, config, dict.fromkeys(config.animations, config.conditions),
-                                 lambda m: progress(message=m.strip()), each)
+                                 lambda m: progress(message=m.strip()), each, settings.dask_scheduler)
     except AnimationError as exc:  # ConfigError, AssetError of an asset: they name the field and the file
         raise BuildError(f"asset {exc}") from None
     merge_clips(settings.clips_dir, built)
@@ -298,30 +326,11 @@ def _run(settings: Settings, factory: sessionmaker[Session], job_id: int, progre
 def _render(settings: Settings, place: Any, pairs: list[tuple[str, str]], render: Any, progress: Progress,
             every_clip: bool = False) -> Any:
     """Stage ``rendering``: :func:`server.studies.pipeline.render` with one worker process (the server keeps a
-    core), its videos counted as they arrive; returns the render manifest of ``place``."""
-    from server.media.build import plan
+    core), its videos counted as they are stored; returns the render manifest of ``place``."""
     from server.studies import pipeline
 
-    todo = [o for j in plan(settings.data, place.clips_dir, settings.media_dir, render, settings.secret, pairs,
-                            every_clip=every_clip).jobs for o in j.outputs]
-    progress(stage="rendering", done=0, total=len(todo), message=f"{len(todo)} videos to render")
-    stop = threading.Event()
-
-    def watch() -> None:  # a finished video is renamed into place: count them
-        while not stop.wait(1.0):
-            done = sum((settings.media_dir / o.video).is_file() for o in todo)
-            progress(done=done)
-
-    watcher = threading.Thread(target=watch, daemon=True)
-    watcher.start()
-    try:
-        media = pipeline.render(settings, place, pairs, render, lambda m: progress(message=m), workers=1,
-                                every_clip=every_clip)
-    finally:
-        stop.set()
-        watcher.join()
-    progress(stage="rendering", done=len(todo), total=len(todo))
-    return media
+    return pipeline.render(settings, place, pairs, render, lambda m: progress(message=m), workers=1,
+                           every_clip=every_clip, videos_done=rendering(progress))
 
 
 def _run_clips(settings: Settings, factory: sessionmaker[Session], study_id: int, clips: Clips,
@@ -342,7 +351,8 @@ def _run_clips(settings: Settings, factory: sessionmaker[Session], study_id: int
     if place.config is None:  # an inline clip set is always described: not reached
         raise BuildError("the study's [clips] describe no clip set")
     progress(stage="building", done=0, total=len(design.animations), message="building the clips the design needs")
-    built = pipeline.build(settings.data, place.config, place.clips_dir, design, lambda m: progress(message=m))
+    built = pipeline.build(settings.data, place.config, place.clips_dir, design, lambda m: progress(message=m),
+                           settings.dask_scheduler)
     progress(stage="building", done=len(design.animations), total=len(design.animations),
              message=f"{built} clips built")
     with factory() as session:
@@ -354,6 +364,13 @@ def _run_clips(settings: Settings, factory: sessionmaker[Session], study_id: int
         study = draft(session, study_id)
         show_design(session, study, media, settings.media_dir, place.clips_dir)
     progress(stage="study", done=1, total=1, message=f"the study shows {', '.join(design.animations)}")
+
+
+def rendering(progress: Progress) -> Callable[[int, int], None]:
+    """The job's per-video progress (stage ``rendering``) as :func:`server.media.build.render_media` reports it."""
+    def videos_done(done: int, total: int) -> None:
+        progress(stage="rendering", done=done, total=total)
+    return videos_done
 
 
 def limit_memory(megabytes: int) -> None:
@@ -372,7 +389,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     limit_memory(settings.build_memory_mb)
     engine = make_engine(settings.sqlalchemy_url)
     try:
-        run(settings, session_factory(engine), int(argv[0]))
+        run(settings, session_factory(engine), int(argv[0]), echo=lambda m: print(m, flush=True))  # into its log
     finally:
         engine.dispose()
     return 0

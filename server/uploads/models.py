@@ -40,16 +40,25 @@ class BuildState(StrEnum):
     failed = "failed"
 
 
+class JobKind(StrEnum):
+    upload = "upload"  # the build of a study's uploaded assets (the dashboard's)
+    render = "render"  # `animstudy render`
+    study = "study"  # `animstudy study create`
+
+
 class BuildJob(Base):
-    """One run of the build job of a study's assets (clips, videos, the study's design): its progress as the
-    dashboard polls it.  ``stage`` is one of :data:`server.uploads.job.STAGES`; ``done``/``total`` count the
-    stage's steps; ``error`` is set when it failed.  ``pid`` is the job's process (a job whose process is gone
-    while it says it runs is reported failed)."""
+    """One run of a job (:class:`JobKind`: the build of a study's assets, or a command's render or study
+    creation): its progress as the dashboard polls it.  ``stage`` is one of :data:`server.uploads.job.STAGES`;
+    ``done``/``total`` count the stage's steps; ``error`` is set when it failed.  ``pid`` is the job's process (a
+    job whose process is gone while it says it runs is resumed by ``animstudy serve`` at start-up, and reported
+    failed until then); ``params`` what a command's job runs (again, when resumed)."""
 
     __tablename__ = "build_jobs"
 
     id: Mapped[int] = mapped_column(primary_key=True)
-    study_id: Mapped[int] = mapped_column(ForeignKey("studies.id", ondelete="CASCADE"), index=True)
+    kind: Mapped[str] = mapped_column(String(16), default=JobKind.upload, server_default=JobKind.upload.value)
+    study_id: Mapped[int | None] = mapped_column(ForeignKey("studies.id", ondelete="CASCADE"), index=True)
+    params: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     state: Mapped[str] = mapped_column(String(16), default=BuildState.queued)
     stage: Mapped[str] = mapped_column(String(32), default="queued")
     done: Mapped[int] = mapped_column(default=0)

@@ -21,7 +21,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import Engine, select
+from sqlalchemy import Engine, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -34,7 +34,7 @@ from server.studies.models import Study, StudyState
 from server.studies.service import managed_study
 from server.studies.studyfile import Clips, StudyFile
 
-from .models import AnimationShare, BuildJob, BuildState, StudyAsset
+from .models import AnimationShare, BuildJob, BuildState, JobKind, StudyAsset
 
 #: What an upload may be: a motion file :func:`~anim_core.clips.sources.inspect_source` reads.  No ``.bvh.gz``: a
 #: compressed file could unpack to far more than the size limit allows.
@@ -404,9 +404,11 @@ def lost(job: BuildJob) -> bool:
 
 
 def active_jobs(session: Session) -> list[BuildJob]:
-    """The jobs queued or running (of any study); lost ones are marked failed on the way."""
+    """The upload jobs queued or running (of any study); lost ones are marked failed on the way (``animstudy
+    serve`` resumes the ones still marked active when it starts: :func:`resume_lost_jobs`)."""
     active = []
-    for job in session.scalars(select(BuildJob).where(BuildJob.state.in_(list(ACTIVE)))).all():
+    for job in session.scalars(select(BuildJob).where(BuildJob.state.in_(list(ACTIVE)),
+                                                      BuildJob.kind == JobKind.upload)).all():
         if lost(job):
             job.state, job.error, job.finished_at = BuildState.failed, LOST, utcnow()
             session.commit()
@@ -421,8 +423,9 @@ def check_not_building(session: Session, study: Study) -> None:
 
 
 def latest_job(session: Session, study: Study) -> BuildJob | None:
-    return session.scalar(select(BuildJob).where(BuildJob.study_id == study.id).order_by(BuildJob.id.desc())
-                          .limit(1))
+    """The study's latest upload job (what its dashboard shows)."""
+    return session.scalar(select(BuildJob).where(BuildJob.study_id == study.id, BuildJob.kind == JobKind.upload)
+                          .order_by(BuildJob.id.desc()).limit(1))
 
 
 def job_environment(settings: Settings, engine: Engine) -> dict[str, str]:
@@ -459,10 +462,22 @@ def _launch(session: Session, settings: Settings, engine: Engine, study: Study) 
     job = BuildJob(study_id=study.id, state=BuildState.queued, stage="queued", message="starting")
     session.add(job)
     session.commit()
-    log_path = settings.study_assets_dir(study.id) / "build.log"
+    return start_job(session, settings, engine, job, "w")
+
+
+def job_log(settings: Settings, job: BuildJob) -> Path:
+    """Where the job's process writes its output: beside the study's assets for an upload job."""
+    if job.kind == JobKind.upload and job.study_id is not None:
+        return settings.study_assets_dir(job.study_id) / "build.log"
+    return settings.var / "jobs" / f"{job.id}.log"
+
+
+def start_job(session: Session, settings: Settings, engine: Engine, job: BuildJob, mode: str = "a") -> BuildJob:
+    """Start the process of the queued ``job`` (``python -m server.uploads.job ID``) and record its pid."""
+    log_path = job_log(settings, job)
     log_path.parent.mkdir(parents=True, exist_ok=True)
     try:
-        with log_path.open("w", encoding="utf-8") as log:
+        with log_path.open(mode, encoding="utf-8") as log:
             proc = subprocess.Popen([sys.executable, "-m", "server.uploads.job", str(job.id)],
                                     env=job_environment(settings, engine), stdout=log, stderr=subprocess.STDOUT,
                                     stdin=subprocess.DEVNULL, start_new_session=True)
@@ -565,6 +580,28 @@ def create_building(session: Session, settings: Settings, engine: Engine, study_
         path.unlink(missing_ok=True)
         raise
     return study, _launch(session, settings, engine, study)
+
+
+def resume_lost_jobs(session: Session, settings: Settings, engine: Engine) -> list[BuildJob]:
+    """Start again every job that says it is queued or running while its process is gone (the server, the
+    command or the machine stopped mid-job); each runs from the start and renders only the videos still missing
+    (their names say what they show).  A job is claimed by an update on the pid it had, so two instances
+    starting together resume it once.  Called by ``animstudy serve`` at start-up."""
+    resumed = []
+    for job in session.scalars(select(BuildJob).where(BuildJob.state.in_(list(ACTIVE)))
+                               .order_by(BuildJob.id)).all():
+        if not lost(job):
+            continue
+        claimed = session.execute(
+            update(BuildJob).where(BuildJob.id == job.id, BuildJob.pid == job.pid,
+                                   BuildJob.state.in_(list(ACTIVE)))
+            .values(state=BuildState.queued, pid=None, message="resumed: its process had ended",
+                    updated_at=utcnow())).rowcount
+        session.commit()
+        if claimed:
+            session.refresh(job)
+            resumed.append(start_job(session, settings, engine, job))
+    return resumed
 
 
 def job_json(job: BuildJob | None) -> dict[str, Any] | None:

@@ -11,15 +11,16 @@ from __future__ import annotations
 
 import logging
 import os
+import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from importlib.metadata import PackageNotFoundError, version
 from typing import TYPE_CHECKING
 
-from .errors import MediaError
+from server.errors import MediaError
 
 if TYPE_CHECKING:
-    from distributed import Client
+    from distributed import Client, Future
 
 CONNECT_TIMEOUT_S = 10.0
 WORKERS_TIMEOUT_S = 60.0
@@ -29,7 +30,7 @@ log = logging.getLogger(__name__)  # how long a job waits for a cluster without 
 
 class ClusterError(MediaError):
     """The Dask cluster cannot run the job (unreachable, no workers, other versions); the message says which.
-    A :class:`~server.media.errors.MediaError`: every command that renders reports it as one."""
+    A :class:`~server.errors.MediaError`: every command that renders reports it as one."""
 
 
 def package_version() -> str:
@@ -65,6 +66,17 @@ def check_versions(client: Client, address: str) -> None:
         listed = ", ".join(f"{worker} has animstudy {v}" for worker, v in sorted(other.items()))
         raise ClusterError(f"Dask workers with another animstudy version than this side's {PACKAGE_VERSION}: "
                            f"{listed}; install the same version on every worker")
+
+
+def _value(value: object) -> object:
+    return value
+
+
+def share(client: Client, value: object, name: str) -> Future:
+    """``value`` (the character) on the cluster once, for every task of a job to take as an argument: as a task
+    of its own rather than scattered data, since a scattered value lost with its worker cannot be recovered and a
+    task's result is computed again."""
+    return client.submit(_value, value, pure=False, key=f"{name}-{uuid.uuid4().hex[:8]}")
 
 
 @contextmanager

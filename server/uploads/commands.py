@@ -1,0 +1,131 @@
+"""The jobs of the commands ``animstudy render`` and ``animstudy study create`` (:class:`~.models.JobKind`
+``render`` and ``study``): rows of ``build_jobs`` like an upload's build, run by :func:`server.uploads.job.run`.
+
+The command checks what it is given, makes the job's row (``params``: everything the job needs, paths absolute)
+and runs it in its own process, printing the messages; the row has its progress (one step per video rendered),
+and ``done`` or ``failed`` with the reason.  When the command's process dies mid-job, ``animstudy serve`` resumes
+the job at start-up (:func:`server.uploads.service.resume_lost_jobs`): it runs again from the start, and since
+every video's name says what it shows, only the videos still missing are rendered.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
+
+from server.config import Settings
+
+from .job import BuildError, Progress, rendering, run
+from .models import BuildJob, BuildState, JobKind
+
+
+def run_command(settings: Settings, factory: sessionmaker[Session], job_id: int, kind: str,
+                params: dict[str, Any], progress: Progress) -> None:
+    """Run a command's job (its failures raised, :func:`server.uploads.job.finish` stores them)."""
+    if kind == JobKind.render:
+        render_job(settings, factory, params, progress)
+    elif kind == JobKind.study:
+        study_job(settings, factory, job_id, params, progress)
+    else:
+        raise BuildError(f"a job of unknown kind {kind!r}")
+
+
+def _study_file(path: Path) -> Any:
+    from server.studies.studyfile import StudyFileError, load_study_file
+
+    try:
+        return load_study_file(path)
+    except StudyFileError as exc:
+        raise BuildError(f"{exc.source} is not a valid study file: {'; '.join(exc.errors)}") from None
+
+
+def render_job(settings: Settings, factory: sessionmaker[Session], params: dict[str, Any],
+               progress: Progress) -> None:
+    """``animstudy render``: the clip set (built first if it is missing), the pairs of the study files and of
+    every study in the database, the clips of those pairs (``every_clip``: every clip)."""
+    from server.clipset.build import build_clip_set
+    from server.clipset.manifest import MANIFEST, write_clip_set
+    from server.errors import Unprocessable
+    from server.media.build import render_media
+    from server.media.scene import RenderSettings
+    from server.studies.service import clip_set_index, pairs_in_use, required_pairs
+
+    clips_dir, out = Path(params["clips_dir"]), Path(params["out"])
+    if not (clips_dir / MANIFEST).is_file():
+        progress(stage="building", message=f"no clip set in {clips_dir}: building it")
+        write_clip_set(build_clip_set(settings.data, progress=lambda m: progress(message=m),
+                                      scheduler=settings.dask_scheduler, workers=params["workers"]), clips_dir)
+    needed = []
+    for path in map(Path, params["studies"]):
+        design = _study_file(path).design
+        try:
+            needed += required_pairs(design, clip_set_index(clips_dir))
+        except Unprocessable as exc:
+            raise BuildError(f"{path}: {exc.detail}") from None
+    # The studies' own pairs too, so that the render manifest (what new studies are made over) lists them.
+    with factory() as session:
+        pairs = list(dict.fromkeys([*needed, *pairs_in_use(session)]))
+    try:
+        render_media(settings.data, clips_dir, out, settings.secret, RenderSettings(**params["settings"]),
+                     pairs=pairs, workers=params["workers"], every_clip=params["every_clip"],
+                     progress=lambda m: progress(message=m), scheduler=settings.dask_scheduler,
+                     videos_done=rendering(progress))
+    except OSError as exc:
+        raise BuildError(f"cannot write videos to {out}: {exc}") from None
+
+
+def study_job(settings: Settings, factory: sessionmaker[Session], job_id: int, params: dict[str, Any],
+              progress: Progress) -> None:
+    """``animstudy study create``: the clips and videos the study file needs (what is missing), then the study
+    (``study_id`` of the job), opened if asked."""
+    from server.media.scene import RenderSettings
+    from server.researchers.models import Researcher
+    from server.studies import pipeline, service
+    from server.studies.models import Study
+
+    path = Path(params["file"])
+    study_file = _study_file(path)
+    size = RenderSettings(**params["settings"]) if params.get("settings") else None
+    with factory() as session:
+        if session.scalar(select(Study.id).where(Study.slug == study_file.slug)) is not None:
+            raise BuildError(f"a study with slug {study_file.slug!r} exists already")
+        owner = session.get(Researcher, params["owner_id"]) if params.get("owner_id") is not None else None
+        session.commit()  # no transaction held while building: the job's progress is written meanwhile
+        media, place = pipeline.prepare(settings, session, study_file, path, size,
+                                        progress=lambda m: progress(message=m), videos_done=rendering(progress))
+        progress(stage="study", done=0, total=1, message=f"creating study {study_file.slug!r}")
+        study = service.create_study(session, media, study_file, owner, media_dir=settings.media_dir,
+                                     clips_dir=place.clips_dir)
+        if params.get("open"):
+            service.open_study(session, study, settings.media_dir)
+        progress(stage="study", done=1, total=1, study_id=study.id)
+
+
+def run_in_this_process(settings: Settings, kind: JobKind, params: dict[str, Any],
+                        echo: Callable[[str], None] = lambda m: print(m, flush=True)) -> BuildJob:
+    """Make a command's job and run it here (its ``pid`` this process's); returns the finished row."""
+    from server.db import make_engine, migrate, session_factory
+
+    engine = make_engine(settings.sqlalchemy_url)
+    try:
+        migrate(engine, media_dir=settings.media_dir, clips_dir=settings.clips_dir)
+        factory = session_factory(engine)
+        with factory() as session:
+            job = BuildJob(kind=kind, params=params, state=BuildState.queued, stage="queued", message="starting",
+                           pid=os.getpid())
+            session.add(job)
+            session.commit()
+            job_id = job.id
+        run(settings, factory, job_id, echo=echo)
+        with factory() as session:
+            finished = session.get(BuildJob, job_id)
+            assert finished is not None
+            session.expunge(finished)
+            return finished
+    finally:
+        engine.dispose()
