@@ -18,6 +18,7 @@ from anim_core.rig.character import bind_mesh
 from server.assets import character as load_character
 from server.clipset.build import build_clip_set
 from server.clipset.manifest import write_clip_set
+from server.errors import MediaError
 from server.media.build import BODY_PADDING_M, MEDIA_NAME, grid_spacing, read_clip_set, render_media
 from server.media.manifest import MANIFEST
 from server.media.renderer import ClipRenderer
@@ -286,3 +287,16 @@ def test_render_takes_its_pairs_from_a_study_file(clips_dir, pairs, tmp_path, mo
     assert main(["render", "--clips", str(clips_dir), "--out", str(out), "--study", str(unknown)]) == 2
     assert "unknown animation(s) swim" in capsys.readouterr().err
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_the_clip_index_is_read_from_the_manifest_not_from_the_clip_files(clips_dir, tmp_path):
+    """Knowing what a clip set has reads its manifest only; rendering it reads (and checks) every clip file."""
+    copy = tmp_path / "clips"
+    shutil.copytree(clips_dir, copy)
+    expected = clip_set_index(clips_dir)
+    for f in copy.glob("*.npz"):
+        f.write_bytes(b"not an npz file")  # any read of a clip file fails now
+    assert clip_set_index(copy) == expected
+    assert len(expected) == len(list(clips_dir.glob("*.npz")))
+    with pytest.raises(MediaError, match="unreadable"):
+        read_clip_set(copy)

@@ -102,12 +102,15 @@ def rendered_settings(media_dir: Path) -> RenderSettings:
     return RenderSettings(width=width, height=height, shadows=shadows)
 
 
-def read_clip_set(clips_dir: Path) -> list[ClipEntry]:
-    """The clips listed in the clip manifest of ``clips_dir`` (:mod:`server.clipset.manifest`)."""
+def read_clip_set(clips_dir: Path, read_arrays: bool = True) -> list[ClipEntry]:
+    """The clips listed in the clip manifest of ``clips_dir`` (:mod:`server.clipset.manifest`).  With
+    ``read_arrays`` (to render them) every clip's file is read and hashed here, so that a missing or broken one is
+    a MediaError before any work; without, only the manifest is read (to know what the clip set has)."""
     try:
         clips = read_clip_manifest(clips_dir).clips
-        for c in clips:
-            c.digest  # noqa: B018 - every file is read here, so that a missing or broken one is a MediaError
+        if read_arrays:
+            for c in clips:
+                c.digest  # noqa: B018 - computed (the file read) now
         return clips
     except ManifestError as exc:
         raise MediaError(str(exc)) from None

@@ -30,7 +30,7 @@ StimulusKey = tuple[str, str]  # (animation, condition)
 
 def clip_set_index(clips_dir: Path) -> dict[StimulusKey, str]:
     """(animation, condition) -> clip id of the clip set in ``clips_dir`` (before its videos are rendered)."""
-    return {(c.animation, c.condition): c.id for c in read_clip_set(clips_dir)}
+    return {(c.animation, c.condition): c.id for c in read_clip_set(clips_dir, read_arrays=False)}
 
 
 def needed_stimuli(design: Design) -> list[tuple[ComparisonKind, StimulusKey, StimulusKey]]:
