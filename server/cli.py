@@ -401,18 +401,34 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
 
 
 def gc(settings: Settings, dry_run: bool) -> int:
-    """``animstudy gc``: delete the videos and posters that neither a study's stimulus set nor the render manifest
-    uses (``--dry-run``: list them)."""
+    """``animstudy gc``: delete the videos and posters that neither a study's stimulus set nor a render manifest
+    uses, and the clip files no clip set's manifest names (``--dry-run``: list them).  Refused while a job runs:
+    what it has made is named by nothing until it ends."""
+    from server.clipset.manifest import unreferenced_clip_files
     from server.stimuli.service import collect
-    from server.studies.pipeline import render_manifest_dirs
+    from server.studies.pipeline import clip_set_dirs, render_manifest_dirs
+    from server.uploads.service import running_jobs
 
     with _study_session(settings) as session:  # type: ignore[attr-defined]
+        if running := running_jobs(session):
+            listed = ", ".join(f"{j.kind} job {j.id}" for j in running)
+            return _fail(f"a job is running ({listed}); run gc when it has finished (what a running job has made "
+                         "is not yet named by any manifest)")
         found = collect(session, settings.media_dir, render_manifest_dirs(settings), dry_run=dry_run)
+    clip_files = [f for d in clip_set_dirs(settings) if d.is_dir() for f in unreferenced_clip_files(d)]
+    clip_bytes = sum(f.stat().st_size for f in clip_files)
+    if not dry_run:
+        for f in clip_files:
+            f.unlink(missing_ok=True)
     for f in found.files:
         print(f.name)
+    for f in clip_files:
+        print(f.relative_to(settings.var) if f.is_relative_to(settings.var) else f.name)
     verb = "would delete" if dry_run else "deleted"
     print(f"{verb} {len(found.files)} unreferenced files ({found.size_bytes / 2**20:.1f} MiB); kept {found.kept} "
           "that a study's stimulus set or the render manifest uses", file=sys.stderr)
+    print(f"{verb} {len(clip_files)} clip files no clip set's manifest names ({clip_bytes / 2**20:.1f} MiB)",
+          file=sys.stderr)
     return 0
 
 
@@ -836,7 +852,8 @@ def build_parser() -> argparse.ArgumentParser:
     se.add_argument("--format", choices=("csv", "json", "sureal", "pwcmp"), default="csv",
                     help="csv/json: one row per vote; sureal: a sureal dataset (JSON); pwcmp: pairwise CSV")
     se.add_argument("--out", type=Path, default=None, help="file to write (default: standard output)")
-    gcp = sub.add_parser("gc", help="delete the videos no study's stimulus set (and not the render manifest) uses")
+    gcp = sub.add_parser("gc", help="delete the videos no study's stimulus set (and no render manifest) uses and "
+                                    "the clip files no clip set's manifest names")
     gcp.add_argument("--dry-run", action="store_true", help="list them, delete nothing")
     bn = sub.add_parser("bench", help="time pose evaluation of crowds, keyframe against every other condition "
                                       "(`bench render`: render frames per second on 1 and 2 Dask workers)")

@@ -475,3 +475,48 @@ def test_the_api_creates_a_study_whose_clips_are_given_inline(kind, tmp_path, tm
             assert client.post("/api/v1/studies/late/open", headers=headers).status_code == 409
     finally:
         engine.dispose()
+
+
+def test_gc_collects_the_clip_files_a_killed_build_left_and_waits_for_running_jobs(tmp_path, data, monkeypatch,
+                                                                                     capsys):
+    """A clip file no manifest names and older than the manifest (a killed build's) is collected; one newer than
+    the manifest (a running build's) and every named one are kept; while a job runs gc deletes nothing."""
+    import os
+
+    from server.clipset.manifest import MANIFEST, read_clip_manifest
+    from server.uploads.models import BuildJob, BuildState, JobKind
+
+    monkeypatch.setenv("ANIMSTUDY_VAR_DIR", str(tmp_path / "var"))
+    monkeypatch.setenv("ANIMSTUDY_SECRET_KEY", "gc-clips-secret-0123456789abcdef0123")
+    monkeypatch.delenv("ANIMSTUDY_DATABASE_URL", raising=False)
+    monkeypatch.delenv("DATABASE_URL", raising=False)
+    settings = Settings.from_env()
+    source = tmp_path / "base.bvh"
+    source.write_bytes(excerpt(data, frames=120))
+    config = tmp_path / "base.toml"
+    config.write_text(CLIPSET.format(source=source, first=40, last=100), encoding="utf-8")
+    write_clip_set(build_clip_set(data, load_config(config)), settings.clips_dir)
+    named = {c.file for c in read_clip_manifest(settings.clips_dir).clips}
+    some = settings.clips_dir / sorted(named)[0]
+    written = (settings.clips_dir / MANIFEST).stat().st_mtime
+    left, running = settings.clips_dir / "left.0123456789ab.npz", settings.clips_dir / "new.0123456789ab.npz"
+    for f, when in ((left, written - 60), (running, written + 60)):
+        f.write_bytes(some.read_bytes())
+        os.utime(f, (when, when))
+
+    with cli._study_session(settings) as db:
+        db.add(BuildJob(kind=JobKind.render, state=BuildState.running, stage="rendering", pid=os.getpid()))
+        db.commit()
+    assert cli.main(["gc"]) == 2
+    assert "a job is running (render job" in capsys.readouterr().err
+    assert left.is_file()
+    with cli._study_session(settings) as db:
+        db.query(BuildJob).delete()
+        db.commit()
+
+    assert cli.main(["gc", "--dry-run"]) == 0
+    out, err = capsys.readouterr()
+    assert out.split() == ["clips/left.0123456789ab.npz"] and "would delete 1 clip files" in err
+    assert left.is_file()
+    assert cli.main(["gc"]) == 0
+    assert {f.name for f in settings.clips_dir.glob("*.npz")} == named | {running.name}

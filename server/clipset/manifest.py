@@ -150,6 +150,19 @@ def _drop_replaced(clips_dir: Path, before: ClipManifest | None, after: ClipMani
             (clips_dir / e.file).unlink(missing_ok=True)
 
 
+def unreferenced_clip_files(clips_dir: Path) -> list[Path]:
+    """The clip files (``.npz``) of ``clips_dir`` that its manifest does not name: left by a build killed before it
+    replaced the manifest.  Files newer than the manifest are kept (a running build writes its manifest last), and
+    so is everything in a folder whose manifest is missing or unreadable (nothing says what is in use there)."""
+    manifest = _readable(clips_dir)
+    if manifest is None:
+        return []
+    named = {e.file for e in manifest.clips}
+    written = (clips_dir / MANIFEST).stat().st_mtime
+    return sorted(f for f in clips_dir.glob("*.npz")
+                  if f.name not in named and f.is_file() and f.stat().st_mtime <= written)
+
+
 def write_clip_set(clips: list[BuiltClip], out: Path) -> Path:
     """Write one ``.npz`` per clip and ``manifest.json`` (replacing a clip set there: its files stay until the new
     manifest has replaced its manifest, see :func:`_write_clips`); returns the manifest path."""

@@ -211,6 +211,12 @@ def prepare(settings: Settings, session: Session, study_file: StudyFile, study_p
     return render(settings, place, wanted, chosen, progress, workers, videos_done=videos_done), place
 
 
+def clip_set_dirs(settings: Settings) -> list[Path]:
+    """Every clip set's folder: the server's and each one a study file named (``gc`` collects what their
+    manifests do not name)."""
+    return [settings.clips_dir, *sorted(p / "clips" for p in (settings.var / CLIPSETS).glob("*") if p.is_dir())]
+
+
 def render_manifest_dirs(settings: Settings) -> list[Path]:
     """Every render manifest's folder: the media directory and each clip set's (``gc`` keeps what they list)."""
     return [settings.media_dir, *sorted(p / "render" for p in (settings.var / CLIPSETS).glob("*") if p.is_dir())]

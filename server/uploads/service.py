@@ -403,6 +403,12 @@ def lost(job: BuildJob) -> bool:
     return job.state in ACTIVE and job.pid is not None and not _alive(job.pid)
 
 
+def running_jobs(session: Session) -> list[BuildJob]:
+    """The jobs of every kind that are queued or running and whose process is alive (changes nothing)."""
+    return [j for j in session.scalars(select(BuildJob).where(BuildJob.state.in_(list(ACTIVE)))
+                                       .order_by(BuildJob.id)).all() if not lost(j)]
+
+
 def active_jobs(session: Session) -> list[BuildJob]:
     """The upload jobs queued or running (of any study); lost ones are marked failed on the way (``animstudy
     serve`` resumes the ones still marked active when it starts: :func:`resume_lost_jobs`)."""
