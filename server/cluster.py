@@ -25,6 +25,10 @@ if TYPE_CHECKING:
 CONNECT_TIMEOUT_S = 10.0
 WORKERS_TIMEOUT_S = 60.0
 CLOSE_TIMEOUT_S = 30.0
+# How long a job whose scheduler went away mid-job waits for it to come back (restarted by hand, by SLURM or by
+# Kubernetes, with workers) before it fails; and the pause between two tries to reach it.
+RECONNECT_S = 600.0
+RECONNECT_PAUSE_S = 5.0
 log = logging.getLogger(__name__)  # how long a job waits for a cluster without workers to get one
 
 

@@ -242,3 +242,77 @@ def test_a_clip_set_builds_on_the_cluster_as_in_this_process(data, clips_dir, da
             assert sorted(arrays) == sorted(stored.files)
             for name in stored.files:
                 np.testing.assert_array_equal(arrays[name], stored[name], err_msg=f"{clip.id} {name}")
+
+
+def test_the_scheduler_restarted_mid_job_and_the_job_goes_on_with_what_is_missing(
+        data, clips_dir, pairs, local_render, tmp_path, monkeypatch):
+    """kill -9 the scheduler after the first video is stored; a new scheduler on the same address and a new
+    worker come up (as SLURM or Kubernetes would bring them back): the same job finishes, each video is stored
+    once, and every video is the local render's."""
+    from server.media import build
+
+    monkeypatch.setattr(cluster, "RECONNECT_PAUSE_S", 0.5)
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    root = str(Path(__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
+    port = str(_port())
+    address = f"tcp://127.0.0.1:{port}"
+    procs: list[subprocess.Popen] = []
+
+    def start(what: str, *args: str) -> subprocess.Popen:
+        proc = subprocess.Popen([str(DASK), what, *args, "--no-dashboard"], env=env, stderr=subprocess.STDOUT,
+                                stdout=(logs / f"{what}{len(procs)}.log").open("wb"))
+        procs.append(proc)
+        return proc
+
+    def up() -> subprocess.Popen:
+        scheduler = start("scheduler", "--host", "127.0.0.1", "--port", port)
+        start("worker", address, "--nthreads", "1", "--no-nanny", "--death-timeout", "60")
+        return scheduler
+
+    out = tmp_path / "media"
+    stored: list[str] = []
+    real_store = build.store_rendered
+
+    def store(directory, files):
+        real_store(directory, files)
+        stored.extend(f.name for f in files if f.name.endswith(".mp4"))
+
+    monkeypatch.setattr(build, "store_rendered", store)
+    errors: list[BaseException] = []
+    messages: list[str] = []
+
+    def run() -> None:
+        try:
+            render_media(data, clips_dir, out, SECRET, TINY, pairs=pairs, scheduler=address,
+                         progress=messages.append)
+        except BaseException as exc:  # handed to the test
+            errors.append(exc)
+
+    try:
+        scheduler = up()
+        time.sleep(2)  # the scheduler listens before the job tries to reach it
+        thread = threading.Thread(target=run)
+        thread.start()
+        deadline = time.monotonic() + 180
+        while not stored:
+            assert thread.is_alive() and time.monotonic() < deadline, (errors, messages[-5:])
+            time.sleep(0.05)
+        scheduler.kill()
+        scheduler.wait(10)
+        before = len(stored)
+        up()
+        thread.join(300)
+        assert not thread.is_alive() and errors == [], (errors, messages[-5:])
+    finally:
+        for proc in procs:
+            proc.kill()
+            proc.wait(10)
+    assert any("waiting for the scheduler to come back" in m for m in messages), messages
+    local = _files(local_render)
+    videos = {name for name in local if name.endswith(".mp4")}
+    assert sorted(stored) == sorted(set(stored)) and set(stored) == videos  # each stored once, none left out
+    assert 0 < before < len(videos)
+    mine = _files(out)
+    assert mine.keys() == local.keys() and all(mine[n] == local[n] for n in local)

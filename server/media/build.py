@@ -263,6 +263,10 @@ class RenderError(MediaError):
     """A render task failed; the message names the animation and the clip."""
 
 
+class SchedulerLost(RenderError):
+    """The Dask scheduler went away mid-job (nothing else failed): what was stored stays, the rest is missing."""
+
+
 Arrays = dict[str, dict[str, NDArray[Any]]]
 
 
@@ -510,9 +514,37 @@ def run_on_dask(p: Plan, out_dir: Path, scheduler: str | None, workers: int,
         failures.insert(0, f"lost the Dask scheduler {scheduler or '(local cluster)'} mid-job: {lost} of "
                            f"{len(tasks)} videos not rendered, {len(results)} stored; run it again once the "
                            "scheduler is back, and it renders only the missing ones")
+        if len(failures) == 1:
+            raise SchedulerLost(failures[0])
     if failures:
         raise RenderError("; ".join(failures))
     return results
+
+
+def _run_until_done(p: Plan, replan: Callable[[], Plan], out_dir: Path, scheduler: str | None, workers: int,
+                    progress: Callable[[str], None], stored: Callable[[str], None]) -> list[list[tuple[str, float]]]:
+    """:func:`run_on_dask`; when the configured scheduler is lost mid-job (restarted, or its machine rebooted), the
+    job waits for it (and for a worker) and goes on with what is still missing, for up to
+    :data:`server.cluster.RECONNECT_S`; nothing stored is rendered again.  A scheduler unreachable at the start is
+    an error at once, as is any other failure."""
+    from server import cluster
+
+    results: list[list[tuple[str, float]]] = []
+    since: float | None = None
+    while True:
+        try:
+            results += run_on_dask(p, out_dir, scheduler, workers, progress, stored)
+            return results
+        except (SchedulerLost, cluster.ClusterError) as exc:
+            if not scheduler or (since is None and not isinstance(exc, SchedulerLost)):
+                raise
+            since = since if since is not None else time.monotonic()
+            if time.monotonic() - since > cluster.RECONNECT_S:
+                raise MediaError(f"{exc} (waited {cluster.RECONNECT_S:.0f} s for the scheduler to come back)"
+                                 ) from None
+            progress(f"  {exc}; waiting for the scheduler to come back")
+            time.sleep(cluster.RECONNECT_PAUSE_S)
+            p = replan()
 
 
 def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
@@ -552,7 +584,9 @@ def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
                 _init_worker()
                 results = [run_job(j, stored=stored) for j in p.jobs]
             else:
-                results = run_on_dask(p, out_dir, scheduler, workers, progress, stored)
+                results = _run_until_done(p, lambda: plan(data_dir, clips_dir, out_dir, settings, secret, pairs,
+                                                          animations, every_clip),
+                                          out_dir, scheduler, workers, progress, stored)
         progress(f"rendered {sum(len(r) for r in results)} videos in {time.perf_counter() - started:.1f} s, "
                  f"peak memory {memory.peak_bytes / 2**20:.0f} MiB (all processes)")
     manifest_dir = Path(manifest_dir or out_dir)
