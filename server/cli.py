@@ -229,7 +229,7 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies
     clips of those pairs (``every_clip``: every clip).  A job of the database (kind ``render``,
     :mod:`server.uploads.commands`): resumed by ``animstudy serve`` if this process dies mid-job."""
     from server.studies.studyfile import THESIS_FILE, StudyFileError, load_study_file
-    from server.uploads.commands import run_in_this_process
+    from server.uploads.job import run_in_this_process
     from server.uploads.models import BuildState, JobKind
 
     files = studies or [THESIS_FILE]
@@ -288,7 +288,7 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
     from server.studies import pipeline, service
     from server.studies.models import Study, StudyState
     from server.studies.studyfile import StudyFile, StudyFileError, load_study_file
-    from server.uploads.commands import run_in_this_process
+    from server.uploads.job import run_in_this_process
     from server.uploads.models import BuildState, JobKind
 
     command = args.study_command

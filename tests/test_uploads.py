@@ -291,7 +291,8 @@ def test_the_clip_set_description_of_the_assets(tmp_path):
 
 
 def test_an_unreadable_clip_set_stops_the_build(tmp_path):
-    from server.uploads.job import BuildError, current_clip_set, merge_clips
+    from server.uploads.job import current_clip_set, merge_clips
+    from server.uploads.progress import BuildError
 
     assert current_clip_set(tmp_path) is None
     (tmp_path / "manifest.json").write_text('{"version": 1, "clips": []}')

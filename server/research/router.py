@@ -22,7 +22,7 @@ from server.studies.models import StudyState
 from server.studies.page import Page
 from server.studies.schemas import ExportJson, StudyPublic, StudyStateRead, StudySummary
 from server.studies.studyfile import StudyFile, StudyFileError, parse_study_text
-from server.uploads.job import scrub
+from server.uploads.progress import scrub
 from server.uploads.service import create_building, job_json, study_clips, usable_animations
 
 from . import export

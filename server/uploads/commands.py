@@ -1,5 +1,6 @@
 """The jobs of the commands ``animstudy render`` and ``animstudy study create`` (:class:`~.models.JobKind`
-``render`` and ``study``): rows of ``build_jobs`` like an upload's build, run by :func:`server.uploads.job.run`.
+``render`` and ``study``): rows of ``build_jobs`` like an upload's build, run by :func:`server.uploads.job.run`
+(:func:`server.uploads.job.run_in_this_process` for the command itself).
 
 The command checks what it is given, makes the job's row (``params``: everything the job needs, paths absolute)
 and runs it in its own process, printing the messages; the row has its progress (one step per video rendered),
@@ -10,8 +11,6 @@ every video's name says what it shows, only the videos still missing are rendere
 
 from __future__ import annotations
 
-import os
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -20,13 +19,13 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from server.config import Settings
 
-from .job import BuildError, Progress, rendering, run
-from .models import BuildJob, BuildState, JobKind
+from .models import JobKind
+from .progress import BuildError, Progress, rendering
 
 
 def run_command(settings: Settings, factory: sessionmaker[Session], job_id: int, kind: str,
                 params: dict[str, Any], progress: Progress) -> None:
-    """Run a command's job (its failures raised, :func:`server.uploads.job.finish` stores them)."""
+    """Run a command's job (its failures raised, :func:`server.uploads.progress.finish` stores them)."""
     if kind == JobKind.render:
         render_job(settings, factory, params, progress)
     elif kind == JobKind.study:
@@ -104,28 +103,3 @@ def study_job(settings: Settings, factory: sessionmaker[Session], job_id: int, p
         if params.get("open"):
             service.open_study(session, study, settings.media_dir)
         progress(stage="study", done=1, total=1, study_id=study.id)
-
-
-def run_in_this_process(settings: Settings, kind: JobKind, params: dict[str, Any],
-                        echo: Callable[[str], None] = lambda m: print(m, flush=True)) -> BuildJob:
-    """Make a command's job and run it here (its ``pid`` this process's); returns the finished row."""
-    from server.db import make_engine, migrate, session_factory
-
-    engine = make_engine(settings.sqlalchemy_url)
-    try:
-        migrate(engine, media_dir=settings.media_dir, clips_dir=settings.clips_dir)
-        factory = session_factory(engine)
-        with factory() as session:
-            job = BuildJob(kind=kind, params=params, state=BuildState.queued, stage="queued", message="starting",
-                           pid=os.getpid())
-            session.add(job)
-            session.commit()
-            job_id = job.id
-        run(settings, factory, job_id, echo=echo)
-        with factory() as session:
-            finished = session.get(BuildJob, job_id)
-            assert finished is not None
-            session.expunge(finished)
-            return finished
-    finally:
-        engine.dispose()

@@ -30,64 +30,25 @@ from __future__ import annotations
 import fcntl
 import json
 import os
-import re
 import resource
 import sys
-import threading
-import traceback
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import select, update
+from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.config import Settings
 from server.db import make_engine, session_factory, utcnow
-from server.errors import ServiceError
 from server.studies.models import Study, StudyState
 from server.studies.studyfile import Clips
 
+from .commands import run_command
 from .models import BuildJob, BuildState, JobKind, StudyAsset
+from .progress import BuildError, Progress, finish, rendering
 from .service import asset_path, study_clips
-
-STAGES = ("queued", "building", "rendering", "study", "done")
-
-
-class BuildError(Exception):
-    """A step of the build cannot be done; the message is what the researcher reads."""
-
-
-class Progress:
-    """Writes the job's progress to its row (one short transaction per update); ``settings``: messages scrubbed
-    of server paths (a researcher reads them); ``echo``: each message printed too (a command's job)."""
-
-    def __init__(self, factory: sessionmaker[Session], job_id: int, settings: Settings | None = None,
-                 echo: Callable[[str], None] | None = None) -> None:
-        self.factory = factory
-        self.job_id = job_id
-        self.settings = settings
-        self.echo = echo
-        self._lock = threading.Lock()
-
-    def __call__(self, stage: str | None = None, done: int | None = None, total: int | None = None,
-                 message: str | None = None, **values: Any) -> None:
-        changes = {k: v for k, v in (("stage", stage), ("done", done), ("total", total), ("message", message))
-                   if v is not None}
-        changes.update(values)
-        if self.echo is not None and message:
-            self.echo(message)
-        for key in ("message", "error"):
-            if key in changes and self.settings is not None:
-                changes[key] = scrub(str(changes[key]), self.settings)
-        if "message" in changes:
-            changes["message"] = str(changes["message"])[-2000:]
-        with self._lock, self.factory() as session:
-            session.execute(update(BuildJob).where(BuildJob.id == self.job_id).values(**changes,
-                                                                                     updated_at=utcnow()))
-            session.commit()
-
 
 # --- the clip-set description of the assets ---------------------------------------------------------------
 
@@ -193,15 +154,6 @@ def merge_clips(clips_dir: Path, built: list[Any]) -> Path:
 
 # --- the job ---------------------------------------------------------------------------------------------------
 
-def scrub(message: str, settings: Settings) -> str:
-    """``message`` as a researcher may read it: no server path (an asset file by its name alone, the var and data
-    directories by name)."""
-    message = re.sub(re.escape(str(settings.assets_dir)) + r"/\d+/", "", message)
-    for path, name in ((settings.var, "<var dir>"), (settings.data, "<data dir>")):
-        message = message.replace(str(path), name)
-    return message
-
-
 def run(settings: Settings, factory: sessionmaker[Session], job_id: int,
         echo: Callable[[str], None] | None = None) -> None:
     """Run the job ``job_id`` to its end (from what is missing, when it is resumed); every failure is stored in
@@ -211,8 +163,6 @@ def run(settings: Settings, factory: sessionmaker[Session], job_id: int,
         job = session.get(BuildJob, job_id)
         kind, params = (job.kind, job.params) if job is not None else (JobKind.upload, None)
     if kind != JobKind.upload:
-        from .commands import run_command
-
         progress = Progress(factory, job_id, echo=echo)
         progress(state=BuildState.running, stage="building", message=f"{kind} job {job_id}", pid=os.getpid())
         finish(progress, lambda: run_command(settings, factory, job_id, kind, params or {}, progress))
@@ -229,23 +179,6 @@ def run(settings: Settings, factory: sessionmaker[Session], job_id: int,
             return
         progress(state=BuildState.running, stage="building", message="reading the assets", pid=os.getpid())
         finish(progress, lambda: _run(settings, factory, job_id, progress))
-
-
-def finish(progress: Progress, work: Callable[[], None]) -> None:
-    """Run ``work`` and store the job's outcome: done, or failed with the message of what went wrong."""
-    try:
-        work()
-    except Exception as exc:  # every failure ends the job with its message, none is a traceback to the user
-        if isinstance(exc, ServiceError):
-            message = exc.detail
-        elif isinstance(exc, BuildError | ValueError):
-            message = str(exc)
-        else:
-            message = f"{type(exc).__name__}: {exc}"
-            traceback.print_exc()  # into the job's log
-        progress(state=BuildState.failed, error=message, finished_at=utcnow())
-        return
-    progress(state=BuildState.done, stage="done", message="done", finished_at=utcnow())
 
 
 def draft(session: Session, study_id: int) -> Study:
@@ -366,11 +299,29 @@ def _run_clips(settings: Settings, factory: sessionmaker[Session], study_id: int
     progress(stage="study", done=1, total=1, message=f"the study shows {', '.join(design.animations)}")
 
 
-def rendering(progress: Progress) -> Callable[[int, int], None]:
-    """The job's per-video progress (stage ``rendering``) as :func:`server.media.build.render_media` reports it."""
-    def videos_done(done: int, total: int) -> None:
-        progress(stage="rendering", done=done, total=total)
-    return videos_done
+def run_in_this_process(settings: Settings, kind: JobKind, params: dict[str, Any],
+                        echo: Callable[[str], None] = lambda m: print(m, flush=True)) -> BuildJob:
+    """Make a command's job and run it here (its ``pid`` this process's); returns the finished row."""
+    from server.db import make_engine, migrate, session_factory
+
+    engine = make_engine(settings.sqlalchemy_url)
+    try:
+        migrate(engine, media_dir=settings.media_dir, clips_dir=settings.clips_dir)
+        factory = session_factory(engine)
+        with factory() as session:
+            job = BuildJob(kind=kind, params=params, state=BuildState.queued, stage="queued", message="starting",
+                           pid=os.getpid())
+            session.add(job)
+            session.commit()
+            job_id = job.id
+        run(settings, factory, job_id, echo=echo)
+        with factory() as session:
+            finished = session.get(BuildJob, job_id)
+            assert finished is not None
+            session.expunge(finished)
+            return finished
+    finally:
+        engine.dispose()
 
 
 def limit_memory(megabytes: int) -> None:

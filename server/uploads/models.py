@@ -48,7 +48,7 @@ class JobKind(StrEnum):
 
 class BuildJob(Base):
     """One run of a job (:class:`JobKind`: the build of a study's assets, or a command's render or study
-    creation): its progress as the dashboard polls it.  ``stage`` is one of :data:`server.uploads.job.STAGES`;
+    creation): its progress as the dashboard polls it.  ``stage`` is one of :data:`server.uploads.progress.STAGES`;
     ``done``/``total`` count the stage's steps; ``error`` is set when it failed.  ``pid`` is the job's process (a
     job whose process is gone while it says it runs is resumed by ``animstudy serve`` at start-up, and reported
     failed until then); ``params`` what a command's job runs (again, when resumed)."""
