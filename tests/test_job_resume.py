@@ -81,9 +81,10 @@ def test_a_render_killed_mid_job_is_resumed_and_renders_only_what_was_missing(ki
     with Session(engine) as session:
         job = session.scalars(select(BuildJob)).one()
         assert (job.kind, job.state, job.pid, job.study_id) == (JobKind.render, BuildState.running, first.pid, None)
-        # Progress per video (the kill may come between a video and its row's update).
+        # Progress per video; the kill may come between videos and their row's update (in one process a clip's
+        # render finishes its own video and the pairs it completes at once), so the row may count fewer.
         total = job.total
-        assert job.stage == "rendering" and total >= 8 and len(before) - 1 <= job.done < total
+        assert job.stage == "rendering" and total >= 8 and job.done <= len(before) < total
 
     for key, value in env.items():
         if key.startswith("ANIMSTUDY_") or key == "DATABASE_URL":
