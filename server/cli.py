@@ -558,7 +558,7 @@ def bench_render(settings: Settings, width: int, height: int, animations: list[s
     from server.clipset.build import build_clip_set
     from server.clipset.manifest import write_clip_set
     from server.errors import MediaError
-    from server.media.build import plan, run_on_dask
+    from server.media.build import plan, render_tasks, run_on_dask
     from server.media.scene import RenderSettings
     from server.studies.service import clip_set_index, required_pairs
     from server.studies.studyfile import thesis_study
@@ -579,11 +579,11 @@ def bench_render(settings: Settings, width: int, height: int, animations: list[s
                 out.mkdir()
                 p = plan(settings.data, clips_dir, out, render_settings, settings.secret, pairs, animations)
                 frames = sum(j.n_frames for j in p.jobs)
-                tasks = [t for j in p.jobs for t in j.video_tasks()]
-                # A pair task renders both of its clips: the clip shown in several pairs is rendered once per pair.
-                print(f"{workers} worker(s): {len(tasks)} videos (one task each), {frames} frames of the study, "
-                      f"{sum(t.n_frames for t in tasks)} frames rendered by the tasks, at {width}x{height}",
-                      flush=True)
+                tasks = render_tasks(p, workers)  # as run_on_dask cuts it on a local cluster of `workers`
+                # A per-video task renders its clips itself: the clip shown in several pairs once per pair.
+                print(f"{workers} worker(s): {sum(len(j.outputs) for j in p.jobs)} videos in {len(tasks)} tasks, "
+                      f"{frames} frames of the study, {sum(t.n_frames for t in tasks)} frames rendered by the "
+                      f"tasks, at {width}x{height}", flush=True)
                 started = time.perf_counter()
                 run_on_dask(p, out, None, workers, lambda m: print(m, flush=True))
                 seconds = time.perf_counter() - started

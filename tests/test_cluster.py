@@ -114,7 +114,9 @@ def test_a_worker_killed_mid_job_and_the_videos_are_byte_identical_to_a_local_re
 
     def run() -> None:
         try:
-            render_media(data, clips_dir, out, SECRET, TINY, pairs=pairs, scheduler=address)
+            # One task per video: the framing and bounds each video task carries must give the bytes of a whole
+            # animation's render (the test below with a restarted scheduler renders per animation).
+            render_media(data, clips_dir, out, SECRET, TINY, pairs=pairs, scheduler=address, tasks="video")
         except BaseException as exc:  # handed to the test
             errors.append(exc)
 
@@ -169,7 +171,8 @@ def test_a_failing_clip_is_named_and_the_other_jobs_are_stored(data, clips_dir, 
     out = tmp_path / "media"
     messages: list[str] = []
     with pytest.raises(MediaError, match=f"clip {bad.id}"):
-        render_media(data, broken, out, SECRET, TINY, pairs=pairs, scheduler=address, progress=messages.append)
+        render_media(data, broken, out, SECRET, TINY, pairs=pairs, scheduler=address, progress=messages.append,
+                     tasks="video")
     # Every video that does not show the broken clip was stored (one task per video: the same animation's too),
     # and is the local render's; the ones that show it are not.
     manifest = json.loads((local_render / MANIFEST).read_text())
@@ -316,3 +319,4 @@ def test_the_scheduler_restarted_mid_job_and_the_job_goes_on_with_what_is_missin
     assert 0 < before < len(videos)
     mine = _files(out)
     assert mine.keys() == local.keys() and all(mine[n] == local[n] for n in local)
+

@@ -300,3 +300,19 @@ def test_the_clip_index_is_read_from_the_manifest_not_from_the_clip_files(clips_
     assert len(expected) == len(list(clips_dir.glob("*.npz")))
     with pytest.raises(MediaError, match="unreadable"):
         read_clip_set(copy)
+
+
+def test_a_render_is_cut_per_video_only_where_the_workers_outnumber_what_per_animation_keeps_busy(
+        data, clips_dir, pairs, tmp_path):
+    """The thesis study (four animations, a reference and two conditions): on 2 workers one Dask task per animation
+    (each clip rendered once); on 64 workers one per video (a clip rendered once per video that shows it, on
+    workers that would otherwise wait)."""
+    from server.media.build import plan, render_tasks
+
+    p = plan(data, clips_dir, tmp_path, SMALL, SECRET, pairs)
+    videos = sum(len(j.outputs) for j in p.jobs)
+    assert len(p.jobs) == 4 and videos > 4
+    assert [t.animation for t in render_tasks(p, 2)] == [j.animation for j in p.jobs]
+    per_video = render_tasks(p, 64)
+    assert len(per_video) == videos and all(len(t.outputs) == 1 for t in per_video)
+    assert sum(t.n_frames for t in per_video) > 2 * sum(j.n_frames for j in p.jobs)  # the price of cutting finer

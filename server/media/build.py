@@ -21,7 +21,7 @@ import uuid
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -469,25 +469,48 @@ class PeakMemory:
             self._thread.join()
 
 
-def run_on_dask(p: Plan, out_dir: Path, scheduler: str | None, workers: int,
-                progress: Callable[[str], None], stored: Callable[[str], None] = lambda _name: None
-                ) -> list[list[tuple[str, float]]]:
-    """One :func:`render_task` per video on the cluster (see :mod:`server.cluster`), the character sent once per
-    job; each video is stored as it finishes, so a render interrupted later renders only what is still missing.
-    A failed task fails the render naming its clip, after the others have finished and been stored.
+#: How a render is cut into Dask tasks: ``animation`` (one per animation: each clip rendered once, every video of
+#: the animation made from those frames), ``video`` (one per video: a clip rendered once per video that shows it,
+#: the reference once per pair, about three times the frames of a study of one reference and two conditions) or
+#: ``auto`` (whichever is expected to finish first on the cluster's workers).
+TaskSize = Literal["auto", "animation", "video"]
 
-    A pair task renders both of its clips, so a clip shown in several pairs (the reference) is rendered once per
-    pair: more frames in all than one task per animation, but as many tasks as videos to spread over workers."""
+
+def render_tasks(p: Plan, workers: int, size: TaskSize = "auto") -> list[AnimationJob]:
+    """The Dask tasks of a plan.  ``auto`` compares the two cuts by their expected span on ``workers`` workers
+    (the larger of the frames per worker and the longest task): per video wins only when there are many more
+    workers than animations, so the extra frames are rendered by workers that would otherwise wait."""
+    whole = list(p.jobs)
+    if size == "animation":
+        return whole
+    split = [t for j in p.jobs for t in j.video_tasks()]
+    if size == "video":
+        return split
+
+    def span(tasks: list[AnimationJob]) -> float:
+        return max(sum(t.n_frames for t in tasks) / max(1, workers), max((t.n_frames for t in tasks), default=0))
+
+    return split if span(split) < span(whole) else whole
+
+
+def run_on_dask(p: Plan, out_dir: Path, scheduler: str | None, workers: int,
+                progress: Callable[[str], None], stored: Callable[[str], None] = lambda _name: None,
+                size: TaskSize = "auto") -> list[list[tuple[str, float]]]:
+    """The plan's :func:`render_tasks` (``size``) on the cluster (see :mod:`server.cluster`), the character sent
+    once per job; each task's videos are stored as it finishes, so a render interrupted later renders only what is
+    still missing.  A failed task fails the render naming its clip, after the others have finished and been
+    stored."""
     from concurrent.futures import CancelledError
 
     from distributed import as_completed as dask_completed
 
     from server.cluster import dask_client, share
 
-    tasks = [t for j in p.jobs for t in j.video_tasks()]
-    # Longest first, so that the last task to start is a short one.
-    tasks.sort(key=lambda t: -t.n_frames)
-    with dask_client(scheduler, min(workers, len(tasks))) as client, client.as_current():
+    videos = sum(len(j.outputs) for j in p.jobs)
+    with dask_client(scheduler, min(workers, videos)) as client, client.as_current():
+        tasks = render_tasks(p, len(client.scheduler_info()["workers"]) or workers, size)
+        # Longest first, so that the last task to start is a short one.
+        tasks.sort(key=lambda t: -t.n_frames)
         shared = {c: share(client, job_character(j), "character") for c, j in {j.character: j for j in p.jobs}.items()}
         futures = {client.submit(render_task, t, job_arrays(t), shared[t.character], pure=False,
                                  key=f"render-{t.animation}-{t.outputs[0].name[:8]}-{uuid.uuid4().hex[:8]}"): t
@@ -507,9 +530,10 @@ def run_on_dask(p: Plan, out_dir: Path, scheduler: str | None, workers: int,
                 progress(f"  {task.animation}: FAILED ({failures[-1]})")
                 continue
             store_rendered(out_dir, files)
-            stored(task.outputs[0].name)
+            for o in task.outputs:
+                stored(o.name)
             results.append([(f.name, 0.0) for f in files if f.name.endswith(".mp4")])
-            progress(f"  {task.animation}: {task.outputs[0].video} stored ({len(results)}/{len(tasks)} videos)")
+            progress(f"  {task.animation}: {len(task.outputs)} video(s) stored ({len(results)}/{len(tasks)} tasks)")
     if lost:
         failures.insert(0, f"lost the Dask scheduler {scheduler or '(local cluster)'} mid-job: {lost} of "
                            f"{len(tasks)} videos not rendered, {len(results)} stored; run it again once the "
@@ -522,7 +546,8 @@ def run_on_dask(p: Plan, out_dir: Path, scheduler: str | None, workers: int,
 
 
 def _run_until_done(p: Plan, replan: Callable[[], Plan], out_dir: Path, scheduler: str | None, workers: int,
-                    progress: Callable[[str], None], stored: Callable[[str], None]) -> list[list[tuple[str, float]]]:
+                    progress: Callable[[str], None], stored: Callable[[str], None], size: TaskSize
+                    ) -> list[list[tuple[str, float]]]:
     """:func:`run_on_dask`; when the configured scheduler is lost mid-job (restarted, or its machine rebooted), the
     job waits for it (and for a worker) and goes on with what is still missing, for up to
     :data:`server.cluster.RECONNECT_S`; nothing stored is rendered again.  A scheduler unreachable at the start is
@@ -533,7 +558,7 @@ def _run_until_done(p: Plan, replan: Callable[[], Plan], out_dir: Path, schedule
     since: float | None = None
     while True:
         try:
-            results += run_on_dask(p, out_dir, scheduler, workers, progress, stored)
+            results += run_on_dask(p, out_dir, scheduler, workers, progress, stored, size)
             return results
         except (SchedulerLost, cluster.ClusterError) as exc:
             if not scheduler or (since is None and not isinstance(exc, SchedulerLost)):
@@ -551,8 +576,8 @@ def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
                  settings: RenderSettings | None = None, pairs: Sequence[tuple[str, str]] = (),
                  workers: int = 2, animations: Sequence[str] | None = None, every_clip: bool = True,
                  progress: Callable[[str], None] = lambda _m: None, manifest_dir: Path | None = None,
-                 scheduler: str | None = None, videos_done: Callable[[int, int], None] = lambda _d, _t: None
-                 ) -> Path:
+                 scheduler: str | None = None, videos_done: Callable[[int, int], None] = lambda _d, _t: None,
+                 tasks: TaskSize = "auto") -> Path:
     """Render what is missing of :func:`plan` and write the manifest; returns the manifest path.  Nothing
     rendered before is deleted or replaced (``animstudy gc`` collects what no study uses).  The manifest goes
     into ``manifest_dir`` (default ``out_dir``): the videos of several clip sets share one media directory.
@@ -560,6 +585,7 @@ def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
     ``scheduler`` (``ANIMSTUDY_DASK_SCHEDULER``): the jobs run on that Dask cluster; otherwise on a local Dask
     cluster of ``workers`` processes, or in this process when ``workers`` is 1.  ``videos_done(done, total)`` is
     called before the first video and after each one is stored (``total``: the videos missing; a job's progress).
+    ``tasks``: how the render is cut into Dask tasks (:data:`TaskSize`).
     """
     settings = settings or RenderSettings()
     out_dir = Path(out_dir)
@@ -586,7 +612,7 @@ def render_media(data_dir: Path, clips_dir: Path, out_dir: Path, secret: bytes,
             else:
                 results = _run_until_done(p, lambda: plan(data_dir, clips_dir, out_dir, settings, secret, pairs,
                                                           animations, every_clip),
-                                          out_dir, scheduler, workers, progress, stored)
+                                          out_dir, scheduler, workers, progress, stored, tasks)
         progress(f"rendered {sum(len(r) for r in results)} videos in {time.perf_counter() - started:.1f} s, "
                  f"peak memory {memory.peak_bytes / 2**20:.0f} MiB (all processes)")
     manifest_dir = Path(manifest_dir or out_dir)
