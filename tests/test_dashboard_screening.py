@@ -61,6 +61,9 @@ def test_screening_panel(site):
         # the side by side: everyone who finished (the straight-liner among them) against those kept
         first = rows(page, "#table-screening")[0].split("\t")
         assert int(first[5]) == int(first[1]) + len(excluded)
+        # The subject model's tables are filled by a request of their own: wait for them as for the others.
+        wait_until(page, "document.querySelectorAll('#table-subject-comparisons tbody tr').length > 0")
+        wait_until(page, f"document.querySelectorAll('#table-subject-participants tbody tr').length >= {first[1]}")
         assert len(rows(page, "#table-subject-comparisons")) == 8
         assert len(rows(page, "#table-subject-participants")) == int(first[1])
         assert "1 pilot session(s), left out" in page.inner_text("#pilot-count")

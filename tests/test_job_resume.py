@@ -152,8 +152,9 @@ def test_a_clip_that_fails_fails_the_job_naming_it_and_the_other_videos_are_stor
     with Session(engine) as session:
         job = session.scalars(select(BuildJob)).one()
         assert job.state == BuildState.failed and f"clip {bad.id}" in job.error
-        # Every video that does not show the broken clip was rendered and stored.
+        # The other animation's videos were rendered and stored (on two local workers a task is one animation, so
+        # the broken clip's animation fails as a whole; tests/test_cluster.py checks per-video tasks).
         failed = job.error.count("rendering clip")
-        assert failed >= 2 and job.done == job.total - failed, job.error  # its own video and its pairs fail
+        assert failed >= 1 and 0 < job.done < job.total, job.error
     assert len(_videos(out)) == job.done
     engine.dispose()
