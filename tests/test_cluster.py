@@ -14,6 +14,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -105,6 +106,22 @@ def dask_cluster(tmp_path_factory):
 def _files(directory: Path) -> dict[str, bytes]:
     return {f.name: f.read_bytes() for f in sorted(directory.iterdir()) if f.suffix in (".mp4", ".jpg")}
 
+def broken_clip_set(clips_dir: Path, out: Path) -> tuple[Path, Any]:
+    """A copy of ``clips_dir`` in ``out`` whose first idle clip other than the keyframe one cannot be rendered (its
+    rotations lack joints); returns the folder and that clip's manifest entry."""
+    from server.media.build import read_clip_set
+
+    out.mkdir()
+    for f in clips_dir.iterdir():
+        (out / f.name).write_bytes(f.read_bytes())
+    bad = next(c for c in read_clip_set(out) if c.animation == "idle" and c.condition != "keyframe")
+    arrays = dict(np.load(bad.path))
+    arrays["world_rotations"] = arrays["world_rotations"][:, :3]  # joints missing: the renderer cannot skin it
+    with bad.path.open("wb") as f:
+        np.savez(f, **arrays)
+    return out, bad
+
+
 
 def test_a_worker_killed_mid_job_and_the_videos_are_byte_identical_to_a_local_render(
         data, clips_dir, pairs, local_render, dask_cluster, tmp_path):
@@ -159,15 +176,7 @@ def test_workers_of_another_version_are_refused_naming_both(data, clips_dir, pai
 def test_a_failing_clip_is_named_and_the_other_jobs_are_stored(data, clips_dir, pairs, local_render, dask_cluster,
                                                                tmp_path):
     address, _observer, _procs = dask_cluster
-    broken = tmp_path / "clips"
-    broken.mkdir()
-    for f in clips_dir.iterdir():
-        (broken / f.name).write_bytes(f.read_bytes())
-    bad = next(c for c in read_clip_set(broken) if c.animation == "idle" and c.condition != "keyframe")
-    arrays = dict(np.load(bad.path))
-    arrays["world_rotations"] = arrays["world_rotations"][:, :3]  # joints missing: the renderer cannot skin it
-    with bad.path.open("wb") as f:
-        np.savez(f, **arrays)
+    broken, bad = broken_clip_set(clips_dir, tmp_path / "clips")
     out = tmp_path / "media"
     messages: list[str] = []
     with pytest.raises(MediaError, match=f"clip {bad.id}"):

@@ -26,6 +26,7 @@ from server.media.manifest import read_render_manifest
 from server.uploads.models import BuildJob, BuildState, JobKind
 from server.uploads.service import resume_lost_jobs
 from tests.conftest import DATABASES, _fresh_engine
+from tests.test_cluster import broken_clip_set
 
 ROOT = Path(__file__).resolve().parents[1]
 SECRET = "job resume test secret"
@@ -119,24 +120,13 @@ def test_a_render_killed_mid_job_is_resumed_and_renders_only_what_was_missing(ki
 def test_a_clip_that_fails_fails_the_job_naming_it_and_the_other_videos_are_stored(kind, data, clips_dir, tmp_path,
                                                                                    tmp_path_factory, monkeypatch,
                                                                                    capsys):
-    import numpy as np
-
     from server.cli import main
-    from server.media.build import read_clip_set
 
     database = None
     if kind == "postgresql":
         database = f"{__import__('sqlalchemy').make_url(os.environ['TEST_DATABASE_URL']).database}_failing"
     engine = _fresh_engine(kind, tmp_path_factory, database=database)
-    broken = tmp_path / "clips"
-    broken.mkdir()
-    for f in clips_dir.iterdir():
-        (broken / f.name).write_bytes(f.read_bytes())
-    bad = next(c for c in read_clip_set(broken) if c.animation == "idle" and c.condition != "keyframe")
-    arrays = dict(np.load(bad.path))
-    arrays["world_rotations"] = arrays["world_rotations"][:, :3]  # joints missing: the renderer cannot skin it
-    with bad.path.open("wb") as f:
-        np.savez(f, **arrays)
+    broken, bad = broken_clip_set(clips_dir, tmp_path / "clips")
     study = tmp_path / "small.toml"
     text = (ROOT / "studies" / "example.toml").read_text(encoding="utf-8")
     study.write_text(text.replace('conditions = ["hybrid1", "hybrid2"]', 'conditions = ["hybrid0"]')
