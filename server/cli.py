@@ -191,10 +191,12 @@ def clips_build(data_dir: Path, out: Path, config: Path | None, scheduler: str |
 def _print_fidelity(clips: list) -> None:
     """The fidelity gate's figures (anim_core.clips.fidelity): head over hips (smallest, m), the feet's lowest clearance
     (the higher foot's, mm), depth under the floor (mm), frames with the left hip on the left, and the largest pose
-    angle difference: the reference's against the source, a condition's against the reference."""
+    angle difference: the reference's against the source, a condition's against the reference, with the angle and
+    the frame where it is largest."""
     width = max(16, *(len(c.id) for c in clips))
+    at_width = max(10, *(len(c.fidelity.pose_error_at or "") for c in clips if c.fidelity is not None))
     print(f"\n{'fidelity':{width}} {'head m':>6} {'feet mm':>7} {'under mm':>8} {'left':>5} {'pose deg':>8} "
-          f"{'against':>9}  verdict")
+          f"{'against':>9}  {'largest at':{at_width}} verdict")
     prev = None
     for c in clips:
         f = c.fidelity
@@ -204,8 +206,9 @@ def _print_fidelity(clips: list) -> None:
                    "UNFAITHFUL (its reference; built anyway)" if c.metrics.get("unfaithful") else "ok")
         against = "source" if c is clips[0] or c.animation != prev else "reference"
         prev = c.animation
+        at = f.pose_error_at or "-"
         print(f"{c.id:{width}} {f.upright_m:6.2f} {f.foot_reach_m * 1000:7.0f} {-f.under_floor_m * 1000:8.0f} "
-              f"{f.handedness:5.0%} {_fmt(f.pose_error_deg, 1):>8} {against:>9}  {verdict}", flush=True)
+              f"{f.handedness:5.0%} {_fmt(f.pose_error_deg, 1):>8} {against:>9}  {at:{at_width}} {verdict}", flush=True)
 
 
 def _print_comparison(clips: list, warnings: list[str]) -> None:

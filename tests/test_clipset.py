@@ -1,6 +1,7 @@
 """The thesis clip set built from the real data: clips, keys, metrics, files, errors."""
 
 import json
+import re
 import shutil
 
 import numpy as np
@@ -185,6 +186,9 @@ def test_cli_builds_and_reports(data, tmp_path, monkeypatch, capsys):
     out = capsys.readouterr().out
     assert "[4/4] idle" in out and "walk-hybrid2" in out and "16 clips" in out
     assert "hips r" in out and "warning:" not in out  # the comparison table; every pair in phase, no seam jumps
+    # The fidelity table names where each clip's largest pose difference is (the reference's with its source frame).
+    walk = next(line for line in out.splitlines() if line.startswith("walk-keyframe") and "source" in line)
+    assert re.search(r" at frame \d+ \(source frame \d+\) +ok$", walk), walk
     assert (tmp_path / "clips" / MANIFEST).is_file()
     monkeypatch.setenv("ANIMSTUDY_DATA_DIR", str(tmp_path / "nowhere"))
     assert main(["clips", "build", "--out", str(tmp_path / "other")]) == 2
