@@ -22,7 +22,7 @@ study's RMSE (the first version's aggregation: it weighs a rare bad study less t
 goal is read on the first.
 
     PYTHONPATH=. .venv/bin/python bench/design_savings.py [--seeds 60] [--base 10] [--sizes 4 6 8] [--span 2.5]
-        [--criterion precision|information] [--json out.json]
+        [--aim reference|order] [--modes incomplete adaptive] [--json out.json]
 
 Prints the measured points and the table for docs/designs.md; every number is measured in the run.
 """
@@ -34,13 +34,13 @@ import json
 import math
 import sys
 import time
-from unittest import mock
 
 import numpy as np
+from scipy import optimize
 
 from server.studies import adaptive
 from server.studies.design import Design
-from server.studies.simulate import Observers, simulate
+from server.studies.simulate import CUTS, Observers, simulate
 
 SPAN = 2.5
 GRID = (0.4, 0.6, 0.8, 1.0, 1.3)  # the other designs' trials, as shares of all-pairs' trials
@@ -86,6 +86,35 @@ def trials_at(target: float, trials: np.ndarray, mse: np.ndarray) -> tuple[float
     return float(np.exp((np.log(target) - intercept) / slope)), float(-slope)
 
 
+def allocation_bound(n: int, span: float) -> tuple[float, float]:
+    """The most trials any fixed allocation of the pairs can save against all-pairs (equal shares of every pair),
+    for the variances against the anchor and of the centred values: the A-optimal design under the Fisher
+    information of one five-point answer at the true differences (the simulated observers' cut points; no taste,
+    side bias or noise differences between observers, so the participant-count effect is not in it).  The
+    variance of a fixed design falls as 1/trials, so the saving at equal precision is 1 - optimal/all-pairs."""
+    truth = np.linspace(0.0, span, n)
+    first, second = np.triu_indices(n, 1)
+    cuts = np.array([-CUTS[1], -CUTS[0], CUTS[0], CUTS[1]])
+    info = adaptive.answer_information(truth[second] - truth[first], cuts)
+    x = np.zeros((first.size, n))
+    x[np.arange(first.size), second], x[np.arange(first.size), first] = 1.0, -1.0
+
+    def variance(share: np.ndarray, anchored: bool) -> float:
+        fisher = x.T @ ((share * info)[:, None] * x)
+        # Against the anchor: the anchor's row and column out; centred: the pseudo-inverse (the zero eigenvalue of
+        # the all-ones direction out).  A disconnected allocation has another zero eigenvalue: infinite variance.
+        eig = np.linalg.eigvalsh(fisher[1:, 1:]) if anchored else np.linalg.eigvalsh(fisher)[1:]
+        return float(np.sum(1 / np.maximum(eig, 1e-12)))
+
+    savings = []
+    for anchored in (True, False):
+        equal = variance(np.full(first.size, 1 / first.size), anchored)
+        best = optimize.minimize(lambda z, a=anchored: variance(np.exp(z) / np.exp(z).sum(), a),
+                                 np.zeros(first.size), method="BFGS")
+        savings.append(1 - min(best.fun, equal) / equal)
+    return savings[0], savings[1]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, default=60)
@@ -94,71 +123,73 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--span", type=float, default=SPAN, help="logit units from the worst to the best condition")
     parser.add_argument("--taste-sd", type=float, default=Observers.taste_sd,
                         help="sd of each observer's own offset per condition (0: all observers alike)")
-    parser.add_argument("--criterion", choices=("precision", "information"), default="precision",
-                        help="adaptive batches: the code's (precision against the anchor) or ASAP's information "
-                        "gain tree (adaptive.information_tree)")
+    parser.add_argument("--aim", choices=("reference", "order"), default="reference",
+                        help="the adaptive design's aim: reference (the tree for the values against the anchor, the "
+                        "default) or order (ASAP's information-gain tree)")
     parser.add_argument("--modes", nargs="+", default=["incomplete", "adaptive"])
     parser.add_argument("--json", type=str, default=None)
     args = parser.parse_args(argv)
     observers = Observers(taste_sd=args.taste_sd)
-    # The bench swaps the batch choice where the design code calls it; the server always uses next_batch.
-    choice = mock.patch("server.studies.assign.next_batch", adaptive.information_tree) \
-        if args.criterion == "information" else mock.patch("server.studies.assign.next_batch", adaptive.next_batch)
     rng = np.random.default_rng(0)
     boot = rng.integers(0, args.seeds, (BOOT, args.seeds))
     rows = []
-    with choice:
-        for n in args.sizes:
-            names = [f"c{i}" for i in range(n)]
-            truth = {c: args.span * i / (n - 1) for i, c in enumerate(names)}
-            designs = {mode: Design(mode=mode, reference="c0", conditions=names[1:], animations=["walk"])
-                       for mode in ("all-pairs", *args.modes)}
-            started, cpu = time.perf_counter(), time.process_time()
-            base_a, base_c, base_trials, base_failed = squared_errors(designs["all-pairs"], truth, args.base,
-                                                                      args.seeds, observers)
-            row = {"conditions": n, "design": "all-pairs", "participants": [args.base], "trials": [base_trials],
-                   "rmse": [math.sqrt(pooled(base_a))], "rmse_centred": [math.sqrt(pooled(base_c))],
-                   "failed": base_failed, "per_study_mse": [np.nanmean(base_a, axis=1).tolist()]}
-            rows.append(row)
-            print(f"N={n} all-pairs: {args.base} participants, {base_trials} trials, RMSE {row['rmse'][0]:.3f} "
-                  f"(centred {row['rmse_centred'][0]:.3f}), {base_failed} conditions without a value", flush=True)
-            for mode in args.modes:
-                per = designs[mode].trials_total()
-                counts = sorted({max(2, round(f * base_trials / per)) for f in GRID})
-                grid = [squared_errors(designs[mode], truth, p, args.seeds, observers) for p in counts]
-                trials = np.array([g[2] for g in grid], dtype=float)
-                out = {"conditions": n, "design": mode, "participants": counts, "trials": trials.tolist(),
-                       "rmse": [math.sqrt(pooled(g[0])) for g in grid],
-                       "rmse_centred": [math.sqrt(pooled(g[1])) for g in grid],
-                       "failed": sum(g[3] for g in grid),
-                       "per_study_mse": [np.nanmean(g[0], axis=1).tolist() for g in grid]}
-                for key, k, base in (("", 0, base_a), ("_centred", 1, base_c)):
-                    needed, slope = trials_at(pooled(base), trials, np.array([pooled(g[k]) for g in grid]))
-                    saved = []
-                    for draw in boot:
-                        t, _ = trials_at(pooled(base, draw), trials, np.array([pooled(g[k], draw) for g in grid]))
-                        saved.append(1 - t / base_trials)
-                    out["trials_needed" + key] = needed
-                    out["slope" + key] = slope
-                    out["saved" + key] = 1 - needed / base_trials
-                    out["saved_90" + key] = [float(np.percentile(saved, 5)), float(np.percentile(saved, 95))]
-                # The first version's aggregation, the mean over studies of each study's RMSE, beside it.
-                out["saved_mean_rmse"] = 1 - trials_at(mean_rmse(base_a) ** 2, trials,
-                                                       np.array([mean_rmse(g[0]) ** 2 for g in grid]))[0] / base_trials
-                rows.append(out)
-                points = ", ".join(f"{p}: {r:.3f}" for p, r in zip(counts, out["rmse"], strict=True))
-                print(f"N={n} {mode}: RMSE by participants {{{points}}}; all-pairs' precision at "
-                      f"{out['trials_needed']:.0f} trials: {100 * out['saved']:.0f} % fewer "
-                      f"(90 % {100 * out['saved_90'][0]:.0f}..{100 * out['saved_90'][1]:.0f}); centred: "
-                      f"{100 * out['saved_centred']:.0f} % ({100 * out['saved_90_centred'][0]:.0f}.."
-                      f"{100 * out['saved_90_centred'][1]:.0f}); mean of the studies' RMSE: "
-                      f"{100 * out['saved_mean_rmse']:.0f} %; "
-                      f"{out['failed']} conditions without a value",
-                      flush=True)
-            print(f"  ({time.perf_counter() - started:.0f} s wall, {time.process_time() - cpu:.0f} s CPU)",
+    for n in args.sizes:
+        names = [f"c{i}" for i in range(n)]
+        truth = {c: args.span * i / (n - 1) for i, c in enumerate(names)}
+        designs = {mode: Design(mode=mode, reference="c0", conditions=names[1:], animations=["walk"],
+                                aim=args.aim if mode == "adaptive" else None)
+                   for mode in ("all-pairs", *args.modes)}
+        started, cpu = time.perf_counter(), time.process_time()
+        base_a, base_c, base_trials, base_failed = squared_errors(designs["all-pairs"], truth, args.base,
+                                                                  args.seeds, observers)
+        row = {"conditions": n, "design": "all-pairs", "participants": [args.base], "trials": [base_trials],
+               "rmse": [math.sqrt(pooled(base_a))], "rmse_centred": [math.sqrt(pooled(base_c))],
+               "failed": base_failed, "per_study_mse": [np.nanmean(base_a, axis=1).tolist()]}
+        rows.append(row)
+        bound = allocation_bound(n, args.span)
+        row["bound"] = list(bound)
+        print(f"N={n} best fixed allocation of the pairs (Fisher information at the true values, observers "
+              f"alike): {100 * bound[0]:.0f} % fewer trials against the anchor, {100 * bound[1]:.0f} % centred",
+              flush=True)
+        print(f"N={n} all-pairs: {args.base} participants, {base_trials} trials, RMSE {row['rmse'][0]:.3f} "
+              f"(centred {row['rmse_centred'][0]:.3f}), {base_failed} conditions without a value", flush=True)
+        for mode in args.modes:
+            per = designs[mode].trials_total()
+            counts = sorted({max(2, round(f * base_trials / per)) for f in GRID})
+            grid = [squared_errors(designs[mode], truth, p, args.seeds, observers) for p in counts]
+            trials = np.array([g[2] for g in grid], dtype=float)
+            out = {"conditions": n, "design": mode, "participants": counts, "trials": trials.tolist(),
+                   "rmse": [math.sqrt(pooled(g[0])) for g in grid],
+                   "rmse_centred": [math.sqrt(pooled(g[1])) for g in grid],
+                   "failed": sum(g[3] for g in grid),
+                   "per_study_mse": [np.nanmean(g[0], axis=1).tolist() for g in grid]}
+            for key, k, base in (("", 0, base_a), ("_centred", 1, base_c)):
+                needed, slope = trials_at(pooled(base), trials, np.array([pooled(g[k]) for g in grid]))
+                saved = []
+                for draw in boot:
+                    t, _ = trials_at(pooled(base, draw), trials, np.array([pooled(g[k], draw) for g in grid]))
+                    saved.append(1 - t / base_trials)
+                out["trials_needed" + key] = needed
+                out["slope" + key] = slope
+                out["saved" + key] = 1 - needed / base_trials
+                out["saved_90" + key] = [float(np.percentile(saved, 5)), float(np.percentile(saved, 95))]
+            # The first version's aggregation, the mean over studies of each study's RMSE, beside it.
+            out["saved_mean_rmse"] = 1 - trials_at(mean_rmse(base_a) ** 2, trials,
+                                                   np.array([mean_rmse(g[0]) ** 2 for g in grid]))[0] / base_trials
+            rows.append(out)
+            points = ", ".join(f"{p}: {r:.3f}" for p, r in zip(counts, out["rmse"], strict=True))
+            print(f"N={n} {mode}: RMSE by participants {{{points}}}; all-pairs' precision at "
+                  f"{out['trials_needed']:.0f} trials: {100 * out['saved']:.0f} % fewer "
+                  f"(90 % {100 * out['saved_90'][0]:.0f}..{100 * out['saved_90'][1]:.0f}); centred: "
+                  f"{100 * out['saved_centred']:.0f} % ({100 * out['saved_90_centred'][0]:.0f}.."
+                  f"{100 * out['saved_90_centred'][1]:.0f}); mean of the studies' RMSE: "
+                  f"{100 * out['saved_mean_rmse']:.0f} %; "
+                  f"{out['failed']} conditions without a value",
                   flush=True)
+        print(f"  ({time.perf_counter() - started:.0f} s wall, {time.process_time() - cpu:.0f} s CPU)",
+              flush=True)
     print(f"\nspan {args.span:g} logit units, observers {observers}, {args.seeds} simulated studies per point, "
-          f"all-pairs with {args.base} participants, adaptive criterion {args.criterion}")
+          f"all-pairs with {args.base} participants, adaptive aim {args.aim}")
     print("\n| conditions | all-pairs: trials, RMSE | design | trials for the same RMSE | trials saved (90 % interval) "
           "| saved, centred RMSE | saved, mean of the studies' RMSE |")
     print("|---|---|---|---|---|---|---|")
@@ -173,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{100 * r['saved_mean_rmse']:.0f} % |")
     if args.json:
         with open(args.json, "w", encoding="utf-8") as f:
-            json.dump({"seeds": args.seeds, "base": args.base, "span": args.span, "criterion": args.criterion,
+            json.dump({"seeds": args.seeds, "base": args.base, "span": args.span, "aim": args.aim,
                        "taste_sd": args.taste_sd, "rows": rows}, f, indent=1)
     return 0
 

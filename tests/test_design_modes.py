@@ -43,6 +43,10 @@ def test_design_validation():
         Design(mode="all-pairs", conditions=[f"c{i}" for i in range(16)], animations=["a", "b"], repeats=5)
     with pytest.raises(ValidationError, match="twice in a row"):  # one pair per session: always repeated
         Design(mode="adaptive", conditions=["b"], animations=["walk"])
+    with pytest.raises(ValidationError, match='aim is for mode = "adaptive" only'):
+        _design("all-pairs", aim="order")
+    with pytest.raises(ValidationError, match="aim"):
+        _design("adaptive", aim="shape")
 
 
 def test_reference_sessions_keep_the_old_trials(db):
@@ -143,6 +147,23 @@ def test_adaptive_batches_aim_at_the_values_against_the_reference():
                      {c: 12.0 * i for i, c in enumerate(conditions)}, 10, seed=3).votes["walk"]
     for seed in range(3):
         assert next_batch(posterior(votes, conditions), seed).pairs == ((0, 1), (1, 2), (2, 3))
+
+
+def test_aim_order_takes_asaps_information_tree():
+    """``aim = "order"`` chooses the batches by ASAP's expected information gain about the whole scale: before any
+    vote every pair tells the same, so the seed picks any tree (not always the star around the reference that the
+    default aim takes); with conditions far apart it links neighbours, as the default does."""
+    from server.studies.assign import adaptive_batches
+    from server.studies.simulate import simulate
+
+    default, order = _design("adaptive"), _design("adaptive", aim="order")
+    trees = {adaptive_batches(order, {}, seed)["walk"].pairs for seed in range(8)}
+    assert {adaptive_batches(default, {}, seed)["walk"].pairs for seed in range(8)} == {((0, 1), (0, 2), (0, 3))}
+    assert len(trees) > 1 and trees != {((0, 1), (0, 2), (0, 3))}
+    conditions = order.all_conditions()
+    votes = simulate(Design(mode="all-pairs", reference="keyframe", conditions=FOUR, animations=["walk"]),
+                     {c: 12.0 * i for i, c in enumerate(conditions)}, 10, seed=3).votes
+    assert adaptive_batches(order, votes, 0)["walk"].pairs == ((0, 1), (1, 2), (2, 3))
 
 
 def test_results_show_the_scale_pair_counts_and_adaptive_rounds(client, db, researcher_headers):

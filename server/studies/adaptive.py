@@ -12,16 +12,19 @@ with few or one-sided answers) and the inverse of the posterior precision, estim
 the outer product of the per-vote scores (the BHHH estimate of the Fisher information: one pass over the votes,
 where a numerical Hessian would take one per parameter).
 
-Which tree: ASAP weights every pair by its expected information gain about the whole scale (the mutual
-information between the next answer and the scale, :func:`information_gain`).  What a study reports, though, is
-each condition's value against the anchor, so the tree is chosen for that (:func:`next_batch`): greedily, the pair
+Which tree (the design's ``aim``): ASAP weights every pair by its expected information gain about the whole scale
+(the mutual information between the next answer and the scale, :func:`information_gain`) and takes the minimum
+spanning tree over 1 / gain (:func:`information_tree`, ``aim = "order"``).  A study that reports each condition's
+value against the anchor can have the tree chosen for that (:func:`next_batch`, ``aim = "reference"``, the
+default): greedily, the pair
 whose answers are expected to shrink the summed posterior variances of the conditions against the anchor most
 (the Fisher information of the pair's answers, averaged over the posterior of its difference, as a rank-one
 update of the covariance), among the pairs joining two parts of the tree not yet linked, the covariance updated
 after each pick (Kruskal's algorithm on gains that account for the pairs already in the batch).  Pairs of
 near-equal conditions carry more information per answer than pairs of far-apart ones (an answer to a pair 6
 logit units apart is almost surely "much better"), and the anchor's pairs count more for the anchored values;
-both enter through this one criterion.  Measured against ASAP's information-gain tree in docs/designs.md.
+both enter through this one criterion.  The two are measured against each other in docs/designs.md: neither is
+better on both precisions at every spread of the conditions.
 
 Everything here is a pure function of the votes and a seed: the pairs a session was given can be recomputed from
 the study's vote log (the votes answered before the session started) and the session's stored seed.
@@ -167,9 +170,9 @@ def next_batch(post: Posterior, seed: int, showings: int = 2) -> Batch:
 
 
 def information_tree(post: Posterior, seed: int, showings: int = 2) -> Batch:
-    """ASAP's own batch: the minimum spanning tree over 1 / expected information gain (the criterion this module
-    used before :func:`next_batch`; kept so that ``bench/design_savings.py --criterion information`` can measure
-    the two against each other).  ``showings`` is unused: the gain of one answer ranks the pairs the same."""
+    """ASAP's own batch (``aim = "order"``): the minimum spanning tree over 1 / expected information gain, the
+    pairs whose next answer tells most about the whole scale.  ``showings`` is unused: the gain of one answer ranks
+    the pairs the same."""
     n = len(post.conditions)
     if n < 2:
         return Batch((), ())

@@ -4,15 +4,17 @@
 ``reference`` and ``all-pairs``: every test comparison of the study.  ``incomplete``: a slice of
 ``pairs_per_session`` pairs per animation from a fixed cyclic order of the pairs, the slice moving on by that many
 with every session, so over sessions every pair is shown equally often (±1).  ``adaptive``: per animation, the
-N-1 pairs :func:`server.studies.adaptive.next_batch` picks from the votes answered before the session started
-(the vote log) and the session's seed.  Catch and practice comparisons are the same in every mode.
+N-1 pairs picked from the votes answered before the session started (the vote log) and the session's seed, by
+:func:`server.studies.adaptive.next_batch` (``aim = "reference"``, the default) or
+:func:`server.studies.adaptive.information_tree` (``aim = "order"``).  Catch and practice comparisons are the same
+in every mode.
 """
 
 from __future__ import annotations
 
 import random
 
-from .adaptive import Batch, next_batch, posterior
+from .adaptive import Batch, information_tree, next_batch, posterior
 from .design import Design
 from .models import ComparisonKind, Study
 from .ranking import GradedComparison
@@ -42,5 +44,6 @@ def incomplete_pairs(design: Design, slug: str, position: int) -> list[PairKey]:
 def adaptive_batches(design: Design, votes: dict[str, list[GradedComparison]], seed: int) -> dict[str, Batch]:
     """Per animation, the batch of pairs (indices into ``design.all_conditions()``) for a session with ``seed``."""
     conditions = design.all_conditions()
-    return {a: next_batch(posterior(votes.get(a, []), conditions), seed + i, 2 * design.repeats)
+    choose = information_tree if design.aim == "order" else next_batch
+    return {a: choose(posterior(votes.get(a, []), conditions), seed + i, 2 * design.repeats)
             for i, a in enumerate(design.animations)}

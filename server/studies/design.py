@@ -9,8 +9,9 @@ Modes (``Design.mode``):
   consecutive slices of one seeded cyclic order of the pairs, so every pair is shown equally often (±1) over
   participants (see ``server.studies.sessions``).
 - ``adaptive``: each participant sees the N-1 pairs (N conditions) of a spanning tree chosen from the answers so
-  far, the one expected to make the values against the reference most precise (ASAP-style batches;
-  ``server.studies.adaptive``).
+  far (ASAP-style batches; ``server.studies.adaptive``): by default (``aim = "reference"``) the one expected to make
+  the values against the reference most precise; with ``aim = "order"`` ASAP's own, the tree of the largest expected
+  information gain about the whole scale.
 
 Side balance is by construction in every mode: each comparison a participant sees is shown ``2 * repeats`` times,
 ``repeats`` times with its first condition (the "reference" of the comparison) on each side.
@@ -47,6 +48,7 @@ SHUFFLE_BUDGET = 512
 # plus catch and practice trials, is 2577).
 MAX_TRIALS = 2600
 Mode = Literal["reference", "all-pairs", "incomplete", "adaptive"]
+Aim = Literal["reference", "order"]
 # The thesis design, and the default of every design field.
 THESIS_ANIMATIONS = ("walk", "run", "crouch", "idle")
 THESIS_CONDITIONS = ("hybrid0", "hybrid1")
@@ -69,6 +71,9 @@ class Design(BaseModel):
     pairs_per_session: int | None = Field(None, ge=1, le=136, description="incomplete mode: the pairs of "
                                           "conditions each participant sees per animation (default: the number "
                                           "of conditions, the reference included, minus one)")
+    aim: Aim | None = Field(None, description="adaptive mode: what the batches are chosen for; reference (the "
+                            "default): each condition's value against the reference; order: the whole scale, by "
+                            "ASAP's expected information gain (better for ranking the conditions among themselves)")
     practice: Ident | None = Field(None, description="a condition shown once against the reference (first "
                                    "animation) as an unanalysed practice trial before the others")
     catch_trials: int = Field(0, ge=0, le=16, description="attention checks: one animation's reference clip on "
@@ -88,6 +93,8 @@ class Design(BaseModel):
                              f"({len(self.animations)}): each uses a different animation")
         if self.practice == self.reference:
             raise ValueError("the practice condition must differ from the reference")
+        if self.aim is not None and self.mode != "adaptive":
+            raise ValueError("aim is for mode = \"adaptive\" only")
         if self.pairs_per_session is not None:
             if self.mode != "incomplete":
                 raise ValueError("pairs_per_session is for mode = \"incomplete\" only")
