@@ -90,13 +90,19 @@ def test_adaptive_sessions_are_spanning_trees_reproducible_from_the_vote_log(cli
         assert len(trials) == 2 * 3 * 2 + 1
     rounds = session_batches(db, study)
     assert [r.votes_before for r in rounds] == [0, 13 - 1, 2 * 12, 3 * 12]  # catch votes are not test votes
+    from server.participants.assign import study_votes
     from server.participants.models import ParticipantSession
+    from server.studies.assign import adaptive_batches
+    design = Design.model_validate(study.design)
     for r in rounds:
         ps = db.get(ParticipantSession, r.session_id)
         shown = {k[:3] for k in _shown(ps)}
+        # What was shown is what the design code chooses again from the stored seed and the votes before it.
+        again = adaptive_batches(design, study_votes(db, study, before=ps.created_at), ps.seed)
         for animation in ("walk", "run"):
             edges = [(x, y) for a, x, y in shown if a == animation and x != y]
-            assert sorted(edges) == sorted(r.pairs[animation])  # recomputed from the log = what was shown
+            assert sorted(edges) == sorted((conditions[i], conditions[j]) for i, j in again[animation].pairs)
+            assert sorted(edges) == sorted(r.pairs[animation])  # the dashboard's rounds show what was shown
             # N - 1 edges linking all N conditions: a spanning tree
             linked, grew = {conditions[0]}, True
             while grew:
@@ -214,7 +220,7 @@ def test_simulate_and_plan_commands(tmp_path, capsys):
 
     study = tmp_path / "s.toml"
     text = (Path(__file__).resolve().parents[1] / "studies" / "adaptive-walk.toml").read_text(encoding="utf-8")
-    study.write_text(text.replace('mode = "adaptive"', 'mode = "all-pairs"').replace(
+    study.write_text(text.replace('mode = "adaptive"', 'mode = "all-pairs"').replace('aim = "order"', "").replace(
         '"hybrid0", "hybrid_ik0", "hybrid_c2_0", "reduced2", "quantized12"', '"hybrid0", "reduced2"'),
         encoding="utf-8")
     truth = tmp_path / "truth.toml"
@@ -232,3 +238,31 @@ def test_simulate_and_plan_commands(tmp_path, capsys):
     assert cli.main(["study", "plan", str(study), "--effect", "3", "--seeds", "4"]) == 0
     out = capsys.readouterr()
     assert "participants (" in out.out and "power" in out.err
+
+
+def test_batches_are_planned_with_the_expected_information_of_the_pairs_shown():
+    """The covariance the batches are planned with is the inverse of the prior precision plus, per vote, the
+    expected Fisher information of one five-point answer at the fitted difference: checked against the answer
+    probabilities of the logistic model differentiated numerically (scipy's logistic, not the module's code)."""
+    import numpy as np
+    from scipy import stats
+
+    from server.studies.adaptive import PRIOR_SD, posterior
+    from server.studies.ranking import GradedComparison
+
+    answers = (2, 1, 1, 0, 1, 2, 0, 1) * 5  # 40 answers to one pair, the second mostly better
+    post = posterior([GradedComparison(str(i), "a", "b", s) for i, s in enumerate(answers)], ["a", "b", "c"])
+    delta, cuts = post.mean[1] - post.mean[0], post.cuts
+
+    def probabilities(d: float) -> np.ndarray:
+        return np.diff(np.concatenate([[0.0], stats.logistic.cdf(cuts - d), [1.0]]))
+
+    h = 1e-5
+    slope = (probabilities(delta + h) - probabilities(delta - h)) / (2 * h)
+    info = float((slope**2 / probabilities(delta)).sum())
+    precision = np.eye(3) / PRIOR_SD**2
+    precision[:2, :2] += len(answers) * info * np.array([[1.0, -1.0], [-1.0, 1.0]])
+    assert np.allclose(post.planning_cov, np.linalg.inv(precision), rtol=1e-6, atol=1e-9)
+    # The condition without a vote keeps the prior's variance; the pair's difference is far surer than that.
+    assert abs(post.planning_cov[2, 2] - PRIOR_SD**2) < 1e-9
+    assert post.planning_cov[0, 0] + post.planning_cov[1, 1] - 2 * post.planning_cov[0, 1] < 0.2

@@ -1,7 +1,8 @@
 """Which comparisons a new session shows (:mod:`server.studies.assign` chooses the pairs by the design's mode).
 
 The choices are pure functions of what is stored (the session's seed, its position among the study's sessions,
-the votes and when they were answered), so :func:`session_batches` recomputes every adaptive round afterwards.
+the votes and when they were answered).  :func:`session_batches` shows every adaptive round afterwards with the
+pairs its session was given (its stored trials) and the information they promised given the votes before it.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from datetime import datetime
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, aliased
 
+from server.studies.adaptive import information_gain, posterior
 from server.studies.assign import adaptive_batches, incomplete_pairs, pair_comparisons
 from server.studies.design import ComparisonIds, Design
 from server.studies.models import Comparison, ComparisonKind, Stimulus, Study
@@ -76,16 +78,30 @@ class Round:
 
 
 def session_batches(session: Session, study: Study) -> list[Round]:
-    """Every session of an adaptive study, in order, with the batch recomputed from the vote log and its seed
-    (withdrawn sessions' votes are gone, so rounds after a withdrawal may differ from what was shown)."""
+    """Every session of an adaptive study, in order: the pairs it was given (from its trials, which stay when a
+    participant withdraws) and their expected information gain given the votes stored before it started (a
+    withdrawal deletes votes, so a round after one can show less information than it promised then)."""
     design = Design.model_validate(study.design)
     conditions = design.all_conditions()
+    index = {c: i for i, c in enumerate(conditions)}
+    reference, test = aliased(Stimulus), aliased(Stimulus)
+    given: dict[str, dict[str, set[tuple[str, str]]]] = defaultdict(lambda: defaultdict(set))
+    for sid, animation, ref, tst in session.execute(
+            select(Trial.session_id, reference.animation, reference.condition, test.condition)
+            .join(ParticipantSession, Trial.session_id == ParticipantSession.id)
+            .join(Comparison, Trial.comparison_id == Comparison.id)
+            .join(reference, Comparison.reference_id == reference.id).join(test, Comparison.test_id == test.id)
+            .where(ParticipantSession.study_id == study.id, Comparison.kind == ComparisonKind.test,
+                   Trial.practice.is_(False))):
+        given[sid][animation].add(tuple(sorted((ref, tst), key=index.__getitem__)))
     rounds = []
     for ps in session.scalars(select(ParticipantSession).where(ParticipantSession.study_id == study.id)
                               .order_by(ParticipantSession.created_at, ParticipantSession.id)):
         votes = study_votes(session, study, before=ps.created_at)
-        batches = adaptive_batches(design, votes, ps.seed)
-        rounds.append(Round(ps.id, ps.created_at, sum(len(v) for v in votes.values()),
-                            {a: b.information for a, b in batches.items()},
-                            {a: [(conditions[i], conditions[j]) for i, j in b.pairs] for a, b in batches.items()}))
+        pairs = {a: sorted(given[ps.id][a], key=lambda p: (index[p[0]], index[p[1]])) for a in design.animations}
+        information = {}
+        for a, shown in pairs.items():
+            post = posterior(votes.get(a, []), conditions)
+            information[a] = float(sum(information_gain(post, index[x], index[y]) for x, y in shown))
+        rounds.append(Round(ps.id, ps.created_at, sum(len(v) for v in votes.values()), information, pairs))
     return rounds
