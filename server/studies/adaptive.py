@@ -10,14 +10,16 @@ the 5-point answers, the anchor condition at 0).  The posterior of the scale val
 the maximum a posteriori values under a weak normal prior (``PRIOR_SD`` logit units, which keeps them finite
 with few or one-sided answers) and the inverse of the posterior precision, estimated as the prior precision plus
 the outer product of the per-vote scores (the BHHH estimate of the Fisher information: one pass over the votes,
-where a numerical Hessian would take one per parameter).
+where a numerical Hessian would take one per parameter).  The trees are planned with the expected Fisher
+information of the pairs answered so far at the MAP values instead (``Posterior.planning_cov``): the observed
+information of a few votes scatters with the answers given.
 
 Which tree (the design's ``aim``): ASAP weights every pair by its expected information gain about the whole scale
 (the mutual information between the next answer and the scale, :func:`information_gain`) and takes the minimum
 spanning tree over 1 / gain (:func:`information_tree`, ``aim = "order"``).  A study that reports each condition's
 value against the anchor can have the tree chosen for that (:func:`next_batch`, ``aim = "reference"``, the
-default): greedily, the pair
-whose answers are expected to shrink the summed posterior variances of the conditions against the anchor most
+default): greedily, the pair whose answers are expected to shrink the summed posterior variances of the
+conditions against the anchor most
 (the Fisher information of the pair's answers, averaged over the posterior of its difference, as a rank-one
 update of the covariance), among the pairs joining two parts of the tree not yet linked, the covariance updated
 after each pick (Kruskal's algorithm on gains that account for the pairs already in the batch).  Pairs of
@@ -59,9 +61,9 @@ class Posterior:
     cuts: np.ndarray  # (4,) the cut points -b, -a, a, b
     n_votes: int
     # (N, N) the inverse of the prior precision plus the *expected* Fisher information of the votes' pairs at the
-    # posterior mean (cut points taken as known): what :func:`next_batch` plans with.  The observed (BHHH)
-    # information of a few votes scatters with the answers given; planning on it chose worse trees (measured in
-    # docs/designs.md).
+    # posterior mean (cut points taken as known): what both trees plan with, and the gains are computed with.  The
+    # observed (BHHH) information of a few votes scatters with the answers given; planning on it chose worse trees
+    # (measured in docs/designs.md).
     planning_cov: np.ndarray
 
 
@@ -118,7 +120,8 @@ def information_gain(post: Posterior, first: int, second: int) -> float:
     """Expected information (nats) the next answer to ``first`` against ``second`` gives about their scale
     difference."""
     m = post.mean[second] - post.mean[first]
-    var = post.cov[first, first] + post.cov[second, second] - 2 * post.cov[first, second]
+    cov = post.planning_cov
+    var = cov[first, first] + cov[second, second] - 2 * cov[first, second]
     p = _answer_probabilities(m + np.sqrt(max(var, 0.0)) * _NODES, post.cuts)
     marginal = _WEIGHTS @ p
     conditional = -(p * np.log(p)).sum(axis=1)
