@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import socket
 import threading
@@ -17,6 +18,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session
 
 from server.app import create_app
+from server.clipset.config import ClipSetConfig, load_config
 from server.config import Settings
 from server.deps import get_session
 from server.media.manifest import RenderedClip, RenderedPair, RenderManifest
@@ -29,6 +31,13 @@ from server.studies.studyfile import StudyFile, thesis_study
 ANIMATIONS = ("walk", "run", "crouch", "idle")
 CONDITIONS = ("keyframe", "hybrid0", "hybrid1", "hybrid2")
 RESEARCHER = ("lead@example.org", "correct horse battery")
+
+
+def small_clip_config() -> ClipSetConfig:
+    """The built-in clip set cut to two animations (run, idle) and two conditions: quick to build and render."""
+    config = load_config()
+    return dataclasses.replace(config, animations={k: config.animations[k] for k in ("run", "idle")},
+                               conditions=config.conditions[:2])
 
 
 def fake_name(text: str) -> str:

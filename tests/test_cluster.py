@@ -5,7 +5,6 @@ A small clip set (two animations, two conditions, 96x72) keeps it fast; every jo
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import socket
@@ -21,7 +20,6 @@ import pytest
 
 from server import cluster
 from server.clipset.build import build_clip_set
-from server.clipset.config import load_config
 from server.clipset.manifest import write_clip_set
 from server.errors import MediaError
 from server.media.build import read_clip_set, render_media
@@ -29,6 +27,7 @@ from server.media.manifest import MANIFEST
 from server.media.scene import RenderSettings
 from server.studies.service import clip_set_index, required_pairs
 from server.studies.studyfile import thesis_study
+from tests.server_fixtures import small_clip_config
 
 TINY = RenderSettings(width=96, height=72, shadows=False)
 SECRET = b"cluster test secret"
@@ -43,11 +42,8 @@ def _port() -> int:
 
 @pytest.fixture(scope="module")
 def clips_dir(data, tmp_path_factory):
-    config = load_config()
-    small = dataclasses.replace(config, animations={k: config.animations[k] for k in ("run", "idle")},
-                                conditions=config.conditions[:2])
     out = tmp_path_factory.mktemp("clips")
-    write_clip_set(build_clip_set(data, small), out)
+    write_clip_set(build_clip_set(data, small_clip_config()), out)
     return out
 
 
@@ -240,11 +236,8 @@ def test_a_clip_set_builds_on_the_cluster_as_in_this_process(data, clips_dir, da
     """One task per animation on the real cluster (each reads no file: the motion comes read with the task);
     the clips are the ones built in this process (the clip set of the module), array for array."""
     address, _observer, _procs = dask_cluster
-    config = load_config()
-    small = dataclasses.replace(config, animations={k: config.animations[k] for k in ("run", "idle")},
-                                conditions=config.conditions[:2])
     messages: list[str] = []
-    built = build_clip_set(data, small, progress=messages.append, scheduler=address)
+    built = build_clip_set(data, small_clip_config(), progress=messages.append, scheduler=address)
     assert "building 2 animations on Dask" in messages, messages
     local = {c.id: c for c in read_clip_set(clips_dir)}
     assert [c.id for c in built] == list(local)

@@ -6,7 +6,6 @@ A small clip set (two animations, two conditions, 96x72 without shadows) keeps i
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import subprocess
 import sys
@@ -18,7 +17,6 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from server.clipset.build import build_clip_set
-from server.clipset.config import load_config
 from server.clipset.manifest import write_clip_set
 from server.config import Settings
 from server.db import migrate
@@ -26,6 +24,7 @@ from server.media.manifest import read_render_manifest
 from server.uploads.models import BuildJob, BuildState, JobKind
 from server.uploads.service import resume_lost_jobs
 from tests.conftest import DATABASES, _fresh_engine
+from tests.server_fixtures import small_clip_config
 from tests.test_cluster import broken_clip_set
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,11 +33,8 @@ SECRET = "job resume test secret"
 
 @pytest.fixture(scope="module")
 def clips_dir(data, tmp_path_factory):
-    config = load_config()
-    small = dataclasses.replace(config, animations={k: config.animations[k] for k in ("run", "idle")},
-                                conditions=config.conditions[:2])
     out = tmp_path_factory.mktemp("clips")
-    write_clip_set(build_clip_set(data, small), out)
+    write_clip_set(build_clip_set(data, small_clip_config()), out)
     return out
 
 
