@@ -262,7 +262,7 @@ def test_batches_are_planned_with_the_expected_information_of_the_pairs_shown():
     info = float((slope**2 / probabilities(delta)).sum())
     precision = np.eye(3) / PRIOR_SD**2
     precision[:2, :2] += len(answers) * info * np.array([[1.0, -1.0], [-1.0, 1.0]])
-    assert np.allclose(post.planning_cov, np.linalg.inv(precision), rtol=1e-6, atol=1e-9)
+    assert np.allclose(post.cov, np.linalg.inv(precision), rtol=1e-6, atol=1e-9)
     # The condition without a vote keeps the prior's variance; the pair's difference is far surer than that.
-    assert abs(post.planning_cov[2, 2] - PRIOR_SD**2) < 1e-9
-    assert post.planning_cov[0, 0] + post.planning_cov[1, 1] - 2 * post.planning_cov[0, 1] < 0.2
+    assert abs(post.cov[2, 2] - PRIOR_SD**2) < 1e-9
+    assert post.cov[0, 0] + post.cov[1, 1] - 2 * post.cov[0, 1] < 0.2

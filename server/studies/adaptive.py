@@ -8,11 +8,10 @@ its trials where they tell most.
 Here the model is the ordinal Bradley-Terry model of :mod:`server.studies.ranking` (the cumulative logit model of
 the 5-point answers, the anchor condition at 0).  The posterior of the scale values is its Laplace approximation:
 the maximum a posteriori values under a weak normal prior (``PRIOR_SD`` logit units, which keeps them finite
-with few or one-sided answers) and the inverse of the posterior precision, estimated as the prior precision plus
-the outer product of the per-vote scores (the BHHH estimate of the Fisher information: one pass over the votes,
-where a numerical Hessian would take one per parameter).  The trees are planned with the expected Fisher
-information of the pairs answered so far at the MAP values instead (``Posterior.planning_cov``): the observed
-information of a few votes scatters with the answers given.
+with few or one-sided answers) and the inverse of the posterior precision, the prior precision plus the
+*expected* Fisher information of the pairs answered so far at those values (the cut points taken as known).  The
+observed (BHHH) information, which this module used before, scatters with the few answers given and chose worse
+trees.
 
 Which tree (the design's ``aim``): ASAP weights every pair by its expected information gain about the whole scale
 (the mutual information between the next answer and the scale, :func:`information_gain`) and takes the minimum
@@ -57,14 +56,13 @@ class Posterior:
 
     conditions: tuple[str, ...]
     mean: np.ndarray  # (N,) logit units, mean[0] == 0
-    cov: np.ndarray  # (N, N) of the values before the anchor is subtracted (only differences matter)
+    # (N, N) of the values before the anchor is subtracted (only differences matter): the inverse of the prior
+    # precision plus the *expected* Fisher information of the votes' pairs at the posterior mean (cut points taken
+    # as known).  The observed (BHHH) information of a few votes, which this was before, scatters with the
+    # answers given; planning on it chose worse trees (measured in docs/designs.md).
+    cov: np.ndarray
     cuts: np.ndarray  # (4,) the cut points -b, -a, a, b
     n_votes: int
-    # (N, N) the inverse of the prior precision plus the *expected* Fisher information of the votes' pairs at the
-    # posterior mean (cut points taken as known): what both trees plan with, and the gains are computed with.  The
-    # observed (BHHH) information of a few votes scatters with the answers given; planning on it chose worse trees
-    # (measured in docs/designs.md).
-    planning_cov: np.ndarray
 
 
 def posterior(votes: Sequence[GradedComparison], conditions: Sequence[str]) -> Posterior:
@@ -93,20 +91,12 @@ def posterior(votes: Sequence[GradedComparison], conditions: Sequence[str]) -> P
         return value, grad
 
     opt = optimize.minimize(objective, prior_mean, jac=True, method="BFGS", options={"gtol": 1e-7})
-    hessian = np.diag(prior_precision)
-    if used:
-        per_vote = _scores(opt.x, x, y, False, n, "logit")[1]
-        hessian = hessian + per_vote.T @ per_vote
-    try:
-        full = np.linalg.inv(hessian)
-    except np.linalg.LinAlgError:  # cannot happen with the prior's precision on the diagonal; be safe anyway
-        full = np.diag(1 / prior_precision)
-    mean, cov = opt.x[:n] - opt.x[0], full[:n, :n]
+    mean = opt.x[:n] - opt.x[0]
     cuts, _ = _cuts(opt.x[n:], False)
-    expected = np.diag(prior_precision[:n])
+    precision = np.diag(prior_precision[:n])  # positive definite: the prior's precision is on the diagonal
     if used:
-        expected = expected + (x * answer_information(x @ mean, cuts)[:, None]).T @ x
-    return Posterior(tuple(names), mean, cov, cuts, len(used), np.linalg.inv(expected))
+        precision = precision + (x * answer_information(x @ mean, cuts)[:, None]).T @ x
+    return Posterior(tuple(names), mean, np.linalg.inv(precision), cuts, len(used))
 
 
 def _answer_probabilities(delta: np.ndarray, cuts: np.ndarray) -> np.ndarray:
@@ -120,8 +110,7 @@ def information_gain(post: Posterior, first: int, second: int) -> float:
     """Expected information (nats) the next answer to ``first`` against ``second`` gives about their scale
     difference."""
     m = post.mean[second] - post.mean[first]
-    cov = post.planning_cov
-    var = cov[first, first] + cov[second, second] - 2 * cov[first, second]
+    var = post.cov[first, first] + post.cov[second, second] - 2 * post.cov[first, second]
     p = _answer_probabilities(m + np.sqrt(max(var, 0.0)) * _NODES, post.cuts)
     marginal = _WEIGHTS @ p
     conditional = -(p * np.log(p)).sum(axis=1)
@@ -158,7 +147,7 @@ def next_batch(post: Posterior, seed: int, showings: int = 2) -> Batch:
     if n < 2:
         return Batch((), ())
     first, second = np.triu_indices(n, 1)
-    cov = post.planning_cov.copy()
+    cov = post.cov.copy()
     spread = np.sqrt(np.maximum(cov[first, first] + cov[second, second] - 2 * cov[first, second], 0.0))
     delta = post.mean[second] - post.mean[first]
     expected = answer_information((delta[:, None] + spread[:, None] * _NODES[None, :]).ravel(), post.cuts)
