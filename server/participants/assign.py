@@ -10,8 +10,9 @@ from __future__ import annotations
 from collections import defaultdict
 from dataclasses import dataclass
 from datetime import datetime
+from typing import Any
 
-from sqlalchemy import func, select
+from sqlalchemy import Select, func, select
 from sqlalchemy.orm import Session, aliased
 
 from server.studies.adaptive import information_gain, posterior
@@ -30,16 +31,22 @@ def sessions_started(session: Session, study: Study) -> int:
         ParticipantSession.study_id == study.id)) or 0
 
 
+def _test_trials(study: Study, *columns: Any) -> Select:
+    """(session id, animation, first condition, second condition, *columns) of every test trial of ``study``
+    (practice and catch trials excluded)."""
+    reference, test = aliased(Stimulus), aliased(Stimulus)
+    return (select(Trial.session_id, reference.animation, reference.condition, test.condition, *columns)
+            .select_from(Trial).join(Comparison, Trial.comparison_id == Comparison.id)
+            .join(reference, Comparison.reference_id == reference.id).join(test, Comparison.test_id == test.id)
+            .where(Comparison.study_id == study.id, Comparison.kind == ComparisonKind.test,
+                   Trial.practice.is_(False)))
+
+
 def study_votes(session: Session, study: Study, before: datetime | None = None
                 ) -> dict[str, list[GradedComparison]]:
     """The test votes of ``study`` per animation (practice excluded), optionally only those answered before
     ``before``."""
-    reference, test = aliased(Stimulus), aliased(Stimulus)
-    query = (select(Trial.session_id, reference.animation, reference.condition, test.condition, Vote.score)
-             .join(Trial, Vote.trial_id == Trial.id).join(Comparison, Trial.comparison_id == Comparison.id)
-             .join(reference, Comparison.reference_id == reference.id).join(test, Comparison.test_id == test.id)
-             .where(Comparison.study_id == study.id, Comparison.kind == ComparisonKind.test,
-                    Trial.practice.is_(False)).order_by(Vote.id))
+    query = _test_trials(study, Vote.score).join(Vote, Vote.trial_id == Trial.id).order_by(Vote.id)
     if before is not None:
         query = query.where(Vote.answered_at < before)
     out: dict[str, list[GradedComparison]] = defaultdict(list)
@@ -84,15 +91,8 @@ def session_batches(session: Session, study: Study) -> list[Round]:
     design = Design.model_validate(study.design)
     conditions = design.all_conditions()
     index = {c: i for i, c in enumerate(conditions)}
-    reference, test = aliased(Stimulus), aliased(Stimulus)
     given: dict[str, dict[str, set[tuple[str, str]]]] = defaultdict(lambda: defaultdict(set))
-    for sid, animation, ref, tst in session.execute(
-            select(Trial.session_id, reference.animation, reference.condition, test.condition)
-            .join(ParticipantSession, Trial.session_id == ParticipantSession.id)
-            .join(Comparison, Trial.comparison_id == Comparison.id)
-            .join(reference, Comparison.reference_id == reference.id).join(test, Comparison.test_id == test.id)
-            .where(ParticipantSession.study_id == study.id, Comparison.kind == ComparisonKind.test,
-                   Trial.practice.is_(False))):
+    for sid, animation, ref, tst in session.execute(_test_trials(study)):
         given[sid][animation].add(tuple(sorted((ref, tst), key=index.__getitem__)))
     rounds = []
     for ps in session.scalars(select(ParticipantSession).where(ParticipantSession.study_id == study.id)
