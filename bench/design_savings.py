@@ -34,11 +34,13 @@ import json
 import math
 import sys
 import time
+from functools import partial
 
 import numpy as np
 from scipy import optimize
 
 from server.studies import adaptive
+from server.studies.assign import Belief
 from server.studies.design import Design
 from server.studies.simulate import CUTS, Observers, simulate
 
@@ -46,16 +48,18 @@ SPAN = 2.5
 GRID = (0.4, 0.6, 0.8, 1.0, 1.3)  # the other designs' trials, as shares of all-pairs' trials
 BOOT = 1000
 NEAR = 3
+TRUE_CUTS = np.array([-CUTS[1], -CUTS[0], CUTS[0], CUTS[1]])  # the simulated observers' cut points
 
 
 def squared_errors(design: Design, truth: dict[str, float], participants: int, seeds: int,
-                   observers: Observers) -> tuple[np.ndarray, np.ndarray, int, int]:
+                   observers: Observers,
+                   belief: Belief = adaptive.posterior) -> tuple[np.ndarray, np.ndarray, int, int]:
     """(seeds, N-1) errors squared, anchored and centred; the trials per study; conditions without a finite
-    value over all studies (left out of the errors)."""
+    value over all studies (left out of the errors).  ``belief``: what an adaptive design plans on."""
     anchored, centred, failed, trials = [], [], 0, 0
     conditions = design.all_conditions()[1:]
     for s in range(seeds):
-        run = simulate(design, truth, participants, seed=s, observers=observers)
+        run = simulate(design, truth, participants, seed=s, observers=observers, belief=belief)
         trials = run.trials
         values = run.estimate[design.animations[0]]
         error = np.array([math.nan if values[c] is None else values[c] - (truth[c] - truth[design.reference])
@@ -94,8 +98,7 @@ def allocation_bound(n: int, span: float) -> tuple[float, float]:
     variance of a fixed design falls as 1/trials, so the saving at equal precision is 1 - optimal/all-pairs."""
     truth = np.linspace(0.0, span, n)
     first, second = np.triu_indices(n, 1)
-    cuts = np.array([-CUTS[1], -CUTS[0], CUTS[0], CUTS[1]])
-    info = adaptive.answer_information(truth[second] - truth[first], cuts)
+    info = adaptive.answer_information(truth[second] - truth[first], TRUE_CUTS)
     x = np.zeros((first.size, n))
     x[np.arange(first.size), second], x[np.arange(first.size), first] = 1.0, -1.0
 
@@ -126,7 +129,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--aim", choices=("reference", "order"), default="reference",
                         help="the adaptive design's aim: reference (the tree for the values against the anchor, the "
                         "default) or order (ASAP's information-gain tree)")
-    parser.add_argument("--modes", nargs="+", default=["incomplete", "adaptive"])
+    parser.add_argument("--modes", nargs="+", default=["incomplete", "adaptive"],
+                        choices=("incomplete", "adaptive", "oracle"),
+                        help="oracle: the adaptive design planning on the true values and cut points instead of "
+                        "the posterior (what knowing the truth would save; not a design a study can use)")
     parser.add_argument("--json", type=str, default=None)
     args = parser.parse_args(argv)
     observers = Observers(taste_sd=args.taste_sd)
@@ -136,9 +142,12 @@ def main(argv: list[str] | None = None) -> int:
     for n in args.sizes:
         names = [f"c{i}" for i in range(n)]
         truth = {c: args.span * i / (n - 1) for i, c in enumerate(names)}
-        designs = {mode: Design(mode=mode, reference="c0", conditions=names[1:], animations=["walk"],
-                                aim=args.aim if mode == "adaptive" else None)
+        designs = {mode: Design(mode="adaptive" if mode == "oracle" else mode, reference="c0",
+                                conditions=names[1:], animations=["walk"],
+                                aim=args.aim if mode in ("adaptive", "oracle") else None)
                    for mode in ("all-pairs", *args.modes)}
+        beliefs = {mode: adaptive.posterior for mode in designs}
+        beliefs["oracle"] = partial(adaptive.known_posterior, values=truth, cuts=TRUE_CUTS)
         started, cpu = time.perf_counter(), time.process_time()
         base_a, base_c, base_trials, base_failed = squared_errors(designs["all-pairs"], truth, args.base,
                                                                   args.seeds, observers)
@@ -156,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
         for mode in args.modes:
             per = designs[mode].trials_total()
             counts = sorted({max(2, round(f * base_trials / per)) for f in GRID})
-            grid = [squared_errors(designs[mode], truth, p, args.seeds, observers) for p in counts]
+            grid = [squared_errors(designs[mode], truth, p, args.seeds, observers, beliefs[mode]) for p in counts]
             trials = np.array([g[2] for g in grid], dtype=float)
             out = {"conditions": n, "design": mode, "participants": counts, "trials": trials.tolist(),
                    "rmse": [math.sqrt(pooled(g[0])) for g in grid],

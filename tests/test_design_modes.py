@@ -266,3 +266,32 @@ def test_batches_are_planned_with_the_expected_information_of_the_pairs_shown():
     # The condition without a vote keeps the prior's variance; the pair's difference is far surer than that.
     assert abs(post.cov[2, 2] - PRIOR_SD**2) < 1e-9
     assert post.cov[0, 0] + post.cov[1, 1] - 2 * post.cov[0, 1] < 0.2
+
+
+def test_the_bench_oracle_plans_on_the_true_values_with_the_same_covariance():
+    """``known_posterior`` (what the design bench's oracle plans on) is the truth with the covariance the
+    posterior would have there: checked against scipy's logistic differentiated numerically at the true
+    difference, and equal to the posterior's own covariance when given the posterior's values and cuts."""
+    import numpy as np
+    from scipy import stats
+
+    from server.studies.adaptive import PRIOR_SD, known_posterior, posterior
+    from server.studies.ranking import GradedComparison
+
+    votes = [GradedComparison(str(i), "a", "b", s) for i, s in enumerate((2, 1, 1, 0, 1, 2, 0, 1) * 5)]
+    cuts = np.array([-2.0, -0.5, 0.5, 2.0])
+    known = known_posterior(votes, ["a", "b", "c"], values={"a": 1.0, "b": 4.0, "c": -1.0}, cuts=cuts)
+    assert np.allclose(known.mean, [0.0, 3.0, -2.0]) and np.array_equal(known.cuts, cuts) and known.n_votes == 40
+
+    def probabilities(d: float) -> np.ndarray:
+        return np.diff(np.concatenate([[0.0], stats.logistic.cdf(cuts - d), [1.0]]))
+
+    h = 1e-5
+    slope = (probabilities(3.0 + h) - probabilities(3.0 - h)) / (2 * h)
+    precision = np.eye(3) / PRIOR_SD**2
+    precision[:2, :2] += 40 * float((slope**2 / probabilities(3.0)).sum()) * np.array([[1.0, -1.0], [-1.0, 1.0]])
+    assert np.allclose(known.cov, np.linalg.inv(precision), rtol=1e-6, atol=1e-9)
+
+    post = posterior(votes, ["a", "b", "c"])
+    same = known_posterior(votes, ["a", "b", "c"], values=dict(zip("abc", post.mean, strict=True)), cuts=post.cuts)
+    assert np.allclose(same.cov, post.cov, rtol=1e-12, atol=1e-15)

@@ -65,27 +65,41 @@ class Posterior:
     n_votes: int
 
 
+def _votes_matrix(votes: Sequence[GradedComparison], names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    """(votes, N) rows +1 at the test and -1 at the reference of the usable votes, and their answers 0..4; votes
+    of other conditions and catch votes (a condition against itself) are left out."""
+    index = {c: i for i, c in enumerate(names)}
+    used = [v for v in votes if v.reference != v.test and v.reference in index and v.test in index]
+    x = np.zeros((len(used), len(names)))
+    for row, v in enumerate(used):
+        x[row, index[v.test]] += 1
+        x[row, index[v.reference]] -= 1
+    return x, np.array([v.score + 2 for v in used], dtype=int)
+
+
+def _planning_cov(x: np.ndarray, mean: np.ndarray, cuts: np.ndarray) -> np.ndarray:
+    """The inverse of the prior precision plus the expected Fisher information of the rows' pairs at ``mean``."""
+    precision = np.eye(mean.size) / PRIOR_SD**2  # positive definite: the prior's precision is on the diagonal
+    if x.size:
+        precision = precision + (x * answer_information(x @ mean, cuts)[:, None]).T @ x
+    return np.linalg.inv(precision)
+
+
 def posterior(votes: Sequence[GradedComparison], conditions: Sequence[str]) -> Posterior:
     """The posterior of the scale values of ``conditions`` (the first is the anchor) given ``votes``; votes of
     other conditions and catch votes (a condition against itself) are ignored."""
     names = list(conditions)
-    index = {c: i for i, c in enumerate(names)}
-    used = [v for v in votes if v.reference != v.test and v.reference in index and v.test in index]
+    x, y = _votes_matrix(votes, names)
     # Every condition has the same prior, the anchor too, so that no pair looks more or less certain because of
     # which condition is called the origin; the values are moved to the anchor's origin afterwards.
     n = len(names)
-    x = np.zeros((len(used), n))
-    for row, v in enumerate(used):
-        x[row, index[v.test]] += 1
-        x[row, index[v.reference]] -= 1
-    y = np.array([v.score + 2 for v in used], dtype=int)
     prior_mean = np.concatenate([np.zeros(n), CUT_PRIOR])
     prior_precision = np.concatenate([np.full(n, 1 / PRIOR_SD**2), np.ones(CUT_PRIOR.size)])
 
     def objective(params: np.ndarray) -> tuple[float, np.ndarray]:
         diff = params - prior_mean
         value, grad = 0.5 * float(diff @ (prior_precision * diff)), prior_precision * diff
-        if used:
+        if y.size:
             loglik, per_vote = _scores(params, x, y, False, n, "logit")
             value, grad = value - float(loglik.sum()), grad - per_vote.sum(axis=0)
         return value, grad
@@ -93,10 +107,19 @@ def posterior(votes: Sequence[GradedComparison], conditions: Sequence[str]) -> P
     opt = optimize.minimize(objective, prior_mean, jac=True, method="BFGS", options={"gtol": 1e-7})
     mean = opt.x[:n] - opt.x[0]
     cuts, _ = _cuts(opt.x[n:], False)
-    precision = np.diag(prior_precision[:n])  # positive definite: the prior's precision is on the diagonal
-    if used:
-        precision = precision + (x * answer_information(x @ mean, cuts)[:, None]).T @ x
-    return Posterior(tuple(names), mean, np.linalg.inv(precision), cuts, len(used))
+    return Posterior(tuple(names), mean, _planning_cov(x, mean, cuts), cuts, int(y.size))
+
+
+def known_posterior(votes: Sequence[GradedComparison], conditions: Sequence[str], values: dict[str, float],
+                    cuts: np.ndarray) -> Posterior:
+    """What :func:`posterior` would be if the answers had revealed the true scale ``values`` (condition -> logit
+    units) and cut points ``cuts`` (4,): the same covariance, at the truth.  Planning on it shows how much an
+    adaptive design loses by learning the values as it goes (the design bench's ``oracle``)."""
+    names = list(conditions)
+    x, y = _votes_matrix(votes, names)
+    mean = np.array([values[c] - values[names[0]] for c in names])
+    return Posterior(tuple(names), mean, _planning_cov(x, mean, np.asarray(cuts, dtype=float)), np.asarray(cuts),
+                     int(y.size))
 
 
 def _answer_probabilities(delta: np.ndarray, cuts: np.ndarray) -> np.ndarray:

@@ -13,8 +13,9 @@ in every mode.
 from __future__ import annotations
 
 import random
+from collections.abc import Callable, Sequence
 
-from .adaptive import Batch, information_tree, next_batch, posterior
+from .adaptive import Batch, Posterior, information_tree, next_batch, posterior
 from .design import Design
 from .models import ComparisonKind, Study
 from .ranking import GradedComparison
@@ -41,9 +42,15 @@ def incomplete_pairs(design: Design, slug: str, position: int) -> list[PairKey]:
     return out
 
 
-def adaptive_batches(design: Design, votes: dict[str, list[GradedComparison]], seed: int) -> dict[str, Batch]:
-    """Per animation, the batch of pairs (indices into ``design.all_conditions()``) for a session with ``seed``."""
+Belief = Callable[[Sequence[GradedComparison], Sequence[str]], Posterior]
+
+
+def adaptive_batches(design: Design, votes: dict[str, list[GradedComparison]], seed: int,
+                     belief: Belief = posterior) -> dict[str, Batch]:
+    """Per animation, the batch of pairs (indices into ``design.all_conditions()``) for a session with ``seed``.
+    ``belief``: what the batches are planned on, the posterior of the votes; the design bench swaps in the true
+    values to measure how much knowing them would save (its ``oracle``)."""
     conditions = design.all_conditions()
     choose = information_tree if design.aim == "order" else next_batch
-    return {a: choose(posterior(votes.get(a, []), conditions), seed + i, 2 * design.repeats)
+    return {a: choose(belief(votes.get(a, []), conditions), seed + i, 2 * design.repeats)
             for i, a in enumerate(design.animations)}

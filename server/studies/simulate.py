@@ -23,7 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from .assign import adaptive_batches, incomplete_pairs
+from .adaptive import posterior
+from .assign import Belief, adaptive_batches, incomplete_pairs
 from .design import ComparisonIds, Design, trial_order
 from .ranking import GradedComparison, rank_conditions
 
@@ -54,21 +55,22 @@ def _answer(rng: np.random.Generator, delta: float, noise: float) -> int:
 
 
 def session_pairs(design: Design, position: int, votes: dict[str, list[GradedComparison]],
-                  seed: int) -> list[tuple[str, str, str]]:
+                  seed: int, belief: Belief = posterior) -> list[tuple[str, str, str]]:
     """(animation, first, second) of the pairs the ``position``-th session sees (as ``assign`` chooses them)."""
     if design.mode == "incomplete":
         return incomplete_pairs(design, "simulated", position)
     if design.mode == "adaptive":
         conditions = design.all_conditions()
-        return [(a, conditions[i], conditions[j]) for a, b in adaptive_batches(design, votes, seed).items()
+        return [(a, conditions[i], conditions[j]) for a, b in adaptive_batches(design, votes, seed, belief).items()
                 for i, j in b.pairs]
     return [(a, x, y) for a in design.animations for x, y in design.pairs()]
 
 
 def simulate(design: Design, truth: dict[str, float], participants: int, seed: int = 0,
-             observers: Observers = Observers()) -> SimulatedStudy:
+             observers: Observers = Observers(), belief: Belief = posterior) -> SimulatedStudy:
     """``participants`` simulated observers through ``design``; ``truth``: condition -> true scale value (logit
-    units; the same for every animation; the reference's value is subtracted)."""
+    units; the same for every animation; the reference's value is subtracted); ``belief``: what an adaptive
+    design plans on (``assign.adaptive_batches``)."""
     conditions = design.all_conditions()
     mu = {c: truth[c] - truth[design.reference] for c in conditions}
     votes: dict[str, list[GradedComparison]] = defaultdict(list)
@@ -80,7 +82,7 @@ def simulate(design: Design, truth: dict[str, float], participants: int, seed: i
         session_seed = int(rng.integers(2**62))
         taste = {c: rng.normal(0, observers.taste_sd) for c in conditions}
         bias, noise = rng.normal(0, observers.side_sd), math.exp(rng.normal(0, observers.noise_sd))
-        pairs = session_pairs(design, p, votes, session_seed)
+        pairs = session_pairs(design, p, votes, session_seed, belief)
         order = trial_order(ComparisonIds(list(range(len(pairs)))), design.repeats, session_seed)
         for t in order:
             animation, first, second = pairs[t.comparison_id]
