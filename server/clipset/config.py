@@ -52,7 +52,7 @@ def _frames(value: Any, where: str, count: int | None = None) -> tuple[int, ...]
 
 
 def _animation(name: str, entry: Any, where: str) -> AnimationConfig:
-    if not NAME.match(name):
+    if not NAME.fullmatch(name):
         raise ConfigError(f"{where}: an animation name is 1..32 lower-case letters, digits or '_' (no '-')")
     if not isinstance(entry, dict):
         raise ConfigError(f"{where} must be a table")
@@ -181,7 +181,7 @@ def _conditions(raw: Any, path: Path) -> tuple[Condition, ...]:
         if unknown := sorted(set(entry) - {"id", "method", "params"}):
             raise ConfigError(f"{where}: unknown field {unknown[0]!r}; allowed: id, method, params")
         cid = entry.get("id")
-        if not isinstance(cid, str) or not NAME.match(cid):
+        if not isinstance(cid, str) or not NAME.fullmatch(cid):
             raise ConfigError(f"{where}: id must be 1..32 lower-case letters, digits or '_' (no '-'), got {cid!r}")
         where = f"{path} [[conditions]] id = {cid!r}"
         if any(c.id == cid for c in out):

@@ -39,6 +39,8 @@ from .scene import Framing, RenderSettings, frame_motion
 if TYPE_CHECKING:
     from anim_core.rig.character import Character
 
+#: A video's or poster's file name.  Check names with ``MEDIA_NAME.fullmatch``, never ``match``: Python's ``$``
+#: also matches before a trailing newline, and an import once wrote a file named ``<hex>.mp4\n``.
 MEDIA_NAME = re.compile(r"^[0-9a-f]{24}\.(mp4|jpg)$")
 DIVIDER_PX = 4
 DIVIDER_RGB = (58, 60, 64)
@@ -308,7 +310,7 @@ def render_task(job: AnimationJob, arrays: Arrays, character: Character) -> list
 def store_rendered(out_dir: Path, files: Sequence[RenderedFile]) -> None:
     """Write a task's files into ``out_dir`` (checked against their hashes; each appears whole or not at all)."""
     for f in files:
-        if not MEDIA_NAME.match(f.name) or hashlib.sha256(f.data).hexdigest() != f.sha256:
+        if not MEDIA_NAME.fullmatch(f.name) or hashlib.sha256(f.data).hexdigest() != f.sha256:
             raise MediaError(f"a render task returned {f.name!r} damaged (name or sha256 does not match)")
         tmp = out_dir / f"{f.name}.{os.getpid()}.tmp"
         tmp.write_bytes(f.data)

@@ -22,7 +22,7 @@ def media(name: str, settings: SettingsDep) -> ContentFileResponse:
     """A video or poster by its opaque name (HTTP Range requests are answered with 206; ``If-None-Match`` with
     its name as the ``ETag`` with 304)."""
     path = settings.media_dir / name
-    if not MEDIA_NAME.match(name) or not path.is_file():  # also keeps the manifest and anything else private
+    if not MEDIA_NAME.fullmatch(name) or not path.is_file():  # also keeps the manifest and anything else private
         raise NotFound("no such media file")
     media_type = "video/mp4" if name.endswith(".mp4") else "image/jpeg"
     return ContentFileResponse(path, etag=name, media_type=media_type, headers={"Cache-Control": CACHE_CONTROL})

@@ -31,7 +31,7 @@ PUBLIC_TRIAL_ID = re.compile(r"^[0-9a-f]{32}$")
 
 
 def _trial_key(value: str) -> str:
-    if PUBLIC_TRIAL_ID.match(value) or (value.isascii() and value.isdigit() and 1 <= int(value) <= 2**31 - 1
+    if PUBLIC_TRIAL_ID.fullmatch(value) or (value.isascii() and value.isdigit() and 1 <= int(value) <= 2**31 - 1
                                         and len(value) <= 10):
         return value
     raise ValueError("a trial id is the trial_id given by GET .../next (32 hex digits)")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import io
+import unicodedata
 from collections.abc import Iterator
 from typing import Any
 
@@ -31,9 +32,20 @@ def csv_cell(value: object) -> object:
         return str(value).lower()
     if value is None:
         return ""
-    if isinstance(value, str) and value.startswith(FORMULA_STARTS):
+    if isinstance(value, str) and is_formula(value):
         return "'" + value
     return value
+
+
+def is_formula(text: str) -> bool:
+    """Whether a spreadsheet could read ``text`` as a formula: it begins with one of :data:`FORMULA_STARTS`, or
+    does so after leading invisible characters (zero-width, bidirectional marks and other format characters,
+    Unicode category Cf, or white space), which some spreadsheets drop and a reader does not see."""
+    if text.startswith(FORMULA_STARTS):
+        return True
+    visible = next((i for i, ch in enumerate(text) if not (ch.isspace() or unicodedata.category(ch) == "Cf")),
+                   len(text))
+    return visible > 0 and text[visible:].startswith(FORMULA_STARTS)
 
 
 def export_csv(session: Session, study: Study, include_pilot: bool = False) -> str:

@@ -245,7 +245,7 @@ def garbage(session: Session, media_dir: Path, manifest_dirs: Sequence[Path] = (
     for d in manifest_dirs:
         keep |= rendered(d)
     files: Iterable[Path] = sorted(media_dir.iterdir()) if media_dir.is_dir() else []
-    media = [f for f in files if MEDIA_NAME.match(f.name) and f.is_file()]
+    media = [f for f in files if MEDIA_NAME.fullmatch(f.name) and f.is_file()]
     unused = [f for f in media if f.name not in keep]
     return Garbage(unused, sum(f.stat().st_size for f in unused), len(media) - len(unused))
 

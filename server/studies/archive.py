@@ -92,7 +92,7 @@ def _read(path: Path) -> tuple[StudyFile, SetContent, dict[str, bytes]]:
             study_file = StudyFile.model_validate(index.get("study"))
             files: dict[str, bytes] = {}
             for name, sha in content.hashes().items():
-                if not MEDIA_NAME.match(name):
+                if not MEDIA_NAME.fullmatch(name):
                     raise ArchiveError(f"the archive names a file {name!r} that is not a video or poster name")
                 member = f"media/{name}"
                 if member not in names:

@@ -37,6 +37,9 @@ from .screening import Screening
 # Package data (pyproject.toml), so an installed animstudy has its default study: in the checkout a link to
 # studies/thesis.toml, in a built wheel a copy of it.
 THESIS_FILE = Path(__file__).with_name("thesis.toml")
+#: The largest whole number a number question accepts: every integer up to it is exact as a float (statistics,
+#: export).
+MAX_WHOLE_ANSWER = 2**53 - 1
 # Export columns a question id must not shadow.
 RESERVED_IDS = frozenset(EXPORT_COLUMNS)
 # A URL parameter must not shadow an export column either (question ids are lower case, so they never meet).
@@ -154,7 +157,13 @@ class Question(_Strict):
             if any(unicodedata.category(ch) == "Cc" and ch not in "\n\t" for ch in value):
                 return "Input should not contain control characters"
             return None
-        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            return "Input should be a number"
+        # JSON integers have no size limit: one of 309 digits made math.isfinite (a float conversion) raise
+        # OverflowError, a 500.  Compared as ints, never converted; whole numbers up to 2**53 are exact as floats.
+        if isinstance(value, int) and abs(value) > MAX_WHOLE_ANSWER:
+            return f"Input should be a number between -{MAX_WHOLE_ANSWER} and {MAX_WHOLE_ANSWER}"
+        if not math.isfinite(value):
             return "Input should be a number"
         if self.integer and value != int(value):
             return "Input should be a whole number"

@@ -62,7 +62,7 @@ def check_filename(filename: str) -> str:
         raise Unprocessable(f"filename: {filename!r} must not be empty or start with '.'")
     if not filename.lower().endswith(EXTENSIONS):
         raise Unprocessable(f"filename: {filename!r} is not a motion file; expected {', '.join(EXTENSIONS)}")
-    if not FILENAME.match(filename):
+    if not FILENAME.fullmatch(filename):
         raise Unprocessable(f"filename: {filename!r} may hold only letters, digits, '.', '_', '-' and spaces "
                             f"(at most 100, the first a letter or digit)")
     return filename
@@ -72,7 +72,7 @@ def animation_name(filename: str, name: str | None = None) -> str:
     """The animation an asset becomes: ``name`` if given (checked), else made from the file name's stem
     (lower case, other characters as ``_``, at most 32)."""
     if name is not None:
-        if not NAME.match(name):
+        if not NAME.fullmatch(name):
             raise Unprocessable(f"name: {name!r} must be 1..32 lower-case letters, digits or '_' (no '-'), "
                                 f"the first a letter or digit")
         return name

@@ -1,0 +1,254 @@
+"""Hostile input, round three (issue 36, findings 5, 6, 7, 8, 11, 13, 15, 16 and the command line's inspect bomb):
+huge numbers, archive bombs and malformed archives, names with a trailing newline, the login throttle under real
+concurrency, the local Dask cluster's TLS, invisible characters before a formula, passwords on the command line,
+HSTS and the API documentation, and a BVH bomb given to ``animstudy clips inspect``."""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import zipfile
+from pathlib import Path
+
+import pytest
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from server import cli
+from server.stimuli.service import content_digest
+from server.studies.archive import ArchiveError, import_archive
+from server.studies.models import Study
+from tests.server_fixtures import make_study, start
+from tests.test_study_archive import archived, second  # noqa: F401  (fixtures)
+
+# --- 5: a number answer of 309 digits -------------------------------------------------------------------------
+
+NUMBER = [{"id": "age", "text": "Your age?", "type": "number"}]
+
+
+@pytest.mark.parametrize("value", [10**309, -(10**309), 2**53, 10**20])
+def test_a_huge_whole_number_answer_is_a_422_not_a_500(client, db, value):
+    make_study(db, questions=NUMBER)
+    sid, headers = start(client)
+    r = client.put(f"/api/v1/sessions/{sid}/demographics", json={"age": value}, headers=headers)
+    assert r.status_code == 422, r.text[:300]
+    assert r.json()["detail"][0]["loc"][-1] == "age" and "Input should be a number between" in r.text
+    assert client.put(f"/api/v1/sessions/{sid}/demographics", json={"age": 2**53 - 1},
+                      headers=headers).status_code == 200
+
+
+# --- 6 and 7: archives ----------------------------------------------------------------------------------------
+
+def forge(path: Path, out: Path, index_change=None, extra: dict[str, bytes] | None = None,
+          compression: int = zipfile.ZIP_STORED, replace: dict[str, bytes] | None = None) -> Path:
+    """A copy of the archive ``path`` whose index went through ``index_change(index)`` (the set's digest made
+    right again, so only the limits and checks under test refuse it), with members added or replaced."""
+    with zipfile.ZipFile(path) as z:
+        members = {name: z.read(name) for name in z.namelist()}
+    if index_change is not None:
+        index = json.loads(members["archive.json"])
+        index_change(index)
+        content = index["stimulus_set"].get("content") if isinstance(index["stimulus_set"], dict) else None
+        if isinstance(content, dict):
+            index["stimulus_set"]["digest"] = content_digest(content)
+        members["archive.json"] = json.dumps(index).encode()
+    members.update(replace or {})
+    with zipfile.ZipFile(out, "w", compression=compression) as w:
+        for name, data in {**members, **(extra or {})}.items():
+            w.writestr(name, data)
+    return out
+
+
+def nothing_imported(engine, settings) -> None:
+    with Session(engine) as db:
+        assert db.scalar(select(func.count(Study.id))) == 0
+    media = settings.media_dir
+    assert not media.exists() or not any(media.iterdir()), sorted(p.name for p in media.iterdir())
+
+
+def swap_first_video(index: dict, data: bytes) -> str:
+    """Make the set's first clip video the file ``data`` (its sha256 recorded): returns its member name."""
+    clip = index["stimulus_set"]["content"]["clips"][0]
+    clip["video_sha256"] = hashlib.sha256(data).hexdigest()
+    return f"media/{clip['video']}"
+
+
+def test_a_compressed_bomb_member_is_refused_before_it_is_read(archived, second, tmp_path):
+    """A member that inflates 1000-fold (issue: 1.66 MB took 2,232 MiB and wrote 1 GiB into media): refused from
+    the ZIP directory, before reading it, whatever the sha256 the set records."""
+    _, _, path = archived
+    engine, settings = second
+    bomb = b"\0" * (64 * 2**20)
+    names = {}
+
+    def change(index):
+        names["member"] = swap_first_video(index, bomb)
+
+    forged = forge(path, tmp_path / "x.zip", change)
+    forged = forge(forged, tmp_path / "bomb.zip", compression=zipfile.ZIP_DEFLATED,
+                   replace={names["member"]: bomb})
+    assert forged.stat().st_size < 2**20
+    with Session(engine) as db, pytest.raises(ArchiveError, match="compress"):
+        import_archive(db, forged, settings.media_dir)
+    nothing_imported(engine, settings)
+
+
+def test_members_over_the_size_limits_are_refused(archived, second, tmp_path):
+    from server.studies.archive import ArchiveLimits
+
+    _, _, path = archived
+    engine, settings = second
+    with Session(engine) as db:
+        with pytest.raises(ArchiveError, match="larger than the 1000 bytes"):
+            import_archive(db, path, settings.media_dir, limits=ArchiveLimits(member_bytes=1000))
+        with pytest.raises(ArchiveError, match="in all"):
+            import_archive(db, path, settings.media_dir, limits=ArchiveLimits(total_bytes=5000))
+        with pytest.raises(ArchiveError, match="archive.json of"):
+            import_archive(db, path, settings.media_dir, limits=ArchiveLimits(index_bytes=100))
+    nothing_imported(engine, settings)
+
+
+def test_a_huge_index_is_refused_unread(archived, second, tmp_path):
+    _, _, path = archived
+    engine, settings = second
+    forged = forge(path, tmp_path / "big.zip", lambda index: index.update(padding="x" * (40 * 2**20)))
+    with Session(engine) as db, pytest.raises(ArchiveError, match="archive.json of"):
+        import_archive(db, forged, settings.media_dir)
+    nothing_imported(engine, settings)
+
+
+def test_junk_members_are_refused(archived, second, tmp_path):
+    _, _, path = archived
+    engine, settings = second
+    many = forge(path, tmp_path / "many.zip", extra={f"junk/{i}": b"" for i in range(20_001)})
+    one = forge(path, tmp_path / "one.zip", extra={"media/../../evil": b"x"})
+    with Session(engine) as db:
+        with pytest.raises(ArchiveError, match="members"):
+            import_archive(db, many, settings.media_dir)
+        with pytest.raises(ArchiveError, match="not part of a study archive"):
+            import_archive(db, one, settings.media_dir)
+    nothing_imported(engine, settings)
+
+
+def deep(index):
+    index["study"] = json.loads("[" * 50 + "]" * 50)
+    index["deep"] = "DEEP"
+
+
+def set_as_list(index):
+    index["stimulus_set"] = [index["stimulus_set"]]
+
+
+def unknown_pair_clip(index):
+    index["stimulus_set"]["content"]["pairs"][0]["left"] = "nobody-hybrid9"
+
+
+def no_clips(index):
+    index["stimulus_set"]["content"]["clips"] = []
+
+
+@pytest.mark.parametrize(("fault", "message"), [
+    ("deep", "nested too deeply"),
+    ("set as a list", "stimulus_set"),
+    ("unknown pair clip", "nobody-hybrid9"),
+    ("no clips", "no clips"),
+    ("method 99", "compression method 99"),
+])
+def test_malformed_archives_are_one_clear_error_from_the_command_line(archived, tmp_path, monkeypatch, capsys,
+                                                                      fault, message):
+    _, _, path = archived
+    bad = tmp_path / "bad.zip"
+    if fault == "deep":
+        forge(path, bad, replace={"archive.json": b"[" * 100_000 + b"]" * 100_000})
+    elif fault == "method 99":
+        forge(path, bad)
+        raw = bytearray(bad.read_bytes())
+        with zipfile.ZipFile(bad) as z:
+            info = z.getinfo("archive.json")
+        # the method field of the local header (offset 8) and of the central directory entry (offset 10)
+        raw[info.header_offset + 8: info.header_offset + 10] = (99).to_bytes(2, "little")
+        central = raw.rindex(b"PK\x01\x02" + raw[raw.rindex(b"PK\x01\x02") + 4: raw.rindex(b"PK\x01\x02") + 8])
+        at = raw.find(b"archive.json", raw.index(b"PK\x01\x02")) - 46
+        assert raw[at:at + 4] == b"PK\x01\x02", central
+        raw[at + 10: at + 12] = (99).to_bytes(2, "little")
+        bad.write_bytes(bytes(raw))
+    else:
+        forge(path, bad, {"set as a list": set_as_list, "unknown pair clip": unknown_pair_clip,
+                          "no clips": no_clips}[fault])
+    var = tmp_path / "cli"
+    monkeypatch.setenv("ANIMSTUDY_VAR_DIR", str(var))
+    monkeypatch.setenv("ANIMSTUDY_SECRET_KEY", "archive-cli-secret-0123456789abcdef0")
+    monkeypatch.delenv("ANIMSTUDY_DATABASE_URL", raising=False)
+    monkeypatch.delenv("DATABASE_URL", raising=False)
+    code = cli.main(["study", "import-archive", str(bad)])
+    err = capsys.readouterr().err
+    assert code != 0 and "Traceback" not in err and len(err.strip().splitlines()) == 1, err[-2000:]
+    assert message in err, err
+    media = var / "media"
+    assert not media.exists() or not any(media.iterdir())
+
+
+# --- 8: names with a trailing newline -------------------------------------------------------------------------
+
+def test_a_media_name_with_a_trailing_newline_is_refused_by_the_import(archived, second, tmp_path):
+    _, _, path = archived
+    engine, settings = second
+    renamed = {}
+
+    def change(index):
+        clip = index["stimulus_set"]["content"]["clips"][0]
+        renamed["old"], renamed["new"] = clip["video"], clip["video"] + "\n"
+        clip["video"] = renamed["new"]
+
+    forged = forge(path, tmp_path / "x.zip", change)
+    with zipfile.ZipFile(forged) as z:
+        data = z.read(f"media/{renamed['old']}")
+    forged = forge(forged, tmp_path / "nl.zip", extra={f"media/{renamed['new']}": data})
+    with Session(engine) as db, pytest.raises(ArchiveError, match="not a video or poster name"):
+        import_archive(db, forged, settings.media_dir)
+    nothing_imported(engine, settings)
+
+
+def test_every_validating_pattern_refuses_a_trailing_newline(client):
+    from server.clipset.config import ConfigError, _animation
+    from server.errors import Unprocessable
+    from server.media.build import MEDIA_NAME
+    from server.participants.schemas import _trial_key
+    from server.uploads.service import animation_name, check_filename
+
+    assert MEDIA_NAME.fullmatch("0" * 24 + ".mp4") and not MEDIA_NAME.fullmatch("0" * 24 + ".mp4\n")
+    assert client.get("/media/" + "0" * 24 + ".mp4%0A").status_code == 404
+    with pytest.raises(Unprocessable):
+        check_filename("walk.bvh\n")
+    with pytest.raises(Unprocessable):
+        animation_name("walk.bvh", "walk\n")
+    with pytest.raises(ConfigError):
+        _animation("walk\n", {}, "animations")
+    with pytest.raises(ValueError):
+        _trial_key("1\n")
+
+
+# --- 15: invisible characters before a formula ----------------------------------------------------------------
+
+@pytest.mark.parametrize("invisible", ["\u200b", "\u200e", "\u200f", "\u2066", "\ufeff", "\u00a0", "\u3000",
+                                       "\u200b\u200c\u200d"])
+def test_invisible_characters_before_a_formula_do_not_hide_it_from_the_csv_guard(client, db, researcher_headers,
+                                                                                 invisible):
+    from server.research.export import csv_cell
+
+    text = [{"id": "remarks", "text": "Anything to add?", "type": "text", "max_length": 100}]
+    make_study(db, questions=text)
+    payload = f"{invisible}=1+1"
+    sid, headers = start(client)
+    assert client.put(f"/api/v1/sessions/{sid}/demographics", json={"remarks": payload},
+                      headers=headers).status_code == 200
+    trial = client.get(f"/api/v1/sessions/{sid}/next", headers=headers).json()["trial_id"]
+    assert client.post(f"/api/v1/sessions/{sid}/trials/{trial}/vote", headers=headers,
+                       json={"choice": "equal", "rt_ms": 900, "idempotency_key": "k"}).status_code == 201
+    body = client.get("/api/v1/studies/thesis/export.csv", headers=researcher_headers).text
+    row = next(csv.DictReader(io.StringIO(body, newline="")))
+    assert row["remarks"] == "'" + payload
+    assert csv_cell(f"{invisible}+SUM(A1)") == f"'{invisible}+SUM(A1)"
+    assert csv_cell(f"{invisible}plain") == f"{invisible}plain"  # only formulas are prefixed
