@@ -20,8 +20,12 @@ from server import cli
 from server.stimuli.service import content_digest
 from server.studies.archive import ArchiveError, import_archive
 from server.studies.models import Study
+from tests import test_study_archive
 from tests.server_fixtures import make_study, start
-from tests.test_study_archive import archived, second  # noqa: F401  (fixtures)
+
+# The archive fixtures: an archived study with votes, and a second, empty server.
+archived = test_study_archive.archived
+second = test_study_archive.second
 
 # --- 5: a number answer of 309 digits -------------------------------------------------------------------------
 
@@ -105,7 +109,7 @@ def test_members_over_the_size_limits_are_refused(archived, second, tmp_path):
             import_archive(db, path, settings.media_dir, limits=ArchiveLimits(member_bytes=1000))
         with pytest.raises(ArchiveError, match="in all"):
             import_archive(db, path, settings.media_dir, limits=ArchiveLimits(total_bytes=5000))
-        with pytest.raises(ArchiveError, match="archive.json of"):
+        with pytest.raises(ArchiveError, match=r"archive\.json of"):
             import_archive(db, path, settings.media_dir, limits=ArchiveLimits(index_bytes=100))
     nothing_imported(engine, settings)
 
@@ -114,7 +118,7 @@ def test_a_huge_index_is_refused_unread(archived, second, tmp_path):
     _, _, path = archived
     engine, settings = second
     forged = forge(path, tmp_path / "big.zip", lambda index: index.update(padding="x" * (40 * 2**20)))
-    with Session(engine) as db, pytest.raises(ArchiveError, match="archive.json of"):
+    with Session(engine) as db, pytest.raises(ArchiveError, match=r"archive\.json of"):
         import_archive(db, forged, settings.media_dir)
     nothing_imported(engine, settings)
 
