@@ -367,14 +367,18 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                       f"({len(study.stimulus_set.content['pairs'])} pair videos) -> {out} "
                       f"({out.stat().st_size / 2**20:.1f} MiB)")
             elif command == "import-archive":
-                from server.studies.archive import import_archive
+                from server.studies.archive import ArchiveLimits, import_archive
 
                 owner = None
                 if args.owner:
                     owner = session.scalar(select(Researcher).where(Researcher.email == normalize_email(args.owner)))
                     if owner is None:
                         return _fail(f"no researcher {args.owner!r} (create one with `animstudy researcher create`)")
-                study = import_archive(session, args.file, settings.media_dir, owner)
+                limits = ArchiveLimits()
+                if args.max_mib is not None:
+                    limits = ArchiveLimits(total_bytes=args.max_mib * 2**20,
+                                           member_bytes=min(limits.member_bytes, args.max_mib * 2**20))
+                study = import_archive(session, args.file, settings.media_dir, owner, limits)
                 if args.open:
                     service.open_study(session, study, settings.media_dir)
                 print(f"imported study {study.slug!r} ({study.state}) with its stimulus set "
@@ -836,6 +840,8 @@ def build_parser() -> argparse.ArgumentParser:
     si.add_argument("file", type=Path)
     si.add_argument("--owner", default=None, help="e-mail of the researcher who owns it (default: none)")
     si.add_argument("--open", action="store_true", help="open it for participants at once")
+    si.add_argument("--max-mib", type=_positive, default=None, help="the most its files may take in all, in MiB "
+                    "(default 8192; each file at most 512)")
     sm = st_sub.add_parser("simulate", help="simulated observers through a study file's design: scale error and "
                            "rank correlation (docs/designs.md)")
     sm.add_argument("file", type=Path)
