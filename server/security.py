@@ -247,11 +247,14 @@ class _Window:
             RateEvent.bucket == self.bucket, RateEvent.key == _key(key), RateEvent.at > now - self.window)
             .order_by(RateEvent.at)))
 
-    def add(self, session: Session, key: Hashable, now: float) -> None:
+    def add(self, session: Session, key: Hashable, now: float) -> int:
+        """Count an event (flushed, not committed); its row id."""
         session.execute(delete(RateEvent).where(RateEvent.bucket == self.bucket,
                                                 RateEvent.at <= now - self.window))
-        session.add(RateEvent(bucket=self.bucket, key=_key(key), at=now))
+        event = RateEvent(bucket=self.bucket, key=_key(key), at=now)
+        session.add(event)
         session.flush()
+        return event.id
 
     def clear(self, session: Session, key: Hashable) -> None:
         session.execute(delete(RateEvent).where(RateEvent.bucket == self.bucket, RateEvent.key == _key(key)))
@@ -292,6 +295,15 @@ class RateLimiter:
         return None
 
 
+@dataclass(frozen=True)
+class LoginAttempt:
+    """A login attempt as :meth:`LoginLimiter.attempt` counted it: ``wait`` (seconds) if it must wait and was not
+    counted, else the ids of the ``rate_events`` rows that count it as a failure until it succeeds."""
+
+    wait: int | None
+    events: tuple[int, ...] = ()
+
+
 class LoginLimiter:
     """Throttles password guessing without letting anyone lock a researcher out.
 
@@ -315,9 +327,33 @@ class LoginLimiter:
         self._address = _Window("login_address", window_s)
         self._account = _Window("login_account", window_s)
 
-    def retry_after(self, session: Session, address: str, account: str) -> int | None:
-        """Seconds to wait before ``address`` may try a password for ``account``, or None."""
+    def attempt(self, session: Session, address: str, account: str) -> LoginAttempt:
+        """Count an attempt of ``address`` on ``account`` as a failure before its password is checked, unless it
+        must wait (:attr:`LoginAttempt.wait`, nothing counted); commits.
+
+        Counted first, in one transaction that also checks: checking first and counting after the (slow)
+        password check let 30 of 30 concurrent wrong passwords through a limit of 10.  The transaction holds the
+        address's and the account's locks (:func:`_serialize`; on SQLite the database's write lock), so attempts
+        from every process and instance on the database are counted one after another.  The right password takes
+        its attempt back (:meth:`succeeded`)."""
         now = self.clock()
+        try:
+            # Always the address's lock first, then the account's: two attempts never wait for each other in a
+            # cycle.
+            _serialize(session, self._address.bucket, address)
+            _serialize(session, self._account.bucket, account)
+            wait = self._wait(session, address, account, now)
+            if wait is not None:
+                return LoginAttempt(wait)
+            events = (self._pair.add(session, (address, account), now), self._address.add(session, address, now),
+                      self._account.add(session, account, now))
+            session.commit()
+        finally:
+            session.rollback()  # ends the transaction (and its locks) when nothing was committed
+        return LoginAttempt(None, events)
+
+    def _wait(self, session: Session, address: str, account: str, now: float) -> int | None:
+        """Seconds to wait before ``address`` may try a password for ``account``, or None."""
         window = self._pair.window
         waits = []
         pair = self._pair.recent(session, (address, account), now)
@@ -334,22 +370,13 @@ class LoginLimiter:
         waits = [w for w in waits if w > 0]
         return _seconds(max(waits)) if waits else None
 
-    def failed(self, session: Session, address: str, account: str) -> None:
-        """Count a failure and commit it (``session`` must have no other pending work)."""
-        now = self.clock()
+    def succeeded(self, session: Session, address: str, account: str, attempt: LoginAttempt | None = None) -> None:
+        """The address knows the password: its own failures for the account are forgotten, ``attempt`` (the one
+        that succeeded) is not counted, and the address is no longer slowed by failures elsewhere.  The account's
+        failures stay (an attack may still be going on).  Commits (``session`` must have no other pending work)."""
         try:
-            self._pair.add(session, (address, account), now)
-            self._address.add(session, address, now)
-            self._account.add(session, account, now)
-            session.commit()
-        finally:
-            session.rollback()
-
-    def succeeded(self, session: Session, address: str, account: str) -> None:
-        """The address knows the password: its own failures for the account are forgotten and it is no longer
-        slowed by failures elsewhere.  The account's failures stay (an attack may still be going on).  Commits
-        (``session`` must have no other pending work)."""
-        try:
+            if attempt is not None and attempt.events:
+                session.execute(delete(RateEvent).where(RateEvent.id.in_(attempt.events)))
             self._pair.clear(session, (address, account))
             if session.get(KnownLogin, (account, address)) is None:
                 session.add(KnownLogin(account=account, address=address))

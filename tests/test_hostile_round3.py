@@ -10,6 +10,7 @@ import hashlib
 import io
 import json
 import zipfile
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -21,6 +22,7 @@ from server.stimuli.service import content_digest
 from server.studies.archive import ArchiveError, import_archive
 from server.studies.models import Study
 from tests import test_study_archive
+from tests.conftest import DATABASES, _fresh_engine
 from tests.server_fixtures import make_study, start
 
 # The archive fixtures: an archived study with votes, and a second, empty server.
@@ -256,3 +258,74 @@ def test_invisible_characters_before_a_formula_do_not_hide_it_from_the_csv_guard
     assert row["remarks"] == "'" + payload
     assert csv_cell(f"{invisible}+SUM(A1)") == f"'{invisible}+SUM(A1)"
     assert csv_cell(f"{invisible}plain") == f"{invisible}plain"  # only formulas are prefixed
+
+
+# --- 11: the login throttle under real concurrency, two instances on one database -----------------------------
+
+@pytest.fixture(params=DATABASES)
+def two_instances(request, tmp_path_factory, tmp_path):
+    """Two ``serve`` instances (own engines, own apps, live on loopback) on one database, with a researcher."""
+    from server.app import create_app
+    from server.config import Settings
+    from server.db import make_engine, migrate, session_factory
+    from server.researchers.service import create_researcher
+    from tests.server_fixtures import live_server
+
+    first = _fresh_engine(request.param, tmp_path_factory, database="test_animstudy_throttle")
+    migrate(first)
+    other = make_engine(first.url.render_as_string(hide_password=False))
+    with session_factory(first)() as db:
+        create_researcher(db, "owner@example.org", "the right password 123")
+    settings = Settings(var_dir=tmp_path / "var", secret_key="throttle-test-secret-0123456789abcdef")
+    apps = [create_app(settings, engine, run_migrations=False) for engine in (first, other)]
+    with live_server(apps[0]) as one, live_server(apps[1]) as two:
+        yield apps, [one, two]
+    for engine in (first, other):
+        engine.dispose()
+
+
+def guesses(urls: list[str], accounts: list[str]) -> list[int]:
+    """One wrong password per account in ``accounts``, all at once (8 in flight), alternating the instances."""
+    import httpx
+
+    def post(i: int) -> int:
+        with httpx.Client(base_url=urls[i % 2], timeout=60) as c:
+            return c.post("/api/v1/auth/token", data={"username": accounts[i], "password": f"guess {i}"}).status_code
+
+    with ThreadPoolExecutor(8) as pool:
+        return list(pool.map(post, range(len(accounts))))
+
+
+def test_concurrent_wrong_passwords_are_counted_before_they_are_checked(two_instances):
+    from server.security import LoginLimiter
+
+    apps, urls = two_instances
+    for app in apps:
+        app.state.login_limiter = LoginLimiter(per_pair=3, per_address=1000, account_free=1000)
+    codes = guesses(urls, ["owner@example.org"] * 16)
+    assert sorted(codes) == [401] * 3 + [429] * 13, codes
+
+
+def test_concurrent_guesses_across_accounts_keep_the_per_address_limit(two_instances):
+    from server.security import LoginLimiter
+
+    apps, urls = two_instances
+    for app in apps:
+        app.state.login_limiter = LoginLimiter(per_pair=1000, per_address=4, account_free=1000)
+    codes = guesses(urls, [f"user{i}@example.org" for i in range(16)])
+    assert sorted(codes) == [401] * 4 + [429] * 12, codes
+
+
+def test_the_right_password_is_not_counted_as_a_failure(two_instances):
+    import httpx
+
+    from server.security import LoginLimiter
+
+    apps, urls = two_instances
+    for app in apps:
+        app.state.login_limiter = LoginLimiter(per_pair=2, per_address=1000, account_free=1000)
+    for i in range(3):  # three right ones in a row: none of them counts against the limit of 2
+        r = httpx.post(f"{urls[i % 2]}/api/v1/auth/token",
+                       data={"username": "owner@example.org", "password": "the right password 123"})
+        assert r.status_code == 200, r.text
+    assert sorted(guesses(urls, ["owner@example.org"] * 4)) == [401, 401, 429, 429]

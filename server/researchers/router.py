@@ -7,7 +7,7 @@ from fastapi.security import OAuth2PasswordRequestForm
 from pydantic import BaseModel
 
 from server.deps import SessionDep, SettingsDep, client_address
-from server.errors import TooManyRequests, Unauthorized
+from server.errors import TooManyRequests
 
 from .service import authenticate, issue_token, normalize_email
 
@@ -26,14 +26,12 @@ def login(form: Annotated[OAuth2PasswordRequestForm, Depends()], session: Sessio
     (``server.security.LoginLimiter``)."""
     limiter = request.app.state.login_limiter
     keys = (client_address(request), normalize_email(form.username))
-    wait = limiter.retry_after(session, *keys)
-    session.rollback()  # the password check below takes its time: hold no transaction meanwhile
-    if wait is not None:
-        raise TooManyRequests("too many failed logins; wait and try again", retry_after=wait)
-    try:
-        researcher = authenticate(session, form.username, form.password)
-    except Unauthorized:
-        limiter.failed(session, *keys)
-        raise
-    limiter.succeeded(session, *keys)
+    # Counted as a failure before the password is checked (committed: no transaction is held during the slow
+    # check), so concurrent guesses cannot all pass the check before any is counted; the right password takes
+    # it back.
+    attempt = limiter.attempt(session, *keys)
+    if attempt.wait is not None:
+        raise TooManyRequests("too many failed logins; wait and try again", retry_after=attempt.wait)
+    researcher = authenticate(session, form.username, form.password)  # Unauthorized: the failure is counted
+    limiter.succeeded(session, *keys, attempt)
     return TokenRead(access_token=issue_token(researcher, settings.secret, settings.token_hours))
