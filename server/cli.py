@@ -23,6 +23,26 @@ def _fail(message: str) -> int:
     return 2
 
 
+#: The frames × joints ``clips inspect`` and ``clips convert`` read at least (about 600 MB at the 300 bytes per
+#: frame·joint reading takes): more than any real recording of under 20,000 frames of 100 joints, and a larger real
+#: file gets more from the upload's bound (its text or binary holds every frame·joint).  A 115 KB BVH of 969
+#: joints without channels asked for 9.7 million (2.6 GiB) and is refused.
+CLI_FRAME_JOINTS = 2_000_000
+
+
+def _frame_joints(path: Path, flag: int | None) -> int:
+    """The frames × joints a motion file given on the command line may hold: ``--max-frame-joints``, or the
+    larger of :data:`CLI_FRAME_JOINTS` and what an upload of its size may hold."""
+    from server.uploads.service import max_frame_joints
+
+    return flag if flag is not None else max(CLI_FRAME_JOINTS, max_frame_joints(path.stat().st_size))
+
+
+def _too_many(message: str) -> str:
+    """A reader's message, with the way out when the frame·joint bound refused the file."""
+    return message + ("; --max-frame-joints N allows more" if "frame-joints" in message else "")
+
+
 def _source_options(parser: argparse.ArgumentParser) -> None:
     """--mapping, --units and --up of ``clips inspect`` and ``clips convert``."""
     parser.add_argument("--mapping", type=Path, default=None,
@@ -30,9 +50,13 @@ def _source_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--units", choices=["m", "cm", "mm", "inch", "cmu"], default=None,
                         help="length unit of the file (default: detected from the skeleton's height)")
     parser.add_argument("--up", choices=["y", "z"], default=None, help="up axis of the file (default: detected)")
+    parser.add_argument("--max-frame-joints", type=int, default=None, metavar="N",
+                        help=f"read at most N frames × joints (default: {CLI_FRAME_JOINTS}, or more for a large "
+                        "file: a file of joints without channels can ask for gigabytes)")
 
 
-def clips_inspect(data_dir: Path, path: Path, mapping: Path | None, units: str | None, up_axis: str | None) -> int:
+def clips_inspect(data_dir: Path, path: Path, mapping: Path | None, units: str | None, up_axis: str | None,
+                  max_frame_joints: int | None = None) -> int:
     """Print what a BVH or glTF file holds and how it maps onto the character (``animstudy clips inspect``); for a
     motion suggested as kind ``other``, a ``tolerance_mm`` measured by building it (:func:`_tolerance_line`)."""
     from anim_core.clips.sources import format_report, inspect_source
@@ -42,9 +66,9 @@ def clips_inspect(data_dir: Path, path: Path, mapping: Path | None, units: str |
         return _fail(f"{path}: no such file")
     try:
         explicit = read_mapping_file(mapping) if mapping else None
-        reports = inspect_source(path, explicit, units, up_axis)
+        reports = inspect_source(path, explicit, units, up_axis, _frame_joints(path, max_frame_joints))
     except (ValueError, OSError) as exc:  # BvhError, GltfError and RigMapError name the file (and line)
-        return _fail(str(exc))
+        return _fail(_too_many(str(exc)))
     print(format_report(path, reports, [_tolerance_line(data_dir, path, r) if r.kind == "other" else None
                                         for r in reports]))
     return 0
@@ -71,7 +95,7 @@ def _tolerance_line(data_dir: Path, path: Path, report: MotionReport) -> str:
 
 
 def clips_convert(data_dir: Path, path: Path, out: Path, mapping: Path | None, units: str | None,
-                  up_axis: str | None) -> int:
+                  up_axis: str | None, max_frame_joints: int | None = None) -> int:
     """Write a BVH/glTF motion retargeted onto the character as .glb/.gltf or .bvh (``animstudy clips convert``)."""
     from anim_core.clips.sources import export_on_character, inspect_source
     from anim_core.rig.rigmap import read_mapping_file
@@ -81,10 +105,10 @@ def clips_convert(data_dir: Path, path: Path, out: Path, mapping: Path | None, u
         return _fail(f"{path}: no such file")
     try:
         explicit = read_mapping_file(mapping) if mapping else None
-        report = inspect_source(path, explicit, units, up_axis)[0]
+        report = inspect_source(path, explicit, units, up_axis, _frame_joints(path, max_frame_joints))[0]
         export_on_character(report.normalized, load_character(data_dir), out, report.name)
     except (ValueError, OSError) as exc:  # file, mapping and character errors are ValueErrors naming the file
-        return _fail(str(exc))
+        return _fail(_too_many(str(exc)))
     print(f"wrote {out} ({report.n_frames} frames at {report.fps:g} fps on the character)")
     return 0
 
@@ -920,11 +944,12 @@ def _main(argv: Sequence[str] | None = None) -> int:
                       max(1, args.workers), args.study or [], args.width, args.height, not args.no_shadows,
                       args.every_clip)
     if args.clips_command == "inspect":
-        return clips_inspect(settings.data, args.file, args.mapping, args.units, args.up)
+        return clips_inspect(settings.data, args.file, args.mapping, args.units, args.up, args.max_frame_joints)
     if args.clips_command == "export":
         return clips_export(settings.data, args.clips or settings.var / "clips", args.clip, args.out)
     if args.clips_command == "convert":
-        return clips_convert(settings.data, args.file, args.out, args.mapping, args.units, args.up)
+        return clips_convert(settings.data, args.file, args.out, args.mapping, args.units, args.up,
+                             args.max_frame_joints)
     return clips_build(settings.data, args.out or settings.var / "clips", args.config, settings.dask_scheduler)
 
 

@@ -329,3 +329,28 @@ def test_the_right_password_is_not_counted_as_a_failure(two_instances):
                        data={"username": "owner@example.org", "password": "the right password 123"})
         assert r.status_code == 200, r.text
     assert sorted(guesses(urls, ["owner@example.org"] * 4)) == [401, 401, 429, 429]
+
+
+# --- the command line's inspect bomb ---------------------------------------------------------------------------
+
+def test_clips_inspect_refuses_a_bvh_bomb_before_reading_its_frames(data, tmp_path, capsys):
+    """969 joints without channels and 10,000 frames in 115 KB: took 2.6 GiB and 16.5 s and exited 0."""
+    import time
+
+    from tests.hostile_files import bvh_bomb
+
+    bomb = tmp_path / "bomb.bvh"
+    bomb.write_bytes(bvh_bomb(data))
+    started = time.perf_counter()
+    assert cli.main(["clips", "inspect", str(bomb)]) == 2
+    assert time.perf_counter() - started < 5
+    err = capsys.readouterr().err
+    assert "frame-joints" in err and "--max-frame-joints" in err and len(err.strip().splitlines()) == 1, err
+    assert cli.main(["clips", "convert", str(bomb), str(tmp_path / "out.glb")]) == 2
+    assert "frame-joints" in capsys.readouterr().err and not (tmp_path / "out.glb").exists()
+    # The flag lowers (or raises) the bound; a real recording is read under the default.
+    small = tmp_path / "small.bvh"
+    small.write_bytes(bvh_bomb(data, extra_joints=0, frames=100))
+    assert cli.main(["clips", "inspect", str(small), "--max-frame-joints", "50"]) == 2
+    assert "--max-frame-joints" in capsys.readouterr().err
+    assert cli.main(["clips", "inspect", str(data / "mocap" / "cmu" / "113_21_idle_30fps.bvh.gz")]) == 0
