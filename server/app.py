@@ -14,6 +14,7 @@ from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from .config import Settings
 from .db import make_engine, migrate, read_only, session_factory
+from .deps import request_is_https
 from .errors import ServiceError
 from .files import ContentStaticFiles
 from .media.router import router as media_router
@@ -35,8 +36,12 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None, r
     if run_migrations:
         migrate(engine, media_dir=settings.media_dir, clips_dir=settings.clips_dir)
     # No trailing-slash redirects: Starlette builds their Location from the request's Host header.
+    # The API's documentation maps every endpoint for anyone: served only when ANIMSTUDY_API_DOCS says so.
+    docs = settings.api_docs
     app = FastAPI(title="animstudy", version="0.1.0", redirect_slashes=False,
-                  description="Side-by-side user studies of character animation: conditions against a reference.")
+                  description="Side-by-side user studies of character animation: conditions against a reference.",
+                  docs_url="/docs" if docs else None, redoc_url="/redoc" if docs else None,
+                  openapi_url="/openapi.json" if docs else None)
     app.state.settings = settings
     app.state.engine = engine
     app.state.read_engine = read_only(engine)
@@ -47,7 +52,8 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None, r
     if "*" not in settings.allowed_hosts:
         app.add_middleware(TrustedHostMiddleware, allowed_hosts=settings.allowed_hosts, www_redirect=False)
     # Added last: outermost, so even the host check's 400 has the security headers.  Uploads stream their body.
-    app.add_middleware(Protect, streamed=[upload_route(settings.upload_max_bytes)])
+    app.add_middleware(Protect, streamed=[upload_route(settings.upload_max_bytes)],
+                       is_https=lambda scope: request_is_https(scope, settings.proxy_networks))
 
     @app.exception_handler(RequestValidationError)
     def invalid_request(_request: Request, exc: RequestValidationError) -> JSONResponse:

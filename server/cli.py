@@ -564,6 +564,28 @@ def serve(settings: Settings, host: str, port: int, workers: int) -> int:
     return 0
 
 
+def read_password(given: str | None, from_stdin: bool) -> str | None:
+    """The new account's password: ``--password`` (with a warning: every user of the machine sees a command's
+    arguments), the first line of standard input (``--password-stdin``), or typed twice at a prompt that does not
+    echo it (a terminal only).  None if there is none."""
+    import getpass
+
+    if given is not None:
+        print("warning: --password shows the password to every user of this machine (process list, shell "
+              "history); use the prompt or --password-stdin", file=sys.stderr)
+        return given
+    if from_stdin:
+        line = sys.stdin.readline().rstrip("\r\n")
+        return line or None
+    if not sys.stdin.isatty():
+        return None
+    first = getpass.getpass("password: ")
+    if first != getpass.getpass("password again: "):
+        print("the two passwords differ", file=sys.stderr)
+        return None
+    return first or None
+
+
 def researcher_create(settings: Settings, email: str, password: str, admin: bool = False) -> int:
     from server.db import make_engine, migrate, session_factory
     from server.errors import ServiceError
@@ -836,7 +858,11 @@ def build_parser() -> argparse.ArgumentParser:
     researcher_sub = researcher.add_subparsers(dest="researcher_command", required=True)
     rc = researcher_sub.add_parser("create", help="create a researcher account")
     rc.add_argument("--email", required=True)
-    rc.add_argument("--password", required=True)
+    given = rc.add_mutually_exclusive_group()
+    given.add_argument("--password-stdin", action="store_true",
+                       help="read the password from standard input (its first line), e.g. from a password manager")
+    given.add_argument("--password", default=None, help="the password (visible to every user of the machine in the "
+                       "process list: prefer the prompt or --password-stdin)")
     rc.add_argument("--admin", action="store_true", help="may see and manage every study, not only their own")
     st = sub.add_parser("study", help="study files and studies: schema, validate, create, list, open, close, export")
     st_sub = st.add_subparsers(dest="study_command", required=True)
@@ -932,7 +958,10 @@ def _main(argv: Sequence[str] | None = None) -> int:
     if args.command == "serve":
         return serve(settings, args.host, args.port, max(1, args.workers))
     if args.command == "researcher":
-        return researcher_create(settings, args.email, args.password, args.admin)
+        password = read_password(args.password, args.password_stdin)
+        if password is None:
+            return _fail("no password: give it at the prompt, or on standard input with --password-stdin")
+        return researcher_create(settings, args.email, password, args.admin)
     if args.command == "study":
         return study_command(settings, args)
     if args.command == "gc":

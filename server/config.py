@@ -31,7 +31,9 @@ class Settings(BaseSettings):
     ``ANIMSTUDY_BUILD_MEMORY_MB``: the address space a build job's process may take (``RLIMIT_AS``), beyond which
     the build fails with a MemoryError instead of taking the machine's memory; default 8192, 0 for no limit.
     ``ANIMSTUDY_DASK_SCHEDULER``: the Dask scheduler that renders run on (e.g. ``tcp://host:8786``, see
-    docs/cluster.md); default none: a local Dask cluster started per job."""
+    docs/cluster.md); default none: a local Dask cluster started per job.  ``ANIMSTUDY_API_DOCS``: serve the
+    API's documentation (``/docs``, ``/redoc``, ``/openapi.json``) to anyone; default false (404): it maps every
+    endpoint for a visitor, and a researcher has it in the manual (docs/reference)."""
 
     model_config = SettingsConfigDict(env_prefix="ANIMSTUDY_", extra="ignore")
 
@@ -49,6 +51,7 @@ class Settings(BaseSettings):
     upload_max_bytes: int = Field(default=50 * 2**20, ge=1)
     build_memory_mb: int = Field(default=8192, ge=0)
     dask_scheduler: str | None = None
+    api_docs: bool = False
 
     @field_validator("allowed_hosts", "trusted_proxies", mode="before")
     @classmethod

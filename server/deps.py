@@ -10,6 +10,7 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
+from starlette.types import Scope
 
 from .config import Settings
 from .errors import TooManyRequests
@@ -69,6 +70,20 @@ def client_address(request: Request) -> str:
         if not _trusted(hop, networks):
             return hop
     return address
+
+
+def request_is_https(scope: Scope, networks: tuple) -> bool:
+    """Whether the client reached us over HTTPS: TLS on this connection, or ``X-Forwarded-Proto: https`` from one
+    of ``ANIMSTUDY_TRUSTED_PROXIES`` (the last value: the one the nearest proxy wrote).  From anyone else the
+    header proves nothing."""
+    if scope.get("scheme") == "https":
+        return True
+    client = scope.get("client")
+    if not networks or not client or not _trusted(client[0], networks):
+        return False
+    values = [v.strip() for k, raw in scope.get("headers", []) if k == b"x-forwarded-proto"
+              for v in raw.decode("latin-1").split(",") if v.strip()]
+    return bool(values) and values[-1].lower() == "https"
 
 
 async def limit_new_sessions(request: Request, session: SessionDep) -> None:

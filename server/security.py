@@ -34,6 +34,9 @@ SECURITY_HEADERS = [
     (b"referrer-policy", b"no-referrer"),
     (b"cross-origin-opener-policy", b"same-origin"),
 ]
+#: Sent on every response to a request that came over HTTPS (never over plain HTTP, where a browser ignores it
+#: and where it could pin a host that has no certificate yet): browsers then use HTTPS only for a year.
+HSTS = (b"strict-transport-security", b"max-age=31536000")
 _SURROGATE = re.compile("[\ud800-\udfff]")
 #: Bidirectional embeddings, overrides and isolates (U+202A..U+202E, U+2066..U+2069): in a title or a label they
 #: make text display in another order than it is stored ("Trojan Source").  The marks LRM, RLM and ALM, which
@@ -120,25 +123,27 @@ class Protect:
     every response, errors included."""
 
     def __init__(self, app: ASGIApp, max_body: int = MAX_BODY_BYTES,
-                 streamed: Sequence[StreamedRoute] = ()) -> None:
+                 streamed: Sequence[StreamedRoute] = (), is_https: Callable[[Scope], bool] | None = None) -> None:
         self.app = app
         self.max_body = max_body
         self.streamed = tuple(streamed)
+        self.is_https = is_https or (lambda scope: scope.get("scheme") == "https")
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        extra = [HSTS] if self.is_https(scope) else []
         headers = dict(scope["headers"])
         declared = headers.get(b"content-length")
         route = next((r for r in self.streamed if r.matches(scope)), None)
         limit = route.max_body if route else self.max_body
         too_large = f"request body larger than {limit} bytes"
         if declared is not None and (not declared.isdigit() or int(declared) > limit):
-            await _json(send, 413, too_large)
+            await _json(send, 413, too_large, extra)
             return
         if route is not None:  # the endpoint streams the body itself and stops at the limit
-            await self._run(scope, receive, send)
+            await self._run(scope, receive, send, extra)
             return
         # The whole body is read here (it is small), so a streamed one over the limit is a 413 before any endpoint
         # runs, and a JSON one can be checked once for everyone.
@@ -151,13 +156,13 @@ class Protect:
             chunks.append(message.get("body", b""))
             size += len(chunks[-1])
             if size > self.max_body:
-                await _json(send, 413, too_large)
+                await _json(send, 413, too_large, extra)
                 return
             more = message.get("more_body", False)
         body = b"".join(chunks)
         content_type = headers.get(b"content-type", b"").split(b";")[0].strip().lower()
         if body and not content_type.startswith(_FORM_TYPES) and (problem := hostile_json(body)) is not None:
-            await _json(send, 422, [problem])
+            await _json(send, 422, [problem], extra)
             return
 
         replayed = False
@@ -169,10 +174,11 @@ class Protect:
                 return {"type": "http.request", "body": body, "more_body": False}
             return await receive()
 
-        await self._run(scope, replay, send)
+        await self._run(scope, replay, send, extra)
 
-    async def _run(self, scope: Scope, receive: Receive, send: Send) -> None:
-        """The app, with the security headers added and an unhandled error answered with a JSON 500."""
+    async def _run(self, scope: Scope, receive: Receive, send: Send, extra: list[tuple[bytes, bytes]]) -> None:
+        """The app, with the security headers (and ``extra``) added and an unhandled error answered with a JSON
+        500."""
         started = False
 
         async def with_headers(message: Message) -> None:
@@ -181,7 +187,7 @@ class Protect:
                 started = True
                 present = {k.lower() for k, _ in message.get("headers", [])}
                 message = {**message, "headers": [*message.get("headers", []),
-                                                  *(h for h in SECURITY_HEADERS if h[0] not in present)]}
+                                                  *(h for h in (*SECURITY_HEADERS, *extra) if h[0] not in present)]}
             await send(message)
 
         try:
@@ -190,7 +196,7 @@ class Protect:
             if started:
                 raise
             log.exception("unhandled error in %s %s", scope["method"], scope["path"])
-            await _json(send, 500, "internal error; nothing was stored")
+            await _json(send, 500, "internal error; nothing was stored", extra)
 
 
 Clock = Callable[[], float]

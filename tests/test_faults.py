@@ -53,8 +53,8 @@ def test_fuzzed_requests_never_get_a_server_error(tmp_path):
     migrate(engine)
     with session_factory(engine)() as db:
         make_study(db)
-    app = create_app(Settings(var_dir=tmp_path, secret_key="fuzz-secret-0123456789abcdef0123456789"), engine,
-                     run_migrations=False)
+    app = create_app(Settings(var_dir=tmp_path, secret_key="fuzz-secret-0123456789abcdef0123456789",
+                              api_docs=True), engine, run_migrations=False)
     schema = schemathesis.openapi.from_asgi("/openapi.json", app)
     operations = [result.ok() for result in schema.get_all_operations()]
     assert len(operations) >= 12

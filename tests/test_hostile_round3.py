@@ -354,3 +354,101 @@ def test_clips_inspect_refuses_a_bvh_bomb_before_reading_its_frames(data, tmp_pa
     assert cli.main(["clips", "inspect", str(small), "--max-frame-joints", "50"]) == 2
     assert "--max-frame-joints" in capsys.readouterr().err
     assert cli.main(["clips", "inspect", str(data / "mocap" / "cmu" / "113_21_idle_30fps.bvh.gz")]) == 0
+
+
+# --- 16: passwords on the command line, the API's documentation, HSTS -----------------------------------------
+
+def cli_env(monkeypatch, tmp_path) -> None:
+    monkeypatch.setenv("ANIMSTUDY_VAR_DIR", str(tmp_path / "cli"))
+    monkeypatch.setenv("ANIMSTUDY_SECRET_KEY", "password-cli-secret-0123456789abcdef0")
+    monkeypatch.delenv("ANIMSTUDY_DATABASE_URL", raising=False)
+    monkeypatch.delenv("DATABASE_URL", raising=False)
+
+
+def can_log_in(tmp_path, email: str, password: str) -> bool:
+    from server.db import make_engine
+    from server.errors import Unauthorized
+    from server.researchers.service import authenticate
+
+    engine = make_engine(f"sqlite:///{tmp_path / 'cli' / 'animstudy.db'}")
+    try:
+        with Session(engine) as db:
+            authenticate(db, email, password)
+        return True
+    except Unauthorized:
+        return False
+    finally:
+        engine.dispose()
+
+
+def test_researcher_create_reads_the_password_from_stdin_and_warns_about_the_argument(monkeypatch, tmp_path, capsys):
+    cli_env(monkeypatch, tmp_path)
+    monkeypatch.setattr("sys.stdin", io.StringIO("a long secret from stdin\nignored\n"))
+    assert cli.main(["researcher", "create", "--email", "a@example.org", "--password-stdin"]) == 0
+    assert "warning" not in capsys.readouterr().err
+    assert can_log_in(tmp_path, "a@example.org", "a long secret from stdin")
+    assert cli.main(["researcher", "create", "--email", "b@example.org", "--password", "visible secret 12"]) == 0
+    assert "warning: --password shows the password" in capsys.readouterr().err
+    assert can_log_in(tmp_path, "b@example.org", "visible secret 12")
+    monkeypatch.setattr("sys.stdin", io.StringIO(""))  # no terminal to prompt on, nothing given
+    assert cli.main(["researcher", "create", "--email", "c@example.org"]) == 2
+    assert "no password" in capsys.readouterr().err
+
+
+def test_researcher_create_prompts_without_echo(monkeypatch, tmp_path, capsys):
+    cli_env(monkeypatch, tmp_path)
+    typed = iter(["typed at the prompt 1", "typed at the prompt 1"])
+    monkeypatch.setattr("getpass.getpass", lambda prompt="": next(typed))
+    monkeypatch.setattr("sys.stdin.isatty", lambda: True, raising=False)
+    assert cli.main(["researcher", "create", "--email", "d@example.org"]) == 0
+    assert can_log_in(tmp_path, "d@example.org", "typed at the prompt 1")
+
+
+@pytest.mark.parametrize("path", ["/docs", "/redoc", "/openapi.json"])
+def test_the_api_documentation_is_not_public_unless_configured(db, engine, tmp_path, path):
+    from fastapi.testclient import TestClient
+
+    from server.app import create_app
+    from server.config import Settings
+
+    def get(**options):
+        settings = Settings(var_dir=tmp_path / "var", secret_key="docs-test-secret-0123456789abcdef01", **options)
+        with TestClient(create_app(settings, engine, run_migrations=False)) as c:
+            return c.get(path)
+
+    assert get().status_code == 404
+    assert get(api_docs=True).status_code == 200
+
+
+def test_hsts_is_sent_over_https_only(db, engine, tmp_path, study):
+    from fastapi.testclient import TestClient
+
+    from server.app import create_app
+    from server.config import Settings
+
+    from server.deps import get_session
+
+    def app(**options):
+        made = create_app(Settings(var_dir=tmp_path / "var", secret_key="hsts-test-secret-0123456789abcdef01",
+                                   **options), engine, run_migrations=False)
+        made.dependency_overrides[get_session] = lambda: db
+        return made
+
+    plain = app()
+    with TestClient(plain, base_url="https://testserver") as c:
+        responses = (c.get("/api/v1/studies/thesis"), c.get("/nothing-here"),
+                     c.post("/api/v1/studies/thesis/sessions", content=b"x" * 70_000))
+        assert [r.status_code for r in responses] == [200, 404, 413]
+        for r in responses:
+            assert r.headers["strict-transport-security"] == "max-age=31536000", (r.status_code, r.headers)
+    with TestClient(plain, base_url="http://testserver") as c:
+        r = c.get("/api/v1/studies/thesis", headers={"X-Forwarded-Proto": "https"})  # from anyone: ignored
+        assert r.status_code == 200 and "strict-transport-security" not in r.headers
+    proxied = app(trusted_proxies=["10.0.0.0/8"])
+    with TestClient(proxied, base_url="http://testserver", client=("10.0.0.5", 50000)) as c:
+        assert c.get("/api/v1/studies/thesis", headers={"X-Forwarded-Proto": "https"}
+                     ).headers["strict-transport-security"] == "max-age=31536000"
+        assert "strict-transport-security" not in c.get("/api/v1/studies/thesis").headers
+    with TestClient(proxied, base_url="http://testserver", client=("203.0.113.5", 50000)) as c:
+        assert "strict-transport-security" not in c.get("/api/v1/studies/thesis",
+                                                        headers={"X-Forwarded-Proto": "https"}).headers
