@@ -1,8 +1,8 @@
 """Where renders run: Dask distributed (docs/cluster.md).
 
 Without ``ANIMSTUDY_DASK_SCHEDULER`` a job starts an in-process ``LocalCluster`` (worker processes on this machine,
-one thread each: OSMesa renders on one core per process) and closes it when done, so every command works with
-nothing to start.  With ``ANIMSTUDY_DASK_SCHEDULER=tcp://host:8786`` the job is submitted to that cluster; its
+one thread each: OSMesa renders on one core per process; TLS with temporary credentials, so no other user of the
+machine can reach it) and closes it when done, so every command works with nothing to start.  With ``ANIMSTUDY_DASK_SCHEDULER=tcp://host:8786`` the job is submitted to that cluster; its
 workers need the same animstudy version installed (checked: a worker with another version is refused) but no
 shared filesystem: tasks get their inputs as values and return the encoded bytes.
 """
@@ -88,6 +88,7 @@ def dask_client(scheduler: str | None, workers: int | None = None) -> Iterator[C
     """A client of the cluster at ``scheduler``, or of a local cluster of ``workers`` processes (default: one per
     core) closed on exit.  :class:`ClusterError` names the address when the scheduler cannot be reached."""
     from distributed import Client, LocalCluster
+    from distributed.security import Security
 
     if scheduler:
         try:
@@ -101,9 +102,14 @@ def dask_client(scheduler: str | None, workers: int | None = None) -> Iterator[C
         finally:
             client.close()
         return
+    # TLS with a certificate made for this cluster alone (held in memory, handed to the worker processes through
+    # their pipes): its ports on 127.0.0.1 are open to every user of the machine, and a Dask scheduler runs any
+    # code it is sent.  Without the certificate nobody connects (docs/cluster.md).
+    security = Security.temporary()
     cluster = LocalCluster(n_workers=workers or machine_workers(), threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=logging.ERROR)
-    client = Client(cluster, set_as_default=False)
+                           dashboard_address=None, silence_logs=logging.ERROR, security=security,
+                           protocol="tls://")
+    client = Client(cluster, security=security, set_as_default=False)
     try:
         yield client
     finally:

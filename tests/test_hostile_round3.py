@@ -425,7 +425,6 @@ def test_hsts_is_sent_over_https_only(db, engine, tmp_path, study):
 
     from server.app import create_app
     from server.config import Settings
-
     from server.deps import get_session
 
     def app(**options):
@@ -452,3 +451,42 @@ def test_hsts_is_sent_over_https_only(db, engine, tmp_path, study):
     with TestClient(proxied, base_url="http://testserver", client=("203.0.113.5", 50000)) as c:
         assert "strict-transport-security" not in c.get("/api/v1/studies/thesis",
                                                         headers={"X-Forwarded-Proto": "https"}).headers
+
+
+# --- 13: the local Dask cluster speaks TLS with its own temporary certificate ----------------------------------
+
+INTRUDER = """
+import sys
+from distributed import Client
+from distributed.security import Security
+options = {"security": Security.temporary()} if sys.argv[2] == "own-certificate" else {}
+client = Client(sys.argv[1], timeout=3, set_as_default=False, **options)
+print("RAN", client.run(lambda: 1))
+"""
+
+
+def test_the_local_dask_cluster_admits_only_its_own_clients():
+    """Another user of the machine reached the scheduler on 127.0.0.1 and ran code in a worker.  Now the cluster
+    speaks TLS and requires the certificate made for it: another process connecting without it, plainly or with a
+    certificate of its own (another temporary one), runs nothing; the job's client runs tasks."""
+    import subprocess
+    import sys
+
+    from server.cluster import dask_client
+
+    with dask_client(None, workers=1) as client:
+        address = client.scheduler.address
+        assert client.submit(sum, [1, 2, 3]).result(timeout=60) == 6
+        attempts = [(address.replace("tls://", "tcp://"), "plain"), (address, "plain"),
+                    (address, "own-certificate")]
+        intruders = [subprocess.Popen([sys.executable, "-c", INTRUDER, a, how], stdout=subprocess.PIPE,
+                                      stderr=subprocess.PIPE, text=True) for a, how in attempts]
+        outputs = []
+        for intruder in intruders:
+            try:
+                outputs.append(intruder.communicate(timeout=30)[0])
+            except subprocess.TimeoutExpired:  # still waiting for a handshake that never comes: not admitted
+                intruder.kill()
+                outputs.append(intruder.communicate()[0])
+    assert not any("RAN" in out for out in outputs), list(zip(attempts, outputs, strict=True))
+    assert address.startswith("tls://127.0.0.1:"), address
