@@ -1,7 +1,9 @@
-"""Bounded fuzzing of the readers of untrusted files (issue 26): BVH, glTF, study file, clip-set file.
+"""Bounded fuzzing of the readers of untrusted files (issue 26): BVH, glTF, study file (as text and as bytes),
+clip-set file, and study archives (issue 36: the ZIP's bytes, and changes deep in its index).
 
 Each property feeds mutations of a valid file to its reader and allows two outcomes only: a result, or the reader's
-own error (BvhError, GltfError, StudyFileError, ConfigError); any other exception is a bug.  The memory a reader
+own error (BvhError, GltfError, StudyFileError, ConfigError; for an archive ArchiveError, or Conflict when the
+study was imported before, with no file left behind); any other exception is a bug.  The memory a reader
 takes for one input is measured (``tracemalloc``, which numpy reports to) and must stay within the uploads' bound,
 50 × the input's size + 200 MB, and the readers get the frame·joint bound the upload service gives them.
 
@@ -163,4 +165,121 @@ def test_fuzz_clip_set_file(tmp_path_factory, edits):
     try:
         bounded(path.stat().st_size, lambda: load_config(path))
     except ConfigError:
+        pass
+
+
+# --- study archives and study files as bytes (issue 36) ---------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def archive_setup(tmp_path_factory):
+    """An exported study archive (fake videos) and an empty second server to import it into."""
+    from sqlalchemy.orm import Session
+
+    from server.db import make_engine, migrate
+    from server.studies import service
+    from server.studies.archive import export_archive
+    from tests.server_fixtures import study_file, write_fake_media
+
+    root = tmp_path_factory.mktemp("archive-fuzz")
+    first = make_engine(f"sqlite:///{root / 'one.db'}")
+    migrate(first)
+    media = root / "media1"
+    write_fake_media(media)
+    with Session(first, expire_on_commit=False) as db:
+        study = service.create_study(db, service.RenderManifest.model_validate_json(
+            (media / "manifest.json").read_text()), study_file(slug="fuzzed"), media_dir=media)
+        path = export_archive(study, media, root / "fuzzed.zip")
+    first.dispose()
+    second = make_engine(f"sqlite:///{root / 'two.db'}")
+    migrate(second)
+    yield path, second, root
+    second.dispose()
+
+
+def import_bounded(setup, raw: bytes) -> None:
+    """Import the archive ``raw`` into the second server: a study, or ArchiveError or Conflict (a ServiceError of
+    the import's own), within the memory bound; a refused import leaves no file in the media directory."""
+    from sqlalchemy import delete
+    from sqlalchemy.orm import Session
+
+    from server.errors import Conflict
+    from server.studies.archive import ArchiveError, import_archive
+    from server.studies.models import Study
+
+    _, engine, root = setup
+    media = root / "media2"
+    path = root / "input.zip"
+    path.write_bytes(raw)
+    before = set(media.iterdir()) if media.exists() else set()
+    with Session(engine) as db:
+        try:
+            bounded(len(raw), lambda: import_archive(db, path, media))
+        except (ArchiveError, Conflict):
+            assert (set(media.iterdir()) if media.exists() else set()) == before
+        else:  # imported: taken away again, so the next example can import too
+            db.execute(delete(Study))
+            db.commit()
+
+
+@FUZZ
+@given(edits=EDITS)
+def test_fuzz_import_archive_bytes(archive_setup, edits):
+    import_bounded(archive_setup, mutate(archive_setup[0].read_bytes(), edits))
+
+
+# Values to put into an archive's index: wrong types, huge numbers, deep nesting, names with a newline.
+INDEX_VALUES = st.one_of(VALUES, st.text(max_size=12), st.sampled_from([
+    10**400, -1, "0" * 24 + ".mp4\n", "../x", {"digest": 1}, [[[[[]]]]], {"clips": [], "pairs": []}, True]))
+
+
+@FUZZ
+@given(changes=st.lists(st.tuples(st.lists(st.integers(0, 30), min_size=1, max_size=6), INDEX_VALUES),
+                        min_size=1, max_size=4),
+       redigest=st.booleans(), compression=st.sampled_from([0, 8, 12, 14]))
+def test_fuzz_import_archive_index(archive_setup, changes, redigest, compression):
+    """Changes deep inside ``archive.json`` (with the set's digest made right again, or not), in any of the
+    compression methods zipfile writes."""
+    import io
+    import zipfile
+
+    from server.stimuli.service import content_digest
+
+    with zipfile.ZipFile(archive_setup[0]) as z:
+        members = {name: z.read(name) for name in z.namelist()}
+    index = json.loads(members["archive.json"])
+    for steps, value in changes:  # walk down by index into the keys or items, then replace what is there
+        node = index
+        for step in steps[:-1]:
+            children = list(node.values()) if isinstance(node, dict) else node if isinstance(node, list) else []
+            if not children or not isinstance(children[step % len(children)], dict | list):
+                break
+            node = children[step % len(children)]
+        value = json.loads(json.dumps(value))  # a copy: the same sampled list put into itself is circular
+        if isinstance(node, dict) and node:
+            node[list(node)[steps[-1] % len(node)]] = value
+        elif isinstance(node, list) and node:
+            node[steps[-1] % len(node)] = value
+    stimulus_set = index.get("stimulus_set")
+    if redigest and isinstance(stimulus_set, dict) and isinstance(stimulus_set.get("content"), dict):
+        stimulus_set["digest"] = content_digest(stimulus_set["content"])
+    members["archive.json"] = json.dumps(index).encode()
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w", compression=compression) as w:
+        for name, data in members.items():
+            w.writestr(name, data)
+    import_bounded(archive_setup, out.getvalue())
+
+
+@FUZZ
+@given(edits=EDITS)
+def test_fuzz_study_file_bytes(thesis_text, tmp_path_factory, edits):
+    """The study file reader on bytes: invalid UTF-8, NULs, a byte-order mark, cut anywhere."""
+    from server.studies.studyfile import load_study_file
+
+    raw = mutate(thesis_text.encode("utf-8"), edits)
+    path = tmp_path_factory.getbasetemp() / "study.toml"
+    path.write_bytes(raw)
+    try:
+        bounded(len(raw), lambda: load_study_file(path))
+    except StudyFileError:
         pass
