@@ -2,9 +2,10 @@
 
 Without ``ANIMSTUDY_DASK_SCHEDULER`` a job starts an in-process ``LocalCluster`` (worker processes on this machine,
 one thread each: OSMesa renders on one core per process; TLS with temporary credentials, so no other user of the
-machine can reach it) and closes it when done, so every command works with nothing to start.  With ``ANIMSTUDY_DASK_SCHEDULER=tcp://host:8786`` the job is submitted to that cluster; its
-workers need the same animstudy version installed (checked: a worker with another version is refused) but no
-shared filesystem: tasks get their inputs as values and return the encoded bytes.
+machine can reach it) and closes it when done, so every command works with nothing to start.  With
+``ANIMSTUDY_DASK_SCHEDULER=tcp://host:8786`` (or ``tls://``, with Dask's TLS settings: docs/cluster.md) the job is
+submitted to that cluster; its workers need the same animstudy version installed (checked: a worker with another
+version is refused) but no shared filesystem: tasks get their inputs as values and return the encoded bytes.
 """
 
 from __future__ import annotations
