@@ -138,11 +138,6 @@ def test_junk_members_are_refused(archived, second, tmp_path):
     nothing_imported(engine, settings)
 
 
-def deep(index):
-    index["study"] = json.loads("[" * 50 + "]" * 50)
-    index["deep"] = "DEEP"
-
-
 def set_as_list(index):
     index["stimulus_set"] = [index["stimulus_set"]]
 
