@@ -391,7 +391,8 @@ def _reference(source: Source, fps: int) -> tuple[Animation, dict[str, Any], Arr
         keyframe = _planted(source, keyframe, src_t)
         key_grid = (0.0, keyframe.duration)
         source_info = {"file": cfg.source, "frames": [int(keys[0]), int(keys[1])], "key_frames": list(keys)}
-    animation = Animation(cfg.name, cfg.kind, keyframe, key_grid, keyframe.duration, cfg.in_place, fps)
+    animation = Animation(cfg.name, cfg.kind, keyframe, key_grid, keyframe.duration, cfg.in_place, fps,
+                          source.character.bind_rotations)
     return animation, source_info, src_t
 
 

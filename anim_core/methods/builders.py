@@ -35,6 +35,7 @@ from pydantic import Field
 
 from ..math.clip import KeyframeClip
 from ..rig.character import FEET, LEGS
+from ..rig.mirror import Mirror
 from .base import Animation, Params
 from .c2spline import C2Clip, c2_from_squad
 from .compression import QuantizedClip, keyframe_bytes, quantized_clip, reduce_keys
@@ -64,8 +65,9 @@ def build_hybrid(animation: Animation, params: HybridParams) -> SquadClip | Spri
         # build_gait measures the travel from its source, so it gets the reference travelling.
         travelling = KeyframeClip(ref.skeleton, ref.times, ref.rotations, ref.root_translation, ref.mode,
                                   False, ref.up_axis, ref.name)
-        return build_gait(travelling, keys, animation.period, increment=params.increment, in_place=animation.in_place,
-                          name=animation.name)
+        mirror = Mirror(ref.skeleton, bind=animation.bind_rotations)
+        return build_gait(travelling, keys, animation.period, increment=params.increment, mirror=mirror,
+                          in_place=animation.in_place, name=animation.name)
     if animation.kind == "crouch":
         return build_crouch(ref, keys, increment=params.increment, duration=animation.period, time_scale=None,
                             name=animation.name)

@@ -98,7 +98,9 @@ class SquadClip:
     ``key_times``: ``(K,)`` seconds from 0, ``key_rotations``: ``(K, J, 4)``, ``key_root``: ``(K, 3)``.  For a loop
     the clip returns to key 0 at ``duration`` (``> key_times[-1]``); for ping-pong ``duration == key_times[-1]``.
     The root follows a cubic spline through the key root positions (periodic, or with zero end slopes), plus the
-    travel ``velocity * t`` in loop mode unless ``in_place``.
+    travel ``velocity * t`` in loop mode unless ``in_place``.  ``mirror``: for a gait whose second half's keys are
+    the mirror images of its first half's (:func:`build_gait`), the :class:`~anim_core.rig.mirror.Mirror` that made
+    them (a runtime stores the first half only and mirrors it); None otherwise.
     """
 
     skeleton: Skeleton
@@ -110,6 +112,7 @@ class SquadClip:
     velocity: Array = field(default_factory=lambda: np.zeros(3))
     in_place: bool = False
     name: str = ""
+    mirror: Mirror | None = field(default=None, repr=False)
     _seg_times: Array = field(init=False, repr=False)
     _q: Array = field(init=False, repr=False)
     _a: Array = field(init=False, repr=False)
@@ -306,7 +309,7 @@ def build_gait(source: KeyframeClip, key_times: Sequence[float], period: float, 
         key_times=np.concatenate([times - t0, times - t0 + period / 2]),
         key_rotations=np.concatenate([keys.rotations, mirrored.rotations]),
         key_root=np.concatenate([offsets, mirrored.root_translation]),
-        duration=period, mode="loop", velocity=velocity, in_place=in_place, name=name,
+        duration=period, mode="loop", velocity=velocity, in_place=in_place, name=name, mirror=mirror,
     )
 
 
