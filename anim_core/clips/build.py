@@ -37,7 +37,8 @@ from ..math import contacts
 from ..math.clip import KeyframeClip, PlaybackMode, Pose, horizontal
 from ..math.quat import quat_from_axis_angle, quat_mul, rotate, slerp
 from ..math.skeleton import Skeleton
-from ..methods.conditions import REFERENCE, Animation, Condition, Kind
+from ..methods.conditions import REFERENCE, Animation, Condition, Kind, get_method
+from ..methods.footlock import FootLockedClip
 from ..methods.footplant import plant_feet
 from ..methods.ik import smoothstep
 from ..methods.keypick import pick_keys
@@ -558,7 +559,9 @@ def _gate(source: Source, clips: list[BuiltClip], src_t: Array) -> list[BuiltCli
     contact = reference.character.contact_heights
     source_frames = cfg.frames[0] + np.round(times / source.frame_time).astype(np.intp)
     checks = [fidelity.check_reference(reference.world_positions, contact, candidates, slack, source_frames)]
-    checks += [fidelity.check_condition(c.world_positions, contact, reference.world_positions) for c in clips[1:]]
+    loop = cfg.playback == "loop"
+    checks += [fidelity.check_condition(c.world_positions, contact, reference.world_positions, loop,
+                                        _mirrored_half(cfg, c), c.fps) for c in clips[1:]]
     out = []
     for c, check in zip(clips, checks, strict=True):
         if check.problems and not cfg.accept_unfaithful:
@@ -571,6 +574,19 @@ def _gate(source: Source, clips: list[BuiltClip], src_t: Array) -> list[BuiltCli
         metrics = {**c.metrics, **check.as_metrics(), "unfaithful": 1.0 if unfaithful else 0.0}
         out.append(replace(c, metrics=metrics, fidelity=check))
     return out
+
+
+def _mirrored_half(cfg: AnimationConfig, clip: BuiltClip) -> tuple[NDArray[np.intp], int] | None:
+    """For a gait condition whose second half cycle mirrors its first (a hybrid's keys and their mirror images,
+    :attr:`anim_core.methods.hybrid.SquadClip.mirror`, also under foot locking or the C2 spline): the frames of its
+    keyed half's keys and the half's length in frames, for :func:`anim_core.clips.fidelity.check_mirror`."""
+    if cfg.kind != "gait" or clip.n_frames % 2 or not get_method(clip.method).mirrors:
+        return None
+    half = clip.n_frames // 2
+    if isinstance(clip.clip, FootLockedClip):  # its legs are posed by IK at the keys too, by design
+        return np.zeros(0, np.intp), half
+    frames = np.round(np.asarray(clip.key_times) * clip.fps).astype(np.intp)
+    return frames[frames < half], half
 
 
 def _place_on_floor(clips: list[BuiltClip]) -> list[BuiltClip]:

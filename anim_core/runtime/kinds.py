@@ -212,7 +212,8 @@ class SplineRuntime(_Runtime):
     the keys at ``3s``; ``root_times (R + 1,)`` float64 and ``root_coef (R, 4, 3)``: the root spline of the
     whole period, cubic in seconds from the segment start, highest power first (scipy's ``CubicSpline.c``);
     ``mirror_src (J,)`` int32: each joint's partner, and ``mirror_map (1 or J, 4, 4)``: the linear map of each
-    joint's quaternion (w, x, y, z) after the partner's is taken (both empty without mirror); ``velocity (3,)`` travel per second in loop mode;
+    joint's quaternion (w, x, y, z) after the partner's is taken (both empty without
+    mirror); ``velocity (3,)`` travel per second in loop mode;
     ``params (3,)`` float64 = (duration s, playback mode index, half period s or 0 without mirror).
     ``fit_error_deg``: the measured largest global-rotation error against the exact curve (not runtime data).
     """

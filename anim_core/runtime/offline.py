@@ -18,7 +18,6 @@ from ..methods.compression import QuantizedClip
 from ..methods.footlock import FootLockedClip
 from ..methods.hybrid import SpringClip, SquadClip, spring
 from ..methods.ik import _STRAIGHT
-from ..rig.mirror import Mirror
 from .checks import max_error_deg
 from .crowd import keyframe_root, table_from_keyframes, uniform
 from .kinds import (
