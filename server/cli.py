@@ -189,14 +189,17 @@ def clips_build(data_dir: Path, out: Path, config: Path | None, scheduler: str |
 
 
 def _print_fidelity(clips: list) -> None:
-    """The fidelity gate's figures (anim_core.clips.fidelity): head over hips (smallest, m), the feet's lowest clearance
-    (the higher foot's, mm), depth under the floor (mm), frames with the left hip on the left, and the largest pose
-    angle difference: the reference's against the source, a condition's against the reference, with the angle and
-    the frame where it is largest."""
+    """The fidelity gate's figures (anim_core.clips.fidelity) of every clip: head over hips (smallest, m), the feet's
+    lowest clearance (the higher foot's, mm), depth under the floor (mm), frames with the left hip on the left, the
+    largest pose angle difference, the bones' directions (p95, deg), hip width against what the clip is held against,
+    knees bending forward, the worst stance's landing (mm) and a gait hybrid's mirrored half (p95, deg): the
+    reference's against the source, a condition's against the reference, with the angle and the frame where the pose
+    difference is largest."""
     width = max(16, *(len(c.id) for c in clips))
     at_width = max(10, *(len(c.fidelity.pose_error_at or "") for c in clips if c.fidelity is not None))
     print(f"\n{'fidelity':{width}} {'head m':>6} {'feet mm':>7} {'under mm':>8} {'left':>5} {'pose deg':>8} "
-          f"{'against':>9}  {'largest at':{at_width}} verdict")
+          f"{'bones':>5} {'hips':>4} {'knees':>5} {'land mm':>7} {'mirror':>6} {'against':>9}  {'largest at':{at_width}} "
+          f"verdict")
     prev = None
     for c in clips:
         f = c.fidelity
@@ -207,8 +210,15 @@ def _print_fidelity(clips: list) -> None:
         against = "source" if c is clips[0] or c.animation != prev else "reference"
         prev = c.animation
         at = f.pose_error_at or "-"
+        land = None if f.landing_m is None else f.landing_m * 1000
         print(f"{c.id:{width}} {f.upright_m:6.2f} {f.foot_reach_m * 1000:7.0f} {-f.under_floor_m * 1000:8.0f} "
-              f"{f.handedness:5.0%} {_fmt(f.pose_error_deg, 1):>8} {against:>9}  {at:{at_width}} {verdict}", flush=True)
+              f"{f.handedness:5.0%} {_fmt(f.pose_error_deg, 1):>8} {_fmt(f.bone_error_deg, 1):>5} "
+              f"{_fmt(f.hip_width_ratio, 2):>4} {_pct(f.knees_forward):>5} {_fmt(land, 0):>7} "
+              f"{_fmt(f.mirror_error_deg, 1):>6} {against:>9}  {at:{at_width}} {verdict}", flush=True)
+
+
+def _pct(share: float | None) -> str:
+    return "-" if share is None else f"{share:.0%}"
 
 
 def _print_comparison(clips: list, warnings: list[str]) -> None:
