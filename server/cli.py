@@ -198,8 +198,8 @@ def _print_fidelity(clips: list) -> None:
     width = max(16, *(len(c.id) for c in clips))
     at_width = max(10, *(len(c.fidelity.pose_error_at or "") for c in clips if c.fidelity is not None))
     print(f"\n{'fidelity':{width}} {'head m':>6} {'feet mm':>7} {'under mm':>8} {'left':>5} {'pose deg':>8} "
-          f"{'bones':>5} {'hips':>4} {'knees':>5} {'land mm':>7} {'mirror':>6} {'against':>9}  {'largest at':{at_width}} "
-          f"verdict")
+          f"{'bones':>5} {'hips':>4} {'knees':>5} {'land mm':>7} {'mirror':>6} {'against':>9}  "
+          f"{'largest at':{at_width}} verdict")
     prev = None
     for c in clips:
         f = c.fidelity
