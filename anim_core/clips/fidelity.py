@@ -318,14 +318,23 @@ def check_condition(positions: Array, contact_heights: Array, reference: Array, 
                     tuple(problems + body + unlanded), **figures, landing_m=landing, mirror_error_deg=mirrored)
 
 
+#: Narrower hips than this (leg lengths) are no human's: both thighs start from one point (the hips are stacked, or a
+#: mapping took the hip centre for the thigh heads).
+STACKED_HIPS = 0.05
+
+
 def _widths_problems(positions: Array, against: Array, what: str) -> tuple[float, float, list[str]]:
     mine, theirs = widths(positions), widths(against)
     ratios = [m / t if t > 0 else float("inf") for m, t in zip(mine, theirs, strict=True)]
     problems = []
+    for side, hips in (("", mine[0]), (f"the {what}'s ", theirs[0])):
+        if hips < STACKED_HIPS:
+            problems.append(f"{side or 'its '}thighs start from one point (hip width {hips:.2f} leg lengths)"
+                            + (": the mapping's LeftUpLeg and RightUpLeg are not the thigh heads; check them (clips "
+                               "inspect) or give a mapping file" if side else ": stacked hips"))
     for part, ratio, m, t in zip(("hip", "shoulder"), ratios, mine, theirs, strict=True):
-        if not 1.0 / WIDTH_RATIO <= ratio <= WIDTH_RATIO:
-            problems.append(f"the {part} width is {m:.2f} leg lengths against the {what}'s {t:.2f}"
-                            + (" (both thighs from one point: stacked hips)" if part == "hip" and m < 0.02 else ""))
+        if not 1.0 / WIDTH_RATIO <= ratio <= WIDTH_RATIO and not (part == "hip" and min(m, t) < STACKED_HIPS):
+            problems.append(f"the {part} width is {m:.2f} leg lengths against the {what}'s {t:.2f}")
     return ratios[0], ratios[1], problems
 
 
