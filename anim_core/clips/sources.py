@@ -21,12 +21,21 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..io.bvh import MAX_FRAME_JOINTS, Bvh, bvh_from_poses, read_bvh, write_bvh
-from ..io.gltf import GltfAnimation, read_gltf, write_gltf
+from ..io.gltf import GltfAnimation, GltfAsset, read_gltf, write_gltf
 from ..math.contacts import contact_intervals, foot_down
 from ..math.skeleton import Skeleton
 from ..math.skinning import SkinnedMesh
 from ..rig.character import Character, retarget
-from ..rig.rigmap import CANONICAL_NAMES, Normalized, normalize_bvh, normalize_motion
+from ..rig.rigmap import (
+    CANONICAL_NAMES,
+    Normalized,
+    RigMapError,
+    detect_up_axis,
+    map_skeleton,
+    normalize_bvh,
+    normalize_motion,
+    units_from_height,
+)
 
 Array = NDArray[np.float64]
 
@@ -156,10 +165,31 @@ def read_motions(path: str | os.PathLike[str], explicit: Mapping[str, str] | Non
         asset = read_gltf(path, max_frame_joints=max_frame_joints)
         if not asset.animations:
             raise ValueError(f"{path.name}: the file holds a character but no animation")
-        return [(a.name, normalize_motion(asset.skeleton, a.rotations, a.root_translation, a.frame_time, {},
+        units = units or _mesh_units(asset, explicit, up_axis)
+        sk = asset.skeleton
+        return [(a.name, normalize_motion(sk if a.offsets is None else Skeleton(sk.names, sk.parents, a.offsets,
+                                                                                sk.rest_rotations),
+                                          a.rotations, a.root_translation, a.frame_time, {},
                                           f"{path.name} animation {a.name!r}", explicit, units, up_axis))
                 for a in asset.animations]
     raise ValueError(f"{path.name}: not a motion file; expected .bvh, .bvh.gz, .glb or .gltf")
+
+
+def _mesh_units(asset: GltfAsset, explicit: Mapping[str, str] | None, up_axis: str | None) -> str | None:
+    """The unit in which the skinned mesh's height (its bounding box along up) is a human height, ``None`` where
+    that cannot be told (the skeleton does not map, or the mesh is no human height): the skeleton's leg length
+    decides then.  The mesh is the figure's whole height, head and feet included, where the joints stop short of
+    both (a 1.51 m figure's joints span 1.3 m)."""
+    try:
+        mapping = map_skeleton(asset.skeleton, explicit)
+    except RigMapError:
+        return None
+    rest = asset.skeleton.rest_global()[1]
+    up = up_axis or detect_up_axis(rest, int(mapping.source_index[_CANON["Head"]]), int(mapping.source_index[0]))
+    try:
+        return units_from_height(float(np.ptp(asset.vertices[:, 1 if up == "y" else 2])), "skinned mesh")
+    except RigMapError:
+        return None
 
 
 def inspect_source(path: str | os.PathLike[str], explicit: Mapping[str, str] | None = None,

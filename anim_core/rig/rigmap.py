@@ -37,7 +37,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from ..io.bvh import OFFSET_MATCH, Bvh, bvh_from_poses
+from ..io.bvh import OFFSET_MATCH, Bvh, bvh_from_poses, still_translation
 from ..math.quat import identity, quat_conj, quat_from_axis_angle, quat_from_euler, quat_mul, rotate
 from ..math.skeleton import Skeleton
 
@@ -526,6 +526,16 @@ def detect_units(height: float) -> str:
                       f"units; give the units explicitly")
 
 
+def units_from_height(height: float, what: str = "skinned mesh") -> str:
+    """The unit in which a figure ``height`` tall (``what``: a skinned mesh's bounding box along up, head and feet
+    included) is a plausible human height (the ranges of :data:`UNITS`)."""
+    for unit, (_, (lo, hi)) in UNITS.items():
+        if lo <= height <= hi:
+            return unit
+    raise RigMapError(f"a {what} {height:.4g} units tall is not a human height in m, cm, mm, inches or CMU units; "
+                      f"give the units explicitly")
+
+
 def canonical_frame(rest_positions: Array, source_index: NDArray[np.intp], up_axis: str | None = None,
                     units: str | None = None) -> tuple[Array, str, str, float]:
     """The turn that brings a source skeleton into the canonical world (Y up, its left at +X), and its units.
@@ -802,9 +812,8 @@ def _bvh_motion(bvh: Bvh) -> tuple[Skeleton, Array, Array, dict[int, Array], lis
     for j in moving:
         if j == top or _chain(s.parents, top, j):
             continue
-        mean = translation(j).mean(axis=0)
-        spread = float(np.abs(translation(j) - mean).max())
-        if spread > 0.01 * max(float(np.linalg.norm(mean)), 1e-12):
+        mean, spread, still = still_translation(translation(j))
+        if not still:
             raise RigMapError(f"{bvh.source}: joint {names[j]!r} has animated position channels (it moves up to "
                               f"{spread:.3g} units against its parent); only the body's root "
                               f"({names[top]!r}) may translate: export the motion without translation keys on "
