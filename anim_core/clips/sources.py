@@ -200,6 +200,36 @@ def inspect_source(path: str | os.PathLike[str], explicit: Mapping[str, str] | N
     return [_report(name, out) for name, out in read_motions(path, explicit, units, up_axis, max_frame_joints)]
 
 
+def joint_table(path: str | os.PathLike[str]) -> str | None:
+    """The joints of a BVH or glTF file, one a line: index, name, parent and position in the bind pose (glTF: from
+    the inverse bind matrices; BVH: the rest pose), in file units, so that a user whose file does not map can
+    write a mapping file from them; ``None`` if the file's skeleton cannot be read.  Unnamed glTF joints are
+    ``joint<k>``, ``k`` the index here (depth-first from the root joint, children in the file's order)."""
+    path = Path(path)
+    try:
+        if path.name.lower().endswith((".glb", ".gltf")):
+            asset = read_gltf(path, animations=False)
+            skeleton = asset.skeleton
+            ibm = np.asarray(asset.inverse_bind, np.float64)
+            positions = np.linalg.inv(ibm)[:, :3, 3]
+            where = "bind position (from the inverse bind matrices)"
+        else:
+            skeleton = read_bvh(path).skeleton
+            positions = skeleton.rest_global()[1]
+            where = "rest position"
+    except (ValueError, OSError, np.linalg.LinAlgError):
+        return None
+    names = skeleton.names
+    width = max(len(n) for n in names)
+    lines = [f"joints of {path.name} (for a mapping file: character joint = \"file joint\"):",
+             f"  {'index':>5}  {'name':<{width}}  {'parent':<{width}}  {where}, file units"]
+    for j, name in enumerate(names):
+        parent = names[skeleton.parents[j]] if skeleton.parents[j] >= 0 else "-"
+        x, y, z = positions[j]
+        lines.append(f"  {j:>5}  {name:<{width}}  {parent:<{width}}  ({x:.4g}, {y:.4g}, {z:.4g})")
+    return "\n".join(lines)
+
+
 def format_report(path: str | os.PathLike[str], reports: list[MotionReport],
                   tolerances: Sequence[str | None] | None = None) -> str:
     """Plain-text report of :func:`inspect_source` for the terminal; ``tolerances``: per report a line on the
