@@ -388,7 +388,7 @@ def _sample(times: Array, values: Array, t: Array, interpolation: str, rotation:
     return values[k] + (values[k + 1] - values[k]) * u[:, None]
 
 
-_Channel = tuple[int, str, Array, Array, str]  # joint, path, key times, key values, interpolation
+_Channel = tuple[int, str, Array, Array, str, str]  # joint, path, key times, key values, interpolation, animation
 
 
 def _channels(r: _Reader, anim: pygltflib.Animation, name: str, node_to_joint: dict[int, int]) -> list[_Channel]:
@@ -407,7 +407,7 @@ def _channels(r: _Reader, anim: pygltflib.Animation, name: str, node_to_joint: d
             raise r.fail(f"animation {name!r} has {len(times)} keys; at most {MAX_KEYS} are supported")
         if len(times) == 0 or np.any(np.diff(times) <= 0):
             raise r.fail(f"animation {name!r}: key times are empty or not increasing")
-        channels.append((node_to_joint[c.target.node], c.target.path, times, values, sampler.interpolation))
+        channels.append((node_to_joint[c.target.node], c.target.path, times, values, sampler.interpolation, name))
     return channels
 
 
@@ -460,7 +460,7 @@ def _build_animation(r: _Reader, name: str, channels: list[_Channel], skeleton: 
     rot = np.broadcast_to(skeleton.rest_rotations, (n, skeleton.n_joints, 4)).copy()
     root = np.zeros((n, 3))
     offsets = skeleton.offsets.copy()
-    for joint, path, times, values, interp in channels:
+    for joint, path, times, values, interp, part in channels:
         if path == "rotation":
             rot[:, joint] = _wxyz(_sample(times, values, t, interp or "LINEAR", True))
             if joint == 0:
@@ -470,7 +470,7 @@ def _build_animation(r: _Reader, name: str, channels: list[_Channel], skeleton: 
             keys = values.reshape(len(times), 3, -1)[:, 1] if interp == "CUBICSPLINE" else values
             off = float(np.abs(keys - 1.0).max())
             if off > STILL_SHARE:
-                raise r.fail(f"animation {name!r} scales joint {skeleton.names[joint]!r} (by up to {1 + off:g}); "
+                raise r.fail(f"animation {part!r} scales joint {skeleton.names[joint]!r} (by up to {1 + off:g}); "
                              f"only scales within {STILL_SHARE:.0%} of 1 are supported: bake the scale into "
                              f"the rig before exporting")
         elif joint == 0:
@@ -480,7 +480,7 @@ def _build_animation(r: _Reader, name: str, channels: list[_Channel], skeleton: 
             keys = above_scale * (values.reshape(len(times), 3, -1)[:, 1] if interp == "CUBICSPLINE" else values)
             mean, spread, still = still_translation(keys)
             if not still:
-                raise r.fail(f"animation {name!r} translates joint {skeleton.names[joint]!r} (it moves up to "
+                raise r.fail(f"animation {part!r} translates joint {skeleton.names[joint]!r} (it moves up to "
                              f"{spread:.3g} units about its mean); only the root may translate, other joints' "
                              f"translation keys must stay within {STILL_SHARE:.0%} of the bone's length: bake "
                              f"them into rotations")
