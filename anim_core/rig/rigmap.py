@@ -460,9 +460,11 @@ def structural_anchors(parents: NDArray[np.intp], positions: Array) -> dict[str,
     branch that keeps closest to the hips-to-chest line.  A foot is the joint of its leg below half the leg's drop
     from which the bone goes more across than down (to the toes), else the leg's last joint; a hand or the head
     the first joint of its chain that branches, else its last joint short of an end joint
-    (:func:`_end_of_chain`).  Left and right from geometry, not from the feet: up runs from the hips to the
-    chest; the legs' sockets and the shoulders (upper arms) stand in front of the spine, which runs along the back
-    (:data:`FACING_MIN`), so forward is from the spine to them; left is up × forward.  ``positions``: ``(J, 3)``.
+    (:func:`_end_of_chain`); an elbow the joint that splits the straight stretch of the arm ending at the hand
+    (``"LeftForeArm"``, left out where the arm has no straight stretch: the limb's lengths decide then).
+    Left and right from geometry, not from the feet: up runs from the hips to the head; the legs' sockets and the
+    shoulders stand in front of the spine, which runs along the back (:data:`FACING_MIN`), so forward is from the
+    spine to them; left is up × forward.  ``positions``: ``(J, 3)``.
     Raises :class:`RigMapError` saying what is ambiguous.
     """
     pos = np.asarray(positions, dtype=np.float64)
@@ -545,15 +547,28 @@ def structural_anchors(parents: NDArray[np.intp], positions: Array) -> dict[str,
                           f"of the spine, less than {FACING_MIN:.0%} of the figure's size: left and right cannot be "
                           f"told from the geometry")
     left = np.cross(up, forward / np.linalg.norm(forward))
+    def elbow(hand: int) -> int | None:
+        """The elbow: within the straight stretch of the arm that ends at the hand (upper arm and forearm; the
+        collar bone leaves it), the joint that splits it into the two longest parts.  Lengths alone do not tell:
+        CMU's forearm is shorter than its collar bone."""
+        chain = _chain(parents, hand, chest)
+        for a in chain[:-2]:
+            if _straight(pos, chain, a, hand):
+                inner = chain[chain.index(a) + 1:-1]
+                return max(inner, key=lambda j: min(np.linalg.norm(pos[j] - pos[a]),
+                                                    np.linalg.norm(pos[hand] - pos[j])))
+        return None
+    elbows = [elbow(h) for h in hands]
     out = {"Hips": hips, "Spine1": chest, "Head": head}
-    for what, pair, at in (("Foot", feet, sockets), ("Hand", hands, shoulders)):
+    for what, pair, at in (("Foot", feet, sockets), ("Hand", hands, shoulders), ("ForeArm", elbows, shoulders)):
         d = pos[at[0]] - pos[at[1]]
         side = float(d @ left)
         if abs(side) < 0.5 * np.linalg.norm(d):
             raise RigMapError(f"the two {'legs' if what == 'Foot' else 'arms'} (joints {at[0]} and {at[1]}) are not "
                               f"side by side across the facing: left and right cannot be told from the geometry")
         first, second = pair if side > 0 else pair[::-1]
-        out["Left" + what], out["Right" + what] = first, second
+        if first is not None and second is not None:
+            out["Left" + what], out["Right" + what] = first, second
     return out
 
 
@@ -565,14 +580,30 @@ class _StructureMapper(_Mapper):
         super().__init__(names, parents, rest_positions)
         self.anchors = structural_anchors(parents, rest_positions)
         roles = {"Hips": (None, "hips"), "Head": (None, "head"), "LeftFoot": ("L", "foot"),
-                 "RightFoot": ("R", "foot"), "LeftHand": ("L", "hand"), "RightHand": ("R", "hand")}
+                 "RightFoot": ("R", "foot"), "LeftHand": ("L", "hand"), "RightHand": ("R", "hand"),
+                 "LeftForeArm": ("L", "forearm"), "RightForeArm": ("R", "forearm")}
         self.sides = [SideName(None, "joint", n, "", False) for n in names]
         for canonical, (side, stem) in roles.items():
-            self.sides[self.anchors[canonical]] = SideName(side, stem, names[self.anchors[canonical]], "", True)
+            if canonical in self.anchors:
+                self.sides[self.anchors[canonical]] = SideName(side, stem, names[self.anchors[canonical]], "", True)
         self.helper = [False] * len(names)
 
+    running = False
+
+    def run(self) -> None:
+        self.running = True  # the choices made here are the structure's; explicit entries set later are not
+        try:
+            super().run()
+        finally:
+            self.running = False
+
     def set(self, canonical: str, j: int | None, reason: str) -> None:
-        if canonical in ("Hips", "Head", "LeftFoot", "RightFoot", "LeftHand", "RightHand", "Spine1"):
+        if not self.running:
+            super().set(canonical, j, reason)
+            return
+        if canonical in ("LeftForeArm", "RightForeArm") and canonical in self.anchors:
+            reason = "the joint that splits the arm's straight stretch (upper arm and forearm) into its two parts"
+        elif canonical in ("Hips", "Head", "LeftFoot", "RightFoot", "LeftHand", "RightHand", "Spine1"):
             reason = {"Hips": "the joint where two legs and the spine branch",
                       "Spine1": "the joint where two arms and the neck branch",
                       "Head": "the end of the neck's branch"}.get(
