@@ -254,3 +254,19 @@ def test_a_failed_inspect_prints_the_joint_list(walk, tmp_path, rng, capsys):
         xyz = np.array([float(v) for v in position[0].strip("()").split(",")])
         np.testing.assert_allclose(xyz, bind[k], atol=1e-3)
     print("\n".join(lines[start:start + 6]))
+
+
+def test_the_human_height_rule_reads_the_mesh(walk, tmp_path, rng):
+    """A figure with short legs (knee and ankle bones at 0.6 of the walk's): 1.51 m tall by its mesh, but its legs
+    make a standing height of 1.63 leg lengths = 0.71 m, no human height in any unit.  The file's skinned mesh
+    gives its height: metres, with no --units."""
+    rt, skeleton, rot, root, k, frame_time = walk
+    offsets = skeleton.offsets.copy()
+    short = [CANONICAL_NAMES.index(f"{side}{part}") for side in ("Left", "Right") for part in ("Leg", "Foot")]
+    offsets[short] *= 0.6
+    stubby = (rt, Skeleton(skeleton.names, skeleton.parents, offsets, skeleton.rest_rotations), rot, root, k,
+              frame_time)
+    path, _ = collada2gltf(stubby, tmp_path / "stubby.gltf", rng)
+    (report,) = inspect_source(path)
+    assert report.normalized.units == "m"
+    assert abs(float(np.ptp(read_gltf(path, animations=False).vertices[:, 1])) - STATURE_M) < 1e-3
