@@ -188,11 +188,15 @@ def test_a_collada2gltf_file_is_a_character_and_builds_a_clip_set(walk, tmp_path
     """Read as a character from its skin and bind pose (its 31 animations play no part), mapped by structure, in
     metres by its mesh's height; and a clip set with that file as both character and motion builds with no
     mapping."""
+    from server.assets import gltf_character
     from server.clipset.build import build_clip_set
     from server.clipset.config import load_config
 
     path, _ = collada2gltf(walk, tmp_path / "collada.gltf", rng, mirror=True)
-    mapped = character_from_gltf(read_gltf(path, animations=False))
+    mapped = gltf_character(data, str(path))  # as a clip set's [character] gltf reads it
+    assert mapped.mapping.convention == "unknown" and mapped.mapping.source_index[0] == 0
+    direct = character_from_gltf(read_gltf(path, animations=False)).character
+    np.testing.assert_allclose(direct.heads, mapped.character.heads, atol=1e-12)
     assert mapped.units == "m" and mapped.up_axis == "y"
     c = mapped.character
     assert c.names == RIG_NAMES
