@@ -152,8 +152,10 @@ def _report(name: str, out: Normalized) -> MotionReport:
 def read_motions(path: str | os.PathLike[str], explicit: Mapping[str, str] | None = None,
                  units: str | None = None, up_axis: str | None = None,
                  max_frame_joints: int = MAX_FRAME_JOINTS) -> list[tuple[str, Normalized]]:
-    """Every motion of a BVH (one) or glTF file (one per animation), named and normalized
-    (:func:`~anim_core.rig.rigmap.normalize_bvh`); errors are ``ValueError`` subclasses naming the file.  A motion
+    """Every motion of a BVH (one) or glTF file (one per animation; one-joint animations as one, see
+    :mod:`anim_core.io.gltf`), named and normalized (:func:`~anim_core.rig.rigmap.normalize_bvh`; a glTF's units
+    from its skinned mesh's height where that is a human's, :func:`_mesh_units`); errors are ``ValueError``
+    subclasses naming the file.  A motion
     of more than ``max_frame_joints`` frames × joints fails before it is read (the memory spent on a motion grows
     with it; :func:`~anim_core.io.bvh.parse_bvh`, :func:`~anim_core.io.gltf.read_gltf`)."""
     path = Path(path)
