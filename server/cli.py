@@ -35,8 +35,8 @@ def _source_options(parser: argparse.ArgumentParser) -> None:
 def clips_inspect(data_dir: Path, path: Path, mapping: Path | None, units: str | None, up_axis: str | None) -> int:
     """Print what a BVH or glTF file holds and how it maps onto the character (``animstudy clips inspect``); for a
     motion suggested as kind ``other``, a ``tolerance_mm`` measured by building it (:func:`_tolerance_line`)."""
-    from anim_core.clips.sources import format_report, inspect_source
-    from anim_core.rig.rigmap import read_mapping_file
+    from anim_core.clips.sources import format_report, inspect_source, joint_table
+    from anim_core.rig.rigmap import RigMapError, read_mapping_file
 
     if not path.is_file():
         return _fail(f"{path}: no such file")
@@ -44,7 +44,9 @@ def clips_inspect(data_dir: Path, path: Path, mapping: Path | None, units: str |
         explicit = read_mapping_file(mapping) if mapping else None
         reports = inspect_source(path, explicit, units, up_axis)
     except (ValueError, OSError) as exc:  # BvhError, GltfError and RigMapError name the file (and line)
-        return _fail(str(exc))
+        # A skeleton that does not map: its joints, to write a mapping file from.
+        table = joint_table(path) if isinstance(exc, RigMapError) else None
+        return _fail(str(exc) + (f"\n{table}" if table else ""))
     print(format_report(path, reports, [_tolerance_line(data_dir, path, r) if r.kind == "other" else None
                                         for r in reports]))
     return 0

@@ -21,12 +21,21 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..io.bvh import MAX_FRAME_JOINTS, Bvh, bvh_from_poses, read_bvh, write_bvh
-from ..io.gltf import GltfAnimation, read_gltf, write_gltf
+from ..io.gltf import GltfAnimation, GltfAsset, read_gltf, write_gltf
 from ..math.contacts import contact_intervals, foot_down
 from ..math.skeleton import Skeleton
 from ..math.skinning import SkinnedMesh
 from ..rig.character import Character, retarget
-from ..rig.rigmap import CANONICAL_NAMES, Normalized, normalize_bvh, normalize_motion
+from ..rig.rigmap import (
+    CANONICAL_NAMES,
+    Normalized,
+    RigMapError,
+    detect_up_axis,
+    map_skeleton,
+    normalize_bvh,
+    normalize_motion,
+    units_from_height,
+)
 
 Array = NDArray[np.float64]
 
@@ -143,8 +152,10 @@ def _report(name: str, out: Normalized) -> MotionReport:
 def read_motions(path: str | os.PathLike[str], explicit: Mapping[str, str] | None = None,
                  units: str | None = None, up_axis: str | None = None,
                  max_frame_joints: int = MAX_FRAME_JOINTS) -> list[tuple[str, Normalized]]:
-    """Every motion of a BVH (one) or glTF file (one per animation), named and normalized
-    (:func:`~anim_core.rig.rigmap.normalize_bvh`); errors are ``ValueError`` subclasses naming the file.  A motion
+    """Every motion of a BVH (one) or glTF file (one per animation; one-joint animations as one, see
+    :mod:`anim_core.io.gltf`), named and normalized (:func:`~anim_core.rig.rigmap.normalize_bvh`; a glTF's units
+    from its skinned mesh's height where that is a human's, :func:`_mesh_units`); errors are ``ValueError``
+    subclasses naming the file.  A motion
     of more than ``max_frame_joints`` frames × joints fails before it is read (the memory spent on a motion grows
     with it; :func:`~anim_core.io.bvh.parse_bvh`, :func:`~anim_core.io.gltf.read_gltf`)."""
     path = Path(path)
@@ -156,10 +167,31 @@ def read_motions(path: str | os.PathLike[str], explicit: Mapping[str, str] | Non
         asset = read_gltf(path, max_frame_joints=max_frame_joints)
         if not asset.animations:
             raise ValueError(f"{path.name}: the file holds a character but no animation")
-        return [(a.name, normalize_motion(asset.skeleton, a.rotations, a.root_translation, a.frame_time, {},
+        units = units or _mesh_units(asset, explicit, up_axis)
+        sk = asset.skeleton
+        return [(a.name, normalize_motion(sk if a.offsets is None else Skeleton(sk.names, sk.parents, a.offsets,
+                                                                                sk.rest_rotations),
+                                          a.rotations, a.root_translation, a.frame_time, {},
                                           f"{path.name} animation {a.name!r}", explicit, units, up_axis))
                 for a in asset.animations]
     raise ValueError(f"{path.name}: not a motion file; expected .bvh, .bvh.gz, .glb or .gltf")
+
+
+def _mesh_units(asset: GltfAsset, explicit: Mapping[str, str] | None, up_axis: str | None) -> str | None:
+    """The unit in which the skinned mesh's height (its bounding box along up) is a human height, ``None`` where
+    that cannot be told (the skeleton does not map, or the mesh is no human height): the skeleton's leg length
+    decides then.  The mesh is the figure's whole height, head and feet included, where the joints stop short of
+    both (a 1.51 m figure's joints span 1.3 m)."""
+    try:
+        mapping = map_skeleton(asset.skeleton, explicit)
+    except RigMapError:
+        return None
+    rest = asset.skeleton.rest_global()[1]
+    up = up_axis or detect_up_axis(rest, int(mapping.source_index[_CANON["Head"]]), int(mapping.source_index[0]))
+    try:
+        return units_from_height(float(np.ptp(asset.vertices[:, 1 if up == "y" else 2])), "skinned mesh")
+    except RigMapError:
+        return None
 
 
 def inspect_source(path: str | os.PathLike[str], explicit: Mapping[str, str] | None = None,
@@ -168,6 +200,36 @@ def inspect_source(path: str | os.PathLike[str], explicit: Mapping[str, str] | N
     """Reports of every motion in the file (one for a BVH, one per animation of a glTF); ``max_frame_joints`` as
     :func:`read_motions` takes it."""
     return [_report(name, out) for name, out in read_motions(path, explicit, units, up_axis, max_frame_joints)]
+
+
+def joint_table(path: str | os.PathLike[str]) -> str | None:
+    """The joints of a BVH or glTF file, one a line: index, name, parent and position in the bind pose (glTF: from
+    the inverse bind matrices; BVH: the rest pose), in file units, so that a user whose file does not map can
+    write a mapping file from them; ``None`` if the file's skeleton cannot be read.  Unnamed glTF joints are
+    ``joint<k>``, ``k`` the index here (depth-first from the root joint, children in the file's order)."""
+    path = Path(path)
+    try:
+        if path.name.lower().endswith((".glb", ".gltf")):
+            asset = read_gltf(path, animations=False)
+            skeleton = asset.skeleton
+            ibm = np.asarray(asset.inverse_bind, np.float64)
+            positions = np.linalg.inv(ibm)[:, :3, 3]
+            where = "bind position (from the inverse bind matrices)"
+        else:
+            skeleton = read_bvh(path).skeleton
+            positions = skeleton.rest_global()[1]
+            where = "rest position"
+    except (ValueError, OSError, np.linalg.LinAlgError):
+        return None
+    names = skeleton.names
+    width = max(len(n) for n in names)
+    lines = [f"joints of {path.name} (for a mapping file: character joint = \"file joint\"):",
+             f"  {'index':>5}  {'name':<{width}}  {'parent':<{width}}  {where}, file units"]
+    for j, name in enumerate(names):
+        parent = names[skeleton.parents[j]] if skeleton.parents[j] >= 0 else "-"
+        x, y, z = positions[j]
+        lines.append(f"  {j:>5}  {name:<{width}}  {parent:<{width}}  ({x:.4g}, {y:.4g}, {z:.4g})")
+    return "\n".join(lines)
 
 
 def format_report(path: str | os.PathLike[str], reports: list[MotionReport],
