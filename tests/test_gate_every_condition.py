@@ -21,7 +21,7 @@ from anim_core.rig.rigmap import normalize_bvh
 from server.assets import character as load_character
 
 CONDITIONS = (Condition.parse("keyframe", "keyframe", {}), Condition.parse("hybrid1", "hybrid", {"increment": 1}))
-I = {n: i for i, n in enumerate(fidelity.CANONICAL_NAMES)}
+JOINT = {n: i for i, n in enumerate(fidelity.CANONICAL_NAMES)}
 
 
 @pytest.fixture(scope="module")
@@ -88,11 +88,11 @@ def _knee_turned_back(positions: np.ndarray, side: str) -> np.ndarray:
     """The knee of one leg moved to the other side of its hip-ankle line (same thigh and shin lengths): the leg bends
     backwards; everything below the knee moves with the ankle unchanged."""
     p = positions.copy()
-    hip, knee, ankle = (p[:, I[f"{side}{n}"]] for n in ("UpLeg", "Leg", "Foot"))
+    hip, knee, ankle = (p[:, JOINT[f"{side}{n}"]] for n in ("UpLeg", "Leg", "Foot"))
     axis = (ankle - hip) / np.linalg.norm(ankle - hip, axis=-1, keepdims=True)
     rel = knee - hip
     along = np.sum(rel * axis, axis=-1, keepdims=True) * axis
-    p[:, I[f"{side}Leg"]] = hip + 2 * along - rel
+    p[:, JOINT[f"{side}Leg"]] = hip + 2 * along - rel
     return p
 
 
@@ -116,7 +116,7 @@ def test_a_foot_hovering_through_one_stance_is_refused(built):
     start, stop = max(contacts.contact_intervals(down), key=lambda r: r[1] - r[0])
     frames = np.arange(start, stop)
     lifted = hybrid.world_positions.copy()
-    lifted[frames[:, None], [I["RightFoot"], I["RightToeBase"]], 1] += 0.08
+    lifted[frames[:, None], [JOINT["RightFoot"], JOINT["RightToeBase"]], 1] += 0.08
     check = fidelity.check_condition(lifted, contact, reference.world_positions)
     assert any(p.startswith("the right foot never lands in the reference's contact") for p in check.problems), \
         check.problems
