@@ -549,16 +549,19 @@ def _gate(source: Source, clips: list[BuiltClip], src_t: Array) -> list[BuiltCli
     k = np.arange(reference.n_frames)
     times = src_t[np.where(k <= n, k, 2 * n - k)] if cfg.playback == "pingpong" else src_t[np.minimum(k, n)]
     candidates = [_source_poses(source, times)]
-    slack = None
+    slack, bone_slack = None, 0.0
     if cfg.playback == "loop":  # the seam fades between this cycle and the next or the previous one
         period = float(src_t[-1] - src_t[0])
         candidates += [_source_poses(source, times + period), _source_poses(source, times - period)]
         # A stretch that does not end as it began is closed by spreading the difference over the loop.
-        ends = fidelity.pose_angles(_source_poses(source, src_t[[0, -1]]))
+        end_poses = _source_poses(source, src_t[[0, -1]])
+        ends = fidelity.pose_angles(end_poses)
         slack = np.degrees(np.abs(ends[1] - ends[0]))
+        bone_slack = float(fidelity.bone_angles(end_poses[1:], end_poses[:1])[0])
     contact = reference.character.contact_heights
     source_frames = cfg.frames[0] + np.round(times / source.frame_time).astype(np.intp)
-    checks = [fidelity.check_reference(reference.world_positions, contact, candidates, slack, source_frames)]
+    checks = [fidelity.check_reference(reference.world_positions, contact, candidates, slack, source_frames,
+                                       bone_slack)]
     loop = cfg.playback == "loop"
     checks += [fidelity.check_condition(c.world_positions, contact, reference.world_positions, loop,
                                         _mirrored_half(cfg, c), c.fps) for c in clips[1:]]

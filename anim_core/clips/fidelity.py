@@ -254,14 +254,17 @@ def _body(positions: Array, contact_heights: Array) -> tuple[float, float, float
 
 
 def check_reference(positions: Array, contact_heights: Array, source_positions: Array | list[Array],
-                    slack_deg: Array | None = None, source_frames: NDArray[np.intp] | None = None) -> Fidelity:
+                    slack_deg: Array | None = None, source_frames: NDArray[np.intp] | None = None,
+                    bone_slack_deg: float = 0.0) -> Fidelity:
     """The gate on a reference clip: body checks on ``positions`` ``(T, 31, 3)`` (metres, on the floor;
     ``contact_heights`` ``(31,)`` the joints' heights above the soles standing) and its pose angles against
     ``source_positions`` ``(T, 31, 3)`` (the source's own forward kinematics at the same source times, any units
     and orientation), or against the closer of several such arrays per frame (a loop's seam fades between two
     cycles).  ``slack_deg`` ``(A,)``: what each angle may differ beyond :data:`POSE_LIMIT_DEG` by design (a loop
     of a stretch that does not end where it began is closed by spreading that difference over it).
-    ``source_frames`` ``(T,)``: the source file's frame of each clip frame, named in the messages."""
+    ``source_frames`` ``(T,)``: the source file's frame of each clip frame, named in the messages.
+    ``bone_slack_deg``: what the bones may differ beyond :data:`BONE_LIMIT_DEG` by design (the same closing of a loop:
+    the largest bone angle between the stretch's first and last pose)."""
     up, reach, under, hand, problems = _body(positions, contact_heights)
     candidates = source_positions if isinstance(source_positions, list) else [source_positions]
     mine = pose_angles(positions)
@@ -279,11 +282,12 @@ def check_reference(positions: Array, contact_heights: Array, source_positions: 
     figures, body = check_body(positions, candidates[0], "source")
     bones = np.min([bone_angles(positions, c) for c in candidates], axis=0)
     figures["bone_error_deg"] = float(np.percentile(bones, 95))
-    if figures["bone_error_deg"] > BONE_LIMIT_DEG:
+    if figures["bone_error_deg"] > BONE_LIMIT_DEG + bone_slack_deg:
         frame = int(np.argmax(bones))
         where = f"frame {frame}" + ("" if source_frames is None else f" (source frame {int(source_frames[frame])})")
         problems.append(f"not faithful to the source: its bones point {figures['bone_error_deg']:.0f} degrees from the "
-                        f"source's (95th percentile; {bones[frame]:.0f} at clip {where}; limit {BONE_LIMIT_DEG:g})")
+                        f"source's (95th percentile; {bones[frame]:.0f} at clip {where}; limit "
+                        f"{BONE_LIMIT_DEG + bone_slack_deg:.0f})")
     return Fidelity(up, reach, under, hand, worst, at, tuple(problems + body), **figures)
 
 
