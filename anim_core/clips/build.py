@@ -31,6 +31,7 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.ndimage import gaussian_filter1d
 
 from ..io.bvh import Bvh
 from ..math import contacts
@@ -64,7 +65,20 @@ class ConfigError(ValueError):
     """The clip set configuration is invalid; the message names the file and the entry."""
 
 
+class KeyCapError(ConfigError):
+    """Kind ``other``: ``max_keys`` keys do not reach ``tolerance_mm`` (a larger tolerance may)."""
+
+
 DEFAULT_TOLERANCE_MM = 20.0  # kind "other": the hybrid through the picked keys stays this close to the reference
+DEFAULT_MAX_KEYS = 64  # kind "other": key picking gives up beyond this many keys (clip-set field max_keys)
+#: Kind ``other``: a reference whose root gets further than this (m, horizontally, on the character) from where it
+#: starts travels, and is not played ping-pong (its second half would walk the take backwards): it loops.
+PINGPONG_TRAVEL_M = 0.3
+#: Kind ``gait``: a take whose heading (smoothed over :data:`HEADING_SMOOTH_S`) turns by more than this (degrees,
+#: largest minus smallest) is straightened before the cycle is picked (:func:`straighten_heading`).  The shipped
+#: CMU walk and run turn 3.7 and 4.6 degrees: under it, so they build as they always did.
+TURN_LIMIT_DEG = 10.0
+HEADING_SMOOTH_S = 0.5  # Gaussian sigma (s): a stride's own hip yaw swing (about 1 Hz) is left in, the turn taken out
 
 
 @dataclass(frozen=True)
@@ -78,8 +92,9 @@ class AnimationConfig:
     and
     ``up_axis`` (``"y"``/``"z"``) override the detection (:func:`anim_core.rig.rigmap.normalize_bvh`).  ``tolerance_mm``
     (kind ``other``): the largest joint position error, mm, of the hybrid through the picked keys against the
-    reference.  ``accept_unfaithful``: build even if the fidelity gate (:mod:`anim_core.clips.fidelity`) fails; the
-    clips are marked as such."""
+    reference; ``max_keys`` (kind ``other``): the most keys the picking may take to reach it.
+    ``accept_unfaithful``: build even if the fidelity gate (:mod:`anim_core.clips.fidelity`) fails; the clips are
+    marked as such."""
 
     name: str
     kind: Kind
@@ -95,6 +110,7 @@ class AnimationConfig:
     units: str | None = None
     up_axis: Literal["y", "z"] | None = None
     accept_unfaithful: bool = False
+    max_keys: int = DEFAULT_MAX_KEYS
 
 
 # --- sources ---------------------------------------------------------------------------------------------------
@@ -112,6 +128,10 @@ class Source:
     #: ``(F, 31, 3)`` the canonical joints by the source file's own forward kinematics at config.frames (any units
     #: and orientation: the fidelity gate compares angles)
     own_positions: Array | None = field(default=None, repr=False)
+    #: degrees of heading turn taken out of a turning gait take, first to last frame (:func:`straighten_heading`);
+    #: None: the take was not straightened
+    straightened_deg: float | None = None
+
     def time_of(self, frame: int) -> float:
         return (frame - self.config.frames[0]) * self.frame_time
 
@@ -134,10 +154,44 @@ def _turn(pose: Pose, yaw: float) -> Pose:
     return Pose(rot, rotate(q, pose.root_translation))
 
 
+def heading(positions: Array, skeleton: Skeleton) -> Array:
+    """``(T,)`` unwrapped heading (rad) of poses with joint positions ``(T, J, 3)`` (Y up): the direction the hips
+    face, ``(right hip -> left hip) x up``, as ``atan2(x, z)`` (0 = facing +Z, positive turning left towards +X)."""
+    left = positions[:, skeleton.index("LeftUpLeg")] - positions[:, skeleton.index("RightUpLeg")]
+    forward = np.cross(left, [0.0, 1.0, 0.0])
+    return np.unwrap(np.arctan2(forward[:, 0], forward[:, 2]))
+
+
+def straighten_heading(pose: Pose, skeleton: Skeleton, frame_time: float,
+                       smooth_s: float = HEADING_SMOOTH_S) -> tuple[Pose, Array]:
+    """A turning take ``pose`` (rotations ``(T, J, 4)``, root ``(T, 3)``, Y up, one frame per ``frame_time`` s)
+    walked straight: its progressive turn taken out, each frame turned about the vertical through its root.
+
+    The turn is the hips' heading (:func:`heading`) smoothed by a Gaussian of ``smooth_s`` seconds, relative to the
+    first frame: the swing of the hips within a stride stays, the walk's change of direction goes.  Each frame's
+    root rotation is turned back by it, and each step of the root's path by the mean of its two frames' turns (the
+    path unrolled; heights unchanged), so the take walks on in the heading of its first frame.  Returns the
+    straightened pose and the turn taken out, ``(T,)`` rad.  A foot planted while the body turned slides under it
+    by ``turn rate x its distance from the root`` (0.08 m/s for 16 degrees/s at 0.3 m); the reference's foot
+    planting holds it again.
+    """
+    _, pos = skeleton.forward_kinematics(*pose)
+    psi = heading(pos, skeleton)
+    turn = gaussian_filter1d(psi, smooth_s / frame_time, mode="nearest") - psi[0] if len(psi) > 1 else psi * 0
+    rot = np.array(pose.rotations)
+    back = quat_from_axis_angle([0.0, 1.0, 0.0], -turn)  # (T, 4)
+    rot[:, 0] = quat_mul(back, rot[:, 0])
+    root = np.asarray(pose.root_translation, dtype=np.float64)
+    steps = rotate(quat_from_axis_angle([0.0, 1.0, 0.0], -0.5 * (turn[1:] + turn[:-1])), np.diff(root, axis=0))
+    return Pose(rot, np.concatenate([root[:1], root[:1] + np.cumsum(steps, axis=0)])), turn
+
+
 def source_from_bvh(bvh: Bvh, character: Character, config: AnimationConfig, relocate: tuple[str, ...],
                     metres_per_unit: float = METRES_PER_CMU_UNIT, source_positions: Array | None = None) -> Source:
     """One animation's mocap (``bvh`` on the canonical CMU skeleton, Y up, ``metres_per_unit``; read from
     ``config.source``) retargeted onto ``character`` and turned to face +Z (errors name the file and the entry).
+    A gait take whose heading turns by more than :data:`TURN_LIMIT_DEG` is first straightened
+    (:func:`straighten_heading`): a looping gait cycle has one direction.
 
     ``source_positions``: ``(F, 31, 3)`` the canonical joints by the source file's own forward kinematics
     (:attr:`anim_core.rig.rigmap.Normalized.source_positions`), for the fidelity gate; default: ``bvh``'s (a CMU file
@@ -150,6 +204,11 @@ def source_from_bvh(bvh: Bvh, character: Character, config: AnimationConfig, rel
     rc = retarget(character, bvh.skeleton, bvh.end_sites, relocate=relocate)
     pose = rc.pose(Pose(rotations[first:last + 1], root[first:last + 1]))
     times = np.arange(last - first + 1) * bvh.frame_time
+    straightened = None
+    if config.kind == "gait" and len(times) > 1:
+        turned, turn = straighten_heading(pose, rc.skeleton, bvh.frame_time)
+        if np.degrees(np.ptp(turn)) > TURN_LIMIT_DEG:
+            pose, straightened = turned, float(np.degrees(turn[-1]))
     # Face +Z: a gait along its direction of travel, anything else along the direction the hips face.
     _, pos = rc.skeleton.forward_kinematics(*pose)
     if config.kind == "gait":
@@ -162,7 +221,7 @@ def source_from_bvh(bvh: Bvh, character: Character, config: AnimationConfig, rel
     if source_positions is None:
         source_positions = bvh.posed_skeleton().forward_kinematics(rotations, root)[1]
     return Source(config, rc, clip, bvh.frame_time, bvh.posed_skeleton(), metres_per_unit,
-                  np.asarray(source_positions)[first:last + 1])
+                  np.asarray(source_positions)[first:last + 1], straightened)
 
 
 # --- key picking -----------------------------------------------------------------------------------------------
@@ -380,6 +439,9 @@ def _reference(source: Source, fps: int) -> tuple[Animation, dict[str, Any], Arr
         keyframe = KeyframeClip(keyframe.skeleton, keyframe.times, keyframe.rotations, keyframe.root_translation,
                                 "loop", cfg.in_place, UP, cfg.name)
         source_info = {"file": cfg.source, "cycle_frames": list(cycle), "key_frames": list(keys)}
+        if source.straightened_deg is not None:
+            # What the clips show: the walk on one heading, not the take's turn (recorded, not hidden).
+            source_info["straightened_deg"] = round(source.straightened_deg, 1)
     elif cfg.kind == "other":
         keyframe, key_grid, source_info, src_t = _other_reference(source, fps)
     else:
@@ -410,6 +472,15 @@ def _other_reference(source: Source, fps: int) -> tuple[KeyframeClip, tuple[floa
     keyframe = KeyframeClip(keyframe.skeleton, keyframe.times, keyframe.rotations, keyframe.root_translation,
                             cfg.playback, cfg.in_place, UP, cfg.name)
     where = f"[animations.{cfg.name}]"
+    if not loop:
+        # Played forward and back, a take that travels walks its second half backwards: refused, not built.
+        root = horizontal(keyframe.root_translation - keyframe.root_translation[:1], UP)
+        travel = float(np.linalg.norm(root, axis=-1).max())
+        if travel > PINGPONG_TRAVEL_M:
+            raise ConfigError(f"{where} playback: the root travels {travel:.2f} m (more than {PINGPONG_TRAVEL_M} m); "
+                              f"played ping-pong, every second half would move it backwards. Set playback = "
+                              f"\"loop\" (the take plays forward and starts again; in_place = true keeps it on the "
+                              f"spot)")
     if cfg.keys is not None:
         key_grid = tuple(_on_grid(source.time_of(k), start, stop, keyframe) for k in cfg.keys)
         if len(set(key_grid)) < len(key_grid):
@@ -418,9 +489,9 @@ def _other_reference(source: Source, fps: int) -> tuple[KeyframeClip, tuple[floa
         picked: dict[str, Any] = {}
     else:
         try:
-            keys = pick_keys(keyframe, cfg.tolerance_mm / 1000.0, mode=cfg.playback)
+            keys = pick_keys(keyframe, cfg.tolerance_mm / 1000.0, max_keys=cfg.max_keys, mode=cfg.playback)
         except ValueError as exc:
-            raise ConfigError(f"{where} tolerance_mm: {exc}") from None
+            raise KeyCapError(f"{where} tolerance_mm: {exc}") from None
         key_grid = keys.times
         frames = [cfg.frames[0] + round(src_t[f] / source.frame_time) for f in keys.frames]
         picked = {"tolerance_mm": cfg.tolerance_mm, "key_error_mm": round(keys.error * 1000.0, 3)}
@@ -509,15 +580,23 @@ class ToleranceSuggestion:
 
 
 def suggest_tolerance(source: Source, fps: int) -> ToleranceSuggestion:
-    """The smallest of :data:`SUGGESTED_TOLERANCES_MM` at which the animation ``source`` (kind ``other``) builds a
-    hybrid (increment 0) that stores at most :data:`CHEAP_BYTE_RATIO` of the reference's bytes, measured by
-    building the reference and that hybrid (through the fidelity gate: :class:`ConfigError` if it fails); the
-    largest tried if none does (:attr:`ToleranceSuggestion.cheap` is false then)."""
+    """The smallest of :data:`SUGGESTED_TOLERANCES_MM` at which the animation ``source`` (kind ``other``, played as
+    its config says, with its ``max_keys``) builds a hybrid (increment 0) that stores at most
+    :data:`CHEAP_BYTE_RATIO` of the reference's bytes, measured by building the reference and that hybrid (through
+    the fidelity gate: :class:`ConfigError` if it fails); the largest that builds if none is cheap
+    (:attr:`ToleranceSuggestion.cheap` is false then).  A tolerance that ``max_keys`` keys do not reach is skipped
+    (the suggestion must build); :class:`KeyCapError` if none is reached."""
     conditions = (Condition.parse("keyframe", REFERENCE), Condition.parse("hybrid0", "hybrid", {"increment": 0}))
     suggestion = None
     for tolerance in SUGGESTED_TOLERANCES_MM:
         config = replace(source.config, kind="other", tolerance_mm=tolerance)
-        reference, hybrid = build_animation(replace(source, config=config), fps, conditions)
+        try:
+            reference, hybrid = build_animation(replace(source, config=config), fps, conditions)
+        except KeyCapError as exc:
+            if tolerance == SUGGESTED_TOLERANCES_MM[-1] and suggestion is None:
+                raise KeyCapError(f"{exc} (tried tolerance_mm {', '.join(f'{t:g}' for t in SUGGESTED_TOLERANCES_MM)}"
+                                  f"; raise max_keys)") from None
+            continue
         suggestion = ToleranceSuggestion(tolerance, int(hybrid.key_times.size), int(reference.key_times.size),
                                          int(hybrid.metrics["bytes"]), int(reference.metrics["bytes"]))
         if suggestion.cheap:
