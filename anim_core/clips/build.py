@@ -162,13 +162,24 @@ def heading(positions: Array, skeleton: Skeleton) -> Array:
     return np.unwrap(np.arctan2(forward[:, 0], forward[:, 2]))
 
 
+def _smoothed(x: Array, sigma: float) -> Array:
+    """``x (T,)`` smoothed by a Gaussian of ``sigma`` samples, extended at each end by its point reflection about
+    the end value, so a steady trend (a steady turn) keeps its slope to the ends instead of flattening there."""
+    pad = min(len(x) - 1, int(np.ceil(4.0 * sigma)))
+    if pad < 1:
+        return np.array(x, dtype=np.float64)
+    ext = np.concatenate([2.0 * x[0] - x[pad:0:-1], x, 2.0 * x[-1] - x[-2:-pad - 2:-1]])
+    return gaussian_filter1d(ext, sigma, mode="nearest")[pad:pad + len(x)]
+
+
 def straighten_heading(pose: Pose, skeleton: Skeleton, frame_time: float,
                        smooth_s: float = HEADING_SMOOTH_S) -> tuple[Pose, Array]:
     """A turning take ``pose`` (rotations ``(T, J, 4)``, root ``(T, 3)``, Y up, one frame per ``frame_time`` s)
     walked straight: its progressive turn taken out, each frame turned about the vertical through its root.
 
-    The turn is the hips' heading (:func:`heading`) smoothed by a Gaussian of ``smooth_s`` seconds, relative to the
-    first frame: the swing of the hips within a stride stays, the walk's change of direction goes.  Each frame's
+    The turn is the hips' heading (:func:`heading`) smoothed by a Gaussian of ``smooth_s`` seconds (the take's
+    ends extended by point reflection, so a steady turn is taken out to the last frame), relative to the first
+    frame: the swing of the hips within a stride stays, the walk's change of direction goes.  Each frame's
     root rotation is turned back by it, and each step of the root's path by the mean of its two frames' turns (the
     path unrolled; heights unchanged), so the take walks on in the heading of its first frame.  Returns the
     straightened pose and the turn taken out, ``(T,)`` rad.  A foot planted while the body turned slides under it
@@ -177,7 +188,7 @@ def straighten_heading(pose: Pose, skeleton: Skeleton, frame_time: float,
     """
     _, pos = skeleton.forward_kinematics(*pose)
     psi = heading(pos, skeleton)
-    turn = gaussian_filter1d(psi, smooth_s / frame_time, mode="nearest") - psi[0] if len(psi) > 1 else psi * 0
+    turn = _smoothed(psi, smooth_s / frame_time) - psi[0]
     rot = np.array(pose.rotations)
     back = quat_from_axis_angle([0.0, 1.0, 0.0], -turn)  # (T, 4)
     rot[:, 0] = quat_mul(back, rot[:, 0])
@@ -190,8 +201,10 @@ def source_from_bvh(bvh: Bvh, character: Character, config: AnimationConfig, rel
                     metres_per_unit: float = METRES_PER_CMU_UNIT, source_positions: Array | None = None) -> Source:
     """One animation's mocap (``bvh`` on the canonical CMU skeleton, Y up, ``metres_per_unit``; read from
     ``config.source``) retargeted onto ``character`` and turned to face +Z (errors name the file and the entry).
-    A gait take whose heading turns by more than :data:`TURN_LIMIT_DEG` is first straightened
-    (:func:`straighten_heading`): a looping gait cycle has one direction.
+    A gait take, or a looping ``other`` take that travels (more than :data:`PINGPONG_TRAVEL_M`), whose heading turns
+    by more than :data:`TURN_LIMIT_DEG` is first straightened (:func:`straighten_heading`): a loop has one
+    direction (closing a turning loop would unwind the turn while the path still curves: the body walked
+    sideways and backwards).
 
     ``source_positions``: ``(F, 31, 3)`` the canonical joints by the source file's own forward kinematics
     (:attr:`anim_core.rig.rigmap.Normalized.source_positions`), for the fidelity gate; default: ``bvh``'s (a CMU file
@@ -205,7 +218,9 @@ def source_from_bvh(bvh: Bvh, character: Character, config: AnimationConfig, rel
     pose = rc.pose(Pose(rotations[first:last + 1], root[first:last + 1]))
     times = np.arange(last - first + 1) * bvh.frame_time
     straightened = None
-    if config.kind == "gait" and len(times) > 1:
+    travels = len(times) > 1 and float(np.linalg.norm(
+        horizontal(pose.root_translation - pose.root_translation[:1], UP), axis=-1).max()) > PINGPONG_TRAVEL_M
+    if len(times) > 1 and (config.kind == "gait" or (config.kind == "other" and config.playback == "loop" and travels)):
         turned, turn = straighten_heading(pose, rc.skeleton, bvh.frame_time)
         if np.degrees(np.ptp(turn)) > TURN_LIMIT_DEG:
             pose, straightened = turned, float(np.degrees(turn[-1]))
@@ -496,6 +511,8 @@ def _other_reference(source: Source, fps: int) -> tuple[KeyframeClip, tuple[floa
         frames = [cfg.frames[0] + round(src_t[f] / source.frame_time) for f in keys.frames]
         picked = {"tolerance_mm": cfg.tolerance_mm, "key_error_mm": round(keys.error * 1000.0, 3)}
     source_info = {"file": cfg.source, "frames": list(cfg.frames), "key_frames": frames, **picked}
+    if source.straightened_deg is not None:
+        source_info["straightened_deg"] = round(source.straightened_deg, 1)
     return keyframe, key_grid, source_info, src_t
 
 

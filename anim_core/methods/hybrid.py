@@ -369,13 +369,15 @@ def build_other(source: KeyframeClip, key_times: Sequence[float], increment: int
     times (s) lie in ``[0, duration)`` and start at 0, increments split the interval to ``duration`` too; the root
     moves with the source's mean horizontal velocity plus a periodic spline of the keys' offsets from that line
     (none of it with ``in_place``).  Picked keys may be neighbouring frames: an increment adds a key only where
-    the source has a frame between two keys.
+    the source has a frame between two keys (one that snaps onto a loop's end is key 0 and left out).
     """
     loop = source.mode == "loop"
     times = np.unique([source.nearest_key_time(t) for t in
                        increment_key_times(key_times, increment, end=source.duration if loop else None)])
     if not loop:
         return build_idle(source, times, 0, name)
+    # A key inserted between the last key and the loop's end may snap onto the end: that frame is key 0 again.
+    times = times[times < source.duration - 1e-9] if times[0] == 0.0 else times
     if times[0] != 0.0 or times[-1] >= source.duration:
         raise ValueError(f"the keys of a loop lie in [0, {source.duration:.3f}) s and start at 0, got "
                          f"{np.round(times, 4).tolist()} s")
