@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from anim_core.clips.build import ConfigError, heading
+from anim_core.clips.build import ConfigError
 from anim_core.clips.measure import clip_warnings
 from anim_core.clips.sources import inspect_source
 from anim_core.io.bvh import clip_from_bvh, format_bvh, read_bvh
@@ -47,6 +47,14 @@ def turning_walk(data, tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("turning") / "turning_walk.bvh"
     path.write_text(format_bvh(bvh.with_poses(*_turned(rot, root, turn))))
     return path
+
+
+def heading(positions: np.ndarray, skeleton) -> np.ndarray:
+    """``(T,)`` rad: the way the hips face, ``atan2(x, z)`` of (right hip -> left hip) x up (computed here, not by the
+    code under test)."""
+    left = positions[:, skeleton.index("LeftUpLeg")] - positions[:, skeleton.index("RightUpLeg")]
+    forward = np.cross(left, [0.0, 1.0, 0.0])
+    return np.arctan2(forward[:, 0], forward[:, 2])
 
 
 def _facing(clip) -> np.ndarray:
