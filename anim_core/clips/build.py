@@ -47,6 +47,7 @@ from ..rig.rigmap import UNITS
 from . import fidelity
 from .measure import clip_feet, measure
 from .record import BuiltClip
+from .sources import PINGPONG_TRAVEL_M, root_travel
 
 Array = NDArray[np.float64]
 
@@ -71,9 +72,6 @@ class KeyCapError(ConfigError):
 
 DEFAULT_TOLERANCE_MM = 20.0  # kind "other": the hybrid through the picked keys stays this close to the reference
 DEFAULT_MAX_KEYS = 64  # kind "other": key picking gives up beyond this many keys (clip-set field max_keys)
-#: Kind ``other``: a reference whose root gets further than this (m, horizontally, on the character) from where it
-#: starts travels, and is not played ping-pong (its second half would walk the take backwards): it loops.
-PINGPONG_TRAVEL_M = 0.3
 #: Kind ``gait``: a take whose heading (smoothed over :data:`HEADING_SMOOTH_S`) turns by more than this (degrees,
 #: largest minus smallest) is straightened before the cycle is picked (:func:`straighten_heading`).  The shipped
 #: CMU walk and run turn 3.7 and 4.6 degrees: under it, so they build as they always did.
@@ -218,8 +216,7 @@ def source_from_bvh(bvh: Bvh, character: Character, config: AnimationConfig, rel
     pose = rc.pose(Pose(rotations[first:last + 1], root[first:last + 1]))
     times = np.arange(last - first + 1) * bvh.frame_time
     straightened = None
-    travels = len(times) > 1 and float(np.linalg.norm(
-        horizontal(pose.root_translation - pose.root_translation[:1], UP), axis=-1).max()) > PINGPONG_TRAVEL_M
+    travels = root_travel(root[first:last + 1]) * metres_per_unit > PINGPONG_TRAVEL_M
     if len(times) > 1 and (config.kind == "gait" or (config.kind == "other" and config.playback == "loop" and travels)):
         turned, turn = straighten_heading(pose, rc.skeleton, bvh.frame_time)
         if np.degrees(np.ptp(turn)) > TURN_LIMIT_DEG:
@@ -489,8 +486,8 @@ def _other_reference(source: Source, fps: int) -> tuple[KeyframeClip, tuple[floa
     where = f"[animations.{cfg.name}]"
     if not loop:
         # Played forward and back, a take that travels walks its second half backwards: refused, not built.
-        root = horizontal(keyframe.root_translation - keyframe.root_translation[:1], UP)
-        travel = float(np.linalg.norm(root, axis=-1).max())
+        # Measured in the file's own metres, as clips inspect measures it: what it suggests builds.
+        travel = root_travel(keyframe.root_translation) / source.character.root_scale * source.metres_per_unit
         if travel > PINGPONG_TRAVEL_M:
             raise ConfigError(f"{where} playback: the root travels {travel:.2f} m (more than {PINGPONG_TRAVEL_M} m); "
                               f"played ping-pong, every second half would move it backwards. Set playback = "

@@ -38,10 +38,10 @@ IDLE_TRAVEL = 0.3
 MIN_PHASE = 0.1
 #: A hand moving further than this (m) from its mean place against the hips: the motion is no idle sway.
 ARM_MOTION = 0.2
-#: Kind ``other``: a take whose root gets further than this (m, horizontally) from where it starts is suggested to
-#: loop, not to play ping-pong (which would move it backwards every second half).  Half the build's limit
-#: (:data:`anim_core.clips.build.PINGPONG_TRAVEL_M`), which it measures on the character, whose legs may be longer.
-PINGPONG_TRAVEL = 0.15
+#: Kind ``other``: a take whose root gets further than this (m, horizontally, in the file's own motion) from where
+#: it starts travels: it is suggested to loop, and refused as ping-pong (which would move it backwards every second
+#: half) by the build, which measures it the same way (:func:`root_travel`).
+PINGPONG_TRAVEL_M = 0.3
 _CANON = {n: i for i, n in enumerate(CANONICAL_NAMES)}
 
 
@@ -120,20 +120,21 @@ def suggest(positions: Array, fps: float, contacts: Mapping[str, NDArray[np.intp
 
 
 def root_travel(positions: Array) -> float:
-    """The furthest (m) the root of ``(F, J, 3)`` joint positions (Y up) gets horizontally from where it starts."""
-    hips = positions[:, 0, [0, 2]]
+    """The furthest the root of ``(F, J, 3)`` joint positions (or ``(F, 3)`` root positions; Y up) gets
+    horizontally from where it starts, in their units."""
+    hips = (positions[:, 0] if positions.ndim == 3 else positions)[:, [0, 2]]
     return float(np.linalg.norm(hips - hips[:1], axis=-1).max())
 
 
 def suggest_playback(positions: Array, kind: str, frames: tuple[int, int]) -> str:
     """``loop`` or ``pingpong``: how a motion of ``kind`` over ``frames`` (inclusive) of ``(F, J, 3)`` positions in
     metres plays.  A gait loops and a crouch or idle plays ping-pong (their hybrids do); an ``other`` take loops when
-    its root travels more than :data:`PINGPONG_TRAVEL`: played ping-pong, it would move backwards."""
+    its root travels more than :data:`PINGPONG_TRAVEL_M`: played ping-pong, it would move backwards."""
     if kind == "gait":
         return "loop"
     if kind != "other":
         return "pingpong"
-    return "loop" if root_travel(positions[frames[0]:frames[1] + 1]) > PINGPONG_TRAVEL else "pingpong"
+    return "loop" if root_travel(positions[frames[0]:frames[1] + 1]) > PINGPONG_TRAVEL_M else "pingpong"
 
 
 def _report(name: str, out: Normalized) -> MotionReport:
