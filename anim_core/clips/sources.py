@@ -48,8 +48,9 @@ _CANON = {n: i for i, n in enumerate(CANONICAL_NAMES)}
 @dataclass(frozen=True)
 class MotionReport:
     """One motion of a file: the normalized motion, contact phases per foot (``[start, stop)`` frames) and the
-    suggestion with its reason; ``playback`` is the suggested playback of kind ``other`` (:func:`suggest_playback`;
-    the other kinds play as their kind does)."""
+    suggestion with its reason; ``playback``: how the motion plays (:func:`suggest_playback`): a gait loops, a
+    crouch or idle plays ping-pong, and an ``other`` loops if it travels (an upload switched to kind ``other`` keeps
+    its suggested playback, so a walk so switched loops)."""
 
     name: str
     normalized: Normalized
