@@ -231,3 +231,20 @@ def test_max_keys_is_a_clip_set_field(data, turning_walk):
         clip_set_config({"w": {**gait, "kind": "gait"}}, CONDITIONS[:2], 30, (), CharacterConfig(), "test")
     with pytest.raises(ConfigError, match=r"max_keys: the most keys the picking may take, a whole number 2\.\.1000"):
         clip_set_config({"w": {**entry, "max_keys": 1}}, CONDITIONS[:2], 30, (), CharacterConfig(), "test")
+
+
+def test_a_suggested_tolerance_is_one_that_max_keys_reaches(data, slow_walk):
+    """With few keys allowed, the tolerances they do not reach are skipped: the one suggested builds."""
+    from anim_core.clips.build import AnimationConfig, suggest_tolerance
+    from server.assets import character as load_character
+    from server.clipset.build import load_source
+
+    config = AnimationConfig("slow", "other", str(slow_walk), (0, 240), "loop", False, max_keys=12)
+    source = load_source(data, load_character(data), config, ())
+    suggestion = suggest_tolerance(source, 30)
+    print(suggestion.describe())
+    assert suggestion.tolerance_mm > 20 and suggestion.keys <= 12
+    entry = {"kind": "other", "source": str(slow_walk), "frames": [0, 240], "playback": "loop", "max_keys": 12,
+             "tolerance_mm": suggestion.tolerance_mm}
+    reference, hybrid = build_clip_set(data, inline_config({"slow": entry}, CONDITIONS[:2], "test"))
+    assert (hybrid.key_times.size, reference.key_times.size) == (suggestion.keys, suggestion.reference_keys)
