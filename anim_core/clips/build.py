@@ -544,8 +544,18 @@ def build_animation(source: Source, fps: int, conditions: Sequence[Condition],
                                n_frames, cfg.playback, cfg.in_place, speed, source_info, source.character,
                                pose.rotations, pose.root_translation,
                                *source.character.skeleton.forward_kinematics(*pose)))
-    measured = measure(_place_on_floor(built), keyframe.velocity if cfg.in_place else np.zeros(3), cfg.kind,
-                       source_skate)
+    placed = _place_on_floor(built)
+    if cfg.playback == "loop" and not cfg.in_place:
+        # A loop that travels is measured as an in-place one over ground moving under it, as in_place clips are:
+        # one period's world positions wrap back by the period's travel, which playback (travel added each cycle)
+        # never shows; measured as they are, every traveling loop "jumped" its whole stride length at the seam.
+        shift = keyframe.velocity * (np.arange(n_frames) / fps)[:, None]
+        view = measure([replace(c, root_positions=c.root_positions - shift,
+                                world_positions=c.world_positions - shift[:, None]) for c in placed],
+                       keyframe.velocity, cfg.kind, source_skate)
+        measured = [replace(c, metrics=v.metrics) for c, v in zip(placed, view, strict=True)]
+    else:
+        measured = measure(placed, keyframe.velocity if cfg.in_place else np.zeros(3), cfg.kind, source_skate)
     for condition, c in zip(ordered, measured, strict=True):
         stored = condition.stored_bytes(c.clip)
         if stored is not None:
