@@ -4,8 +4,9 @@ from it (:mod:`anim_core.methods.conditions`), the clips sampled, placed on the 
 For each animation (an :class:`AnimationConfig`, read from the clip-set file by ``server.clipset``) the builder
 
 1. takes the motion, already on the canonical CMU skeleton (any common rig is brought there first by
-   :func:`anim_core.rig.rigmap.normalize_bvh`), and retargets it onto the character (metres, Y up), turned to face +Z
-   (:func:`source_from_bvh`);
+   :func:`anim_core.rig.rigmap.normalize_bvh`), and retargets it onto the character (metres, Y up), turned to face +Z;
+   a turning gait (or a traveling ``other`` loop) is straightened onto one heading (:func:`source_from_bvh`,
+   :func:`straighten_heading`);
 2. picks what the description does not give: the gait cycle and keys from the feet, the crouch keys from the hip
    height, the idle keys from the sway; an ``other`` motion (any kind of movement) plays its whole frame range and
    its hybrid keys are picked within its tolerance (:func:`anim_core.methods.keypick.pick_keys`);
