@@ -73,9 +73,9 @@ class KeyCapError(ConfigError):
 
 DEFAULT_TOLERANCE_MM = 20.0  # kind "other": the hybrid through the picked keys stays this close to the reference
 DEFAULT_MAX_KEYS = 64  # kind "other": key picking gives up beyond this many keys (clip-set field max_keys)
-#: Kind ``gait``: a take whose heading (smoothed over :data:`HEADING_SMOOTH_S`) turns by more than this (degrees,
-#: largest minus smallest) is straightened before the cycle is picked (:func:`straighten_heading`).  The shipped
-#: CMU walk and run turn 3.7 and 4.6 degrees: under it, so they build as they always did.
+#: A gait take, or a traveling ``other`` loop, whose heading (smoothed over :data:`HEADING_SMOOTH_S`) turns by more
+#: than this (degrees, largest minus smallest) is straightened before it is built (:func:`straighten_heading`).  The
+#: shipped CMU walk and run turn 3.7 and 4.6 degrees: under it, so they build as they always did.
 TURN_LIMIT_DEG = 10.0
 HEADING_SMOOTH_S = 0.5  # Gaussian sigma (s): a stride's own hip yaw swing (about 1 Hz) is left in, the turn taken out
 
@@ -127,7 +127,7 @@ class Source:
     #: ``(F, 31, 3)`` the canonical joints by the source file's own forward kinematics at config.frames (any units
     #: and orientation: the fidelity gate compares angles)
     own_positions: Array | None = field(default=None, repr=False)
-    #: degrees of heading turn taken out of a turning gait take, first to last frame (:func:`straighten_heading`);
+    #: degrees of heading turn taken out of a turning take, first to last frame (:func:`straighten_heading`);
     #: None: the take was not straightened
     straightened_deg: float | None = None
 
