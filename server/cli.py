@@ -64,8 +64,8 @@ def _tolerance_line(data_dir: Path, path: Path, report: MotionReport) -> str:
     try:
         clip_set = load_config()
         character, _ = load_character(data_dir, clip_set.character)
-        config = AnimationConfig(Path(report.name).stem or "motion", "other", str(path), report.frames, "pingpong",
-                                 False)
+        config = AnimationConfig(Path(report.name).stem or "motion", "other", str(path), report.frames,
+                                 "loop" if report.playback == "loop" else "pingpong", False)
         source = source_from_bvh(n.bvh, character, config, clip_set.relocate, n.metres_per_unit, n.source_positions)
         return suggest_tolerance(source, clip_set.fps).describe()
     except (AssetError, ValueError) as exc:  # ConfigError (the gate, the key picking) names the animation

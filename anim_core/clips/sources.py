@@ -47,13 +47,19 @@ IDLE_TRAVEL = 0.3
 MIN_PHASE = 0.1
 #: A hand moving further than this (m) from its mean place against the hips: the motion is no idle sway.
 ARM_MOTION = 0.2
+#: Kind ``other``: a take whose root gets further than this (m, horizontally, in the file's own motion) from where
+#: it starts travels: it is suggested to loop, and refused as ping-pong (which would move it backwards every second
+#: half) by the build, which measures it the same way (:func:`root_travel`).
+PINGPONG_TRAVEL_M = 0.3
 _CANON = {n: i for i, n in enumerate(CANONICAL_NAMES)}
 
 
 @dataclass(frozen=True)
 class MotionReport:
     """One motion of a file: the normalized motion, contact phases per foot (``[start, stop)`` frames) and the
-    suggestion with its reason."""
+    suggestion with its reason; ``playback``: how the motion plays (:func:`suggest_playback`): a gait loops, a
+    crouch or idle plays ping-pong, and an ``other`` loops if it travels (an upload switched to kind ``other`` keeps
+    its suggested playback, so a walk so switched loops)."""
 
     name: str
     normalized: Normalized
@@ -61,6 +67,7 @@ class MotionReport:
     kind: str
     frames: tuple[int, int]
     reason: str
+    playback: str = "pingpong"
 
     @property
     def n_frames(self) -> int:
@@ -122,6 +129,24 @@ def suggest(positions: Array, fps: float, contacts: Mapping[str, NDArray[np.intp
     return "other", (first, last), f"no gait, crouch or idle pattern (root travels {travel:.2f} m){skip}"
 
 
+def root_travel(positions: Array) -> float:
+    """The furthest the root of ``(F, J, 3)`` joint positions (or ``(F, 3)`` root positions; Y up) gets
+    horizontally from where it starts, in their units."""
+    hips = (positions[:, 0] if positions.ndim == 3 else positions)[:, [0, 2]]
+    return float(np.linalg.norm(hips - hips[:1], axis=-1).max())
+
+
+def suggest_playback(positions: Array, kind: str, frames: tuple[int, int]) -> str:
+    """``loop`` or ``pingpong``: how a motion of ``kind`` over ``frames`` (inclusive) of ``(F, J, 3)`` positions in
+    metres plays.  A gait loops and a crouch or idle plays ping-pong (their hybrids do); an ``other`` take loops when
+    its root travels more than :data:`PINGPONG_TRAVEL_M`: played ping-pong, it would move backwards."""
+    if kind == "gait":
+        return "loop"
+    if kind != "other":
+        return "pingpong"
+    return "loop" if root_travel(positions[frames[0]:frames[1] + 1]) > PINGPONG_TRAVEL_M else "pingpong"
+
+
 def _report(name: str, out: Normalized) -> MotionReport:
     bvh = out.bvh
     rot, root = bvh.pose_arrays()
@@ -145,8 +170,12 @@ def _report(name: str, out: Normalized) -> MotionReport:
     else:
         contacts = {"left": np.zeros((0, 2), np.intp), "right": np.zeros((0, 2), np.intp)}
     kind, frames, reason = suggest(positions, bvh.fps, contacts)
+    playback = suggest_playback(positions, kind, frames)
+    if kind == "other" and playback == "loop":
+        reason += (f"; it travels {root_travel(positions[frames[0]:frames[1] + 1]):.2f} m, so it loops (ping-pong "
+                   f"would move it backwards)")
     return MotionReport(name, out, {k: [(int(a), int(b)) for a, b in v] for k, v in contacts.items()}, kind, frames,
-                        reason)
+                        reason, playback)
 
 
 def read_motions(path: str | os.PathLike[str], explicit: Mapping[str, str] | None = None,
@@ -251,7 +280,8 @@ def format_report(path: str | os.PathLike[str], reports: list[MotionReport],
                   "  foot contacts (frames [start, stop)):"]
         for foot, phases in r.contacts.items():
             lines.append(f"    {foot:<5} {', '.join(f'{a}-{b}' for a, b in phases) or 'none'}")
-        lines.append(f"  suggested   kind = \"{r.kind}\", frames {r.frames[0]}..{r.frames[1]}  ({r.reason})")
+        playback = f', playback = "{r.playback}"' if r.kind == "other" else ""
+        lines.append(f"  suggested   kind = \"{r.kind}\", frames {r.frames[0]}..{r.frames[1]}{playback}  ({r.reason})")
         if tolerances is not None and tolerances[k] is not None:
             lines.append(f"              {tolerances[k]}")
         lines.append("  mapping (character joint <- file joint: why):")

@@ -102,10 +102,17 @@ def assets_config(assets: Sequence[StudyAsset], asset_file: Callable[[StudyAsset
     from server.clipset.config import clip_set_config
 
     animations = {a.name: {"kind": a.kind, "source": str(asset_file(a)), "frames": [a.first_frame, a.last_frame],
-                           **_reading(a, asset_file(a))} for a in assets}
+                           **_playback(a), **_reading(a, asset_file(a))} for a in assets}
     conditions = [{"id": cid, "method": method, **({"params": params} if params else {})}
                   for cid, method, params in base.conditions]
     return clip_set_config(animations, conditions, base.fps, base.relocate, base.character, "the study's assets")
+
+
+def _playback(asset: StudyAsset) -> dict[str, Any]:
+    """Kind ``other``: the playback inspecting the file suggested (a take that travels loops: played ping-pong it
+    would move backwards, and the build refuses that); the other kinds play as their kind does."""
+    playback = ((asset.report or {}).get("suggested") or {}).get("playback")
+    return {"playback": playback} if asset.kind == "other" and playback in ("loop", "pingpong") else {}
 
 
 def _reading(asset: StudyAsset, path: Path) -> dict[str, Any]:

@@ -132,7 +132,8 @@ def report_json(report: Any, motions: list[str]) -> dict[str, Any]:
             "units": n.units, "metres_per_unit": n.metres_per_unit, "up_axis": n.up_axis, "notes": list(n.notes),
             "fps": report.fps, "frames": report.n_frames, "duration_s": report.duration,
             "contacts": {k: [list(p) for p in v] for k, v in report.contacts.items()},
-            "suggested": {"kind": report.kind, "frames": list(report.frames), "reason": report.reason},
+            "suggested": {"kind": report.kind, "frames": list(report.frames), "reason": report.reason,
+                          "playback": report.playback},
             "mapping": [{"joint": d.canonical, "source": d.source, "reason": d.reason} for d in m.decisions],
             "unmapped": list(m.unmapped)}
 
