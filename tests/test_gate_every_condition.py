@@ -56,7 +56,7 @@ def test_the_shipped_walk_passes_with_every_figure_reported(built):
             assert c.metrics[name] is not None, (c.id, name)
     reference, hybrid = built
     assert reference.metrics["bone_error_deg"] < fidelity.BONE_LIMIT_DEG
-    assert hybrid.metrics["landing_m"] < fidelity.FOOT_REACH_M
+    assert hybrid.metrics["landing_m"] < fidelity.LANDING_M
     assert hybrid.metrics["mirror_error_deg"] is not None
     assert hybrid.metrics["knees_forward"] > 0.9
 
@@ -120,7 +120,7 @@ def test_a_foot_hovering_through_one_stance_is_refused(built):
     check = fidelity.check_condition(lifted, contact, reference.world_positions)
     assert any(p.startswith("the right foot never lands in the reference's contact") for p in check.problems), \
         check.problems
-    assert check.landing_m > fidelity.FOOT_REACH_M
+    assert check.landing_m > fidelity.LANDING_M
     assert check.foot_reach_m < fidelity.FOOT_REACH_M  # the whole-clip figure alone would not have told
 
 

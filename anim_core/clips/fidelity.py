@@ -33,8 +33,8 @@ that never landed) is also measured by what a viewer notices (:func:`check_body`
   bends forward — the shin behind the thigh, ``(thigh x shin) . hip line > 0`` — for the worse knee; under
   :data:`HANDEDNESS_MIN` fails (a backward knee, or left and right swapped);
 * *landing* (``landing_m``, conditions): in every contact phase of the reference (a foot down,
-  :func:`anim_core.math.contacts.foot_down`), the condition's foot must come within :data:`FOOT_REACH_M` of the floor
-  (a foot that never lands fails); ``landing_m`` is the worst phase's lowest clearance.
+  :func:`anim_core.math.contacts.foot_down`), the condition's foot must come within :data:`LANDING_M` of the lowest the
+  reference's foot comes there (a foot that never lands fails); ``landing_m`` is the worst phase's excess.
 
 Handedness is read from the hips and the knees (forward is where the bent knees point), not from the toes: the
 toes of a swinging foot point back.
@@ -94,6 +94,8 @@ WIDTH_RATIO = 2.0
 KNEE_BENT_DEG = 20.0
 #: A gait hybrid's keyed frames must equal the reference's within this (degrees, largest bone angle).
 KEY_LIMIT_DEG = 1.0
+#: In each stance of its reference a condition's foot must come this close (metres) to where the reference's does.
+LANDING_M = 0.03
 #: A contact phase of the reference shorter than this (seconds) is a foot brushing the floor, not a step.
 STANCE_MIN_S = 0.12
 #: A gait hybrid's mirrored half may differ from the reference's other half by as much as its keyed half differs
@@ -378,23 +380,27 @@ def check_body(positions: Array, against: Array, what: str) -> tuple[dict[str, f
 
 def check_landing(positions: Array, contact_heights: Array, reference: Array, periodic: bool, fps: float
                   ) -> tuple[float, list[str]]:
-    """Does each foot of a condition ``(T, 31, 3)`` reach the floor in every contact phase of its ``reference``
-    (same frames, metres, on the floor; ``contact_heights`` ``(31,)``)?  The worst phase's lowest clearance (m) and the
-    problems (a phase in which the foot stays above :data:`FOOT_REACH_M`)."""
-    feet = reference[:, _FEET]
-    down = contacts.foot_down(feet, 1)
+    """Does each foot of a condition ``(T, 31, 3)`` land in every contact phase of its ``reference`` (same frames,
+    metres, on the floor; ``contact_heights`` ``(31,)``): come within :data:`LANDING_M` of the lowest the reference's
+    foot comes in that phase (and within :data:`FOOT_REACH_M` of the floor would do too)?  The worst phase's excess
+    over the reference's lowest (m) and the problems (a foot that never lands).  Phases shorter than
+    :data:`STANCE_MIN_S` at ``fps`` frames per second are left out."""
+    down = contacts.foot_down(reference[:, _FEET], 1)
     clearance = (positions[:, _FEET, 1] - contact_heights[_FEET]).min(axis=2)  # (T, 2)
+    planted = (reference[:, _FEET, 1] - contact_heights[_FEET]).min(axis=2)
     n = len(positions)
     worst, problems = -np.inf, []
     for f, side in enumerate(("left", "right")):
         for start, stop in contacts.contact_intervals(down[:, f], periodic):
             if stop - start < STANCE_MIN_S * fps:
                 continue
-            lowest = float(clearance[np.arange(start, stop) % n, f].min())
-            worst = max(worst, lowest)
-            if lowest > FOOT_REACH_M:
+            frames = np.arange(start, stop) % n
+            lowest, theirs = float(clearance[frames, f].min()), float(planted[frames, f].min())
+            worst = max(worst, lowest - theirs)
+            if lowest > max(theirs + LANDING_M, FOOT_REACH_M):
                 problems.append(f"the {side} foot never lands in the reference's contact at frames {start}..{stop - 1}"
-                                f" (it stays {lowest * 100:.0f} cm above the floor)")
+                                f" (it stays {lowest * 100:.0f} cm above the floor, the reference's comes down to "
+                                f"{theirs * 100:.0f} cm)")
                 break
     return (float(worst) if np.isfinite(worst) else 0.0), problems
 
