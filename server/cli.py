@@ -333,9 +333,13 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                 size = None
                 if args.width or args.height or args.no_shadows:
                     size = {"width": args.width or 640, "height": args.height or 480, "shadows": not args.no_shadows}
+                # The owner's id is read before the rollback: reading it after would load the expired row in a
+                # new transaction, which on SQLite holds the writers' lock while the job writes ("database is
+                # locked" after 30 s, issue 36).
+                owner_id = owner.id if owner else None
                 session.rollback()  # no transaction open while the job writes (SQLite would lock)
                 job = run_in_this_process(settings, JobKind.study, {
-                    "file": str(Path(args.file).resolve()), "owner_id": owner.id if owner else None,
+                    "file": str(Path(args.file).resolve()), "owner_id": owner_id,
                     "open": bool(args.open), "settings": size})
                 if job.state != BuildState.done or job.study_id is None:
                     return _fail(f"{job.error} (job {job.id})")
