@@ -279,6 +279,7 @@ def _study_session(settings: Settings) -> object:
 def study_command(settings: Settings, args: argparse.Namespace) -> int:
     """``animstudy study ...``: schema, validate, create, list, open, close, export."""
     from sqlalchemy import select
+    from sqlalchemy.exc import OperationalError
 
     from anim_core.clips.build import ConfigError
     from server.assets import AssetError
@@ -344,7 +345,7 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                 if job.state != BuildState.done or job.study_id is None:
                     return _fail(f"{job.error} (job {job.id})")
                 study = session.get(Study, job.study_id)
-                place = pipeline.study_place(settings, study_file, args.file)
+                place = pipeline.study_place(settings, study_file, args.file, owner_id)
                 print(f"created study {study.slug!r} ({study.state}, {service.trials_total(study)} trials per "
                       f"participant); participant link: /s/{study.slug}")
                 for test, ref in service.identical_comparisons(study_file.design, place.clips_dir):
@@ -404,6 +405,8 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
         return _fail(exc.detail)
     except (AssetError, ConfigError, MediaError, OSError) as exc:
         return _fail(str(exc))
+    except OperationalError as exc:  # e.g. another process holding SQLite's writers for longer than the timeout
+        return _fail(f"the database could not be used: {exc.orig}; try again when the other command has finished")
     return 0
 
 

@@ -279,8 +279,9 @@ def _run_clips(settings: Settings, factory: sessionmaker[Session], study_id: int
     from server.studies.service import show_design
 
     with factory() as session:
-        design = Design.model_validate(draft(session, study_id).design)
-    place = pipeline.inline_place(settings, clips, "the study file")
+        study = draft(session, study_id)
+        design, owner_id = Design.model_validate(study.design), study.owner_id
+    place = pipeline.inline_place(settings, clips, "the study file", owner_id)
     if place.config is None:  # an inline clip set is always described: not reached
         raise BuildError("the study's [clips] describe no clip set")
     progress(stage="building", done=0, total=len(design.animations), message="building the clips the design needs")
