@@ -37,11 +37,10 @@ from server.studies.models import Study, StudyState
 from server.studies.service import new_draft
 from server.uploads import job as build_job
 from server.uploads.models import BuildJob, BuildState, JobKind, StudyAsset
-from server.uploads.service import check_build_slot
 from tests.conftest import DATABASES, _fresh_engine
 from tests.server_fixtures import make_study, study_file, write_fake_media
 from tests.test_pilot import preview
-from tests.test_stimulus_sets import DESIGN, PASSWORD, TINY, api_study_text, build_and_render, wait_for
+from tests.test_stimulus_sets import PASSWORD, TINY, api_study_text, build_and_render, wait_for
 from tests.test_uploads import SECRET, excerpt, login
 
 A, B = "a@example.org", "b@example.org"
@@ -52,7 +51,9 @@ def fresh(kind: str, tmp_path_factory: pytest.TempPathFactory, name: str, tmp_pa
           **settings: object) -> tuple[object, Settings]:
     engine = _fresh_engine(kind, tmp_path_factory, database=f"test_animstudy_tenants3_{name}")
     migrate(engine)
-    return engine, Settings(var_dir=tmp_path / "var", data_dir=data, secret_key=SECRET, **settings)
+    # the settings name the engine's database: the commands run in a job open it again from them
+    return engine, Settings(var_dir=tmp_path / "var", data_dir=data, secret_key=SECRET,
+                            database_url=engine.url.render_as_string(hide_password=False), **settings)
 
 
 def researchers(engine: object) -> dict[str, int]:
@@ -168,6 +169,8 @@ def test_one_researchers_build_neither_blocks_nor_is_named_to_another(db, engine
     """A's long build (study 'long2') runs: B's build is not refused for it and never reads its name (it read
     "a build is running (study 'long2')", 17 of 17 times); A's second build is refused, naming A's own; with the
     server's cap reached B is refused, naming no study."""
+    from server.uploads.service import check_build_slot
+
     owner_a, owner_b = (create_researcher(db, email, PASSWORD) for email in (A, B))
     long2 = make_study(db, slug="long2", state=StudyState.draft, owner=owner_a)
     other_a = make_study(db, slug="again", state=StudyState.draft, owner=owner_a)
