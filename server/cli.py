@@ -291,6 +291,7 @@ def _study_session(settings: Settings) -> object:
 def study_command(settings: Settings, args: argparse.Namespace) -> int:
     """``animstudy study ...``: schema, validate, create, list, open, close, export."""
     from sqlalchemy import select
+    from sqlalchemy.exc import OperationalError
 
     from anim_core.clips.build import ConfigError
     from server.assets import AssetError
@@ -345,14 +346,18 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                 size = None
                 if args.width or args.height or args.no_shadows:
                     size = {"width": args.width or 640, "height": args.height or 480, "shadows": not args.no_shadows}
+                # The owner's id is read before the rollback: reading it after would load the expired row in a
+                # new transaction, which on SQLite holds the writers' lock while the job writes ("database is
+                # locked" after 30 s, issue 36).
+                owner_id = owner.id if owner else None
                 session.rollback()  # no transaction open while the job writes (SQLite would lock)
                 job = run_in_this_process(settings, JobKind.study, {
-                    "file": str(Path(args.file).resolve()), "owner_id": owner.id if owner else None,
+                    "file": str(Path(args.file).resolve()), "owner_id": owner_id,
                     "open": bool(args.open), "settings": size})
                 if job.state != BuildState.done or job.study_id is None:
                     return _fail(f"{job.error} (job {job.id})")
                 study = session.get(Study, job.study_id)
-                place = pipeline.study_place(settings, study_file, args.file)
+                place = pipeline.study_place(settings, study_file, args.file, owner_id)
                 print(f"created study {study.slug!r} ({study.state}, {service.trials_total(study)} trials per "
                       f"participant); participant link: /s/{study.slug}")
                 for test, ref in service.identical_comparisons(study_file.design, place.clips_dir):
@@ -412,6 +417,8 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
         return _fail(exc.detail)
     except (AssetError, ConfigError, MediaError, OSError) as exc:
         return _fail(str(exc))
+    except OperationalError as exc:  # e.g. another process holding SQLite's writers for longer than the timeout
+        return _fail(f"the database could not be used: {exc.orig}; try again when the other command has finished")
     return 0
 
 
