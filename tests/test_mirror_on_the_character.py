@@ -9,9 +9,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from anim_core.io.bvh import read_bvh
+from anim_core.io.bvh import Bvh, format_bvh, parse_bvh, read_bvh
 from anim_core.math.clip import KeyframeClip
 from anim_core.math.quat import quat_from_axis_angle, rotate
+from anim_core.math.skeleton import Skeleton
 from anim_core.methods.hybrid import build_gait
 from anim_core.rig.character import retarget
 from anim_core.rig.mirror import Mirror
@@ -58,6 +59,24 @@ def _hybrid_bone_directions(character, out: Normalized, bind: bool, keys_only: s
     return v / np.linalg.norm(v, axis=-1, keepdims=True), [sk.names[j] for j in directed]
 
 
+def _with_helper_joints(rig: Bvh, helpers: list[tuple[str, str]]) -> Bvh:
+    """``rig`` with still leaf joints (helper joints as DAZ and Mixamo-style rigs carry: ``lShin``, ``lCollar``) added
+    right under the named parents (depth-first order kept), 3 rotation channels at 0."""
+    s = rig.skeleton
+    columns = np.split(rig.motion, np.cumsum([len(c) for c in rig.channels])[:-1], axis=1)
+    rows = []  # name, parent name, offset, channels, columns
+    for j, name in enumerate(s.names):
+        rows.append((name, s.names[s.parents[j]] if s.parents[j] >= 0 else None, s.offsets[j], rig.channels[j],
+                     columns[j]))
+        rows += [(h, name, np.array([0.0, 3.0, 1.0]), ("Zrotation", "Xrotation", "Yrotation"),
+                  np.zeros((rig.n_frames, 3))) for h, parent in helpers if parent == name]
+    names = [r[0] for r in rows]
+    out = Bvh(Skeleton(names, [names.index(r[1]) if r[1] else -1 for r in rows], np.array([r[2] for r in rows])),
+              tuple(r[3] for r in rows), {names.index(s.names[j]): e for j, e in rig.end_sites.items()},
+              rig.frame_time, np.concatenate([r[4] for r in rows], axis=1), "helpers.bvh")
+    return parse_bvh(format_bvh(out), "helpers.bvh")
+
+
 def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     # arctan2 of the cross and dot products: arccos of a dot product near 1 loses half the digits
     return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1))).max(axis=0)
@@ -69,15 +88,17 @@ MIRRORED = slice(4, 8)  # increment 1: keys 0..3 from the mocap, 4..7 their mirr
 @pytest.mark.parametrize("bind", [True, False], ids=["about the bind pose", "about the rig's rest"])
 def test_the_mirrored_keys_do_not_depend_on_the_rig_the_motion_came_on(character, walk, rng, bind):
     """The CMU walk with its T-pose as rest, taken relative to its most upright frame (a stride: the hips turned 4.7
-    degrees), and on a rig with bones along X and a lying zero pose: mirrored about the character's bind pose, every
+    degrees), on a rig with bones along X and a lying zero pose, and on that rig with helper joints: mirrored about the character's bind pose, every
     bone of every mirrored key points the same way to 1e-6 degrees, but the two pelvis bones (under 10 degrees:
     twice the rest frame's pelvis turn, geometry the character hangs off zero-length CMU bones).  Mirrored about the
     rig's rest (what the code did before) the feet and hands are 30-70 degrees off."""
     plain, names = _hybrid_bone_directions(character, normalize_bvh(walk), bind, MIRRORED)
     pelvis = [names.index(n) for n in PELVIS]
     others = [k for k in range(len(names)) if k not in pelvis]
-    for out in (normalize_bvh(walk, rest="motion"),
-                normalize_bvh(wild_rig(walk, rng, "x-bones", scale=100 * 0.0254 / 0.45))):
+    lying = wild_rig(walk, rng, "x-bones", scale=100 * 0.0254 / 0.45)
+    helpers = [("lShin", "LeftLeg"), ("rShin", "RightLeg"), ("lCollar", "Spine1"), ("rCollar", "Spine1")]
+    for out in (normalize_bvh(walk, rest="motion"), normalize_bvh(lying),
+                normalize_bvh(_with_helper_joints(lying, helpers))):
         assert out.reference_frame == 110
         diff = _angles(_hybrid_bone_directions(character, out, bind, MIRRORED)[0], plain)
         if bind:
