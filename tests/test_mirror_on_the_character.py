@@ -88,8 +88,9 @@ MIRRORED = slice(4, 8)  # increment 1: keys 0..3 from the mocap, 4..7 their mirr
 @pytest.mark.parametrize("bind", [True, False], ids=["about the bind pose", "about the rig's rest"])
 def test_the_mirrored_keys_do_not_depend_on_the_rig_the_motion_came_on(character, walk, rng, bind):
     """The CMU walk with its T-pose as rest, taken relative to its most upright frame (a stride: the hips turned 4.7
-    degrees), on a rig with bones along X and a lying zero pose, and on that rig with helper joints: mirrored about the character's bind pose, every
-    bone of every mirrored key points the same way to 1e-6 degrees, but the two pelvis bones (under 10 degrees:
+    degrees), on a rig with bones along X and a lying zero pose, and on that rig with helper joints: mirrored about
+    the character's bind pose, every bone of every mirrored key points the same way to 1e-6 degrees, but the two
+    pelvis bones (under 10 degrees:
     twice the rest frame's pelvis turn, geometry the character hangs off zero-length CMU bones).  Mirrored about the
     rig's rest (what the code did before) the feet and hands are 30-70 degrees off."""
     plain, names = _hybrid_bone_directions(character, normalize_bvh(walk), bind, MIRRORED)
