@@ -7,8 +7,9 @@
 * ``hybrid_ik`` (:class:`HybridIkParams`): the hybrid of ``increment`` with locked feet
   (:mod:`anim_core.methods.footlock`):
   the steps detected on the reference (``contact_source = "reference"``), or each also grown by the hybrid's own
-  contact frames next to it (``"union"``, default), below ``clearance_m``; held by two-bone leg IK, each swing
-  making up the difference between two holds over at least ``2 * blend_frames + 1`` frames; with
+  contact frames next to it (``"union"``, default), below ``clearance_m``; held by two-bone leg IK only where
+  the leg reaches the foothold within 10 degrees of the hybrid's thigh and knee, each swing making up the
+  difference between two holds over at least ``2 * blend_frames + 1`` frames within the same 10 degrees; with
   ``swing_clearance`` each foot raised to at least the reference's foot height (off by default: it copies a
   reference's own seam jump into a loop whose hybrid has none).  ``conditions16.toml`` holds ``"reference"`` with
   the clearance, which meets every gait goal of issue 16.
