@@ -172,23 +172,27 @@ def bt500(x: np.ndarray, ratio: float = 0.05, balance: float = 0.3) -> tuple[np.
 
 
 def _correlations(x: np.ndarray, method: str) -> np.ndarray:
-    """Each participant's per-comparison mean against the other participants' means (NaN: undefined)."""
+    """Each participant's per-comparison mean against the other participants' means (NaN: undefined).
+
+    Vectorised over the participants (the calibration runs it on many simulated panels)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         means = np.nanmean(x, axis=2) if x.shape[2] else np.full(x.shape[:2], np.nan)
+    seen = ~np.isnan(means)
+    total, count = np.where(seen, means, 0.0).sum(axis=1), seen.sum(axis=1)
+    others_count = count[:, None] - seen  # a comparison nobody else saw: left out below
+    with np.errstate(invalid="ignore", divide="ignore"):
+        panel = (total[:, None] - np.where(seen, means, 0.0)) / others_count
+    ok = seen & (others_count > 0)
     out = np.full(x.shape[1], np.nan)
-    for s in range(x.shape[1]):
-        others = np.delete(means, s, axis=1)
-        if others.shape[1] == 0:
+    for s in np.flatnonzero(ok.sum(axis=0) >= MIN_COMMON_COMPARISONS):
+        a, b = means[ok[:, s], s], panel[ok[:, s], s]
+        if np.ptp(a) == 0 or np.ptp(b) == 0:
             continue
-        with warnings.catch_warnings():  # a comparison nobody else saw: NaN, left out below
-            warnings.simplefilter("ignore", RuntimeWarning)
-            panel = np.nanmean(others, axis=1)
-        ok = ~np.isnan(means[:, s]) & ~np.isnan(panel)
-        a, b = means[ok, s], panel[ok]
-        if a.size < MIN_COMMON_COMPARISONS or np.ptp(a) == 0 or np.ptp(b) == 0:
-            continue
-        out[s] = (stats.pearsonr(a, b) if method == "pearson" else stats.spearmanr(a, b))[0]
+        if method == "spearman":
+            a, b = stats.rankdata(a), stats.rankdata(b)
+        a, b = a - a.mean(), b - b.mean()
+        out[s] = float(np.clip(a @ b / math.sqrt((a @ a) * (b @ b)), -1, 1))
     return out
 
 
@@ -202,26 +206,25 @@ def correlation_threshold(r: np.ndarray, cap: float = 0.7) -> float | None:
 
 def _z_shares(x: np.ndarray, limit: float) -> np.ndarray:
     """Per participant: the share of their votes with |z| >= limit against the other participants' votes on the
-    same comparison (at least 3 of them with some spread, or unanimous: then any other answer is an outlier)."""
-    e_count, s_count, _ = x.shape
-    outliers, counted = np.zeros(s_count), np.zeros(s_count)
-    for e in range(e_count):
-        for s in range(s_count):
-            mine = x[e, s][~np.isnan(x[e, s])]
-            if mine.size == 0:
-                continue
-            others = np.delete(x[e], s, axis=0).ravel()
-            others = others[~np.isnan(others)]
-            counted[s] += mine.size
-            if others.size < 3:
-                continue
-            mu, sd = others.mean(), others.std(ddof=1)
-            if sd == 0:
-                outliers[s] += np.count_nonzero(mine != mu)
-            else:
-                outliers[s] += np.count_nonzero(np.abs(mine - mu) / sd >= limit)
+    same comparison (at least 3 of them with some spread, or unanimous: then any other answer is an outlier).
+
+    Vectorised over the participants from per-comparison sums (the calibration runs it on many panels)."""
+    present = ~np.isnan(x)
+    values = np.where(present, x, 0.0)
+    n_own, s1_own, s2_own = present.sum(axis=2), values.sum(axis=2), (values**2).sum(axis=2)  # (E, S)
+    n = n_own.sum(axis=1, keepdims=True) - n_own
+    s1 = s1_own.sum(axis=1, keepdims=True) - s1_own
+    s2 = s2_own.sum(axis=1, keepdims=True) - s2_own
     with np.errstate(invalid="ignore", divide="ignore"):
-        return outliers / counted
+        mu = s1 / n
+        spread = n * s2 - s1**2  # n (n - 1) var: exactly 0 for unanimous whole-number votes
+        sd = np.sqrt(np.maximum(spread, 0.0) / (n * (n - 1)))
+        unanimous = spread <= 1e-9 * np.maximum(n * s2, 1.0)
+        z = np.abs(x - mu[:, :, None]) / sd[:, :, None]
+        outlier = np.where(unanimous[:, :, None], x != mu[:, :, None], z >= limit) & present
+    outliers = np.where(n >= 3, outlier.sum(axis=2), 0).sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return outliers / n_own.sum(axis=0)
 
 
 def screen(votes: Iterable[Mapping[str, Any]], rules: Screening, catch_failures_allowed: int = 0,
