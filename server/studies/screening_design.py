@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -97,14 +98,26 @@ def fitted(x: np.ndarray, content: list[int]) -> GoodObservers:
 def _fitted(data: bytes, shape: tuple[int, ...], content: tuple[int, ...]) -> GoodObservers:
     """:func:`fitted`, cached on the votes: the fit takes a few tenths of a second, the results are polled."""
     x = np.frombuffer(data).reshape(shape)
-    model = fit(x, list(content))
-    bias = model.bias[np.isfinite(model.bias)]
+    content_index = list(content)
+    model = fit(x, content_index)
+    if model.converged and np.isfinite(model.quality).all() and np.isfinite(model.bias).all():
+        quality, bias, v = model.quality, model.bias, model.inconsistency
+        ambiguity = np.nan_to_num(model.ambiguity)[content_index]
+    else:
+        # sureal's solver can diverge (an observer with no spread at all); the moments it starts from instead
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            quality = np.nanmean(x, axis=(1, 2))
+            bias = np.nanmean(x - quality[:, None, None], axis=(0, 2))
+            v = np.nanstd(x - quality[:, None, None] - bias[None, :, None], axis=(0, 2))
+        ambiguity = np.zeros(len(quality))
+    bias = bias[np.isfinite(bias)]
     bias_sd = 1.4826 * float(np.median(np.abs(bias - np.median(bias)))) if bias.size else PRIOR_BIAS_SD
-    v = model.inconsistency[np.isfinite(model.inconsistency)]
+    v = v[np.isfinite(v)]
     v = np.sort(v[v <= np.quantile(v, 0.9)]) if v.size else np.array([PRIOR_INCONSISTENCY])
     # ten quantiles stand for the fitted inconsistencies: a short, stable cache key
-    return GoodObservers("fitted", _rounded(model.quality), _rounded(np.nan_to_num(model.ambiguity)[list(content)]),
-                         round(bias_sd / 0.05) * 0.05, _rounded(np.quantile(v, np.linspace(0.05, 0.95, 10))))
+    return GoodObservers("fitted", _rounded(np.nan_to_num(quality)), _rounded(ambiguity), round(bias_sd / 0.05) * 0.05,
+                         _rounded(np.quantile(v, np.linspace(0.05, 0.95, 10))))
 
 
 @dataclass(frozen=True)
