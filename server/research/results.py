@@ -19,7 +19,7 @@ from server.stimuli import service as stimulus_sets
 from server.studies import scale
 from server.studies.interval_scale import study_scales
 from server.studies.models import Study
-from server.studies.screening import flagged_counts, opinion_array
+from server.studies.screening import RULES, flagged_counts, opinion_array
 from server.studies.service import screening_rules
 from server.studies.statistics import analyse
 from server.studies.subject_model import fit
@@ -157,6 +157,11 @@ def study_results(session: Session, study: Study, benchmark_path: Path,
         "flagged": flagged_counts(records.values(), rules.rules),
         "excluded": [r.as_dict() for r in records.values() if r.screened_out],
         "participants": [r.as_dict() for r in records.values()],
+        # how the design-calibrated thresholds came about: the simulated good observers, each rule's threshold,
+        # false-flag rate and power, and which rules the design is too small for (None: fixed thresholds)
+        "calibration": next((r.calibration.as_dict() for r in records.values() if r.calibration), None),
+        "too_little_data": sorted({rule for r in records.values() for rule, v in r.results.items() if not v.judged},
+                                  key=RULES.index),
     }
     results["subject_model"] = copy.deepcopy(_subject_model_cached(_analysed_tests(rows)))
     results["methods"]["exclusions"] = (

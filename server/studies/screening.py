@@ -126,6 +126,8 @@ class RuleResult:
 class ParticipantScreening:
     session_id: str
     results: dict[str, RuleResult] = field(default_factory=dict)  # rule -> verdict, for every chosen rule
+    # the design calibration the thresholds came from (one object shared by the panel's records), None: fixed
+    calibration: Calibration | None = field(default=None, compare=False, repr=False)
 
     @property
     def flagged_by(self) -> list[str]:
@@ -433,7 +435,7 @@ def screen(votes: Iterable[Mapping[str, Any]], rules: Screening, catch_failures_
                 out[s]["correlation"] = verdict("correlation", value, threshold,
                                                 value is not None and threshold is not None and value <= threshold)
 
-    return {s: ParticipantScreening(s, results) for s, results in out.items()}
+    return {s: ParticipantScreening(s, results, design) for s, results in out.items()}
 
 
 def flagged_counts(records: Iterable[ParticipantScreening], rules: Sequence[str]) -> dict[str, int]:
