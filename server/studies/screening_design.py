@@ -18,10 +18,11 @@ simulated *good* observers that leaves a target share of them flagged, in panels
 - ``fast`` is not simulated: a good observer answers after one playback (the page enforces it), so a "fast" vote
   is one the page's clock mis-timed; its threshold is the binomial quantile of ``FAST_VOTE_RATE`` per vote (or
   the study's median share, if higher) over the participant's number of votes.
-- Power: every simulated panel also holds one random (uniform answers), one straight-lining (one answer always)
-  and one inverted (a good observer's answers negated) observer; a rule's power against a kind is the share of
-  them it flags.  A rule *judges* only when its power against the kinds it is meant for (``MEANT_FOR``) reaches
-  ``min_power``; otherwise the design is too small for it: it reports "too little data" and flags nobody.
+- Power: every simulated panel (of the study's number of participants) holds one random (uniform answers), one
+  straight-lining (one answer always) and one inverted (a good observer's answers negated) observer among them,
+  the rest good; a rule's power against a kind is the share of them it flags.  A rule *judges* only when its
+  power against the kinds it is meant for (``MEANT_FOR``) reaches ``min_power``; otherwise the design is too
+  small for it: it reports "too little data" and flags nobody.
 
 Deterministic (``SEED``) and cached on everything it depends on (``calibrate``); bench/screening_design.py times it.
 """
@@ -230,16 +231,19 @@ def _calibrate(observers: GoodObservers, packed: bytes, shape: tuple[int, int, i
     patterns = np.unpackbits(np.frombuffer(packed, dtype=np.uint8), count=math.prod(shape)).reshape(shape) > 0
     participants = shape[0]
     rng = np.random.default_rng(SEED)
-    panels = max(MIN_PANELS, math.ceil(GOOD_DRAWS / max(participants, 1)))
+    panels = max(MIN_PANELS, math.ceil(GOOD_DRAWS / max(participants - len(BAD_KINDS), 1)))
     good: dict[str, list[np.ndarray]] = {r: [] for r in simulated}
     bad: dict[str, dict[str, list[float]]] = {r: {k: [] for k in BAD_KINDS} for r in simulated}
+    # A panel of the study's size, one of each bad kind among its participants (the panel-relative rules see them
+    # as they would see real ones), at least one good observer.
+    honest = max(participants - len(BAD_KINDS), 1)
     for _ in range(panels if simulated and participants else 0):
-        x, raw = _simulate(observers, patterns, participants, rng, BAD_KINDS)
+        x, raw = _simulate(observers, patterns, honest, rng, BAD_KINDS)
         got = measures(x, raw)
         for r in simulated:
-            good[r].append(got[r][:participants])
+            good[r].append(got[r][:honest])
             for i, kind in enumerate(BAD_KINDS):
-                bad[r][kind].append(float(got[r][participants + i]))
+                bad[r][kind].append(float(got[r][honest + i]))
     votes = int(np.median(patterns.sum(axis=(1, 2)))) if participants else 0  # fast's typical count
 
     def at(rate: float) -> dict[str, RuleCalibration]:
