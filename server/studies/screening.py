@@ -28,9 +28,19 @@ The rules (``RULES``), each with the standard it follows and its default thresho
   does (sureal correlates with the mean including the participant; leaving them out keeps a participant from
   agreeing with themselves in small panels).  An undefined r (constant answers) flags nobody: that is
   ``straight_lining``'s case.  Measure: r.
+- ``disagreement``: the variance of the differences between the participant's votes and the other participants'
+  mean vote on the same comparison (around the participant's own bias) above ``max_disagreement`` (1.5; not a
+  standard's: a uniformly random answerer's is about 2 plus the variance of the comparison scores).  Measure: that
+  variance.  With 16 votes it tells a random answerer from an honest one where ``z_outlier``'s count cannot.
 - ``fast``: the share of the participant's test votes given before one playback of the pair video had ended
-  (``rt_ms`` < the longer clip's duration, frames / fps) above ``max_fast_share`` (0.2: acceptance >= 80 %).
-  Measure: that share.
+  (``rt_ms`` < the longer clip's duration, frames / fps, less ``PAGE_CLOCK_MS``) above ``max_fast_share`` (0.2:
+  acceptance >= 80 %).  Measure: that share.
+
+Those are the thresholds with ``thresholds = "fixed"``.  By default (``"design"``) the thresholds of
+``straight_lining``, ``z_outlier``, ``bt500`` (its ratio), ``correlation``, ``disagreement`` and ``fast`` are
+calibrated to the study's own design by simulation (``screening_design``): each leaves a share of good observers
+flagged (``false_flag_rate`` over the rules together), and a rule whose power against the bad observers it is
+meant for falls short of ``min_power`` says "too little data" (``RuleResult.judged``) and flags nobody.
 
 A participant is screened out when any chosen rule flags them; the panel-relative rules (``z_outlier``,
 ``bt500``, ``correlation``) see every completed participant of the study in one pass (as sureal does), so adding
