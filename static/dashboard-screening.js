@@ -27,7 +27,7 @@ window.DashboardScreening = (() => {
       return;
     }
     const g = c.good_observers;
-    $("calibration-note").textContent =
+    $("calibration-note").textContent = (c.planned ? "Planned (nobody has finished yet): " : "") +
       `${c.panels} simulated panels of ${c.participants} participants, good observers ${g.source === "fitted"
         ? "fitted to this study's votes" : "from the prior (too few finished participants to fit)"}; ` +
       `false-flag rate ${pct(c.false_flag_rate_per_rule)} per rule (${c.seconds.toFixed(2)} s, seed ${c.seed}).` +

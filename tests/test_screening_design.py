@@ -141,3 +141,32 @@ def test_the_study_file_sets_the_false_flag_rate_and_the_fixed_thresholds():
     stricter = calibration(rows, ALL, THESIS_PLAYBACK)
     assert looser.rules["straight_lining"].threshold >= stricter.rules["straight_lining"].threshold
     assert np.isfinite(looser.rules["correlation"].threshold)
+
+
+def test_results_show_the_planned_calibration_before_anyone_finished_and_the_fitted_one_after(
+        client, db, researcher_headers):
+    """The results API (the dashboard's source): before data, the prior for the thesis design and a panel of
+    40; after, every participant's record says which rules judged."""
+    from server.participants import service
+    from server.studies.design import Design
+    from tests.server_fixtures import make_study
+
+    study = make_study(db, Design(), screening={"rules": "all"})
+    screening = client.get("/api/v1/studies/thesis/results", headers=researcher_headers).json()["screening"]
+    planned = screening["calibration"]
+    assert planned["good_observers"]["source"] == "prior" and planned["participants"] == 40 and planned["planned"]
+    assert planned["good_observers"]["comparison_scores"][0] == -1.0 and planned["panels"] >= 100
+    assert screening["too_little_data"] == ["z_outlier", "bt500"], screening["too_little_data"]
+    assert planned["rules"]["straight_lining"]["judged"] and planned["rules"]["straight_lining"]["power"][
+        "straight"] == 1.0
+    for name in ("a", "b", "c"):
+        ps = service.start_session(db, study, None).session
+        for trial in ps.trials:
+            choice = "equal" if name == "c" else ["left_slightly", "right_much", "equal"][trial.index % 3]
+            service.cast_vote(db, ps, trial, choice, 5000, f"{name}-{trial.id}", {})
+    screening = client.get("/api/v1/studies/thesis/results", headers=researcher_headers).json()["screening"]
+    assert screening["calibration"]["participants"] == 3 and screening["calibration"]["good_observers"][
+        "source"] == "prior" and not screening["calibration"]["planned"]
+    record = screening["participants"][0]["rules"]
+    assert record["correlation"]["judged"] is False and record["correlation"]["note"].startswith("too little data")
+    assert {"catch", "z_outlier", "bt500", "correlation", "disagreement"} <= set(screening["too_little_data"])

@@ -62,7 +62,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from scipy import stats
 
 from .scale import CHOICE_SCORES
-from .screening_design import MEANT_FOR, Calibration, calibrate, fast_limit
+from .screening_design import MEANT_FOR, Calibration, calibrate, fast_limit, planned
 
 RULES = ("catch", "straight_lining", "z_outlier", "bt500", "correlation", "disagreement", "fast")
 Rule = Literal["catch", "straight_lining", "z_outlier", "bt500", "correlation", "disagreement", "fast"]
@@ -332,6 +332,16 @@ def calibration(votes: Iterable[Mapping[str, Any]], rules: Screening,
     fast = _fast_votes(tests, playback_ms or {}) if "fast" in chosen else None
     return calibrate(x, content, chosen, rules.false_flag_rate, rules.min_power,
                      _measures_for(rules.z_limit, rules.bt500_balance, rules.correlation_method), fast)
+
+
+def planned_calibration(comparisons: int, showings: int, rules: Screening) -> Calibration | None:
+    """The design calibration before anyone has finished (``screening_design.planned``): the prior, for a panel of
+    ``PLANNED_PARTICIPANTS`` each seeing ``comparisons`` comparisons ``showings`` times."""
+    chosen = tuple(r for r in RULES if r in rules.rules and r in MEANT_FOR)
+    if rules.thresholds != "design" or not chosen or not comparisons or not showings:
+        return None
+    return planned(comparisons, showings, chosen, rules.false_flag_rate, rules.min_power,
+                   _measures_for(rules.z_limit, rules.bt500_balance, rules.correlation_method))
 
 
 def _fast_votes(tests: list[Mapping[str, Any]], playback_ms: Mapping[tuple[str, str, str], float]

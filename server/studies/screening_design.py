@@ -223,6 +223,20 @@ def calibrate(x: np.ndarray, content: list[int], rules: tuple[str, ...], false_f
                       round(max(FAST_VOTE_RATE, median_fast), 3))
 
 
+#: Before anyone has finished: the planned calibration is for a panel this size (the issue-36 panel's).
+PLANNED_PARTICIPANTS = 40
+
+
+def planned(comparisons: int, showings: int, rules: tuple[str, ...], false_flag_rate: float, min_power: float,
+            measures: Measures, participants: int = PLANNED_PARTICIPANTS) -> Calibration:
+    """The calibration before data exist: the prior, ``participants`` who each see all ``comparisons`` (those one
+    participant sees) ``showings`` times (an incomplete or adaptive design's participants overlap less than this)."""
+    patterns = np.ones((participants, comparisons, showings), dtype=bool)
+    return _calibrate(prior(comparisons), np.packbits(patterns, axis=None).tobytes(), patterns.shape,
+                      tuple(r for r in rules if r in TAILS), "fast" in rules, round(false_flag_rate, 6),
+                      round(min_power, 6), measures, FAST_VOTE_RATE)
+
+
 @lru_cache(maxsize=64)
 def _calibrate(observers: GoodObservers, packed: bytes, shape: tuple[int, int, int], simulated: tuple[str, ...],
                fast: bool, false_flag_rate: float, min_power: float, measures: Measures,
