@@ -47,6 +47,7 @@ SEED = 36  # every calibration draws the same simulated panels for the same desi
 FIT_MIN_PARTICIPANTS = 10  # fewer finished participants: the prior instead of a fit
 GOOD_DRAWS = 4000  # simulated good observers per calibration (at 1 % / 4 rules: ~10 beyond the threshold)
 MIN_PANELS = 100  # and at least this many panels: the power's resolution (one bad observer of a kind each)
+MAX_PANELS = 400  # but no more: a tiny panel (a handful of finished participants) would need thousands
 FAST_VOTE_RATE = 0.01  # a good observer's votes the page's clock mis-times as before the playback ended
 
 Tail = Literal["lower", "upper"]
@@ -245,7 +246,7 @@ def _calibrate(observers: GoodObservers, packed: bytes, shape: tuple[int, int, i
     patterns = np.unpackbits(np.frombuffer(packed, dtype=np.uint8), count=math.prod(shape)).reshape(shape) > 0
     participants = shape[0]
     rng = np.random.default_rng(SEED)
-    panels = max(MIN_PANELS, math.ceil(GOOD_DRAWS / max(participants - len(BAD_KINDS), 1)))
+    panels = max(MIN_PANELS, min(MAX_PANELS, math.ceil(GOOD_DRAWS / max(participants - len(BAD_KINDS), 1))))
     good: dict[str, list[np.ndarray]] = {r: [] for r in simulated}
     bad: dict[str, dict[str, list[float]]] = {r: {k: [] for k in BAD_KINDS} for r in simulated}
     # A panel of the study's size, one of each bad kind among its participants (the panel-relative rules see them
