@@ -170,3 +170,10 @@ def test_results_show_the_planned_calibration_before_anyone_finished_and_the_fit
     record = screening["participants"][0]["rules"]
     assert record["correlation"]["judged"] is False and record["correlation"]["note"].startswith("too little data")
     assert {"catch", "z_outlier", "bt500", "correlation", "disagreement"} <= set(screening["too_little_data"])
+
+
+def test_nobody_finished_nothing_to_calibrate_on():
+    """No finished participant (none yet, or only active sessions): no records and no error."""
+    rows, _ = design_panel(0, good=2, bad=())
+    assert screen([], ALL, 0, THESIS_PLAYBACK) == {}
+    assert screen([{**r, "session_state": "active"} for r in rows], ALL, 0, THESIS_PLAYBACK) == {}

@@ -48,6 +48,8 @@ FIT_MIN_PARTICIPANTS = 10  # fewer finished participants: the prior instead of a
 GOOD_DRAWS = 4000  # simulated good observers per calibration (at 1 % / 4 rules: ~10 beyond the threshold)
 MIN_PANELS = 100  # and at least this many panels: the power's resolution (one bad observer of a kind each)
 MAX_PANELS = 400  # but no more: a tiny panel (a handful of finished participants) would need thousands
+MAX_PANEL = 200  # participants in a simulated panel at most: beyond, the rules' measures hardly change with size
+FIT_MAX_PARTICIPANTS = 200  # fitted on at most this many (an even sample), for the same reason
 FAST_VOTE_RATE = 0.01  # a good observer's votes the page's clock mis-times as before the playback ended
 
 Tail = Literal["lower", "upper"]
@@ -213,15 +215,21 @@ def calibrate(x: np.ndarray, content: list[int], rules: tuple[str, ...], false_f
     patterns = ~np.isnan(x).transpose(1, 0, 2)  # (S, E, R)
     patterns = patterns[patterns.any(axis=(1, 2))]
     if len(patterns) >= FIT_MIN_PARTICIPANTS:
-        observers = fitted(x, content)
+        # a large study is fitted on an even sample of its participants: the fit's cost grows with them
+        sample = np.unique(np.linspace(0, x.shape[1] - 1, min(x.shape[1], FIT_MAX_PARTICIPANTS)).round().astype(int))
+        observers = fitted(x[:, sample], content)
     else:
         observers = prior(x.shape[0])
     simulated = tuple(r for r in rules if r in TAILS)
     shares = sorted((fast_votes or {}).values())
     median_fast = float(np.median([f / n for f, n in shares if n])) if shares else 0.0
-    return _calibrate(observers, np.packbits(patterns, axis=None).tobytes(), patterns.shape, simulated,
-                      "fast" in rules, round(false_flag_rate, 6), round(min_power, 6), measures,
-                      round(max(FAST_VOTE_RATE, median_fast), 3))
+    # The distinct patterns of showings stand for the participants (every finished participant of a reference
+    # design has the same one), so the cache holds while participants finish alike.
+    unique = (np.unique(patterns.reshape(len(patterns), -1), axis=0).reshape(-1, *patterns.shape[1:])
+              if len(patterns) else patterns)
+    return _calibrate(observers, np.packbits(unique, axis=None).tobytes(), unique.shape,
+                      min(len(patterns), MAX_PANEL), simulated, "fast" in rules, round(false_flag_rate, 6),
+                      round(min_power, 6), measures, round(max(FAST_VOTE_RATE, median_fast), 3))
 
 
 #: Before anyone has finished: the planned calibration is for a panel this size (the issue-36 panel's).
@@ -232,19 +240,18 @@ def planned(comparisons: int, showings: int, rules: tuple[str, ...], false_flag_
             measures: Measures, participants: int = PLANNED_PARTICIPANTS) -> Calibration:
     """The calibration before data exist: the prior, ``participants`` who each see all ``comparisons`` (those one
     participant sees) ``showings`` times (an incomplete or adaptive design's participants overlap less than this)."""
-    patterns = np.ones((participants, comparisons, showings), dtype=bool)
-    return _calibrate(prior(comparisons), np.packbits(patterns, axis=None).tobytes(), patterns.shape,
+    patterns = np.ones((1, comparisons, showings), dtype=bool)
+    return _calibrate(prior(comparisons), np.packbits(patterns, axis=None).tobytes(), patterns.shape, participants,
                       tuple(r for r in rules if r in TAILS), "fast" in rules, round(false_flag_rate, 6),
                       round(min_power, 6), measures, FAST_VOTE_RATE)
 
 
 @lru_cache(maxsize=64)
-def _calibrate(observers: GoodObservers, packed: bytes, shape: tuple[int, int, int], simulated: tuple[str, ...],
-               fast: bool, false_flag_rate: float, min_power: float, measures: Measures,
+def _calibrate(observers: GoodObservers, packed: bytes, shape: tuple[int, int, int], participants: int,
+               simulated: tuple[str, ...], fast: bool, false_flag_rate: float, min_power: float, measures: Measures,
                fast_rate: float) -> Calibration:
     start = time.perf_counter()
     patterns = np.unpackbits(np.frombuffer(packed, dtype=np.uint8), count=math.prod(shape)).reshape(shape) > 0
-    participants = shape[0]
     rng = np.random.default_rng(SEED)
     panels = max(MIN_PANELS, min(MAX_PANELS, math.ceil(GOOD_DRAWS / max(participants - len(BAD_KINDS), 1))))
     good: dict[str, list[np.ndarray]] = {r: [] for r in simulated}
