@@ -60,10 +60,12 @@ def test_screening_panel(site):
         excluded = rows(page, "#table-excluded")
         # the threshold is calibrated to this design (16 trials), not the standards' 0.15 (issue 36)
         assert any(r.startswith(straight[:8]) and "straight_lining" in r
-                   and re.search(r"answer variance: 0\.00 / 0\.\d\d", r) for r in excluded), excluded
+                   and re.search(r"answer variance: 0\.00 / \d\.\d\d", r) for r in excluded), excluded
         calibration = rows(page, "#table-calibration")
-        assert len(calibration) == 1 and calibration[0].startswith("straight_lining\tbelow 0.")
-        assert calibration[0].endswith("judges") and "100 %" in calibration[0], calibration  # power: straight
+        # one rule calibrated; it catches every simulated straight-liner (the sessions' random trial orders make
+        # the data, hence the threshold, differ from run to run)
+        assert len(calibration) == 1 and calibration[0].startswith("straight_lining\tbelow "), calibration
+        assert calibration[0].endswith("judges") and "\t100 %\t" in calibration[0], calibration
         note = page.inner_text("#calibration-note")
         assert "fitted to this study's votes" in note and "Too little data for this design: catch" in note, note
         # the side by side: everyone who finished (the straight-liner among them) against those kept
