@@ -326,12 +326,24 @@ def calibration(votes: Iterable[Mapping[str, Any]], rules: Screening,
     if rules.thresholds != "design" or not chosen:
         return None
     tests = [v for v in votes if v["session_state"] == "completed" and not v["practice"] and not v["catch"]]
-    x, comparisons, _ = opinion_array(tests)
+    x, comparisons, subjects = opinion_array(tests)
     animations = sorted({c[0] for c in comparisons})
     content = [animations.index(c[0]) for c in comparisons]
     fast = _fast_votes(tests, playback_ms or {}) if "fast" in chosen else None
+    # Each participant's side preference: their raw answers less the panel's mean score of each comparison turned
+    # to the side it was shown on; the mean is the lean, its variance over the votes what noise alone gives it.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        panel_mean = dict(zip(comparisons, np.nanmean(x, axis=(1, 2)), strict=True)) if subjects else {}
+    residual: dict[str, list[float]] = defaultdict(list)
+    for v in tests:
+        toward = 1.0 if v["reference_side"] == "right" else -1.0  # raw = score * toward
+        key = (v["animation"], v["reference_condition"], v["test_condition"])
+        residual[v["session_id"]].append(CHOICE_SCORES[v["choice"]] - toward * panel_mean[key])
+    leans = np.array([[np.mean(residual[s]), np.var(residual[s], ddof=1) / len(residual[s])]
+                      if len(residual[s]) >= 2 else [np.nan, np.nan] for s in subjects]).reshape(-1, 2)
     return calibrate(x, content, chosen, rules.false_flag_rate, rules.min_power,
-                     _measures_for(rules.z_limit, rules.bt500_balance, rules.correlation_method), fast)
+                     _measures_for(rules.z_limit, rules.bt500_balance, rules.correlation_method), fast, leans)
 
 
 def planned_calibration(comparisons: int, showings: int, rules: Screening) -> Calibration | None:

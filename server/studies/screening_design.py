@@ -11,8 +11,9 @@ simulated *good* observers that leaves a target share of them flagged, in panels
   ``FIT_MIN_PARTICIPANTS`` finished participants the model is fitted to the study's votes: the comparison scores,
   the biases' robust sd (the MAD's; a few bad participants must not widen it) and each simulated observer's
   inconsistency drawn from the fitted ones up to their 90th percentile (the least consistent tenth may be the very
-  participants to screen out).  Before that, ``PRIOR``: the comparison scores evenly spread over -1 ... +1, bias
-  sd 0.25, inconsistency 0.6 (the simulated panel of docs/screening.md).
+  participants to screen out), and a preference for one side of the screen (the median and the robust spread of
+  the participants' mean raw answers, less what their noise alone gives).  Before that, the prior: the comparison
+  scores evenly spread over -1 ... +1, bias sd 0.25, inconsistency 0.6, side preference sd 0.2.
 - ``false_flag_rate`` (default 1 %) is the chance that a good observer is screened out by any calibrated rule,
   split evenly over them (Bonferroni).  36 good observers at 1 % each: at most one flagged in 95 % of panels.
 - ``fast`` is not simulated: a good observer answers after one playback (the page enforces it), so a "fast" vote
@@ -33,7 +34,7 @@ import math
 import time
 import warnings
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from typing import Any, Literal
 
@@ -72,20 +73,28 @@ class GoodObservers:
     ambiguity: tuple[float, ...]  # per comparison (its animation's)
     bias_sd: float
     inconsistency: tuple[float, ...]  # drawn from, per simulated observer
+    # A preference for one side of the screen, whatever is shown there (raw answer units, + = left): the subject
+    # model has none (its scores are from the test condition's view), but it makes an honest participant's raw
+    # answers alike, which is what straight_lining measures.
+    side_mean: float = 0.0
+    side_sd: float = 0.0
 
     def as_dict(self) -> dict[str, Any]:
         return {"source": self.source, "comparison_scores": list(self.quality), "ambiguity": list(self.ambiguity),
-                "bias_sd": self.bias_sd, "inconsistency_median": float(np.median(self.inconsistency))}
+                "bias_sd": self.bias_sd, "inconsistency_median": float(np.median(self.inconsistency)),
+                "side_mean": self.side_mean, "side_sd": self.side_sd}
 
 
 PRIOR_BIAS_SD = 0.25
 PRIOR_INCONSISTENCY = 0.6
 PRIOR_SPAN = 1.0  # comparison scores evenly over -PRIOR_SPAN ... +PRIOR_SPAN
+PRIOR_SIDE_SD = 0.2  # as server.studies.simulate's observers
 
 
 def prior(comparisons: int) -> GoodObservers:
     quality = np.linspace(-PRIOR_SPAN, PRIOR_SPAN, comparisons) if comparisons > 1 else np.zeros(comparisons)
-    return GoodObservers("prior", _rounded(quality), (0.0,) * comparisons, PRIOR_BIAS_SD, (PRIOR_INCONSISTENCY,))
+    return GoodObservers("prior", _rounded(quality), (0.0,) * comparisons, PRIOR_BIAS_SD, (PRIOR_INCONSISTENCY,),
+                         0.0, PRIOR_SIDE_SD)
 
 
 def _rounded(values: np.ndarray | list[float], step: float = 0.05) -> tuple[float, ...]:
@@ -93,9 +102,18 @@ def _rounded(values: np.ndarray | list[float], step: float = 0.05) -> tuple[floa
     return tuple(round(float(v) / step) * step + 0.0 for v in values)
 
 
-def fitted(x: np.ndarray, content: list[int]) -> GoodObservers:
-    """The subject model fitted to the study's votes x[e, s, r] (see the module docstring)."""
-    return _fitted(x.tobytes(), x.shape, tuple(content))
+def fitted(x: np.ndarray, content: list[int], leans: np.ndarray | None = None) -> GoodObservers:
+    """The subject model fitted to the study's votes x[e, s, r] (see the module docstring); ``leans``: per
+    participant (lean, the variance noise alone gives it), their side preference in raw answer units."""
+    observers = _fitted(x.tobytes(), x.shape, tuple(content))
+    leans = np.asarray(leans if leans is not None else np.empty((0, 2)), dtype=float).reshape(-1, 2)
+    leans = leans[np.isfinite(leans).all(axis=1)]
+    if len(leans) < FIT_MIN_PARTICIPANTS:
+        return observers
+    lean, noise = leans[:, 0], leans[:, 1]
+    spread = (1.4826 * float(np.median(np.abs(lean - np.median(lean))))) ** 2 - float(np.median(noise))
+    return replace(observers, side_mean=round(float(np.median(lean)) / 0.05) * 0.05 + 0.0,
+                   side_sd=round(math.sqrt(max(spread, 0.0)) / 0.05) * 0.05)
 
 
 @lru_cache(maxsize=16)
@@ -180,10 +198,11 @@ def _simulate(observers: GoodObservers, patterns: np.ndarray, good: int, rng: np
     quality = np.asarray(observers.quality)[:, None, None]
     sd = np.sqrt(rng.choice(np.asarray(observers.inconsistency), size=count)[None, :, None] ** 2
                  + np.asarray(observers.ambiguity)[:, None, None] ** 2)
-    latent = quality + rng.normal(0, observers.bias_sd, count)[None, :, None] + sd * rng.standard_normal(
+    side = np.where(np.arange(r_count) % 2 == 0, 1.0, -1.0)[None, None, :]  # raw = score * side
+    lean = rng.normal(observers.side_mean, observers.side_sd, count)[None, :, None]  # in raw answer units
+    latent = quality + rng.normal(0, observers.bias_sd, count)[None, :, None] + lean * side + sd * rng.standard_normal(
         (e_count, count, r_count))
     x = np.clip(np.rint(latent), -MAX_SCORE, MAX_SCORE)
-    side = np.where(np.arange(r_count) % 2 == 0, 1.0, -1.0)[None, None, :]  # raw = score * side
     for i, kind in enumerate(kinds, start=good):
         if kind == "random":
             x[:, i] = rng.integers(-MAX_SCORE, MAX_SCORE + 1, size=(e_count, r_count))
@@ -208,16 +227,18 @@ def _threshold(values: np.ndarray, tail: Tail, rate: float) -> float | None:
 
 
 def calibrate(x: np.ndarray, content: list[int], rules: tuple[str, ...], false_flag_rate: float, min_power: float,
-              measures: Measures, fast_votes: Mapping[str, tuple[int, int]] | None = None) -> Calibration:
+              measures: Measures, fast_votes: Mapping[str, tuple[int, int]] | None = None,
+              leans: np.ndarray | None = None) -> Calibration:
     """The calibration for the study whose finished participants' test votes are x[e, s, r] (``content``: the
     animation index of each comparison).  ``rules``: the chosen rules to calibrate (``MEANT_FOR``'s);
-    ``fast_votes``: participant -> (fast votes, votes judged), for ``fast``."""
+    ``fast_votes``: participant -> (fast votes, votes judged), for ``fast``; ``leans``: per participant (in x's
+    order) their side preference and the variance noise alone gives it (``fitted``)."""
     patterns = ~np.isnan(x).transpose(1, 0, 2)  # (S, E, R)
     patterns = patterns[patterns.any(axis=(1, 2))]
     if len(patterns) >= FIT_MIN_PARTICIPANTS:
         # a large study is fitted on an even sample of its participants: the fit's cost grows with them
         sample = np.unique(np.linspace(0, x.shape[1] - 1, min(x.shape[1], FIT_MAX_PARTICIPANTS)).round().astype(int))
-        observers = fitted(x[:, sample], content)
+        observers = fitted(x[:, sample], content, None if leans is None else np.asarray(leans)[sample])
     else:
         observers = prior(x.shape[0])
     simulated = tuple(r for r in rules if r in TAILS)
