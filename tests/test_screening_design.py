@@ -1,10 +1,10 @@
 """Screening thresholds fit for the study's design (issue 36): the thesis design (16 trials per participant) with
 ``rules = "all"``, 36 good observers and 4 planted bad ones (random, straight-lining, inverted, fast).
 
-Measured over 100 panels (bench/screening_design.py, docs/screening.md): with the standards' fixed thresholds at
-most one good observer was flagged in 67 of 100 panels; with the design-calibrated ones in 96 of 100, every bad
-one caught in 100 of 100, z_outlier, bt500 and catch (no catch trials) saying "too little data".  The tests here
-run a few seeded panels to stay quick."""
+Measured over 100 panels (bench/screening_design.py, docs/screening.md): before issue 36 at most one good observer
+was flagged in 67 of 100 panels; with the design-calibrated thresholds in 97 of 100, the random observer caught in
+99, the straight-lining, inverted and fast ones in 100, z_outlier, bt500 and catch (no catch trials) saying "too
+little data" in every panel.  The tests here run a few seeded panels to stay quick."""
 
 from __future__ import annotations
 
