@@ -128,7 +128,9 @@ def gltf_character(data_dir: Path, gltf: str, mapping: str | None = None, units:
         except RigMapError as exc:
             raise AssetError(str(exc)) from None
     try:
-        return character_from_gltf(read_gltf(path), explicit, units, up_axis)
+        # The character is its skin and bind pose: animations in the file (a character exported with its
+        # takes) are not read, so none of them can refuse it.
+        return character_from_gltf(read_gltf(path, animations=False), explicit, units, up_axis)
     except (GltfError, CharacterError) as exc:
         # The message starts with the file's name; give its folder too.
         raise AssetError(f"glTF character {path.parent}/{exc}") from None

@@ -59,8 +59,8 @@ def clips_inspect(data_dir: Path, path: Path, mapping: Path | None, units: str |
                   max_frame_joints: int | None = None) -> int:
     """Print what a BVH or glTF file holds and how it maps onto the character (``animstudy clips inspect``); for a
     motion suggested as kind ``other``, a ``tolerance_mm`` measured by building it (:func:`_tolerance_line`)."""
-    from anim_core.clips.sources import format_report, inspect_source
-    from anim_core.rig.rigmap import read_mapping_file
+    from anim_core.clips.sources import format_report, inspect_source, joint_table
+    from anim_core.rig.rigmap import RigMapError, read_mapping_file
 
     if not path.is_file():
         return _fail(f"{path}: no such file")
@@ -68,7 +68,9 @@ def clips_inspect(data_dir: Path, path: Path, mapping: Path | None, units: str |
         explicit = read_mapping_file(mapping) if mapping else None
         reports = inspect_source(path, explicit, units, up_axis, _frame_joints(path, max_frame_joints))
     except (ValueError, OSError) as exc:  # BvhError, GltfError and RigMapError name the file (and line)
-        return _fail(_too_many(str(exc)))
+        # A skeleton that does not map: its joints, to write a mapping file from.
+        table = joint_table(path) if isinstance(exc, RigMapError) else None
+        return _fail(_too_many(str(exc)) + (f"\n{table}" if table else ""))
     print(format_report(path, reports, [_tolerance_line(data_dir, path, r) if r.kind == "other" else None
                                         for r in reports]))
     return 0
@@ -86,8 +88,8 @@ def _tolerance_line(data_dir: Path, path: Path, report: MotionReport) -> str:
     try:
         clip_set = load_config()
         character, _ = load_character(data_dir, clip_set.character)
-        config = AnimationConfig(Path(report.name).stem or "motion", "other", str(path), report.frames, "pingpong",
-                                 False)
+        config = AnimationConfig(Path(report.name).stem or "motion", "other", str(path), report.frames,
+                                 "loop" if report.playback == "loop" else "pingpong", False)
         source = source_from_bvh(n.bvh, character, config, clip_set.relocate, n.metres_per_unit, n.source_positions)
         return suggest_tolerance(source, clip_set.fps).describe()
     except (AssetError, ValueError) as exc:  # ConfigError (the gate, the key picking) names the animation
@@ -213,14 +215,17 @@ def clips_build(data_dir: Path, out: Path, config: Path | None, scheduler: str |
 
 
 def _print_fidelity(clips: list) -> None:
-    """The fidelity gate's figures (anim_core.clips.fidelity): head over hips (smallest, m), the feet's lowest clearance
-    (the higher foot's, mm), depth under the floor (mm), frames with the left hip on the left, and the largest pose
-    angle difference: the reference's against the source, a condition's against the reference, with the angle and
-    the frame where it is largest."""
+    """The fidelity gate's figures (anim_core.clips.fidelity) of every clip: head over hips (smallest, m), the feet's
+    lowest clearance (the higher foot's, mm), depth under the floor (mm), frames with the left hip on the left, the
+    largest pose angle difference, the bones' directions (p95, deg), hip width against what the clip is held against,
+    knees bending forward, the worst stance's landing (mm) and a gait hybrid's mirrored half (p95, deg): the
+    reference's against the source, a condition's against the reference, with the angle and the frame where the pose
+    difference is largest."""
     width = max(16, *(len(c.id) for c in clips))
     at_width = max(10, *(len(c.fidelity.pose_error_at or "") for c in clips if c.fidelity is not None))
     print(f"\n{'fidelity':{width}} {'head m':>6} {'feet mm':>7} {'under mm':>8} {'left':>5} {'pose deg':>8} "
-          f"{'against':>9}  {'largest at':{at_width}} verdict")
+          f"{'bones':>5} {'hips':>4} {'knees':>5} {'land mm':>7} {'mirror':>6} {'against':>9}  "
+          f"{'largest at':{at_width}} verdict")
     prev = None
     for c in clips:
         f = c.fidelity
@@ -231,8 +236,15 @@ def _print_fidelity(clips: list) -> None:
         against = "source" if c is clips[0] or c.animation != prev else "reference"
         prev = c.animation
         at = f.pose_error_at or "-"
+        land = None if f.landing_m is None else f.landing_m * 1000
         print(f"{c.id:{width}} {f.upright_m:6.2f} {f.foot_reach_m * 1000:7.0f} {-f.under_floor_m * 1000:8.0f} "
-              f"{f.handedness:5.0%} {_fmt(f.pose_error_deg, 1):>8} {against:>9}  {at:{at_width}} {verdict}", flush=True)
+              f"{f.handedness:5.0%} {_fmt(f.pose_error_deg, 1):>8} {_fmt(f.bone_error_deg, 1):>5} "
+              f"{_fmt(f.hip_width_ratio, 2):>4} {_pct(f.knees_forward):>5} {_fmt(land, 0):>7} "
+              f"{_fmt(f.mirror_error_deg, 1):>6} {against:>9}  {at:{at_width}} {verdict}", flush=True)
+
+
+def _pct(share: float | None) -> str:
+    return "-" if share is None else f"{share:.0%}"
 
 
 def _print_comparison(clips: list, warnings: list[str]) -> None:
@@ -303,6 +315,7 @@ def _study_session(settings: Settings) -> object:
 def study_command(settings: Settings, args: argparse.Namespace) -> int:
     """``animstudy study ...``: schema, validate, create, list, open, close, export."""
     from sqlalchemy import select
+    from sqlalchemy.exc import OperationalError
 
     from anim_core.clips.build import ConfigError
     from server.assets import AssetError
@@ -357,14 +370,18 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                 size = None
                 if args.width or args.height or args.no_shadows:
                     size = {"width": args.width or 640, "height": args.height or 480, "shadows": not args.no_shadows}
+                # The owner's id is read before the rollback: reading it after would load the expired row in a
+                # new transaction, which on SQLite holds the writers' lock while the job writes ("database is
+                # locked" after 30 s, issue 36).
+                owner_id = owner.id if owner else None
                 session.rollback()  # no transaction open while the job writes (SQLite would lock)
                 job = run_in_this_process(settings, JobKind.study, {
-                    "file": str(Path(args.file).resolve()), "owner_id": owner.id if owner else None,
+                    "file": str(Path(args.file).resolve()), "owner_id": owner_id,
                     "open": bool(args.open), "settings": size})
                 if job.state != BuildState.done or job.study_id is None:
                     return _fail(f"{job.error} (job {job.id})")
                 study = session.get(Study, job.study_id)
-                place = pipeline.study_place(settings, study_file, args.file)
+                place = pipeline.study_place(settings, study_file, args.file, owner_id)
                 print(f"created study {study.slug!r} ({study.state}, {service.trials_total(study)} trials per "
                       f"participant); participant link: /s/{study.slug}")
                 for test, ref in service.identical_comparisons(study_file.design, place.clips_dir):
@@ -428,6 +445,8 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
         return _fail(exc.detail)
     except (AssetError, ConfigError, MediaError, OSError) as exc:
         return _fail(str(exc))
+    except OperationalError as exc:  # e.g. another process holding SQLite's writers for longer than the timeout
+        return _fail(f"the database could not be used: {exc.orig}; try again when the other command has finished")
     return 0
 
 

@@ -30,6 +30,8 @@ class Settings(BaseSettings):
     default none: the header is ignored, and the rate limits count the connecting address.
     ``ANIMSTUDY_BUILD_MEMORY_MB``: the address space a build job's process may take (``RLIMIT_AS``), beyond which
     the build fails with a MemoryError instead of taking the machine's memory; default 8192, 0 for no limit.
+    ``ANIMSTUDY_BUILDS_MAX``: how many build jobs (a study's uploads or inline ``[clips]``) may run at once on the
+    server, one per researcher; default 2.
     ``ANIMSTUDY_DASK_SCHEDULER``: the Dask scheduler that renders run on (e.g. ``tcp://host:8786``, see
     docs/cluster.md); default none: a local Dask cluster started per job.  ``ANIMSTUDY_API_DOCS``: serve the
     API's documentation (``/docs``, ``/redoc``, ``/openapi.json``) to anyone; default false (404): it maps every
@@ -50,6 +52,7 @@ class Settings(BaseSettings):
     sessions_per_minute: int = Field(default=60, ge=0)
     upload_max_bytes: int = Field(default=50 * 2**20, ge=1)
     build_memory_mb: int = Field(default=8192, ge=0)
+    builds_max: int = Field(default=2, ge=1)
     dask_scheduler: str | None = None
     api_docs: bool = False
 

@@ -11,8 +11,34 @@ window.DashboardScreening = (() => {
   const short = (sid) => sid.slice(0, 8);
   const RULE_NAMES = {
     catch: "failed catch trials", straight_lining: "answer variance", z_outlier: "share of |z| outlier votes",
-    bt500: "BT.500 (P+Q)/(J·R)", correlation: "correlation with the panel", fast: "share answered before one playback",
+    bt500: "BT.500 (P+Q)/(J·R)", correlation: "correlation with the panel",
+    disagreement: "variance of the differences from the others", fast: "share answered before one playback",
   };
+  const pct = (v) => (v === null || v === undefined ? "–" : `${(100 * v).toFixed(v < 0.01 && v > 0 ? 2 : 0)} %`);
+
+  // The design calibration (docs/screening.md): each rule's threshold, how many simulated good observers it
+  // flags, its power against random, straight-lining and inverted ones, and the rules the design is too small for.
+  function renderCalibration(s) {
+    const c = s.calibration;
+    if (!c) {
+      $("calibration-note").textContent = s.too_little_data && s.too_little_data.length
+        ? `Too little data to judge: ${s.too_little_data.join(", ")}.` : "Fixed thresholds (the standards' values).";
+      $("table-calibration").replaceChildren();
+      return;
+    }
+    const g = c.good_observers;
+    $("calibration-note").textContent = (c.planned ? "Planned (nobody has finished yet): " : "") +
+      `${c.panels} simulated panels of ${c.participants} participants, good observers ${g.source === "fitted"
+        ? "fitted to this study's votes" : "from the prior (too few finished participants to fit)"}; ` +
+      `false-flag rate ${pct(c.false_flag_rate_per_rule)} per rule (${c.seconds.toFixed(2)} s, seed ${c.seed}).` +
+      (s.too_little_data.length ? ` Too little data for this design: ${s.too_little_data.join(", ")}.` : "");
+    Researcher.fillTable($("table-calibration"),
+      ["rule", "threshold", "good flagged", "random", "straight-lining", "inverted", "verdict"],
+      Object.entries(c.rules).map(([rule, r]) => [
+        rule, r.threshold === null ? "–" : `${r.flagged_when} ${fmt(r.threshold)}`, pct(r.false_flag),
+        pct(r.power.random), pct(r.power.straight), pct(r.power.inverted),
+        r.judged ? "judges" : `too little data: ${r.reason.replace(/^too little data for this design: /, "")}`]));
+  }
 
   function render(res) {
     const s = res.screening;
@@ -38,6 +64,7 @@ window.DashboardScreening = (() => {
                                    .map(([rule, r]) => `${RULE_NAMES[rule] || rule}: ${fmt(r.value)} / ${fmt(r.threshold)}`)
                                    .join("; ")]));
     $("excluded-empty").hidden = s.excluded.length > 0;
+    renderCalibration(s);
     const m = res.subject_model;
     if (m && m.status !== "too_few") {
       Researcher.fillTable($("table-subject-comparisons"), ["comparison", "modelled score", "95 % CI"],

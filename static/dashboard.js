@@ -204,7 +204,8 @@
                                "penetration mm", "floating mm", "MPJPE mm", "max rotation error °",
                                "key velocity jump rad/s", "key acceleration jump rad/s²", "jerk m/s³", "bytes",
                                "seam jump mm", "hips phase r (lag)", "knee phase r (lag)", "fidelity",
-                               "pose error °", "head over hips m", "feet reach mm"],
+                               "pose error °", "bones off ° (p95)", "hip width ×", "knees forward", "worst stance mm",
+                               "mirrored half ° (p95)", "head over hips m", "feet reach mm"],
           clips.map((c) => [`${c.animation} ${c.condition}`, c.shown ? "yes" : "", method(c),
                             c.identical_to ? name(c.identical_to) : "", c.key_count,
                             fmt(m(c).foot_skate_ratio, 3), fmt(m(c).source_foot_skate_ratio, 3),
@@ -213,7 +214,11 @@
                             fmt(m(c).key_velocity_jump_rad_s, 3), fmt(m(c).key_accel_jump_rad_s2, 3),
                             fmt(m(c).jerk_mean, 1), m(c).bytes, fmt(m(c).seam_jump_mm, 1),
                             phase(m(c).phase_hips_r, m(c).phase_hips_lag), phase(m(c).phase_knee_r, m(c).phase_knee_lag),
-                            fidelity(m(c)), fmt(m(c).pose_error_deg, 1), fmt(m(c).upright_m, 2),
+                            fidelity(m(c)), fmt(m(c).pose_error_deg, 1), fmt(m(c).bone_error_deg, 1),
+                            fmt(m(c).hip_width_ratio, 2),
+                            m(c).knees_forward == null ? "–" : `${Math.round(m(c).knees_forward * 100)} %`,
+                            m(c).landing_m == null ? "–" : fmt(m(c).landing_m * 1000, 0),
+                            fmt(m(c).mirror_error_deg, 1), fmt(m(c).upright_m, 2),
                             m(c).foot_reach_m == null ? "–" : fmt(m(c).foot_reach_m * 1000, 0)]));
   }
 

@@ -143,7 +143,10 @@ def test_bad_input_gives_one_clear_error_line_and_writes_nothing(walk_text, tmp_
         before = sorted(p.name for p in folder.iterdir())
         code, out, err = run(["clips", "inspect", str(path)], capsys)
         assert code == 2, (name, out)
-        assert out == "" and err.count("\n") == 1 and err.startswith("error: "), (name, err)
+        # One error line; a file that does not map lists its joints after it (issue 35), to write a mapping from.
+        lines = err.splitlines()
+        assert out == "" and err.startswith("error: ") and (len(lines) == 1 or lines[1].startswith("joints of ")), \
+            (name, err)
         assert "Traceback" not in err
         assert re.search(pattern, err), (name, err)
         assert sorted(p.name for p in folder.iterdir()) == before

@@ -94,7 +94,10 @@ def test_metrics_are_complete_and_plausible(clips, by_id):
              "source_foot_skate_ratio", "seam_jump_mm",
              "median_step_mm", "phase_hips_r", "phase_hips_lag", "phase_knee_r", "phase_knee_lag",
              # the fidelity gate's figures (anim_core.clips.fidelity)
-             "upright_m", "foot_reach_m", "under_floor_m", "handedness", "pose_error_deg", "unfaithful"}
+             "upright_m", "foot_reach_m", "under_floor_m", "handedness", "pose_error_deg", "unfaithful",
+             # ... measured on every clip (issue 35)
+             "bone_error_deg", "hip_width_ratio", "shoulder_width_ratio", "knees_forward", "landing_m",
+             "mirror_error_deg"}
     for c in clips:
         assert set(c.metrics) == names
         assert (c.metrics["mpjpe_mm"] is None) == (c.method == "keyframe")

@@ -56,6 +56,8 @@ def test_dashboard_logs_in_and_draws_every_chart(dashboard_site):
         # the clips of the study's stimulus set only (4 animations x keyframe, hybrid0, hybrid1), not the whole
         # clip set on the server
         assert page.eval_on_selector("#table-metrics", "e => e.querySelectorAll('tbody tr').length") == 12
+        # every clip's gate figures (issue 35), a hybrid's mirrored half among them
+        assert "mirrored half" in page.inner_text("#table-metrics thead")
         assert page.inner_text("#stimulus-set").startswith("The study's stimulus set ")
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(ARTIFACTS / "dashboard.png"), full_page=True)

@@ -37,8 +37,9 @@ def test_preview_link_starts_pilot_sessions_on_a_draft_and_only_with_a_valid_tok
     r = start_pilot(client, token)
     assert r.status_code == 201, r.text
     assert db.get(ParticipantSession, r.json()["session_id"]).pilot is True
-    assert start_pilot(client, token, "other").status_code == 403  # another study's link
-    assert start_pilot(client, token[:-4] + "AAAA").status_code == 403  # forged
+    # another study's link, a forged one: as for a study that does not exist (issue 36)
+    assert start_pilot(client, token, "other").status_code == 404
+    assert start_pilot(client, token[:-4] + "AAAA").status_code == 404
     assert client.post("/api/v1/studies/thesis/preview").status_code == 401  # researchers only
     client.post("/api/v1/studies/thesis/close", headers=researcher_headers)
     assert start_pilot(client, token).status_code == 409

@@ -266,8 +266,15 @@ def test_smpl_24_joints_map_without_helpers():
 def test_explicit_mapping_overrides_and_completes(tmp_path, walks):
     names = {n: f"b{k:02d}" for k, n in enumerate(CMU)}  # names that say nothing
     source = renamed(walks[0], names)
+    # The structure maps them (issue 35: hips and chest by their branches, left and right from the rest pose)...
+    auto = map_skeleton(source.skeleton).as_dict()
+    assert len(auto) == 25 and all(auto[c] == names[c] for c in auto), auto
+    # ... unless it does not tell (here the left arm hangs from the hips): the error names the parts.
+    s = source.skeleton
+    parents = s.parents.copy()
+    parents[CMU.index("LeftShoulder")] = 0
     with pytest.raises(RigMapError) as info:
-        map_skeleton(source.skeleton)
+        map_skeleton(Skeleton(s.names, parents, s.offsets))
     message = str(info.value)
     for part in ("hips", "spine", "left leg", "right arm"):
         assert part in message

@@ -70,8 +70,10 @@ def test_runtime_bytes_are_the_arrays_the_runtime_holds(clips, runtimes):
     j = 31
     crouch = runtimes["crouch-hybrid0"]  # 2 keys: keys, 1 segment of angles and 1/sin, root keys, params
     assert crouch.runtime_bytes == 2 * j * 4 * 4 + 2 * j * 4 + 2 * 3 * 4 + 2 * 8 + 6 * 8
-    walk = runtimes["walk-hybrid0"]  # 4 keys, 2 stored segments: 7 control points, 4 root segments
-    assert walk.runtime_bytes == (7 * j * 4 * 4 + 3 * 8 + 5 * 8 + 4 * 4 * 3 * 4 + j * 4 + 4 * 4 + 3 * 4 + 3 * 8)
+    # 4 keys, 2 stored segments: 7 control points, 4 root segments, the partners and a 4x4 mirror map per joint
+    walk = runtimes["walk-hybrid0"]
+    assert walk.runtime_bytes == (7 * j * 4 * 4 + 3 * 8 + 5 * 8 + 4 * 4 * 3 * 4 + j * 4 + j * 4 * 4 * 4 + 3 * 4
+                                  + 3 * 8)
     keyframe = runtimes["walk-keyframe"]
     n = clips[0].clip.n_keys
     assert keyframe.runtime_bytes == n * j * 4 * 4 + n * 3 * 4 + 3 * 4 + 3 * 8

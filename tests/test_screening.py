@@ -31,11 +31,14 @@ def scored(sid: str, scores: list[int], **kw) -> list[dict]:
 
 
 def test_config_defaults_all_and_errors():
+    """The hand-made cases below test the rules with the standards' fixed thresholds (``thresholds = "fixed"``);
+    the design-calibrated ones (the default) are tested in test_screening_design.py."""
     assert Screening().rules == ["catch"]  # today's behaviour
     assert Screening(rules="all").rules == list(RULES)
     s = Screening()
     assert (s.min_variance, s.z_limit, s.max_rejected_share, s.bt500_ratio, s.bt500_balance,
             s.max_correlation_threshold, s.max_fast_share) == (0.15, 3.29, 0.2, 0.05, 0.3, 0.7, 0.2)
+    assert (s.thresholds, s.false_flag_rate, s.min_power) == ("design", 0.01, 0.9)
     for bad in ({"rules": ["catch", "psychic"]}, {"rules": "some"}, {"rules": ["fast", "fast"]},
                 {"min_variance": -1}, {"threshold": 2}, {"correlation_method": "kendall"}):
         with pytest.raises(ValidationError):
@@ -45,7 +48,7 @@ def test_config_defaults_all_and_errors():
 def test_straight_lining_flags_the_same_answer_every_time_and_nothing_else():
     rows = (scored("same", [0] * 8) + scored("nearly", [0] * 7 + [1])  # variance 7/64 = 0.109 < 0.15
             + scored("varied", [0, 0, 0, 0, 0, 0, 1, -1]))  # 2/8 = 0.25
-    got = screen(rows, Screening(rules=["straight_lining"]))
+    got = screen(rows, Screening(rules=["straight_lining"], thresholds="fixed"))
     assert {s: r.flagged_by for s, r in got.items()} == {"same": ["straight_lining"], "nearly": ["straight_lining"],
                                                          "varied": []}
     assert got["same"].results["straight_lining"].value == 0
@@ -57,7 +60,8 @@ def test_straight_lining_reads_the_raw_answer_not_the_score():
     """Always 'left much better' is straight-lining even though the test side alternates (scores +2, -2)."""
     rows = [{**vote("left", f"a{i}", "t", 2, i), "reference_side": "left" if i % 2 else "right",
              "score": -2 if i % 2 else 2} for i in range(8)]
-    assert screen(rows, Screening(rules=["straight_lining"]))["left"].flagged_by == ["straight_lining"]
+    got = screen(rows, Screening(rules=["straight_lining"], thresholds="fixed"))
+    assert got["left"].flagged_by == ["straight_lining"]
 
 
 def test_z_outlier_counts_votes_far_from_the_others():
@@ -69,7 +73,7 @@ def test_z_outlier_counts_votes_far_from_the_others():
         rows += scored(f"p{k}", [b - 1 if k % 2 and b > -2 else (b + 1 if k % 2 else b) for b in base])
     rows += scored("odd", [-2, -2, 0, -1, -1, 1])
     rows += scored("one_off", [2, 1, 0, -1, 2, 1])
-    got = screen(rows, Screening(rules=["z_outlier"]))
+    got = screen(rows, Screening(rules=["z_outlier"], thresholds="fixed"))
     assert got["odd"].flagged_by == ["z_outlier"]
     assert got["odd"].results["z_outlier"].value == pytest.approx(2 / 6)
     assert got["one_off"].results["z_outlier"].value == pytest.approx(1 / 6)
@@ -81,7 +85,7 @@ def test_correlation_flags_the_inverted_participant_with_sureals_threshold():
     truth = [2, 1, 1, 0, -1, -2]
     rows = [*scored("a", truth), *scored("b", truth), *scored("c", [2, 1, 0, 0, -1, -2]),
             *scored("inv", [-t for t in truth])]
-    got = screen(rows, Screening(rules=["correlation"]))
+    got = screen(rows, Screening(rules=["correlation"], thresholds="fixed"))
     r = {s: got[s].results["correlation"].value for s in got}
     # by hand: a, b and c correlate with the others' means; inv at -1 (the others' means are monotone in truth)
     assert r["inv"] == pytest.approx(-np.corrcoef(truth, [(2 * t + c) / 3 for t, c in
@@ -94,9 +98,9 @@ def test_correlation_flags_the_inverted_participant_with_sureals_threshold():
 def test_correlation_undefined_for_constant_answers_flags_nobody_and_needs_three_comparisons():
     truth = [2, 1, 0, -1]
     rows = scored("a", truth) + scored("b", truth) + scored("flat", [0, 0, 0, 0])
-    got = screen(rows, Screening(rules=["correlation"]))
+    got = screen(rows, Screening(rules=["correlation"], thresholds="fixed"))
     assert got["flat"].results["correlation"].value is None and not got["flat"].flagged_by
-    two = screen(scored("a", [1, 2]) + scored("b", [2, 1]), Screening(rules=["correlation"]))
+    two = screen(scored("a", [1, 2]) + scored("b", [2, 1]), Screening(rules=["correlation"], thresholds="fixed"))
     assert all(p.results["correlation"].value is None for p in two.values())
 
 
@@ -106,13 +110,14 @@ def test_catch_and_fast():
     rows += scored("fast", [1, 0, -1, 1, 2], rt_ms=900)  # every vote before the 4 s playback ended
     rows += scored("active", [2, 2, 2], state="active")  # not finished: not screened at all
     playback = {(f"a{i}", "ref", "t"): 4000.0 for i in range(5)}
-    got = screen(rows, Screening(rules=["catch", "fast"]), catch_failures_allowed=0, playback_ms=playback)
+    got = screen(rows, Screening(rules=["catch", "fast"], thresholds="fixed"), catch_failures_allowed=0,
+                 playback_ms=playback)
     assert set(got) == {"ok", "failed", "fast"}
     assert got["failed"].flagged_by == ["catch"] and got["failed"].results["catch"].value == 1
     assert got["fast"].flagged_by == ["fast"] and got["fast"].results["fast"].value == 1.0
     assert got["fast"].results["catch"].value is None  # no catch trial: nothing to fail
     assert got["ok"].flagged_by == []
-    allowed = screen(rows, Screening(rules=["catch"]), catch_failures_allowed=1)
+    allowed = screen(rows, Screening(rules=["catch"], thresholds="fixed"), catch_failures_allowed=1)
     assert allowed["failed"].flagged_by == []
 
 
@@ -152,7 +157,9 @@ def test_planted_bad_observers_over_twenty_panels():
     missed, false_flags = Counter(), []
     for seed in range(20):
         rows, kinds = panel(seed)
-        got = screen(rows, Screening(rules="all"), catch_failures_allowed=0, playback_ms=PLAYBACK)
+        # the standards' thresholds (the figures above); the design-calibrated ones: test_screening_design.py
+        fixed = Screening(rules=[r for r in RULES if r != "disagreement"], thresholds="fixed")
+        got = screen(rows, fixed, catch_failures_allowed=0, playback_ms=PLAYBACK)
         missed.update(k for s, k in kinds.items() if k != "good" and MEANT[k] not in got[s].flagged_by)
         false_flags.append(sum(bool(got[s].flagged_by) for s, k in kinds.items() if k == "good"))
     assert sum(missed.values()) <= 1, missed

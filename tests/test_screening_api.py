@@ -14,7 +14,9 @@ from server.studies.service import EXPORT_COLUMNS
 from server.studies.studyfile import StudyFileError, parse_study_text
 from tests.server_fixtures import make_study
 
-RULES = {"rules": ["catch", "straight_lining", "fast"]}
+# The standards' fixed thresholds: six participants are too few for design-calibrated ones (then the rules say
+# "too little data"; tests/test_screening_design.py).
+RULES = {"rules": ["catch", "straight_lining", "fast"], "thresholds": "fixed"}
 
 
 def run_panel(db, study, kinds: dict[str, str]) -> dict[str, str]:
@@ -62,7 +64,8 @@ def test_rules_flag_in_the_export_and_the_results_with_and_without_screening(cli
                                                                             "fast": 1}
     excluded = {kinds[e["session_id"]]: e for e in screening["excluded"]}
     assert set(excluded) == {"straight", "fast", "careless"}
-    assert excluded["fast"]["rules"]["fast"] == {"value": 1.0, "threshold": 0.2, "flagged": True}
+    assert excluded["fast"]["rules"]["fast"] == {"value": 1.0, "threshold": 0.2, "flagged": True,
+                                                   "judged": True}
     assert excluded["straight"]["rules"]["straight_lining"]["value"] == 0
     assert len(screening["participants"]) == 6
     assert [c["n_participants"] for c in results["comparisons"]] == [3] * 8
@@ -96,7 +99,8 @@ def test_study_file_screening_section():
 
     text = THESIS_FILE.read_text(encoding="utf-8")
     study = parse_study_text(text + '\n[screening]\nrules = "all"\nmin_variance = 0.2\n')
-    assert study.screening.rules == ["catch", "straight_lining", "z_outlier", "bt500", "correlation", "fast"]
+    assert study.screening.rules == ["catch", "straight_lining", "z_outlier", "bt500", "correlation",
+                                     "disagreement", "fast"]
     assert study.screening.min_variance == 0.2
     with pytest.raises(StudyFileError) as err:
         parse_study_text(text + '\n[screening]\nrules = ["catch", "psychic"]\n')

@@ -424,9 +424,9 @@ def test_the_api_creates_a_study_whose_clips_are_given_inline(kind, tmp_path, tm
             r = post(api_study_text("idle"))
             assert r.status_code == 202, r.text
             assert r.json()["study"]["slug"] == "idle" and r.json()["build"]["state"] == "queued"
-            # one build at a time: a second study file is refused and not created
+            # one build at a time per researcher: a second study file is refused and not created
             r = post(api_study_text("second"))
-            assert r.status_code == 409 and "a build is running" in r.text, r.text
+            assert r.status_code == 409 and "your build of study 'idle' is running" in r.text, r.text
             assert client.get("/api/v1/studies/second/definition", headers=headers).status_code == 404
             assert client.post("/api/v1/studies/idle/open", headers=headers).status_code == 409  # nothing to show
             job = wait_for(client, "idle", headers)

@@ -4,8 +4,9 @@ from it (:mod:`anim_core.methods.conditions`), the clips sampled, placed on the 
 For each animation (an :class:`AnimationConfig`, read from the clip-set file by ``server.clipset``) the builder
 
 1. takes the motion, already on the canonical CMU skeleton (any common rig is brought there first by
-   :func:`anim_core.rig.rigmap.normalize_bvh`), and retargets it onto the character (metres, Y up), turned to face +Z
-   (:func:`source_from_bvh`);
+   :func:`anim_core.rig.rigmap.normalize_bvh`), and retargets it onto the character (metres, Y up), turned to face +Z;
+   a turning gait (or a traveling ``other`` loop) is straightened onto one heading (:func:`source_from_bvh`,
+   :func:`straighten_heading`);
 2. picks what the description does not give: the gait cycle and keys from the feet, the crouch keys from the hip
    height, the idle keys from the sway; an ``other`` motion (any kind of movement) plays its whole frame range and
    its hybrid keys are picked within its tolerance (:func:`anim_core.methods.keypick.pick_keys`);
@@ -31,13 +32,15 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.ndimage import gaussian_filter1d
 
 from ..io.bvh import Bvh
 from ..math import contacts
 from ..math.clip import KeyframeClip, PlaybackMode, Pose, horizontal
 from ..math.quat import quat_from_axis_angle, quat_mul, rotate, slerp
 from ..math.skeleton import Skeleton
-from ..methods.conditions import REFERENCE, Animation, Condition, Kind
+from ..methods.conditions import REFERENCE, Animation, Condition, Kind, get_method
+from ..methods.footlock import FootLockedClip
 from ..methods.footplant import plant_feet
 from ..methods.ik import smoothstep
 from ..methods.keypick import pick_keys
@@ -46,6 +49,7 @@ from ..rig.rigmap import UNITS
 from . import fidelity
 from .measure import clip_feet, measure
 from .record import BuiltClip
+from .sources import PINGPONG_TRAVEL_M, root_travel
 
 Array = NDArray[np.float64]
 
@@ -64,7 +68,17 @@ class ConfigError(ValueError):
     """The clip set configuration is invalid; the message names the file and the entry."""
 
 
+class KeyCapError(ConfigError):
+    """Kind ``other``: ``max_keys`` keys do not reach ``tolerance_mm`` (a larger tolerance may)."""
+
+
 DEFAULT_TOLERANCE_MM = 20.0  # kind "other": the hybrid through the picked keys stays this close to the reference
+DEFAULT_MAX_KEYS = 64  # kind "other": key picking gives up beyond this many keys (clip-set field max_keys)
+#: A gait take, or a traveling ``other`` loop, whose heading (smoothed over :data:`HEADING_SMOOTH_S`) turns by more
+#: than this (degrees, largest minus smallest) is straightened before it is built (:func:`straighten_heading`).  The
+#: shipped CMU walk and run turn 3.7 and 4.6 degrees: under it, so they build as they always did.
+TURN_LIMIT_DEG = 10.0
+HEADING_SMOOTH_S = 0.5  # Gaussian sigma (s): a stride's own hip yaw swing (about 1 Hz) is left in, the turn taken out
 
 
 @dataclass(frozen=True)
@@ -78,8 +92,9 @@ class AnimationConfig:
     and
     ``up_axis`` (``"y"``/``"z"``) override the detection (:func:`anim_core.rig.rigmap.normalize_bvh`).  ``tolerance_mm``
     (kind ``other``): the largest joint position error, mm, of the hybrid through the picked keys against the
-    reference.  ``accept_unfaithful``: build even if the fidelity gate (:mod:`anim_core.clips.fidelity`) fails; the
-    clips are marked as such."""
+    reference; ``max_keys`` (kind ``other``): the most keys the picking may take to reach it.
+    ``accept_unfaithful``: build even if the fidelity gate (:mod:`anim_core.clips.fidelity`) fails; the clips are
+    marked as such."""
 
     name: str
     kind: Kind
@@ -95,6 +110,7 @@ class AnimationConfig:
     units: str | None = None
     up_axis: Literal["y", "z"] | None = None
     accept_unfaithful: bool = False
+    max_keys: int = DEFAULT_MAX_KEYS
 
 
 # --- sources ---------------------------------------------------------------------------------------------------
@@ -112,6 +128,10 @@ class Source:
     #: ``(F, 31, 3)`` the canonical joints by the source file's own forward kinematics at config.frames (any units
     #: and orientation: the fidelity gate compares angles)
     own_positions: Array | None = field(default=None, repr=False)
+    #: degrees of heading turn taken out of a turning take, first to last frame (:func:`straighten_heading`);
+    #: None: the take was not straightened
+    straightened_deg: float | None = None
+
     def time_of(self, frame: int) -> float:
         return (frame - self.config.frames[0]) * self.frame_time
 
@@ -134,10 +154,57 @@ def _turn(pose: Pose, yaw: float) -> Pose:
     return Pose(rot, rotate(q, pose.root_translation))
 
 
+def heading(positions: Array, skeleton: Skeleton) -> Array:
+    """``(T,)`` unwrapped heading (rad) of poses with joint positions ``(T, J, 3)`` (Y up): the direction the hips
+    face, ``(right hip -> left hip) x up``, as ``atan2(x, z)`` (0 = facing +Z, positive turning left towards +X)."""
+    left = positions[:, skeleton.index("LeftUpLeg")] - positions[:, skeleton.index("RightUpLeg")]
+    forward = np.cross(left, [0.0, 1.0, 0.0])
+    return np.unwrap(np.arctan2(forward[:, 0], forward[:, 2]))
+
+
+def _smoothed(x: Array, sigma: float) -> Array:
+    """``x (T,)`` smoothed by a Gaussian of ``sigma`` samples, extended at each end by its point reflection about
+    the end value, so a steady trend (a steady turn) keeps its slope to the ends instead of flattening there."""
+    pad = min(len(x) - 1, int(np.ceil(4.0 * sigma)))
+    if pad < 1:
+        return np.array(x, dtype=np.float64)
+    ext = np.concatenate([2.0 * x[0] - x[pad:0:-1], x, 2.0 * x[-1] - x[-2:-pad - 2:-1]])
+    return gaussian_filter1d(ext, sigma, mode="nearest")[pad:pad + len(x)]
+
+
+def straighten_heading(pose: Pose, skeleton: Skeleton, frame_time: float,
+                       smooth_s: float = HEADING_SMOOTH_S) -> tuple[Pose, Array]:
+    """A turning take ``pose`` (rotations ``(T, J, 4)``, root ``(T, 3)``, Y up, one frame per ``frame_time`` s)
+    walked straight: its progressive turn taken out, each frame turned about the vertical through its root.
+
+    The turn is the hips' heading (:func:`heading`) smoothed by a Gaussian of ``smooth_s`` seconds (the take's
+    ends extended by point reflection, so a steady turn is taken out to the last frame), relative to the first
+    frame: the swing of the hips within a stride stays, the walk's change of direction goes.  Each frame's
+    root rotation is turned back by it, and each step of the root's path by the mean of its two frames' turns (the
+    path unrolled; heights unchanged), so the take walks on in the heading of its first frame.  Returns the
+    straightened pose and the turn taken out, ``(T,)`` rad.  A foot planted while the body turned slides under it
+    by ``turn rate x its distance from the root`` (0.08 m/s for 16 degrees/s at 0.3 m); the reference's foot
+    planting holds it again.
+    """
+    _, pos = skeleton.forward_kinematics(*pose)
+    psi = heading(pos, skeleton)
+    turn = _smoothed(psi, smooth_s / frame_time) - psi[0]
+    rot = np.array(pose.rotations)
+    back = quat_from_axis_angle([0.0, 1.0, 0.0], -turn)  # (T, 4)
+    rot[:, 0] = quat_mul(back, rot[:, 0])
+    root = np.asarray(pose.root_translation, dtype=np.float64)
+    steps = rotate(quat_from_axis_angle([0.0, 1.0, 0.0], -0.5 * (turn[1:] + turn[:-1])), np.diff(root, axis=0))
+    return Pose(rot, np.concatenate([root[:1], root[:1] + np.cumsum(steps, axis=0)])), turn
+
+
 def source_from_bvh(bvh: Bvh, character: Character, config: AnimationConfig, relocate: tuple[str, ...],
                     metres_per_unit: float = METRES_PER_CMU_UNIT, source_positions: Array | None = None) -> Source:
     """One animation's mocap (``bvh`` on the canonical CMU skeleton, Y up, ``metres_per_unit``; read from
     ``config.source``) retargeted onto ``character`` and turned to face +Z (errors name the file and the entry).
+    A gait take, or a looping ``other`` take that travels (more than :data:`PINGPONG_TRAVEL_M`), whose heading turns
+    by more than :data:`TURN_LIMIT_DEG` is first straightened (:func:`straighten_heading`): a loop has one
+    direction (closing a turning loop would unwind the turn while the path still curves: the body walked
+    sideways and backwards).
 
     ``source_positions``: ``(F, 31, 3)`` the canonical joints by the source file's own forward kinematics
     (:attr:`anim_core.rig.rigmap.Normalized.source_positions`), for the fidelity gate; default: ``bvh``'s (a CMU file
@@ -150,6 +217,12 @@ def source_from_bvh(bvh: Bvh, character: Character, config: AnimationConfig, rel
     rc = retarget(character, bvh.skeleton, bvh.end_sites, relocate=relocate)
     pose = rc.pose(Pose(rotations[first:last + 1], root[first:last + 1]))
     times = np.arange(last - first + 1) * bvh.frame_time
+    straightened = None
+    travels = root_travel(root[first:last + 1]) * metres_per_unit > PINGPONG_TRAVEL_M
+    if len(times) > 1 and (config.kind == "gait" or (config.kind == "other" and config.playback == "loop" and travels)):
+        turned, turn = straighten_heading(pose, rc.skeleton, bvh.frame_time)
+        if np.degrees(np.ptp(turn)) > TURN_LIMIT_DEG:
+            pose, straightened = turned, float(np.degrees(turn[-1]))
     # Face +Z: a gait along its direction of travel, anything else along the direction the hips face.
     _, pos = rc.skeleton.forward_kinematics(*pose)
     if config.kind == "gait":
@@ -162,7 +235,7 @@ def source_from_bvh(bvh: Bvh, character: Character, config: AnimationConfig, rel
     if source_positions is None:
         source_positions = bvh.posed_skeleton().forward_kinematics(rotations, root)[1]
     return Source(config, rc, clip, bvh.frame_time, bvh.posed_skeleton(), metres_per_unit,
-                  np.asarray(source_positions)[first:last + 1])
+                  np.asarray(source_positions)[first:last + 1], straightened)
 
 
 # --- key picking -----------------------------------------------------------------------------------------------
@@ -380,6 +453,9 @@ def _reference(source: Source, fps: int) -> tuple[Animation, dict[str, Any], Arr
         keyframe = KeyframeClip(keyframe.skeleton, keyframe.times, keyframe.rotations, keyframe.root_translation,
                                 "loop", cfg.in_place, UP, cfg.name)
         source_info = {"file": cfg.source, "cycle_frames": list(cycle), "key_frames": list(keys)}
+        if source.straightened_deg is not None:
+            # What the clips show: the walk on one heading, not the take's turn (recorded, not hidden).
+            source_info["straightened_deg"] = round(source.straightened_deg, 1)
     elif cfg.kind == "other":
         keyframe, key_grid, source_info, src_t = _other_reference(source, fps)
     else:
@@ -391,7 +467,8 @@ def _reference(source: Source, fps: int) -> tuple[Animation, dict[str, Any], Arr
         keyframe = _planted(source, keyframe, src_t)
         key_grid = (0.0, keyframe.duration)
         source_info = {"file": cfg.source, "frames": [int(keys[0]), int(keys[1])], "key_frames": list(keys)}
-    animation = Animation(cfg.name, cfg.kind, keyframe, key_grid, keyframe.duration, cfg.in_place, fps)
+    animation = Animation(cfg.name, cfg.kind, keyframe, key_grid, keyframe.duration, cfg.in_place, fps,
+                          source.character.bind_rotations)
     return animation, source_info, src_t
 
 
@@ -410,6 +487,15 @@ def _other_reference(source: Source, fps: int) -> tuple[KeyframeClip, tuple[floa
     keyframe = KeyframeClip(keyframe.skeleton, keyframe.times, keyframe.rotations, keyframe.root_translation,
                             cfg.playback, cfg.in_place, UP, cfg.name)
     where = f"[animations.{cfg.name}]"
+    if not loop:
+        # Played forward and back, a take that travels walks its second half backwards: refused, not built.
+        # Measured in the file's own metres, as clips inspect measures it: what it suggests builds.
+        travel = root_travel(keyframe.root_translation) / source.character.root_scale * source.metres_per_unit
+        if travel > PINGPONG_TRAVEL_M:
+            raise ConfigError(f"{where} playback: the root travels {travel:.2f} m (more than {PINGPONG_TRAVEL_M} m); "
+                              f"played ping-pong, every second half would move it backwards. Set playback = "
+                              f"\"loop\" (the take plays forward and starts again; in_place = true keeps it on the "
+                              f"spot)")
     if cfg.keys is not None:
         key_grid = tuple(_on_grid(source.time_of(k), start, stop, keyframe) for k in cfg.keys)
         if len(set(key_grid)) < len(key_grid):
@@ -418,13 +504,15 @@ def _other_reference(source: Source, fps: int) -> tuple[KeyframeClip, tuple[floa
         picked: dict[str, Any] = {}
     else:
         try:
-            keys = pick_keys(keyframe, cfg.tolerance_mm / 1000.0, mode=cfg.playback)
+            keys = pick_keys(keyframe, cfg.tolerance_mm / 1000.0, max_keys=cfg.max_keys, mode=cfg.playback)
         except ValueError as exc:
-            raise ConfigError(f"{where} tolerance_mm: {exc}") from None
+            raise KeyCapError(f"{where} tolerance_mm: {exc}") from None
         key_grid = keys.times
         frames = [cfg.frames[0] + round(src_t[f] / source.frame_time) for f in keys.frames]
         picked = {"tolerance_mm": cfg.tolerance_mm, "key_error_mm": round(keys.error * 1000.0, 3)}
     source_info = {"file": cfg.source, "frames": list(cfg.frames), "key_frames": frames, **picked}
+    if source.straightened_deg is not None:
+        source_info["straightened_deg"] = round(source.straightened_deg, 1)
     return keyframe, key_grid, source_info, src_t
 
 
@@ -459,8 +547,18 @@ def build_animation(source: Source, fps: int, conditions: Sequence[Condition],
                                n_frames, cfg.playback, cfg.in_place, speed, source_info, source.character,
                                pose.rotations, pose.root_translation,
                                *source.character.skeleton.forward_kinematics(*pose)))
-    measured = measure(_place_on_floor(built), keyframe.velocity if cfg.in_place else np.zeros(3), cfg.kind,
-                       source_skate)
+    placed = _place_on_floor(built)
+    if cfg.playback == "loop" and not cfg.in_place:
+        # A loop that travels is measured as an in-place one over ground moving under it, as in_place clips are:
+        # one period's world positions wrap back by the period's travel, which playback (travel added each cycle)
+        # never shows; measured as they are, every traveling loop "jumped" its whole stride length at the seam.
+        shift = keyframe.velocity * (np.arange(n_frames) / fps)[:, None]
+        view = measure([replace(c, root_positions=c.root_positions - shift,
+                                world_positions=c.world_positions - shift[:, None]) for c in placed],
+                       keyframe.velocity, cfg.kind, source_skate)
+        measured = [replace(c, metrics=v.metrics) for c, v in zip(placed, view, strict=True)]
+    else:
+        measured = measure(placed, keyframe.velocity if cfg.in_place else np.zeros(3), cfg.kind, source_skate)
     for condition, c in zip(ordered, measured, strict=True):
         stored = condition.stored_bytes(c.clip)
         if stored is not None:
@@ -509,15 +607,23 @@ class ToleranceSuggestion:
 
 
 def suggest_tolerance(source: Source, fps: int) -> ToleranceSuggestion:
-    """The smallest of :data:`SUGGESTED_TOLERANCES_MM` at which the animation ``source`` (kind ``other``) builds a
-    hybrid (increment 0) that stores at most :data:`CHEAP_BYTE_RATIO` of the reference's bytes, measured by
-    building the reference and that hybrid (through the fidelity gate: :class:`ConfigError` if it fails); the
-    largest tried if none does (:attr:`ToleranceSuggestion.cheap` is false then)."""
+    """The smallest of :data:`SUGGESTED_TOLERANCES_MM` at which the animation ``source`` (kind ``other``, played as
+    its config says, with its ``max_keys``) builds a hybrid (increment 0) that stores at most
+    :data:`CHEAP_BYTE_RATIO` of the reference's bytes, measured by building the reference and that hybrid (through
+    the fidelity gate: :class:`ConfigError` if it fails); the largest that builds if none is cheap
+    (:attr:`ToleranceSuggestion.cheap` is false then).  A tolerance that ``max_keys`` keys do not reach is skipped
+    (the suggestion must build); :class:`KeyCapError` if none is reached."""
     conditions = (Condition.parse("keyframe", REFERENCE), Condition.parse("hybrid0", "hybrid", {"increment": 0}))
     suggestion = None
     for tolerance in SUGGESTED_TOLERANCES_MM:
         config = replace(source.config, kind="other", tolerance_mm=tolerance)
-        reference, hybrid = build_animation(replace(source, config=config), fps, conditions)
+        try:
+            reference, hybrid = build_animation(replace(source, config=config), fps, conditions)
+        except KeyCapError as exc:
+            if tolerance == SUGGESTED_TOLERANCES_MM[-1] and suggestion is None:
+                raise KeyCapError(f"{exc} (tried tolerance_mm {', '.join(f'{t:g}' for t in SUGGESTED_TOLERANCES_MM)}"
+                                  f"; raise max_keys)") from None
+            continue
         suggestion = ToleranceSuggestion(tolerance, int(hybrid.key_times.size), int(reference.key_times.size),
                                          int(hybrid.metrics["bytes"]), int(reference.metrics["bytes"]))
         if suggestion.cheap:
@@ -547,17 +653,22 @@ def _gate(source: Source, clips: list[BuiltClip], src_t: Array) -> list[BuiltCli
     k = np.arange(reference.n_frames)
     times = src_t[np.where(k <= n, k, 2 * n - k)] if cfg.playback == "pingpong" else src_t[np.minimum(k, n)]
     candidates = [_source_poses(source, times)]
-    slack = None
+    slack, bone_slack = None, 0.0
     if cfg.playback == "loop":  # the seam fades between this cycle and the next or the previous one
         period = float(src_t[-1] - src_t[0])
         candidates += [_source_poses(source, times + period), _source_poses(source, times - period)]
         # A stretch that does not end as it began is closed by spreading the difference over the loop.
-        ends = fidelity.pose_angles(_source_poses(source, src_t[[0, -1]]))
+        end_poses = _source_poses(source, src_t[[0, -1]])
+        ends = fidelity.pose_angles(end_poses)
         slack = np.degrees(np.abs(ends[1] - ends[0]))
+        bone_slack = float(fidelity.bone_angles(end_poses[1:], end_poses[:1])[0])
     contact = reference.character.contact_heights
     source_frames = cfg.frames[0] + np.round(times / source.frame_time).astype(np.intp)
-    checks = [fidelity.check_reference(reference.world_positions, contact, candidates, slack, source_frames)]
-    checks += [fidelity.check_condition(c.world_positions, contact, reference.world_positions) for c in clips[1:]]
+    checks = [fidelity.check_reference(reference.world_positions, contact, candidates, slack, source_frames,
+                                       bone_slack)]
+    loop = cfg.playback == "loop"
+    checks += [fidelity.check_condition(c.world_positions, contact, reference.world_positions, loop,
+                                        _mirrored_half(cfg, c), c.fps) for c in clips[1:]]
     out = []
     for c, check in zip(clips, checks, strict=True):
         if check.problems and not cfg.accept_unfaithful:
@@ -570,6 +681,19 @@ def _gate(source: Source, clips: list[BuiltClip], src_t: Array) -> list[BuiltCli
         metrics = {**c.metrics, **check.as_metrics(), "unfaithful": 1.0 if unfaithful else 0.0}
         out.append(replace(c, metrics=metrics, fidelity=check))
     return out
+
+
+def _mirrored_half(cfg: AnimationConfig, clip: BuiltClip) -> tuple[NDArray[np.intp], int] | None:
+    """For a gait condition whose second half cycle mirrors its first (a hybrid's keys and their mirror images,
+    :attr:`anim_core.methods.hybrid.SquadClip.mirror`, also under foot locking or the C2 spline): the frames of its
+    keyed half's keys and the half's length in frames, for :func:`anim_core.clips.fidelity.check_mirror`."""
+    if cfg.kind != "gait" or clip.n_frames % 2 or not get_method(clip.method).mirrors:
+        return None
+    half = clip.n_frames // 2
+    if isinstance(clip.clip, FootLockedClip):  # its legs are posed by IK at the keys too, by design
+        return np.zeros(0, np.intp), half
+    frames = np.round(np.asarray(clip.key_times) * clip.fps).astype(np.intp)
+    return frames[frames < half], half
 
 
 def _place_on_floor(clips: list[BuiltClip]) -> list[BuiltClip]:

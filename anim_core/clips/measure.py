@@ -27,6 +27,9 @@ MAX_LAG_FRAMES = {"gait": 2, "crouch": 1, "idle": 1, "other": 1}
 #: A joint turning more than this (degrees) from one frame to the next flips: a warning (the thesis clips' largest
 #: step is 25 degrees).
 MAX_FRAME_TURN_DEG = 90.0
+#: Kind ``other``: a hybrid condition holding at least this share of its reference's keys is nearly the reference
+#: (its keys were picked within ``tolerance_mm`` of it), not a cheap condition; the build says so.
+NEAR_REFERENCE_KEY_RATIO = 0.5
 
 
 def clip_feet(clip: BuiltClip) -> tuple[NDArray[np.intp], Array]:
@@ -84,9 +87,11 @@ def measure(clips: list[BuiltClip], ground_velocity: Array, kind: Kind, source_s
 def clip_warnings(clips: list[BuiltClip]) -> list[str]:
     """What makes a side-by-side comparison show more than the method: a clip out of phase with its animation's
     reference (best lag beyond :data:`MAX_LAG_FRAMES`), a seam that jumps (beyond
-    :func:`~anim_core.clips.metrics.seam_limit_from_median`), or a joint that flips (turns more than
-    :data:`MAX_FRAME_TURN_DEG` between two frames, the wrap included)."""
+    :func:`~anim_core.clips.metrics.seam_limit_from_median`), a joint that flips (turns more than
+    :data:`MAX_FRAME_TURN_DEG` between two frames, the wrap included), or a hybrid of kind ``other`` with at least
+    :data:`NEAR_REFERENCE_KEY_RATIO` of its reference's keys (nearly the reference)."""
     reference = {c.animation: c.id for c in clips if c.method == REFERENCE}
+    reference_keys = {c.animation: c.key_times.size for c in clips if c.method == REFERENCE}
     out = []
     for c in clips:
         turn = np.degrees(quat_angle(np.roll(c.local_rotations, -1, axis=0), c.local_rotations))  # (T, J)
@@ -100,6 +105,13 @@ def clip_warnings(clips: list[BuiltClip]) -> list[str]:
         if m["seam_jump_mm"] > limit:
             out.append(f"{c.id}: the seam jumps {m['seam_jump_mm']:.1f} mm (limit {limit:.1f} mm: twice the "
                        f"median step {m['median_step_mm']:.1f} mm + 5 mm)")
+        n_ref = reference_keys.get(c.animation)
+        if c.kind == "other" and c.method.startswith("hybrid") and n_ref:
+            ratio = c.key_times.size / n_ref
+            if ratio >= NEAR_REFERENCE_KEY_RATIO:
+                out.append(f"{c.id}: nearly its reference, not a cheap condition: {c.key_times.size} of the "
+                           f"reference's {n_ref} keys (key ratio {ratio:.2f}, at least {NEAR_REFERENCE_KEY_RATIO}); "
+                           f"a larger tolerance_mm or fewer keys make it a hybrid")
         if c.method != REFERENCE:
             allowed = MAX_LAG_FRAMES[c.kind]
             for part in ("hips", "knee"):

@@ -21,12 +21,21 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..io.bvh import MAX_FRAME_JOINTS, Bvh, bvh_from_poses, read_bvh, write_bvh
-from ..io.gltf import GltfAnimation, read_gltf, write_gltf
+from ..io.gltf import GltfAnimation, GltfAsset, read_gltf, write_gltf
 from ..math.contacts import contact_intervals, foot_down
 from ..math.skeleton import Skeleton
 from ..math.skinning import SkinnedMesh
 from ..rig.character import Character, retarget
-from ..rig.rigmap import CANONICAL_NAMES, Normalized, normalize_bvh, normalize_motion
+from ..rig.rigmap import (
+    CANONICAL_NAMES,
+    Normalized,
+    RigMapError,
+    detect_up_axis,
+    map_skeleton,
+    normalize_bvh,
+    normalize_motion,
+    units_from_height,
+)
 
 Array = NDArray[np.float64]
 
@@ -38,13 +47,19 @@ IDLE_TRAVEL = 0.3
 MIN_PHASE = 0.1
 #: A hand moving further than this (m) from its mean place against the hips: the motion is no idle sway.
 ARM_MOTION = 0.2
+#: Kind ``other``: a take whose root gets further than this (m, horizontally, in the file's own motion) from where
+#: it starts travels: it is suggested to loop, and refused as ping-pong (which would move it backwards every second
+#: half) by the build, which measures it the same way (:func:`root_travel`).
+PINGPONG_TRAVEL_M = 0.3
 _CANON = {n: i for i, n in enumerate(CANONICAL_NAMES)}
 
 
 @dataclass(frozen=True)
 class MotionReport:
     """One motion of a file: the normalized motion, contact phases per foot (``[start, stop)`` frames) and the
-    suggestion with its reason."""
+    suggestion with its reason; ``playback``: how the motion plays (:func:`suggest_playback`): a gait loops, a
+    crouch or idle plays ping-pong, and an ``other`` loops if it travels (an upload switched to kind ``other`` keeps
+    its suggested playback, so a walk so switched loops)."""
 
     name: str
     normalized: Normalized
@@ -52,6 +67,7 @@ class MotionReport:
     kind: str
     frames: tuple[int, int]
     reason: str
+    playback: str = "pingpong"
 
     @property
     def n_frames(self) -> int:
@@ -113,6 +129,24 @@ def suggest(positions: Array, fps: float, contacts: Mapping[str, NDArray[np.intp
     return "other", (first, last), f"no gait, crouch or idle pattern (root travels {travel:.2f} m){skip}"
 
 
+def root_travel(positions: Array) -> float:
+    """The furthest the root of ``(F, J, 3)`` joint positions (or ``(F, 3)`` root positions; Y up) gets
+    horizontally from where it starts, in their units."""
+    hips = (positions[:, 0] if positions.ndim == 3 else positions)[:, [0, 2]]
+    return float(np.linalg.norm(hips - hips[:1], axis=-1).max())
+
+
+def suggest_playback(positions: Array, kind: str, frames: tuple[int, int]) -> str:
+    """``loop`` or ``pingpong``: how a motion of ``kind`` over ``frames`` (inclusive) of ``(F, J, 3)`` positions in
+    metres plays.  A gait loops and a crouch or idle plays ping-pong (their hybrids do); an ``other`` take loops when
+    its root travels more than :data:`PINGPONG_TRAVEL_M`: played ping-pong, it would move backwards."""
+    if kind == "gait":
+        return "loop"
+    if kind != "other":
+        return "pingpong"
+    return "loop" if root_travel(positions[frames[0]:frames[1] + 1]) > PINGPONG_TRAVEL_M else "pingpong"
+
+
 def _report(name: str, out: Normalized) -> MotionReport:
     bvh = out.bvh
     rot, root = bvh.pose_arrays()
@@ -136,15 +170,21 @@ def _report(name: str, out: Normalized) -> MotionReport:
     else:
         contacts = {"left": np.zeros((0, 2), np.intp), "right": np.zeros((0, 2), np.intp)}
     kind, frames, reason = suggest(positions, bvh.fps, contacts)
+    playback = suggest_playback(positions, kind, frames)
+    if kind == "other" and playback == "loop":
+        reason += (f"; it travels {root_travel(positions[frames[0]:frames[1] + 1]):.2f} m, so it loops (ping-pong "
+                   f"would move it backwards)")
     return MotionReport(name, out, {k: [(int(a), int(b)) for a, b in v] for k, v in contacts.items()}, kind, frames,
-                        reason)
+                        reason, playback)
 
 
 def read_motions(path: str | os.PathLike[str], explicit: Mapping[str, str] | None = None,
                  units: str | None = None, up_axis: str | None = None,
                  max_frame_joints: int = MAX_FRAME_JOINTS) -> list[tuple[str, Normalized]]:
-    """Every motion of a BVH (one) or glTF file (one per animation), named and normalized
-    (:func:`~anim_core.rig.rigmap.normalize_bvh`); errors are ``ValueError`` subclasses naming the file.  A motion
+    """Every motion of a BVH (one) or glTF file (one per animation; one-joint animations as one, see
+    :mod:`anim_core.io.gltf`), named and normalized (:func:`~anim_core.rig.rigmap.normalize_bvh`; a glTF's units
+    from its skinned mesh's height where that is a human's, :func:`_mesh_units`); errors are ``ValueError``
+    subclasses naming the file.  A motion
     of more than ``max_frame_joints`` frames × joints fails before it is read (the memory spent on a motion grows
     with it; :func:`~anim_core.io.bvh.parse_bvh`, :func:`~anim_core.io.gltf.read_gltf`)."""
     path = Path(path)
@@ -156,10 +196,31 @@ def read_motions(path: str | os.PathLike[str], explicit: Mapping[str, str] | Non
         asset = read_gltf(path, max_frame_joints=max_frame_joints)
         if not asset.animations:
             raise ValueError(f"{path.name}: the file holds a character but no animation")
-        return [(a.name, normalize_motion(asset.skeleton, a.rotations, a.root_translation, a.frame_time, {},
+        units = units or _mesh_units(asset, explicit, up_axis)
+        sk = asset.skeleton
+        return [(a.name, normalize_motion(sk if a.offsets is None else Skeleton(sk.names, sk.parents, a.offsets,
+                                                                                sk.rest_rotations),
+                                          a.rotations, a.root_translation, a.frame_time, {},
                                           f"{path.name} animation {a.name!r}", explicit, units, up_axis))
                 for a in asset.animations]
     raise ValueError(f"{path.name}: not a motion file; expected .bvh, .bvh.gz, .glb or .gltf")
+
+
+def _mesh_units(asset: GltfAsset, explicit: Mapping[str, str] | None, up_axis: str | None) -> str | None:
+    """The unit in which the skinned mesh's height (its bounding box along up) is a human height, ``None`` where
+    that cannot be told (the skeleton does not map, or the mesh is no human height): the skeleton's leg length
+    decides then.  The mesh is the figure's whole height, head and feet included, where the joints stop short of
+    both (a 1.51 m figure's joints span 1.3 m)."""
+    try:
+        mapping = map_skeleton(asset.skeleton, explicit)
+    except RigMapError:
+        return None
+    rest = asset.skeleton.rest_global()[1]
+    up = up_axis or detect_up_axis(rest, int(mapping.source_index[_CANON["Head"]]), int(mapping.source_index[0]))
+    try:
+        return units_from_height(float(np.ptp(asset.vertices[:, 1 if up == "y" else 2])), "skinned mesh")
+    except RigMapError:
+        return None
 
 
 def inspect_source(path: str | os.PathLike[str], explicit: Mapping[str, str] | None = None,
@@ -168,6 +229,36 @@ def inspect_source(path: str | os.PathLike[str], explicit: Mapping[str, str] | N
     """Reports of every motion in the file (one for a BVH, one per animation of a glTF); ``max_frame_joints`` as
     :func:`read_motions` takes it."""
     return [_report(name, out) for name, out in read_motions(path, explicit, units, up_axis, max_frame_joints)]
+
+
+def joint_table(path: str | os.PathLike[str]) -> str | None:
+    """The joints of a BVH or glTF file, one a line: index, name, parent and position in the bind pose (glTF: from
+    the inverse bind matrices; BVH: the rest pose), in file units, so that a user whose file does not map can
+    write a mapping file from them; ``None`` if the file's skeleton cannot be read.  Unnamed glTF joints are
+    ``joint<k>``, ``k`` the index here (depth-first from the root joint, children in the file's order)."""
+    path = Path(path)
+    try:
+        if path.name.lower().endswith((".glb", ".gltf")):
+            asset = read_gltf(path, animations=False)
+            skeleton = asset.skeleton
+            ibm = np.asarray(asset.inverse_bind, np.float64)
+            positions = np.linalg.inv(ibm)[:, :3, 3]
+            where = "bind position (from the inverse bind matrices)"
+        else:
+            skeleton = read_bvh(path).skeleton
+            positions = skeleton.rest_global()[1]
+            where = "rest position"
+    except (ValueError, OSError, np.linalg.LinAlgError):
+        return None
+    names = skeleton.names
+    width = max(len(n) for n in names)
+    lines = [f"joints of {path.name} (for a mapping file: character joint = \"file joint\"):",
+             f"  {'index':>5}  {'name':<{width}}  {'parent':<{width}}  {where}, file units"]
+    for j, name in enumerate(names):
+        parent = names[skeleton.parents[j]] if skeleton.parents[j] >= 0 else "-"
+        x, y, z = positions[j]
+        lines.append(f"  {j:>5}  {name:<{width}}  {parent:<{width}}  ({x:.4g}, {y:.4g}, {z:.4g})")
+    return "\n".join(lines)
 
 
 def format_report(path: str | os.PathLike[str], reports: list[MotionReport],
@@ -189,7 +280,8 @@ def format_report(path: str | os.PathLike[str], reports: list[MotionReport],
                   "  foot contacts (frames [start, stop)):"]
         for foot, phases in r.contacts.items():
             lines.append(f"    {foot:<5} {', '.join(f'{a}-{b}' for a, b in phases) or 'none'}")
-        lines.append(f"  suggested   kind = \"{r.kind}\", frames {r.frames[0]}..{r.frames[1]}  ({r.reason})")
+        playback = f', playback = "{r.playback}"' if r.kind == "other" else ""
+        lines.append(f"  suggested   kind = \"{r.kind}\", frames {r.frames[0]}..{r.frames[1]}{playback}  ({r.reason})")
         if tolerances is not None and tolerances[k] is not None:
             lines.append(f"              {tolerances[k]}")
         lines.append("  mapping (character joint <- file joint: why):")

@@ -33,6 +33,14 @@ MAX_JOINTS = 10_000
 MAX_FRAMES = 1_000_000
 #: Relative tolerance within which a constant position channel equals the joint's OFFSET (it is then the bone).
 OFFSET_MATCH = 1e-4
+#: A joint's translation that moves about its mean by at most this share of the mean's length is *still*: an
+#: exporter's rounding or a constant restated in keys, not motion (:func:`still_translation`).  The BVH reader
+#: averages such position channels below the root (:func:`anim_core.rig.rigmap.normalize_bvh`); the glTF reader
+#: takes such translation keys as the joint's translation, and scale keys within this share of 1 as unscaled
+#: (:func:`anim_core.io.gltf.read_gltf`).  One rule for both formats.
+STILL_SHARE = 0.01
+#: Below this share of a translation's length (at least 1 unit), differences are float rounding in any case.
+ROUNDING_SHARE = 1e-6
 #: Frames × joints read by default: every frame costs memory for every joint, channels or not (a few hundred bytes
 #: per frame·joint by the time a motion is inspected), so a small file of channel-less joints and many frames could
 #: otherwise ask for gigabytes.  Callers reading untrusted files pass a bound of their own (``max_frame_joints``).
@@ -84,6 +92,17 @@ class _Lines:
     def error(self, number: int, expected: str, line: str) -> BvhError:
         shown = line if len(line) <= 60 else line[:57] + "..."
         return _fail(self.source, number, f"expected {expected}, found {shown!r}")
+
+
+def still_translation(translations: ArrayLike) -> tuple[Array, float, bool]:
+    """``(mean, spread, still)`` of a joint's translations ``(F, 3)`` over time (file units): ``spread`` the largest
+    coordinate difference of a frame from ``mean`` ``(3,)``; ``still`` when ``spread`` is at most
+    :data:`STILL_SHARE` of the mean's length (or float rounding, :data:`ROUNDING_SHARE`)."""
+    t = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
+    mean = t.mean(axis=0)
+    spread = float(np.abs(t - mean).max()) if len(t) else 0.0
+    length = float(np.linalg.norm(mean))
+    return mean, spread, spread <= max(STILL_SHARE * length, ROUNDING_SHARE * max(length, 1.0))
 
 
 @dataclass(eq=False)

@@ -13,12 +13,30 @@ rest ``offsets[0]``, as :meth:`Skeleton.forward_kinematics` takes it), sampled a
 keys when they are evenly spaced, else ``fps``.  ``LINEAR`` keys are interpolated (slerp for rotations),
 ``STEP`` keys held, ``CUBICSPLINE`` keys taken at their values and interpolated linearly.
 
+Files as exporters write them (COLLADA2GLTF, for one):
+
+- **Translation keys on joints below the root** are accepted when they are still
+  (:func:`~anim_core.io.bvh.still_translation`, the rule the BVH reader applies to position channels: they move
+  about their mean by at most :data:`~anim_core.io.bvh.STILL_SHARE` = 1 % of its length); the mean is then that
+  joint's translation in the animation (:attr:`GltfAnimation.offsets`), as a BVH's constant position channels set
+  its offset.  Keys that move a joint more are refused with the joint named.  **Scale keys** within
+  :data:`~anim_core.io.bvh.STILL_SHARE` of 1 (the rest scale) are accepted and ignored; others are refused.
+- **One animation per joint**: when a file holds several animations and none of them keys more than one joint of
+  the skin (and no joint's rotation, translation or scale is keyed by two of them), they are parts of one motion
+  and read as one animation named ``first..last`` (``animation0..animation30``), on the time base of all their
+  keys; :attr:`GltfAnimation.parts` lists them.  Animations that key no joint of the skin are left out then.
+- **Unnamed joints** are named ``joint<k>``, ``k`` the joint's index in the skeleton's depth-first order from the
+  root joint, children in the file's order (not the node index, not the skin's order).
+- ``read_gltf(path, animations=False)`` reads the character alone (skin, bind pose, mesh): a character is read
+  from its inverse bind matrices whatever animations the file holds.
+
 Every failure is a :class:`GltfError` naming the file; nothing is written unless the whole file could be built.
 """
 
 from __future__ import annotations
 
 import base64
+import dataclasses
 import os
 import warnings
 from dataclasses import dataclass
@@ -31,6 +49,7 @@ from numpy.typing import NDArray
 from ..math.quat import identity, quat_from_matrix, quat_mul, rotate, slerp
 from ..math.skeleton import Skeleton
 from ..math.skinning import vertex_normals
+from .bvh import STILL_SHARE, still_translation
 
 Array = NDArray[np.float64]
 
@@ -53,12 +72,17 @@ class GltfError(ValueError):
 @dataclass(frozen=True, eq=False)
 class GltfAnimation:
     """One animation: ``times`` ``(F,)`` seconds from 0, ``rotations`` ``(F, J, 4)`` local (w, x, y, z),
-    ``root_translation`` ``(F, 3)`` relative to the root's rest offset."""
+    ``root_translation`` ``(F, 3)`` relative to the root's rest offset; ``offsets`` ``(J, 3)`` the joints'
+    translations in this animation where its still translation keys set them (else ``None``: the skeleton's);
+    ``parts``: the names of the file's animations read as this one (one-joint animations, see the module
+    docstring), else ``()``."""
 
     name: str
     times: Array
     rotations: Array
     root_translation: Array
+    offsets: Array | None = None
+    parts: tuple[str, ...] = ()
 
     @property
     def frame_time(self) -> float:
@@ -188,12 +212,14 @@ def _node_trs(node: pygltflib.Node) -> tuple[Array, Array, Array]:
     return t, r / np.linalg.norm(r), s
 
 
-def read_gltf(path: str | os.PathLike[str], fps: float = 30.0, max_frame_joints: int = MAX_FRAME_JOINTS) -> GltfAsset:
+def read_gltf(path: str | os.PathLike[str], fps: float = 30.0, max_frame_joints: int = MAX_FRAME_JOINTS,
+              animations: bool = True) -> GltfAsset:
     """Read the first skin of a ``.glb``/``.gltf`` file with every mesh bound to it, and all its animations (see
-    module docstring).  An animation sampled to more than ``max_frame_joints`` frames × joints, or accessors
-    decoding to more than :data:`VALUES_PER_FRAME_JOINT` times as many numbers, fail before the memory is taken."""
+    module docstring; ``animations=False``: none, for a character).  An animation sampled to more than
+    ``max_frame_joints`` frames × joints, or accessors decoding to more than :data:`VALUES_PER_FRAME_JOINT` times
+    as many numbers, fail before the memory is taken."""
     try:
-        return _read_gltf(Path(path), fps, max_frame_joints)
+        return _read_gltf(Path(path), fps, max_frame_joints, animations)
     except GltfError:
         raise
     except (IndexError, KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
@@ -202,7 +228,7 @@ def read_gltf(path: str | os.PathLike[str], fps: float = 30.0, max_frame_joints:
         raise GltfError(f"{Path(path).name}: malformed glTF ({type(exc).__name__}: {exc})") from None
 
 
-def _read_gltf(path: Path, fps: float, max_frame_joints: int) -> GltfAsset:
+def _read_gltf(path: Path, fps: float, max_frame_joints: int, with_animations: bool = True) -> GltfAsset:
     r = _Reader(path, VALUES_PER_FRAME_JOINT * max_frame_joints)
     g = r.gltf
     nodes = g.nodes or []
@@ -341,8 +367,8 @@ def _read_gltf(path: Path, fps: float, max_frame_joints: int) -> GltfAsset:
         joints.append(jj)
         weights.append(ww)
         base += n_v
-    animations = tuple(_read_animation(r, a, k, node_to_joint, skeleton, above, fps, max_frame_joints)
-                       for k, a in enumerate(g.animations))
+    animations = _read_animations(r, node_to_joint, skeleton, above, fps, max_frame_joints) \
+        if with_animations else ()
     return GltfAsset(r.name, skeleton, np.concatenate(vertices), np.concatenate(normals),
                      np.concatenate(faces), np.concatenate(joints), np.concatenate(weights), inverse_bind,
                      animations, skin_order)
@@ -362,16 +388,14 @@ def _sample(times: Array, values: Array, t: Array, interpolation: str, rotation:
     return values[k] + (values[k + 1] - values[k]) * u[:, None]
 
 
-def _read_animation(r: _Reader, anim: pygltflib.Animation, k: int, node_to_joint: dict[int, int],
-                    skeleton: Skeleton, above: tuple[Array, Array, float], fps: float,
-                    max_frame_joints: int = MAX_FRAME_JOINTS) -> GltfAnimation:
-    """One animation on ``skeleton``; ``above``: (translation, rotation, uniform scale) of the nodes above the root
-    joint, which the root's channels are in."""
-    above_pos, above_rot, above_scale = above
-    name = anim.name or f"animation{k}"
+_Channel = tuple[int, str, Array, Array, str, str]  # joint, path, key times, key values, interpolation, animation
+
+
+def _channels(r: _Reader, anim: pygltflib.Animation, name: str, node_to_joint: dict[int, int]) -> list[_Channel]:
+    """The channels of ``anim`` that key a joint of the skin (rotation, translation, scale), keys checked."""
     channels = []
     for c in anim.channels:
-        if c.target.node not in node_to_joint or c.target.path not in ("rotation", "translation"):
+        if c.target.node not in node_to_joint or c.target.path not in ("rotation", "translation", "scale"):
             continue
         try:
             sampler = anim.samplers[c.sampler]
@@ -383,9 +407,42 @@ def _read_animation(r: _Reader, anim: pygltflib.Animation, k: int, node_to_joint
             raise r.fail(f"animation {name!r} has {len(times)} keys; at most {MAX_KEYS} are supported")
         if len(times) == 0 or np.any(np.diff(times) <= 0):
             raise r.fail(f"animation {name!r}: key times are empty or not increasing")
-        channels.append((node_to_joint[c.target.node], c.target.path, times, values, sampler.interpolation))
-    if not channels:
-        raise r.fail(f"animation {name!r} animates no joint of the skin")
+        channels.append((node_to_joint[c.target.node], c.target.path, times, values, sampler.interpolation, name))
+    return channels
+
+
+def _read_animations(r: _Reader, node_to_joint: dict[int, int], skeleton: Skeleton,
+                     above: tuple[Array, Array, float], fps: float,
+                     max_frame_joints: int) -> tuple[GltfAnimation, ...]:
+    """Every animation of the file, or its one-joint animations as one (see the module docstring)."""
+    found = []
+    for k, anim in enumerate(r.gltf.animations or []):
+        name = anim.name or f"animation{k}"
+        found.append((name, _channels(r, anim, name, node_to_joint)))
+    keyed = [(name, channels) for name, channels in found if channels]
+    targets = [(j, path) for _, channels in keyed for j, path, *_ in channels]
+    if (len(keyed) > 1 and all(len({ch[0] for ch in channels}) == 1 for _, channels in keyed)
+            and len(set(targets)) == len(targets)):
+        # COLLADA2GLTF writes one animation per joint (animation0..N, on a shared time base): no part of it is a
+        # motion by itself, all of them are one.
+        names = tuple(name for name, _ in keyed)
+        merged = _build_animation(r, f"{names[0]}..{names[-1]}", [ch for _, chs in keyed for ch in chs], skeleton,
+                                  above, fps, max_frame_joints)
+        return (dataclasses.replace(merged, parts=names),)
+    out = []
+    for name, channels in found:
+        if not channels:
+            raise r.fail(f"animation {name!r} animates no joint of the skin")
+        out.append(_build_animation(r, name, channels, skeleton, above, fps, max_frame_joints))
+    return tuple(out)
+
+
+def _build_animation(r: _Reader, name: str, channels: list[_Channel], skeleton: Skeleton,
+                     above: tuple[Array, Array, float], fps: float,
+                     max_frame_joints: int = MAX_FRAME_JOINTS) -> GltfAnimation:
+    """One animation on ``skeleton`` from its ``channels``; ``above``: (translation, rotation, uniform scale) of
+    the nodes above the root joint, which the root's channels are in."""
+    above_pos, above_rot, above_scale = above
     start = min(ch[2][0] for ch in channels)
     end = max(ch[2][-1] for ch in channels)
     steps = np.concatenate([np.diff(ch[2]) for ch in channels if len(ch[2]) > 1] or [np.array([1.0 / fps])])
@@ -402,21 +459,35 @@ def _read_animation(r: _Reader, anim: pygltflib.Animation, k: int, node_to_joint
     t = start + np.arange(n) / fps
     rot = np.broadcast_to(skeleton.rest_rotations, (n, skeleton.n_joints, 4)).copy()
     root = np.zeros((n, 3))
-    for joint, path, times, values, interp in channels:
+    offsets = skeleton.offsets.copy()
+    for joint, path, times, values, interp, part in channels:
         if path == "rotation":
             rot[:, joint] = _wxyz(_sample(times, values, t, interp or "LINEAR", True))
             if joint == 0:
                 rot[:, 0] = quat_mul(above_rot, rot[:, 0])
+        elif path == "scale":
+            # Rigid bones have no scale: keys that restate the rest's 1 (to exporter rounding) are no motion.
+            keys = values.reshape(len(times), 3, -1)[:, 1] if interp == "CUBICSPLINE" else values
+            off = float(np.abs(keys - 1.0).max())
+            if off > STILL_SHARE:
+                raise r.fail(f"animation {part!r} scales joint {skeleton.names[joint]!r} (by up to {1 + off:g}); "
+                             f"only scales within {STILL_SHARE:.0%} of 1 are supported: bake the scale into "
+                             f"the rig before exporting")
         elif joint == 0:
             local = _sample(times, values, t, interp or "LINEAR", False)
             root = above_pos + above_scale * rotate(above_rot, local) - skeleton.offsets[0]
         else:
-            moved = above_scale * _sample(times, values, t, interp or "LINEAR", False)
-            if np.abs(moved - skeleton.offsets[joint]).max() > 1e-4 * max(1.0, np.abs(skeleton.offsets).max()):
-                raise r.fail(f"animation {name!r} translates joint {skeleton.names[joint]!r}; only the root may "
-                             f"translate")
+            keys = above_scale * (values.reshape(len(times), 3, -1)[:, 1] if interp == "CUBICSPLINE" else values)
+            mean, spread, still = still_translation(keys)
+            if not still:
+                raise r.fail(f"animation {part!r} translates joint {skeleton.names[joint]!r} (it moves up to "
+                             f"{spread:.3g} units about its mean); only the root may translate, other joints' "
+                             f"translation keys must stay within {STILL_SHARE:.0%} of the bone's length: bake "
+                             f"them into rotations")
+            offsets[joint] = mean
     rot /= np.linalg.norm(rot, axis=-1, keepdims=True)
-    return GltfAnimation(name, t - start, rot, root)
+    moved = None if np.array_equal(offsets, skeleton.offsets) else offsets
+    return GltfAnimation(name, t - start, rot, root, moved)
 
 
 # ---------------------------------------------------------------------------------------------------------------

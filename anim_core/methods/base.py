@@ -7,9 +7,11 @@ The registry of methods is :mod:`anim_core.methods.conditions`; the built-in bui
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal, get_args
 
+import numpy as np
+from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict
 
 from ..math.clip import KeyframeClip
@@ -40,7 +42,9 @@ class Animation:
     (:mod:`anim_core.methods.keypick`), or given, the first at 0 and, ping-pong, the last at the end); ``period``:
     seconds
     of one gait cycle or ``other`` loop, or of the forward half of a ping-pong clip (``reference.duration`` in
-    every case).
+    every case).  ``bind_rotations``: ``(J, 4)`` global rotations that put the reference's skeleton in the
+    character's bind pose (left/right symmetric), about which a gait is mirrored
+    (:class:`anim_core.rig.mirror.Mirror`); None: the skeleton's rest pose, which must then be symmetric.
     """
 
     name: str
@@ -50,3 +54,4 @@ class Animation:
     period: float
     in_place: bool
     fps: int
+    bind_rotations: NDArray[np.float64] | None = field(default=None, repr=False)

@@ -7,8 +7,9 @@
 * ``hybrid_ik`` (:class:`HybridIkParams`): the hybrid of ``increment`` with locked feet
   (:mod:`anim_core.methods.footlock`):
   the steps detected on the reference (``contact_source = "reference"``), or each also grown by the hybrid's own
-  contact frames next to it (``"union"``, default), below ``clearance_m``; held by two-bone leg IK, each swing
-  making up the difference between two holds over at least ``2 * blend_frames + 1`` frames; with
+  contact frames next to it (``"union"``, default), below ``clearance_m``; held by two-bone leg IK only where
+  the leg reaches the foothold within 10 degrees of the hybrid's thigh and knee, each swing making up the
+  difference between two holds over at least ``2 * blend_frames + 1`` frames within the same 10 degrees; with
   ``swing_clearance`` each foot raised to at least the reference's foot height (off by default: it copies a
   reference's own seam jump into a loop whose hybrid has none).  ``conditions16.toml`` holds ``"reference"`` with
   the clearance, which meets every gait goal of issue 16.
@@ -35,6 +36,7 @@ from pydantic import Field
 
 from ..math.clip import KeyframeClip
 from ..rig.character import FEET, LEGS
+from ..rig.mirror import Mirror
 from .base import Animation, Params
 from .c2spline import C2Clip, c2_from_squad
 from .compression import QuantizedClip, keyframe_bytes, quantized_clip, reduce_keys
@@ -64,8 +66,9 @@ def build_hybrid(animation: Animation, params: HybridParams) -> SquadClip | Spri
         # build_gait measures the travel from its source, so it gets the reference travelling.
         travelling = KeyframeClip(ref.skeleton, ref.times, ref.rotations, ref.root_translation, ref.mode,
                                   False, ref.up_axis, ref.name)
-        return build_gait(travelling, keys, animation.period, increment=params.increment, in_place=animation.in_place,
-                          name=animation.name)
+        mirror = Mirror(ref.skeleton, bind=animation.bind_rotations)
+        return build_gait(travelling, keys, animation.period, increment=params.increment, mirror=mirror,
+                          in_place=animation.in_place, name=animation.name)
     if animation.kind == "crouch":
         return build_crouch(ref, keys, increment=params.increment, duration=animation.period, time_scale=None,
                             name=animation.name)

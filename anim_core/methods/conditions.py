@@ -90,22 +90,25 @@ class Method(Generic[P]):
     params: type[P]
     build: Callable[[Animation, P], AnimClip]
     stored_bytes: Callable[[Any, P], int] | None = None
+    #: its gait clips' second half cycle mirrors the first (the fidelity gate checks the mirrored half)
+    mirrors: bool = False
 
 
 _METHODS: dict[str, Method[Any]] = {}
 
 
-def register(name: str, params: type[P], stored_bytes: Callable[[Any, P], int] | None = None
+def register(name: str, params: type[P], stored_bytes: Callable[[Any, P], int] | None = None, mirrors: bool = False
              ) -> Callable[[Callable[[Animation, P], AnimClip]], Callable[[Animation, P], AnimClip]]:
-    """Decorator: register ``build`` as method ``name`` with parameter model ``params`` (names are unique), and
-    ``stored_bytes(clip, params)`` if its clips are not stored as float32 keys."""
+    """Decorator: register ``build`` as method ``name`` with parameter model ``params`` (names are unique),
+    ``stored_bytes(clip, params)`` if its clips are not stored as float32 keys, and ``mirrors`` if a gait's second
+    half cycle is the mirror image of its first (the fidelity gate then checks the mirrored half)."""
     if not (isinstance(params, type) and issubclass(params, Params)):
         raise TypeError(f"the parameters of method {name!r} must be a subclass of anim_core.methods.conditions.Params")
 
     def decorator(build: Callable[[Animation, P], AnimClip]) -> Callable[[Animation, P], AnimClip]:
         if name in _METHODS:
             raise ValueError(f"method {name!r} is registered already")
-        _METHODS[name] = Method(name, params, build, stored_bytes)
+        _METHODS[name] = Method(name, params, build, stored_bytes, mirrors)
         return build
 
     return decorator
@@ -164,15 +167,15 @@ class Condition:
 
 # --- the methods, registered in this one place ------------------------------------------------------------------
 
-#: (name, parameter model, builder, stored bytes or None), in the order :func:`methods` lists them.
-BUILT_IN: tuple[tuple[str, type[Params], Callable[[Animation, Any], AnimClip], Callable[[Any, Any], int] | None],
-                ...] = (
-    (REFERENCE, b.KeyframeParams, b.build_keyframe, None),
-    ("hybrid", b.HybridParams, b.build_hybrid, None),
-    ("hybrid_ik", b.HybridIkParams, b.build_hybrid_ik, b.hybrid_ik_bytes),
-    ("hybrid_c2", b.HybridC2Params, b.build_hybrid_c2, None),
-    ("reduced", b.ReducedParams, b.build_reduced, None),
-    ("quantized", b.QuantizedParams, b.build_quantized, b.quantized_bytes),
+#: (name, parameter model, builder, stored bytes or None, mirrors a gait), in the order :func:`methods` lists them.
+BUILT_IN: tuple[tuple[str, type[Params], Callable[[Animation, Any], AnimClip], Callable[[Any, Any], int] | None,
+                      bool], ...] = (
+    (REFERENCE, b.KeyframeParams, b.build_keyframe, None, False),
+    ("hybrid", b.HybridParams, b.build_hybrid, None, True),
+    ("hybrid_ik", b.HybridIkParams, b.build_hybrid_ik, b.hybrid_ik_bytes, True),
+    ("hybrid_c2", b.HybridC2Params, b.build_hybrid_c2, None, True),
+    ("reduced", b.ReducedParams, b.build_reduced, None, False),
+    ("quantized", b.QuantizedParams, b.build_quantized, b.quantized_bytes, False),
 )
-for _name, _params, _build, _stored in BUILT_IN:
-    register(_name, _params, _stored)(_build)
+for _name, _params, _build, _stored, _mirrors in BUILT_IN:
+    register(_name, _params, _stored, _mirrors)(_build)

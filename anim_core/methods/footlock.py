@@ -11,7 +11,7 @@ Built once (:func:`lock_feet`), per foot and frame of one period:
 2. with ``contact_source="union"`` (default) each step grows by the run of the hybrid's own contact frames that
    overlaps it (the hybrid's feet land earlier and lift later than the reference's, and those frames are where
    it skates); the hybrid's contact runs away from every step are skims and stay as animated (:func:`joined`).
-   With ``"reference"`` the reference's steps alone are held (with step 6 the hybrid's swing is lifted
+   With ``"reference"`` the reference's steps alone are held (with step 7 the hybrid's swing is lifted
    out of its early and late contact frames instead: on a walk's hybrid 0, whose feet are down in 31 of 40
    frames, holding the union leaves a few frames to swing each foot a whole stride, a pop);
 3. *holds*: each grown by one frame on either side, because the skate measure takes central differences, and
@@ -19,9 +19,21 @@ Built once (:func:`lock_feet`), per foot and frame of one period:
 4. :func:`anim_core.methods.footplant.foot_targets` turns the hybrid's own feet over each hold into ankle targets: the
    foot on the ground from its slowest frame on, its slowest joint moving at most ``max_speed`` (by default
    0.3 m/s: a margin under the 0.5 m/s skate threshold for what the IK cannot reach at a hold's edges);
-5. *swings*: between two holds the ankle's offset from its animated place eases (smoothstep) from one foothold to
-   the next over the whole gap (:func:`swing_offsets`), so the foot is never let go in a few frames;
-6. *clearance* (``swing_clearance=True``; swing clearance as game foot IK does it): the ankle target is
+5. *standing*: each hold is cut to the frames around its slowest one over which the leg reaches the foothold
+   posed as animated: the IK turns the thigh and changes the knee's bend by at most ``max_leg_change_deg``
+   (default 10 degrees, as the reference's own foot planting) (:func:`standing`).  A contact phase is a height
+   band, and on a run (or a hybrid 0 skimming the floor) it also holds frames in which the foot still swings in
+   or already swings out at 1-5 m/s; held there, the foot would stay at its foothold while the animated ankle is
+   up to 0.7 m away, and the IK would pull the leg straight towards it (issue 35's Bandai run: bones 82 degrees
+   from the reference against the plain hybrid's 25).  Those frames are swing;
+6. *swings*: between two holds the ankle's offset from its animated place eases (smoothstep) from one foothold to
+   the next over the whole gap (:func:`swing_offsets`), so the foot is never let go in a few frames; every
+   frame's target is then brought back towards the animated ankle as far as needed to keep the thigh and the
+   knee within ``max_leg_change_deg`` of the hybrid's
+   (:func:`anim_core.methods.footplant.leg_limited_targets`): an offset carried from a hold into a leg that is
+   nearly straight as it lifts off would otherwise straighten its knee (the walk's hybrid 0: 4 degrees against
+   the hybrid's 27).  So, but for step 7, the locked legs are never more than that from the hybrid's;
+7. *clearance* (``swing_clearance=True``; swing clearance as game foot IK does it): the ankle target is
    raised so that no joint of the foot is lower above the floor (its height over its standing height) than the
    reference's same joint at that frame: by the largest shortfall of the foot's joints, or 0.  The hybrid's swing
    foot passes low and fast where the reference's is up (inside the contact band at swing speed it skates, above
@@ -61,13 +73,17 @@ from ..math.contacts import (
     standing_heights,
 )
 from ..math.skeleton import Skeleton
-from .footplant import foot_targets
+from .footplant import foot_targets, leg_angles, leg_limited_targets
 from .hybrid import HybridClip
 from .ik import hinge_axis, smoothstep, two_bone_ik
 
 Array = NDArray[np.float64]
 ContactSource = Literal["reference", "union"]
 SOFT_REACH = 0.005  # the legs' soft IK starts this fraction of their reach short of full extension
+#: A hold keeps each thigh and knee bend within this many degrees of the hybrid's own leg (:func:`standing`): the
+#: tolerance of the reference's foot planting (``anim_core.clips.build.PLANT_LEG_TOLERANCE_DEG``, half the gate's
+#: pose limit), for the same reason: a foot is held where the leg reaches it posed as in the motion.
+HOLD_LEG_TOLERANCE_DEG = 10.0
 
 
 def _travel(clip: HybridClip, t: Array) -> Array:
@@ -254,11 +270,54 @@ def swing_offsets(offsets: ArrayLike, held: ArrayLike, periodic: bool, blend_fra
     return off, weights
 
 
+def standing(skeleton: Skeleton, local_rotations: ArrayLike, root_translation: ArrayLike,
+             legs: Sequence[tuple[int, int, int]], held: ArrayLike, targets: ArrayLike, periodic: bool,
+             hinges: ArrayLike, soft: float = 0.0, max_leg_change_deg: float = HOLD_LEG_TOLERANCE_DEG
+             ) -> NDArray[np.bool_]:
+    """``(T, F)`` the frames of ``held (T, F)`` in which each foot stands on its foothold: of each run of held
+    frames, the frames around its *resting frame* (the one whose target ``targets (T, F, 3)`` is nearest the
+    animated ankle: where the foot comes to rest, the hold leaves it as animated) over which the leg of poses
+    ``local_rotations (T, J, 4)`` / ``root_translation (T, 3)``, solved onto the target as
+    :meth:`FootLockedClip.sample` solves it (``hinges (F, 3)``, ``soft``), keeps its thigh within
+    ``max_leg_change_deg`` of the animated thigh's direction and its knee within that of the animated bend.
+
+    Why: a contact phase is a foot within the clearance of its standing height, and that band also holds frames
+    in which the foot still swings in or already swings out (a run's landing foot at 2-5 m/s, 4 frames of the
+    Bandai run's one-cycle take; the walk's hybrid 0 lifting its foot at 1-2 m/s over the 6 frames the union
+    grows a step by).  Held there, the foot stays where it comes to rest, so its target trails the animated ankle
+    by the rest of the swing (0.35 m on that walk, 0.72 m on that run): out of the leg's reach, the IK pulls the
+    knee straight (0 degrees against the reference's 75) and swings the thigh by 50.  Those frames belong to the
+    swing, over which :func:`swing_offsets` eases the foot from one foothold to the next."""
+    rot = np.asarray(local_rotations, dtype=np.float64)
+    root = np.asarray(root_translation, dtype=np.float64)
+    h = np.asarray(held, dtype=bool)
+    goal = np.asarray(targets, dtype=np.float64)
+    tolerance = np.radians(max_leg_change_deg)
+    n = h.shape[0]
+    ankles = skeleton.forward_kinematics(rot, root)[1][:, [int(c[2]) for c in legs]]
+    out = np.zeros_like(h)
+    for f, chain in enumerate(legs):  # one solve per leg over all frames
+        thigh0, bend0 = leg_angles(skeleton, rot, root, chain)
+        solved = two_bone_ik(skeleton, rot, root, chain, goal[:, f], hinge=hinges[f], soft=soft)
+        thigh, bend = leg_angles(skeleton, solved, root, chain)
+        turn = np.arccos(np.clip(np.sum(thigh * thigh0, axis=-1), -1.0, 1.0))
+        fits = (turn <= tolerance) & (np.abs(bend - bend0) <= tolerance)
+        off = np.linalg.norm(goal[:, f] - ankles[:, f], axis=-1)
+        for start, stop in contact_intervals(h[:, f], periodic):  # one per hold
+            frames = np.arange(start, stop) % n
+            rest = int(np.argmin(off[frames]))
+            misses = np.flatnonzero(~fits[frames])
+            first = misses[misses < rest].max(initial=-1) + 1
+            last = misses[misses > rest].min(initial=len(frames)) - 1
+            out[frames[first:last + 1], f] = True  # the resting frame is kept whatever its fit
+    return out
+
+
 def lock_feet(base: HybridClip, reference: KeyframeClip, legs: Sequence[tuple[int, int, int]],
               feet: Sequence[Sequence[int]], fps: float, blend_frames: int = 3,
               clearance: float = CONTACT_CLEARANCE_M, max_speed: float = 0.3, rest_speed: float = SKATE_SPEED_MPS,
-              up_axis: int = 1, contact_source: ContactSource = "union", swing_clearance: bool = False
-              ) -> FootLockedClip:
+              up_axis: int = 1, contact_source: ContactSource = "union", swing_clearance: bool = False,
+              max_leg_change_deg: float = HOLD_LEG_TOLERANCE_DEG) -> FootLockedClip:
     """The ``hybrid_ik`` clip of ``base`` with contacts detected on ``reference`` (same duration and playback).
 
     ``legs``: (hip, knee, ankle) joint indices per foot; ``feet``: per foot the joints that touch the ground (ankle,
@@ -268,8 +327,10 @@ def lock_feet(base: HybridClip, reference: KeyframeClip, legs: Sequence[tuple[in
     ``max_speed`` m/s: the held foot's slowest joint moves at most this fast (it may roll, not slide);
     ``rest_speed`` m/s: a reference contact phase whose foot never gets this slow is a skim, not a step;
     ``contact_source``: ``"reference"`` holds the reference's steps, ``"union"`` grows each by the hybrid's own
-    contact frames next to it; ``swing_clearance``: each foot raised to at least the reference's foot height
-    (steps 1-6 of the module docstring).
+    contact frames next to it; ``swing_clearance``: each foot raised to at least the reference's foot height;
+    ``max_leg_change_deg``: a hold ends where holding the foot would turn the thigh or change the knee's bend by
+    more than this (:func:`standing`), and no swing target asks more of the leg (steps 1-7 of the module
+    docstring).
     """
     if not np.isclose(base.duration, reference.duration) or base.mode != reference.mode:
         raise ValueError(f"the hybrid ({base.duration:.4f} s, {base.mode}) and its reference "
@@ -301,16 +362,22 @@ def lock_feet(base: HybridClip, reference: KeyframeClip, legs: Sequence[tuple[in
     targets, _ = foot_targets(sk, pose.rotations, root, chains, held, fps, feet_idx.tolist(), periodic=loop,
                               ground_velocity=velocity, up_axis=up_axis, blend_frames=0, max_speed=max_speed,
                               rest_speed=np.inf)
+    # The knees' hinges from the reference: mocap, whose knees bend well in every cycle.
+    hinges = np.array([hinge_axis(sk, ref.rotations, ref.root_translation, c) for c in chains])
+    soft = SOFT_REACH * min(float(np.linalg.norm(sk.offsets[m]) + np.linalg.norm(sk.offsets[e])) for _, m, e in chains)
+    # Step 5: a hold's offsets are measured from its resting frame, which the trim keeps, so they stand as they are.
+    held = standing(sk, pose.rotations, root, chains, held, targets, loop, hinges, soft, max_leg_change_deg)
     ankles = positions[:, [c[2] for c in chains]]
     offsets, weights = swing_offsets(targets - ankles, held, loop, blend_frames)
+    for leg, chain in enumerate(chains):  # step 6, one leg at a time
+        limited = leg_limited_targets(sk, pose.rotations, root, chain, ankles[:, leg] + offsets[:, leg],
+                                      weights[:, leg], np.radians(max_leg_change_deg), None, hinges[leg], soft)
+        offsets[:, leg] = limited - ankles[:, leg]
     if swing_clearance:
-        # Step 6: each foot's joints' heights above their standing heights, the hybrid's where the offsets put them
+        # Step 7: each foot's joints' heights above their standing heights, the hybrid's where the offsets put them
         # (the foot keeps its world orientation, so an offset moves all of its joints alike).
         hyb_feet = positions[:, feet_idx]
         hyb_heights = hyb_feet[..., up_axis] + offsets[:, :, None, up_axis] - standing_heights(hyb_feet, up_axis)
         ref_heights = ref_feet[..., up_axis] - standing_heights(ref_feet, up_axis)
         offsets[..., up_axis] += np.maximum(np.max(ref_heights - hyb_heights, axis=2), 0.0)
-    # The knees' hinges from the reference: mocap, whose knees bend well in every cycle.
-    hinges = np.array([hinge_axis(sk, ref.rotations, ref.root_translation, c) for c in chains])
-    reach = min(float(np.linalg.norm(sk.offsets[m]) + np.linalg.norm(sk.offsets[e])) for _, m, e in chains)
-    return FootLockedClip(base, tuple(chains), float(fps), ankles + offsets, weights, hinges, SOFT_REACH * reach)
+    return FootLockedClip(base, tuple(chains), float(fps), ankles + offsets, weights, hinges, soft)

@@ -143,8 +143,9 @@ def plant_feet(skeleton: Skeleton, local_rotations: ArrayLike, root_translation:
     return rot
 
 
-def _leg_angles(skeleton: Skeleton, rot: Array, root: Array, chain: tuple[int, int, int]) -> tuple[Array, Array]:
-    """``(T, 3)`` the thigh's unit direction and ``(T,)`` the knee's bend (radians, 0: straight) of poses ``rot``."""
+def leg_angles(skeleton: Skeleton, rot: Array, root: Array, chain: tuple[int, int, int]) -> tuple[Array, Array]:
+    """``(T, 3)`` the thigh's unit direction and ``(T,)`` the knee's bend (radians, 0: straight) of poses ``rot``
+    (the leg angles :func:`leg_limited_targets` and :func:`anim_core.methods.footlock.standing` keep)."""
     pos = skeleton.forward_kinematics(rot, root)[1]
     thigh, shin = pos[:, chain[1]] - pos[:, chain[0]], pos[:, chain[2]] - pos[:, chain[1]]
     thigh /= np.linalg.norm(thigh, axis=-1, keepdims=True)
@@ -153,21 +154,24 @@ def _leg_angles(skeleton: Skeleton, rot: Array, root: Array, chain: tuple[int, i
 
 
 def leg_limited_targets(skeleton: Skeleton, rot: Array, root: Array, chain: tuple[int, int, int], targets: Array,
-                        weights: Array, tolerance: float, pole: Array, hinge: Array | None) -> Array:
+                        weights: Array, tolerance: float, pole: Array | None, hinge: Array | None,
+                        soft: float = 0.0) -> Array:
     """``(T, 3)`` ankle targets for :func:`anim_core.methods.ik.two_bone_ik` (with ``weights``, ``pole (T, 3)``
-    and ``hinge``, as :func:`plant_feet` solves) on the poses ``rot``/``root`` such that the solved leg's thigh
-    turns by at most ``tolerance`` radians and its knee bends within ``tolerance`` of the animated bend: each
-    target moves from the animated ankle towards the given one as far as that holds (bisection on the solve; the
-    thigh and the knee are the leg's angles that the fidelity gate compares with the source,
-    :mod:`anim_core.clips.fidelity`).  Targets the leg reaches within the tolerance are returned unchanged."""
-    thigh0, bend0 = _leg_angles(skeleton, rot, root, chain)
+    or None, ``hinge`` and ``soft``, as :func:`plant_feet` or :meth:`anim_core.methods.footlock.FootLockedClip.sample`
+    solves) on the poses ``rot``/``root`` such that the solved leg's thigh turns by at most ``tolerance`` radians
+    and its knee bends within ``tolerance`` of the animated bend: each target moves from the animated ankle
+    towards the given one as far as that holds (bisection on the solve; the thigh and the knee are the leg's
+    angles that the fidelity gate compares with the source, :mod:`anim_core.clips.fidelity`).  Targets the leg
+    reaches within the tolerance are returned unchanged."""
+    thigh0, bend0 = leg_angles(skeleton, rot, root, chain)
     ankle = skeleton.forward_kinematics(rot, root)[1][:, chain[2]]
     way = targets - ankle
 
     def fits(s: Array, frames: NDArray[np.intp]) -> NDArray[np.bool_]:
         solved = two_bone_ik(skeleton, rot[frames], root[frames], chain, ankle[frames] + s[:, None] * way[frames],
-                             pole=pole[frames], weight=weights[frames], hinge=hinge)
-        thigh, bend = _leg_angles(skeleton, solved, root[frames], chain)
+                             pole=None if pole is None else pole[frames], weight=weights[frames], hinge=hinge,
+                             soft=soft)
+        thigh, bend = leg_angles(skeleton, solved, root[frames], chain)
         turn = np.arccos(np.clip(np.sum(thigh * thigh0[frames], axis=-1), -1.0, 1.0))
         return (turn <= tolerance) & (np.abs(bend - bend0[frames]) <= tolerance)
 

@@ -27,7 +27,16 @@ from scipy.interpolate import CubicSpline
 from scipy.optimize import brentq
 
 from ..math.clip import KeyframeClip, PlaybackMode, Pose, horizontal, playback_time
-from ..math.quat import make_continuous, slerp_unclamped, squad_eval, squad_tangents
+from ..math.quat import (
+    make_continuous,
+    quat_conj,
+    quat_from_axis_angle,
+    quat_mul,
+    rotate,
+    slerp_unclamped,
+    squad_eval,
+    squad_tangents,
+)
 from ..math.skeleton import Skeleton
 from ..rig.mirror import Mirror
 
@@ -98,7 +107,9 @@ class SquadClip:
     ``key_times``: ``(K,)`` seconds from 0, ``key_rotations``: ``(K, J, 4)``, ``key_root``: ``(K, 3)``.  For a loop
     the clip returns to key 0 at ``duration`` (``> key_times[-1]``); for ping-pong ``duration == key_times[-1]``.
     The root follows a cubic spline through the key root positions (periodic, or with zero end slopes), plus the
-    travel ``velocity * t`` in loop mode unless ``in_place``.
+    travel ``velocity * t`` in loop mode unless ``in_place``.  ``mirror``: for a gait whose second half's keys are
+    the mirror images of its first half's (:func:`build_gait`), the :class:`~anim_core.rig.mirror.Mirror` that made
+    them (a runtime stores the first half only and mirrors it); None otherwise.
     """
 
     skeleton: Skeleton
@@ -110,6 +121,7 @@ class SquadClip:
     velocity: Array = field(default_factory=lambda: np.zeros(3))
     in_place: bool = False
     name: str = ""
+    mirror: Mirror | None = field(default=None, repr=False)
     _seg_times: Array = field(init=False, repr=False)
     _q: Array = field(init=False, repr=False)
     _a: Array = field(init=False, repr=False)
@@ -277,7 +289,10 @@ def build_gait(source: KeyframeClip, key_times: Sequence[float], period: float, 
     foot passing), all within ``[key_times[0], key_times[0] + period / 2)``; ``period``: gait cycle length (s).
     The keys (``2 * 2**increment`` of them) and their mirror images half a cycle later form the cyclic spline.
     The root moves with the cycle's mean horizontal velocity plus a periodic spline of the keys' offsets from
-    that line; the mirror plane passes through the mean of the cycle and must contain the walking direction.
+    that line; the mirror plane passes through the mean of the cycle.  A cycle that walks off the (vertical) mirror
+    plane by more than a fifth of its speed is mirrored in its own heading frame: turned about the vertical until
+    it walks in the plane, mirrored, and turned back (the hybrid walks the cycle's mean direction).  A turning
+    take is straightened before (:func:`anim_core.clips.build.straighten_heading`): one loop has one heading.
     """
     t0 = float(key_times[0])
     if not (t0 <= key_times[-1] < t0 + period / 2):
@@ -294,20 +309,51 @@ def build_gait(source: KeyframeClip, key_times: Sequence[float], period: float, 
     cycle_root = source.sample(cycle_t).root_translation
     velocity = horizontal(cycle_root[-1] - cycle_root[0], source.up_axis) / period
     speed = np.linalg.norm(velocity)
+    # Mirrored in the walk's own heading frame: a cycle walking off the mirror plane is turned into it about the
+    # vertical, mirrored there and turned back (a walk mirrored across a plane it crosses would walk off sideways).
+    # Within the old tolerance (a fifth of the speed across the plane) nothing is turned, so those builds are as
+    # they were.
+    yaw = None
     if speed > 1e-9 and abs(velocity @ mirror.normal) > 0.2 * speed:
-        raise ValueError(f"the walking direction {np.round(velocity / speed, 3).tolist()} is not in the mirror "
-                         f"plane (normal {mirror.normal.tolist()}); turn the clip or give another plane")
+        up = np.zeros(3)
+        up[source.up_axis] = 1.0
+        if abs(mirror.normal @ up) > 1e-9:
+            raise ValueError(f"the walking direction {np.round(velocity / speed, 3).tolist()} is not in the mirror "
+                             f"plane (normal {mirror.normal.tolist()}), and the plane is not vertical: a gait is "
+                             f"mirrored about a vertical plane")
+        along_plane = np.cross(mirror.normal, up)
+        along_plane *= np.sign(along_plane @ velocity) or 1.0
+        yaw = quat_from_axis_angle(up, np.arctan2(np.cross(velocity, along_plane) @ up, velocity @ along_plane))
+        keys, cycle_root, velocity = (_yawed(source.skeleton, keys, yaw), _yawed_root(source.skeleton, cycle_root, yaw),
+                                      rotate(yaw, velocity))
     # Offsets from the straight travel line; mirrored through the cycle's mean lateral position.
     offsets = keys.root_translation - velocity * (times - t0)[:, None]
     along = (cycle_root - velocity * (cycle_t - t0)[:, None] + source.skeleton.offsets[0]) @ mirror.normal
     mirrored = mirror.with_offset(float(np.mean(along)))(Pose(keys.rotations, offsets))
+    both = Pose(np.concatenate([keys.rotations, mirrored.rotations]),
+                np.concatenate([offsets, mirrored.root_translation]))
+    if yaw is not None:  # back to the heading the cycle walks in
+        both, velocity = _yawed(source.skeleton, both, quat_conj(yaw)), rotate(quat_conj(yaw), velocity)
     return SquadClip(
         source.skeleton,
         key_times=np.concatenate([times - t0, times - t0 + period / 2]),
-        key_rotations=np.concatenate([keys.rotations, mirrored.rotations]),
-        key_root=np.concatenate([offsets, mirrored.root_translation]),
+        key_rotations=both.rotations, key_root=both.root_translation,
+        # turned into the plane and back, the second half is no longer the mirror map of the first alone
         duration=period, mode="loop", velocity=velocity, in_place=in_place, name=name,
+        mirror=mirror if yaw is None else None,
     )
+
+
+def _yawed_root(skeleton: Skeleton, root_translation: Array, q: Array) -> Array:
+    """Root translations ``(..., 3)`` of poses turned by ``q`` about the vertical through the world origin."""
+    return rotate(q, root_translation + skeleton.offsets[0]) - skeleton.offsets[0]
+
+
+def _yawed(skeleton: Skeleton, pose: Pose, q: Array) -> Pose:
+    """Poses ``(..., J, 4)``, ``(..., 3)`` turned by ``q`` about the vertical through the world origin."""
+    rot = np.array(pose.rotations)
+    rot[..., 0, :] = quat_mul(q, rot[..., 0, :])
+    return Pose(rot, _yawed_root(skeleton, np.asarray(pose.root_translation, dtype=np.float64), q))
 
 
 def build_idle(source: KeyframeClip, key_times: Sequence[float], increment: int = 0, name: str = "") -> SquadClip:
@@ -328,13 +374,15 @@ def build_other(source: KeyframeClip, key_times: Sequence[float], increment: int
     times (s) lie in ``[0, duration)`` and start at 0, increments split the interval to ``duration`` too; the root
     moves with the source's mean horizontal velocity plus a periodic spline of the keys' offsets from that line
     (none of it with ``in_place``).  Picked keys may be neighbouring frames: an increment adds a key only where
-    the source has a frame between two keys.
+    the source has a frame between two keys (one that snaps onto a loop's end is key 0 and left out).
     """
     loop = source.mode == "loop"
     times = np.unique([source.nearest_key_time(t) for t in
                        increment_key_times(key_times, increment, end=source.duration if loop else None)])
     if not loop:
         return build_idle(source, times, 0, name)
+    # A key inserted between the last key and the loop's end may snap onto the end: that frame is key 0 again.
+    times = times[times < source.duration - 1e-9] if times[0] == 0.0 else times
     if times[0] != 0.0 or times[-1] >= source.duration:
         raise ValueError(f"the keys of a loop lie in [0, {source.duration:.3f}) s and start at 0, got "
                          f"{np.round(times, 4).tolist()} s")

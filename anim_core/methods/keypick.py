@@ -53,7 +53,8 @@ def pick_keys(source: KeyframeClip, tolerance: float = 0.02, metres_per_unit: fl
     """Keys whose SQUAD hybrid played ``mode`` reproduces ``source`` within ``tolerance`` metres at every frame
     (see module).
 
-    Raises ``ValueError`` if ``max_keys`` keys do not reach the tolerance (the error reached is in the message).
+    Raises ``ValueError`` if ``max_keys`` keys do not reach the tolerance (the error reached is in the message); a
+    clip-set entry sets ``max_keys`` (default :data:`anim_core.clips.build.DEFAULT_MAX_KEYS`, 64).
     """
     if not tolerance > 0:
         raise ValueError(f"tolerance must be positive, got {tolerance}")
@@ -70,7 +71,8 @@ def pick_keys(source: KeyframeClip, tolerance: float = 0.02, metres_per_unit: fl
             break
         if len(frames) >= max_keys or worst in frames:
             raise ValueError(f"{len(frames)} keys reproduce the motion within {err[worst] * 1000:.1f} mm only, not "
-                             f"{tolerance * 1000:.1f} mm; allow more keys or a larger tolerance")
+                             f"{tolerance * 1000:.1f} mm; allow more keys (max_keys, now {max_keys}) or a larger "
+                             f"tolerance")
         frames = np.sort(np.append(frames, worst))
     return PickedKeys(tuple(int(f) for f in frames), tuple(float(t) for t in source.times[frames]),
                       float(err.max()), tolerance)

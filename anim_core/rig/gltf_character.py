@@ -10,7 +10,8 @@ Nothing here opens a file (``server.assets`` finds and reads it); every failure 
   canonical
   joints; an explicit ``{canonical: source}`` mapping overrides or completes it.  A skeleton without hips, spine,
   head, legs or arms is an error naming the missing parts.
-- **Units and up axis**: detected from the skeleton's stature and the head-over-hips axis
+- **Units and up axis**: detected from the mesh's height (its bounding box along up; the joints' extent where
+  the mesh is no human height in any unit) and the head-over-hips axis
   (:func:`~anim_core.rig.rigmap.canonical_frame`), or given; the character is turned (quarter turns) so its left is +X.
 - **Joints the canonical skeleton has and the rig lacks** (``LHipJoint``, ``LowerBack``, finger bases, ...) are
   placed where the CMU skeleton has them: on their parent for those with a zero offset there (:data:`ON_PARENT`),
@@ -38,7 +39,16 @@ from ..math.quat import rotate
 from ..math.skeleton import Skeleton
 from ..math.skinning import MAX_INFLUENCES
 from .character import CMU_TO_RIG, Character, CharacterError
-from .rigmap import CANONICAL_NAMES, CANONICAL_PARENTS, UNITS, RigMapError, RigMapping, canonical_frame, map_skeleton
+from .rigmap import (
+    CANONICAL_NAMES,
+    CANONICAL_PARENTS,
+    UNITS,
+    RigMapError,
+    RigMapping,
+    canonical_frame,
+    map_skeleton,
+    units_from_height,
+)
 
 Array = NDArray[np.float64]
 
@@ -78,6 +88,17 @@ def _bind_positions(asset: GltfAsset) -> Array:
         bad = asset.skeleton.names[int(np.argmin(np.abs(det)))]
         raise CharacterError(f"{asset.source}: the inverse bind matrix of joint {bad!r} is singular")
     return np.linalg.inv(ibm)[:, :3, 3]
+
+
+def _mesh_units(asset: GltfAsset, bind: Array, source_index: NDArray[np.intp], up_axis: str | None) -> str | None:
+    """The unit in which the mesh's height (bounding box along up) is a human height, or ``None`` (the joints'
+    extent decides, :func:`~anim_core.rig.rigmap.canonical_frame`): the mesh is the whole figure, head and feet
+    included, where the joints stop short of both."""
+    world = canonical_frame(bind, source_index, up_axis, "m")[0]
+    try:
+        return units_from_height(float(np.ptp(rotate(world, asset.vertices)[:, 1])), "skinned mesh")
+    except RigMapError:
+        return None
 
 
 def _fill_missing(heads: Array, tails: Array, mapped: NDArray[np.bool_]) -> None:
@@ -126,7 +147,8 @@ def character_from_gltf(asset: GltfAsset, explicit: Mapping[str, str] | None = N
     offsets[1:] -= bind[sk.parents[1:]]
     try:
         mapping = map_skeleton(Skeleton(sk.names, sk.parents, offsets), explicit)
-        world, up_axis, units, _ = canonical_frame(bind, mapping.source_index, up_axis, units)
+        world, up_axis, units, _ = canonical_frame(bind, mapping.source_index, up_axis, units or _mesh_units(
+            asset, bind, mapping.source_index, up_axis))
     except RigMapError as exc:
         raise CharacterError(f"{src}: {exc}") from None
     scale = UNITS[units][0]

@@ -6,12 +6,19 @@ reflection ``M = I - 2 n n^T`` (unit normal ``n``) maps a rotation ``R`` to ``M 
 the three axes").  Left and right joints then swap their values; joints without a partner (hips, spine, neck)
 keep their own, mirrored.
 
-Local rotations are only comparable across left and right after the **bind (rest) pose is removed**: each
-local rotation ``L_j`` is first expressed as the world-aligned rotation ``A_j = G0_p L_j G0_j^-1`` (``G0`` the
-global rest rotations, ``p`` the parent), which is the identity at rest whatever the rig's joint frames are;
-``A`` is mirrored and swapped, then the rest pose is put back.  Skipping that step on a rig whose joint frames
-are not world-aligned turns limbs around (the thesis saw the model turn by 180 degrees).  For BVH skeletons,
-whose rest rotations are the identity, ``A = L``.
+Local rotations are only comparable across left and right after a **left/right-symmetric pose is removed**: each
+local rotation ``L_j`` is first expressed as the world-aligned rotation ``A_j = B_p L_j B_j^-1`` (``B`` the global
+rotations that put the skeleton in that symmetric pose, ``p`` the parent), which is the identity in that pose whatever
+the rig's joint frames are; ``A`` is mirrored and swapped, then the symmetric pose is put back.  Skipping that step
+on a rig whose joint frames are not world-aligned turns limbs around (the thesis saw the model turn by 180
+degrees).
+
+Which symmetric pose: a character's **bind pose** (its mesh as authored, left and right symmetric by
+construction), given as ``bind``; then ``A_j`` is the rotation that joint's mesh has turned through, and the mirrored
+pose is the mirror image of the mesh participants see.  Only when no bind pose is given is the skeleton's rest pose
+used (``B = G0``, the global rest rotations), which is right only if that rest pose is itself symmetric: CMU's
+T-pose is; a rig whose rest is a frame of the motion (a stride, one shin 38 degrees from the other's mirror image)
+is not, and mirroring about it puts that asymmetry into every mirrored pose (issue 35: feet that never land).
 """
 
 from __future__ import annotations
@@ -67,32 +74,42 @@ def mirror_partners(names: Sequence[str], overrides: Mapping[str, str] | None = 
 class Mirror:
     """Mirrors poses of one skeleton through the plane ``dot(n, p) = offset`` (unit normal ``n``, world axes).
 
-    Everything that depends only on the skeleton (partners, rest rotations) is computed once here.
+    ``bind``: ``(J, 4)`` global rotations (w, x, y, z) that put the skeleton in a left/right-symmetric pose (a
+    character's bind pose, :attr:`anim_core.rig.character.RetargetedCharacter.bind_rotations`); default: the
+    skeleton's rest rotations, which must then be symmetric.  Everything that depends only on the skeleton and
+    that pose (partners, pose rotations) is computed once here.
     """
 
     skeleton: Skeleton
     normal: Array = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
     offset: float = 0.0
     overrides: Mapping[str, str] | None = None
+    bind: ArrayLike | None = field(default=None, repr=False)
     partners: NDArray[np.intp] = field(init=False, repr=False)
-    _rest: Array = field(init=False, repr=False)
-    _rest_parent: Array = field(init=False, repr=False)
+    _bind: Array = field(init=False, repr=False)
+    _bind_parent: Array = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         n = np.asarray(self.normal, dtype=np.float64)
         if n.shape != (3,) or not np.linalg.norm(n) > 0:
             raise ValueError(f"mirror plane normal must be a non-zero 3-vector, got {self.normal!r}")
-        rest, _ = self.skeleton.rest_global()
+        if self.bind is None:
+            bind, _ = self.skeleton.rest_global()
+        else:
+            bind = np.asarray(self.bind, dtype=np.float64)
+            if bind.shape != (self.skeleton.n_joints, 4) or not np.all(np.isfinite(bind)):
+                raise ValueError(f"bind must hold one finite quaternion per joint, shape ({self.skeleton.n_joints}, "
+                                 f"4), got {bind.shape}")
         parents = self.skeleton.parents
-        rest_parent = np.where((parents >= 0)[:, None], rest[np.maximum(parents, 0)], identity((len(parents),)))
+        bind_parent = np.where((parents >= 0)[:, None], bind[np.maximum(parents, 0)], identity((len(parents),)))
         for name, value in (("normal", n / np.linalg.norm(n)),
                             ("partners", mirror_partners(self.skeleton.names, self.overrides)),
-                            ("_rest", rest), ("_rest_parent", rest_parent)):
+                            ("_bind", bind), ("_bind_parent", bind_parent)):
             object.__setattr__(self, name, value)
 
     def with_offset(self, offset: float) -> Mirror:
         """The same mirror through a parallel plane ``dot(n, p) = offset``."""
-        return Mirror(self.skeleton, self.normal, offset, self.overrides)
+        return Mirror(self.skeleton, self.normal, offset, self.overrides, self._bind)
 
     def reflect_rotations(self, q: ArrayLike) -> Array:
         """``M R M`` for quaternions ``(..., 4)``: ``(w, v) -> (w, -v + 2 (v . n) n)``."""
@@ -110,9 +127,9 @@ class Mirror:
     def __call__(self, pose: Pose) -> Pose:
         """Mirror a batch of poses: rotations ``(..., J, 4)``, root translation ``(..., 3)``."""
         rot = np.asarray(pose.rotations, dtype=np.float64)
-        aligned = quat_mul(quat_mul(self._rest_parent, rot), quat_conj(self._rest))
+        aligned = quat_mul(quat_mul(self._bind_parent, rot), quat_conj(self._bind))
         swapped = self.reflect_rotations(aligned)[..., self.partners, :]
-        local = quat_mul(quat_mul(quat_conj(self._rest_parent), swapped), self._rest)
+        local = quat_mul(quat_mul(quat_conj(self._bind_parent), swapped), self._bind)
         root0 = self.skeleton.offsets[0]
         root = self.reflect_points(np.asarray(pose.root_translation, dtype=np.float64) + root0) - root0
         return Pose(local, root)

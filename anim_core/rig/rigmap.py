@@ -37,7 +37,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from ..io.bvh import OFFSET_MATCH, Bvh, bvh_from_poses
+from ..io.bvh import OFFSET_MATCH, Bvh, bvh_from_poses, still_translation
 from ..math.quat import identity, quat_conj, quat_from_axis_angle, quat_from_euler, quat_mul, rotate
 from ..math.skeleton import Skeleton
 
@@ -412,6 +412,206 @@ class _Mapper:
                 self.set(word + "HandIndex1", index, "first index/finger joint under the hand")
 
 
+# ---------------------------------------------------------------------------------------------------------------
+# Mapping by structure (joints without telling names)
+
+#: A branch of a joint counts as a limb or the trunk when it holds at least two joints and reaches at least this
+#: share of the figure's size (its largest extent) from the joint: fingers (a twentieth of the height) and single
+#: helpers do not, legs, arms and the neck with the head do.
+BRANCH_REACH = 0.08
+#: The legs' sockets and the upper arms stand this share of the figure's size in front of the spine at least (the
+#: spine runs along the back), or the facing, and with it left and right, is not told apart.
+FACING_MIN = 0.01
+
+
+def _branches(children: list[list[int]], below: list[list[int]], pos: Array, j: int, size: float) -> list[int]:
+    """The children of ``j`` whose subtrees are limbs or the trunk (:data:`BRANCH_REACH`)."""
+    return [c for c in children[j] if len(below[c]) >= 2
+            and np.linalg.norm(pos[below[c]] - pos[j], axis=1).max() >= BRANCH_REACH * size]
+
+
+def _main_chain(parents: NDArray[np.intp], below: list[int], pos: Array, base: int) -> list[int]:
+    """The joints from the branch's first joint down to its joint farthest from ``base``."""
+    tip = below[int(np.argmax(np.linalg.norm(pos[below] - pos[base], axis=1)))]
+    return _chain(parents, tip, base)
+
+
+def _end_of_chain(chain: list[int], children: list[list[int]], pos: Array, start: float) -> int:
+    """A hand or head on its chain: the first joint from ``start`` (share of the chain's length) on that branches
+    (fingers; eyes and jaw), else the last joint, or the one before it when the last bone is an end joint (longer
+    than one and a half times the bone before it, as ``HeadTop_End``; shorter than half of it, as a hand's end)."""
+    lengths = np.linalg.norm(np.diff(pos[chain], axis=0), axis=1)
+    along = np.concatenate([[0.0], np.cumsum(lengths)])
+    for k, j in enumerate(chain):
+        if along[k] >= start * along[-1] and len(children[j]) >= 2:
+            return j
+    if len(chain) >= 3 and not children[chain[-1]] and (lengths[-1] > 1.5 * lengths[-2]
+                                                          or lengths[-1] < 0.5 * lengths[-2]):
+        return chain[-2]
+    return chain[-1]
+
+
+def structural_anchors(parents: NDArray[np.intp], positions: Array) -> dict[str, int]:
+    """Hips, chest, feet, hands and head of a humanoid skeleton whose joint names say nothing, from its structure
+    and the geometry of one pose (the bind or rest pose), keyed ``"Hips"``, ``"Spine1"``, ``"LeftFoot"``, ...
+
+    Structure: the hips are the highest joint with three branches (:data:`BRANCH_REACH`), two legs and a spine;
+    the chest is the highest joint of the spine with three branches, two arms and the neck, the neck being the
+    branch that keeps closest to the hips-to-chest line.  A foot is the joint of its leg below half the leg's drop
+    from which the bone goes more across than down (to the toes), else the leg's last joint; a hand or the head
+    the first joint of its chain that branches, else its last joint short of an end joint
+    (:func:`_end_of_chain`); an elbow the joint that splits the straight stretch of the arm ending at the hand
+    (``"LeftForeArm"``, left out where the arm has no straight stretch: the limb's lengths decide then).
+    Left and right from geometry, not from the feet: up runs from the hips to the head; the legs' sockets and the
+    shoulders stand in front of the spine, which runs along the back (:data:`FACING_MIN`), so forward is from the
+    spine to them; left is up × forward.  ``positions``: ``(J, 3)``.
+    Raises :class:`RigMapError` saying what is ambiguous.
+    """
+    pos = np.asarray(positions, dtype=np.float64)
+    n = len(parents)
+    children: list[list[int]] = [[] for _ in range(n)]
+    for j in range(1, n):  # once per skeleton, not per frame
+        children[int(parents[j])].append(j)
+    below: list[list[int]] = [[j] for j in range(n)]
+    for j in range(n - 1, 0, -1):  # parents before children: each subtree is complete when its root is reached
+        below[int(parents[j])].extend(below[j])
+    size = float(np.ptp(pos, axis=0).max())
+    if size <= 0:
+        raise RigMapError("all joints are at one place: no structure to map")
+    three = [j for j in range(n) if len(_branches(children, below, pos, j, size)) >= 3]
+    if not three:
+        raise RigMapError("no joint has three branches (two legs and a spine): not a humanoid tree")
+    depth = np.array([len(_chain(parents, j, -1)) for j in range(n)])
+    hips = min(three, key=lambda j: (depth[j], j))
+    hip_branches = _branches(children, below, pos, hips, size)
+    spines = [c for c in hip_branches if any(j in three for j in below[c])]
+    if len(hip_branches) != 3 or len(spines) != 1:
+        raise RigMapError(f"the hips (joint {hips}) have {len(hip_branches)} branches, {len(spines)} of them with "
+                          f"arms and a neck; two legs and one spine are needed to map by structure")
+    chest = min((j for j in below[spines[0]] if j in three), key=lambda j: (depth[j], j))
+    arm_branches = _branches(children, below, pos, chest, size)
+    if len(arm_branches) != 3:
+        raise RigMapError(f"the chest (joint {chest}) has {len(arm_branches)} branches; two arms and a neck are "
+                          f"needed to map by structure")
+    up = pos[chest] - pos[hips]
+    if np.linalg.norm(up) < 1e-12:
+        raise RigMapError(f"the hips (joint {hips}) and the chest (joint {chest}) are at one place: no up")
+    up /= np.linalg.norm(up)
+
+    def across(v: Array) -> Array:
+        return v - (v @ up)[..., None] * up
+    lateral = [float(np.linalg.norm(across(pos[below[c]] - pos[chest]), axis=1).max()) for c in arm_branches]
+    order = np.argsort(lateral)
+    if lateral[order[0]] > 0.5 * lateral[order[1]]:
+        raise RigMapError(f"of the chest's (joint {chest}) branches none keeps clearly closer to the spine's line "
+                          f"than the others (reach across {', '.join(f'{x:.3g}' for x in lateral)}): the neck is "
+                          f"not told from the arms")
+    neck = arm_branches[int(order[0])]
+    arms = [c for c in arm_branches if c != neck]
+    legs = [c for c in hip_branches if c != spines[0]]
+
+    def foot(branch: int) -> int:
+        chain = _main_chain(parents, below[branch], pos, hips)
+        height = (pos[chain] - pos[hips]) @ up
+        for k in range(len(chain) - 1):
+            d = pos[chain[k + 1]] - pos[chain[k]]
+            if height[k] < 0.5 * height.min() and abs(d @ up) < np.linalg.norm(across(d)):
+                return chain[k]
+        return chain[-1]
+    feet = [foot(c) for c in legs]
+    hands = [_end_of_chain(_main_chain(parents, below[c], pos, chest), children, pos, 0.5) for c in arms]
+    head = _end_of_chain(_main_chain(parents, below[neck], pos, chest), children, pos, 0.0)
+
+    # Facing: the legs' sockets and the shoulders stand in front of the spine.  Up now from the hips to the head
+    # (closer to the vertical than the chest, which sits back), and each compared with the spine joint at its
+    # height, so that little of a height difference leaks into "forward" through a leaning trunk.
+    up = pos[head] - pos[hips]
+    up /= max(float(np.linalg.norm(up)), 1e-12)
+
+    def socket(branch: int) -> int:  # the last joint of the leg at the hips' level (a quarter of its drop)
+        chain = _main_chain(parents, below[branch], pos, hips)
+        height = (pos[chain] - pos[hips]) @ up
+        return chain[int(np.flatnonzero(height >= 0.25 * height.min()).max())]
+
+    def shoulder(branch: int) -> int:  # the last joint of the arm within a third of its reach across the trunk
+        chain = _main_chain(parents, below[branch], pos, chest)
+        far = np.linalg.norm(across(pos[chain] - pos[chest]), axis=1)
+        return chain[int(np.flatnonzero(far <= far.max() / 3).max())]
+    sockets = [socket(c) for c in legs]
+    shoulders = [shoulder(c) for c in arms]
+    spine = _chain(parents, chest, hips)
+    low_back = spine[0] if len(spine) > 1 else hips
+    forward = across(pos[sockets].mean(axis=0) - pos[low_back]) + across(pos[shoulders].mean(axis=0) - pos[chest])
+    if np.linalg.norm(forward) < FACING_MIN * size:
+        raise RigMapError(f"the legs' sockets and the shoulders stand {np.linalg.norm(forward):.3g} units in front "
+                          f"of the spine, less than {FACING_MIN:.0%} of the figure's size: left and right cannot be "
+                          f"told from the geometry")
+    left = np.cross(up, forward / np.linalg.norm(forward))
+    def elbow(hand: int) -> int | None:
+        """The elbow: within the straight stretch of the arm that ends at the hand (upper arm and forearm; the
+        collar bone leaves it), the joint that splits it into the two longest parts.  Lengths alone do not tell:
+        CMU's forearm is shorter than its collar bone."""
+        chain = _chain(parents, hand, chest)
+        for a in chain[:-2]:
+            if _straight(pos, chain, a, hand):
+                inner = chain[chain.index(a) + 1:-1]
+                return max(inner, key=lambda j: min(np.linalg.norm(pos[j] - pos[a]),
+                                                    np.linalg.norm(pos[hand] - pos[j])))
+        return None
+    elbows = [elbow(h) for h in hands]
+    out = {"Hips": hips, "Spine1": chest, "Head": head}
+    for what, pair, at in (("Foot", feet, sockets), ("Hand", hands, shoulders), ("ForeArm", elbows, shoulders)):
+        d = pos[at[0]] - pos[at[1]]
+        side = float(d @ left)
+        if abs(side) < 0.5 * np.linalg.norm(d):
+            raise RigMapError(f"the two {'legs' if what == 'Foot' else 'arms'} (joints {at[0]} and {at[1]}) are not "
+                              f"side by side across the facing: left and right cannot be told from the geometry")
+        first, second = pair if side > 0 else pair[::-1]
+        if first is not None and second is not None:
+            out["Left" + what], out["Right" + what] = first, second
+    return out
+
+
+class _StructureMapper(_Mapper):
+    """The name-based mapper run on :func:`structural_anchors`: the anchors play named feet, hands, hips and head;
+    every other joint has no telling name, so limbs are split by their lengths alone."""
+
+    def __init__(self, names: Sequence[str], parents: NDArray[np.intp], rest_positions: Array) -> None:
+        super().__init__(names, parents, rest_positions)
+        self.anchors = structural_anchors(parents, rest_positions)
+        roles = {"Hips": (None, "hips"), "Head": (None, "head"), "LeftFoot": ("L", "foot"),
+                 "RightFoot": ("R", "foot"), "LeftHand": ("L", "hand"), "RightHand": ("R", "hand"),
+                 "LeftForeArm": ("L", "forearm"), "RightForeArm": ("R", "forearm")}
+        self.sides = [SideName(None, "joint", n, "", False) for n in names]
+        for canonical, (side, stem) in roles.items():
+            if canonical in self.anchors:
+                self.sides[self.anchors[canonical]] = SideName(side, stem, names[self.anchors[canonical]], "", True)
+        self.helper = [False] * len(names)
+
+    running = False
+
+    def run(self) -> None:
+        self.running = True  # the choices made here are the structure's; explicit entries set later are not
+        try:
+            super().run()
+        finally:
+            self.running = False
+
+    def set(self, canonical: str, j: int | None, reason: str) -> None:
+        if not self.running:
+            super().set(canonical, j, reason)
+            return
+        if canonical in ("LeftForeArm", "RightForeArm") and canonical in self.anchors:
+            reason = "the joint that splits the arm's straight stretch (upper arm and forearm) into its two parts"
+        elif canonical in ("Hips", "Head", "LeftFoot", "RightFoot", "LeftHand", "RightHand", "Spine1"):
+            reason = {"Hips": "the joint where two legs and the spine branch",
+                      "Spine1": "the joint where two arms and the neck branch",
+                      "Head": "the end of the neck's branch"}.get(
+                canonical, "the end of its limb; left and right from the bind-pose geometry (up along the spine, "
+                           "forward from the spine to the hip sockets and shoulders)")
+        super().set(canonical, j, f"by structure (no joint names to go by): {reason}")
+
+
 def map_skeleton(skeleton: Skeleton, explicit: Mapping[str, str] | None = None,
                  positions: Array | None = None) -> RigMapping:
     """Map ``skeleton``'s joints onto the canonical (CMU) joints; ``explicit`` ``{canonical: source}`` wins.
@@ -427,6 +627,14 @@ def map_skeleton(skeleton: Skeleton, explicit: Mapping[str, str] | None = None,
     rest_pos = skeleton.rest_global()[1] if positions is None else np.asarray(positions, dtype=np.float64)
     mapper = _Mapper(names, skeleton.parents, rest_pos)
     mapper.run()
+    structure_error: RigMapError | None = None
+    if not mapper.map:
+        # No name told anything (exporters' "joint0", "joint1", ...): the tree's shape and the pose do.
+        try:
+            mapper = _StructureMapper(names, skeleton.parents, rest_pos)
+            mapper.run()
+        except RigMapError as exc:
+            structure_error = exc
     for canonical, source in (explicit or {}).items():
         if canonical not in CANONICAL_NAMES:
             raise RigMapError(f"explicit mapping names {canonical!r}, which is not a character joint; they are "
@@ -464,8 +672,9 @@ def map_skeleton(skeleton: Skeleton, explicit: Mapping[str, str] | None = None,
     if missing:
         detail = "; ".join(f"{part}: {', '.join(n for n in REQUIRED_PARTS[part] if n not in mapper.map)}"
                            for part in missing)
-        raise RigMapError(f"cannot find the {', '.join(missing)} of the skeleton (missing {detail}); give them in "
-                          f"an explicit mapping (character joint = source joint)")
+        by_structure = f"; mapping by structure failed: {structure_error}" if structure_error else ""
+        raise RigMapError(f"cannot find the {', '.join(missing)} of the skeleton (missing {detail}{by_structure}); "
+                          f"give them in an explicit mapping (character joint = source joint)")
     # The bones that carry the limbs' and the trunk's lengths must have a length.
     short = [f"{a}-{b} ({names[mapper.map[a]]!r}-{names[mapper.map[b]]!r})"
              for a, b in (("LeftUpLeg", "LeftLeg"), ("LeftLeg", "LeftFoot"), ("RightUpLeg", "RightLeg"),
@@ -524,6 +733,16 @@ def detect_units(height: float) -> str:
             return unit
     raise RigMapError(f"a rest-pose height of {height:.4g} units is not a human height in m, cm, mm, inches or CMU "
                       f"units; give the units explicitly")
+
+
+def units_from_height(height: float, what: str = "skinned mesh") -> str:
+    """The unit in which a figure ``height`` tall (``what``: a skinned mesh's bounding box along up, head and feet
+    included) is a plausible human height (the ranges of :data:`UNITS`)."""
+    for unit, (_, (lo, hi)) in UNITS.items():
+        if lo <= height <= hi:
+            return unit
+    raise RigMapError(f"a {what} {height:.4g} units tall is not a human height in m, cm, mm, inches or CMU units; "
+                      f"give the units explicitly")
 
 
 def canonical_frame(rest_positions: Array, source_index: NDArray[np.intp], up_axis: str | None = None,
@@ -802,9 +1021,8 @@ def _bvh_motion(bvh: Bvh) -> tuple[Skeleton, Array, Array, dict[int, Array], lis
     for j in moving:
         if j == top or _chain(s.parents, top, j):
             continue
-        mean = translation(j).mean(axis=0)
-        spread = float(np.abs(translation(j) - mean).max())
-        if spread > 0.01 * max(float(np.linalg.norm(mean)), 1e-12):
+        mean, spread, still = still_translation(translation(j))
+        if not still:
             raise RigMapError(f"{bvh.source}: joint {names[j]!r} has animated position channels (it moves up to "
                               f"{spread:.3g} units against its parent); only the body's root "
                               f"({names[top]!r}) may translate: export the motion without translation keys on "

@@ -115,7 +115,7 @@ if numba is not None:
         return rx, ry, rz
 
     @_njit
-    def _spline_one(c, seg_times, ctrl, root_times, root_coef, src, sign, velocity, params, times, parents,
+    def _spline_one(c, seg_times, ctrl, root_times, root_coef, src, mirror_map, velocity, params, times, parents,
                     offsets, active, out_rot, out_pos):
         duration, mode, half = params[0], int(params[1]), params[2]
         ct, cycles = _clip_time(times[c], duration, mode)
@@ -136,7 +136,7 @@ if numba is not None:
         b0, b1 = np.float32(g * g * g), np.float32(3.0 * g * g * h)
         b2, b3 = np.float32(3.0 * g * h * h), np.float32(h * h * h)
         k = 3 * s
-        rows = sign.shape[0]
+        rows = mirror_map.shape[0]
         for j in range(ctrl.shape[1]):
             if active[j]:
                 m = src[j] if mirrored else j
@@ -147,8 +147,11 @@ if numba is not None:
                 inv = np.float32(1.0) / np.sqrt(w * w + x * x + y * y + z * z)
                 w, x, y, z = w * inv, x * inv, y * inv, z * inv
                 if mirrored:
-                    row = j if rows > 1 else 0
-                    w, x, y, z = w * sign[row, 0], x * sign[row, 1], y * sign[row, 2], z * sign[row, 3]
+                    mm = mirror_map[j if rows > 1 else 0]
+                    w, x, y, z = (mm[0, 0] * w + mm[0, 1] * x + mm[0, 2] * y + mm[0, 3] * z,
+                                  mm[1, 0] * w + mm[1, 1] * x + mm[1, 2] * y + mm[1, 3] * z,
+                                  mm[2, 0] * w + mm[2, 1] * x + mm[2, 2] * y + mm[2, 3] * z,
+                                  mm[3, 0] * w + mm[3, 1] * x + mm[3, 2] * y + mm[3, 3] * z)
             else:
                 w, x, y, z = ctrl[0, j, 0], ctrl[0, j, 1], ctrl[0, j, 2], ctrl[0, j, 3]
             _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)

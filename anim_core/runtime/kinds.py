@@ -23,7 +23,8 @@ The runtimes, built once per clip at load time (:func:`runtime_for`), evaluated 
   measured when the runtime is built (``fit_error_deg``) and must stay within :data:`FIT_TOLERANCE_DEG`.
   A mirrored gait (second half cycle = the mirror image of the first, as :func:`anim_core.methods.hybrid.build_gait`
   makes it) stores the first half only; the second half is evaluated there and mirrored per joint (partner
-  joint, sign flips), which is exact because the mirror commutes with SQUAD.
+  joint, then a fixed 4x4 orthogonal map: the mirror about the character's bind pose is a left and a right
+  multiplication by unit quaternions), which is exact because such a map commutes with SQUAD and normalization.
 * :class:`SpringRuntime`: the crouch.  Per character the closed-form spring gives the path parameter
   (:func:`crouch_path_parameter`), per joint an unclamped slerp between the two keys of its segment with the
   angle precomputed.
@@ -210,8 +211,9 @@ class SplineRuntime(_Runtime):
     the first half cycle only); ``controls (3 S + 1, J, 4)``: segment ``s`` has control points ``3s .. 3s + 3``,
     the keys at ``3s``; ``root_times (R + 1,)`` float64 and ``root_coef (R, 4, 3)``: the root spline of the
     whole period, cubic in seconds from the segment start, highest power first (scipy's ``CubicSpline.c``);
-    ``mirror_src (J,)`` int32: each joint's partner, and ``mirror_sign (1 or J, 4)``: the sign of each
-    component after mirroring (both empty without mirror); ``velocity (3,)`` travel per second in loop mode;
+    ``mirror_src (J,)`` int32: each joint's partner, and ``mirror_map (1 or J, 4, 4)``: the linear map of each
+    joint's quaternion (w, x, y, z) after the partner's is taken (both empty without
+    mirror); ``velocity (3,)`` travel per second in loop mode;
     ``params (3,)`` float64 = (duration s, playback mode index, half period s or 0 without mirror).
     ``fit_error_deg``: the measured largest global-rotation error against the exact curve (not runtime data).
     """
@@ -222,7 +224,7 @@ class SplineRuntime(_Runtime):
     root_times: Array
     root_coef: F32
     mirror_src: NDArray[np.int32]
-    mirror_sign: F32
+    mirror_map: F32
     velocity: F32
     params: Array
     fit_error_deg: float

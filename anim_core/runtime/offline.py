@@ -18,7 +18,6 @@ from ..methods.compression import QuantizedClip
 from ..methods.footlock import FootLockedClip
 from ..methods.hybrid import SpringClip, SquadClip, spring
 from ..methods.ik import _STRAIGHT
-from ..rig.mirror import Mirror
 from .checks import max_error_deg
 from .crowd import keyframe_root, table_from_keyframes, uniform
 from .kinds import (
@@ -187,27 +186,25 @@ def _fit_segment(q0: Array, q1: Array, a: Array, b: Array) -> tuple[Array, Array
 
 
 def _gait_mirror(clip: SquadClip) -> tuple[NDArray[np.int32], Array] | None:
-    """Partner and per-component signs if the clip's second half cycle is its mirrored first half, else None."""
+    """Partner ``(J,)`` and per-joint linear map ``(J, 4, 4)`` if the clip's second half cycle is its mirrored first
+    half (:attr:`SquadClip.mirror`), else None."""
     k = clip.n_keys
-    if clip.mode != "loop" or k % 2 or not np.allclose(clip.key_times[k // 2:], clip.key_times[:k // 2]
-                                                       + clip.duration / 2, atol=1e-12):
+    mirror = clip.mirror
+    if mirror is None or clip.mode != "loop" or k % 2 or not np.allclose(
+            clip.key_times[k // 2:], clip.key_times[:k // 2] + clip.duration / 2, atol=1e-12):
         return None
-    mirror = Mirror(clip.skeleton)
     j = clip.skeleton.n_joints
     # The mirror is linear in each quaternion: column c of joint j's map is the image of basis vector e_c.
     basis = np.zeros((4, j, 4))
     basis[np.arange(4), :, np.arange(4)] = 1.0
-    cols = mirror(Pose(basis, np.zeros((4, 3)))).rotations  # (4 = c, J, 4)
-    maps = np.moveaxis(cols, 0, -1)  # (J, 4 out, 4 in)
-    if not np.allclose(np.abs(maps), np.eye(4), atol=1e-12):
-        return None  # not a signed identity (a rig with rest rotations): store every segment
-    sign = np.diagonal(maps, axis1=1, axis2=2)
+    cols = mirror(Pose(basis, np.zeros((4, 3)))).rotations  # (4 = c, J, 4); joint j holds its partner's image
     src = mirror.partners.astype(np.int32)
+    maps = np.moveaxis(cols, 0, -1)  # (J, 4 out, 4 in): applied to the partner's quaternion
     half = clip.key_rotations[k // 2:]
-    image = sign * clip.key_rotations[:k // 2][:, src]
+    image = np.einsum("joi,kji->kjo", maps, clip.key_rotations[:k // 2][:, src])
     if not np.all(np.abs(np.abs(np.sum(half * image, axis=-1)) - 1.0) < _MIRROR_TOLERANCE):
         return None
-    return src, sign
+    return src, maps
 
 
 def spline_runtime(clip: SquadClip, tolerance_deg: float = FIT_TOLERANCE_DEG) -> SplineRuntime:
@@ -220,13 +217,13 @@ def spline_runtime(clip: SquadClip, tolerance_deg: float = FIT_TOLERANCE_DEG) ->
     controls[0::3] = q[: stored + 1]
     for s in range(stored):
         controls[3 * s + 1], controls[3 * s + 2] = _fit_segment(q[s], q[s + 1], a[s], b[s])
-    src, sign = mirrored if mirrored is not None else (np.zeros(0, np.int32), np.zeros((0, 4)))
-    if sign.size and np.all(sign == sign[:1]):
-        sign = sign[:1]  # the same flips for every joint: one row
+    src, maps = mirrored if mirrored is not None else (np.zeros(0, np.int32), np.zeros((0, 4, 4)))
+    if maps.size and np.allclose(maps, maps[:1], atol=1e-12):
+        maps = maps[:1]  # the same map for every joint: one
     root_times, root_coef, velocity = _root_arrays(clip)
     runtime = SplineRuntime(
         clip.skeleton, frozen(seg_times[: stored + 1], np.float64), frozen(controls, np.float32),
-        root_times, root_coef, frozen(src, np.int32), frozen(sign, np.float32), velocity,
+        root_times, root_coef, frozen(src, np.int32), frozen(maps, np.float32), velocity,
         frozen([clip.duration, PLAYBACK_MODES.index(clip.mode),
                  clip.duration / 2 if mirrored is not None else 0.0], np.float64), 0.0)
     error = max_error_deg(runtime, clip, _CHECK_RATE)

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from anim_core.clips.build import DEFAULT_TOLERANCE_MM, AnimationConfig, ConfigError
+from anim_core.clips.build import DEFAULT_MAX_KEYS, DEFAULT_TOLERANCE_MM, AnimationConfig, ConfigError
 from anim_core.math.clip import PLAYBACK_MODES
 from anim_core.methods.conditions import KINDS, REFERENCE, Condition, ConditionError
 from anim_core.rig.rigmap import UNITS
@@ -20,6 +20,8 @@ DEFAULT_CONFIG = Path(__file__).with_name("thesis.toml")
 #: designs): a clip's id is ``<animation>-<condition>``, so neither holds a "-".
 NAME_PATTERN = r"^[a-z0-9][a-z0-9_]{0,31}$"
 NAME = re.compile(NAME_PATTERN)
+#: The largest ``max_keys`` a clip-set entry may give: each key picked costs a pass of the hybrid over the take.
+MAX_KEYS_LIMIT = 1000
 
 
 @dataclass(frozen=True)
@@ -57,7 +59,7 @@ def _animation(name: str, entry: Any, where: str) -> AnimationConfig:
     if not isinstance(entry, dict):
         raise ConfigError(f"{where} must be a table")
     known = {"kind", "source", "frames", "playback", "in_place", "keys", "cycle", "tolerance_mm", "animation",
-             "mapping", "units", "up_axis", "accept_unfaithful"}
+             "mapping", "units", "up_axis", "accept_unfaithful", "max_keys"}
     if unknown := sorted(set(entry) - known):
         raise ConfigError(f"{where}: unknown field {unknown[0]!r}; allowed: {', '.join(sorted(known))}")
     kind = entry.get("kind")
@@ -98,6 +100,12 @@ def _animation(name: str, entry: Any, where: str) -> AnimationConfig:
     if isinstance(tolerance, bool) or not isinstance(tolerance, int | float) or not 0 < tolerance <= 1000:
         raise ConfigError(f"{where} tolerance_mm: a distance in millimetres (0 < tolerance_mm <= 1000), got "
                           f"{tolerance!r}")
+    max_keys = entry.get("max_keys", DEFAULT_MAX_KEYS)
+    if "max_keys" in entry and kind != "other":
+        raise ConfigError(f"{where}: only an animation of kind 'other' has max_keys (its keys are picked)")
+    if isinstance(max_keys, bool) or not isinstance(max_keys, int) or not 2 <= max_keys <= MAX_KEYS_LIMIT:
+        raise ConfigError(f"{where} max_keys: the most keys the picking may take, a whole number 2..{MAX_KEYS_LIMIT}, "
+                          f"got {max_keys!r}")
     animation = entry.get("animation")
     if animation is not None:
         if not gltf:
@@ -123,7 +131,7 @@ def _animation(name: str, entry: Any, where: str) -> AnimationConfig:
     return AnimationConfig(
         name, kind, source, frames, playback, in_place, keys,  # type: ignore[arg-type]
         None if cycle is None else _frames(cycle, f"{where} cycle", 2),  # type: ignore[arg-type]
-        float(tolerance), animation, mapping, units, up_axis, accept_unfaithful)
+        float(tolerance), animation, mapping, units, up_axis, accept_unfaithful, max_keys)
 
 
 def _other_keys(keys: tuple[int, ...], frames: tuple[int, ...], playback: str, where: str) -> None:

@@ -124,10 +124,12 @@ def read_clip_set(clips_dir: Path, read_arrays: bool = True) -> list[ClipEntry]:
 
 
 def identical_clips(clips: Sequence[ClipEntry]) -> dict[str, str]:
-    """Clip id -> the first clip of ``clips`` with the same arrays (itself for the first), e.g. a key reduction
-    that kept every key of its reference."""
-    first: dict[str, str] = {}
-    return {c.id: first.setdefault(c.digest, c.id) for c in clips}
+    """Clip id -> the first clip of ``clips`` of the same animation with the same arrays (itself for the first),
+    e.g. a key reduction that kept every key of its reference.  Only within an animation: a render job holds one
+    animation's clips, so a clip of another animation (say an upload of the same motion under another name) is
+    not there to render from (issue 36: ``KeyError: 'walk-hybrid2'``)."""
+    first: dict[tuple[str, str], str] = {}
+    return {c.id: first.setdefault((c.animation, c.digest), c.id) for c in clips}
 
 
 def _name(secret: bytes, key: str) -> str:
@@ -178,8 +180,8 @@ def plan(data_dir: Path, clips_dir: Path, out_dir: Path, settings: RenderSetting
     the clip set (``every_clip=False``: of the clips those pairs show; participants only ever see pairs, so the
     commands render no video of a clip no pair shows, and keep it where it exists and is up to date).
 
-    Clips with identical arrays (e.g. a key reduction that kept every key) share their outputs: a video is
-    planned, named and rendered once, from the first such clip of the clip set.
+    Clips of one animation with identical arrays (e.g. a key reduction that kept every key) share their outputs:
+    a video is planned, named and rendered once, from the first such clip of the animation.
 
     ``animations`` limits the plan to those animations' clips and pairs (default: all).
     """

@@ -17,9 +17,10 @@ from server.participants.assign import session_batches, sessions_started
 from server.participants.service import completion_times
 from server.stimuli import service as stimulus_sets
 from server.studies import scale
+from server.studies.design import Design
 from server.studies.interval_scale import study_scales
 from server.studies.models import Study
-from server.studies.screening import flagged_counts, opinion_array
+from server.studies.screening import RULES, flagged_counts, opinion_array, planned_calibration
 from server.studies.service import screening_rules
 from server.studies.statistics import analyse
 from server.studies.subject_model import fit
@@ -151,12 +152,23 @@ def study_results(session: Session, study: Study, benchmark_path: Path,
     results["without_screening"] = copy.deepcopy({k: plain[k] for k in ("participants", "comparisons", "overall",
                                                                        "side_bias", "krippendorff_alpha_ordinal")})
     rules = screening_rules(study)
+    calibration = next((r.calibration for r in records.values() if r.calibration), None)
+    if calibration is None and not records:  # before anyone finished: what the design will support, on the prior
+        design = Design.model_validate(study.design)
+        calibration = planned_calibration(len(design.animations) * design.pairs_per_animation(),
+                                          2 * design.repeats, rules)
     results["screening"] = {
         "rules": rules.rules, "settings": rules.model_dump(exclude={"rules"}),
         "catch_failures_allowed": study.recruitment.get("catch_failures_allowed", 0),
         "flagged": flagged_counts(records.values(), rules.rules),
         "excluded": [r.as_dict() for r in records.values() if r.screened_out],
         "participants": [r.as_dict() for r in records.values()],
+        # how the design-calibrated thresholds came about: the simulated good observers, each rule's threshold,
+        # false-flag rate and power, and which rules the design is too small for (None: fixed thresholds)
+        "calibration": calibration.as_dict() | {"planned": not records} if calibration else None,
+        "too_little_data": sorted({rule for r in records.values() for rule, v in r.results.items() if not v.judged}
+                                  if records else {r for r, c in (calibration.rules if calibration else {}).items()
+                                                   if not c.judged}, key=RULES.index),
     }
     results["subject_model"] = copy.deepcopy(_subject_model_cached(_analysed_tests(rows)))
     results["methods"]["exclusions"] = (

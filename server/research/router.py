@@ -117,7 +117,7 @@ def patch_study(slug: str, session: SessionDep, settings: SettingsDep, researche
     media, clips_dir, animations = None, settings.clips_dir, None
     if "design" in body:
         if (clips := study_clips(settings, study.id)) is not None:  # over its own clip set (data-dir motions)
-            place = pipeline.inline_place(settings, clips, "the study file")
+            place = pipeline.inline_place(settings, clips, "the study file", study.owner_id)
             media, clips_dir = render_manifest(settings, place.render_dir), place.clips_dir
         else:
             media = render_manifest(settings)

@@ -10,6 +10,7 @@ from server.db import Base, UTCDateTime, utcnow
 
 class Researcher(Base):
     __tablename__ = "researchers"
+    __table_args__ = ({"sqlite_autoincrement": True},)  # ids never reused (migration 0012): owners, shares
 
     id: Mapped[int] = mapped_column(primary_key=True)
     email: Mapped[str] = mapped_column(String(254), unique=True)

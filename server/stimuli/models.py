@@ -14,6 +14,7 @@ class StimulusSet(Base):
     sha256 of its canonical JSON, which names it.  Rows are never changed: another content is another row."""
 
     __tablename__ = "stimulus_sets"
+    __table_args__ = ({"sqlite_autoincrement": True},)  # ids never reused (migration 0012)
 
     id: Mapped[int] = mapped_column(primary_key=True)
     digest: Mapped[str] = mapped_column(String(64), unique=True)

@@ -28,6 +28,9 @@ class Study(Base):
     """A study: the sections of its study file (``studyfile.StudyFile``) as JSON, its state and its owner."""
 
     __tablename__ = "studies"
+    # Ids are never reused, on SQLite too (migration 0012): an id names the study's files, preview links, build
+    # jobs and the uploads other studies may be shown; a deleted draft's id must not become another's.
+    __table_args__ = ({"sqlite_autoincrement": True},)
 
     id: Mapped[int] = mapped_column(primary_key=True)
     slug: Mapped[str] = mapped_column(String(64), unique=True)

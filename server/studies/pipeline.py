@@ -15,7 +15,9 @@ A study file without ``[clips]`` uses the server's clip set (``<var>/clips``, it
 ``<var>/media``); one with ``[clips] set = "file.toml"`` gets the clip set of that file, kept in
 ``<var>/clipsets/<key>/`` (``key``: a hash of the file's path and content, so an edited file is another clip set);
 one with inline ``[clips]`` conditions and/or animations gets the default clip-set file with those replaced
-(``key``: a hash of the tables and the default file).
+(``key``: a hash of the study's owner, the tables and the default file: one researcher's inline clips are never
+another's).  A build or render of one clip set asks only for the pairs of studies whose clips it has
+(:func:`server.studies.service.pairs_in_use`).
 """
 
 from __future__ import annotations
@@ -68,23 +70,29 @@ def file_place(settings: Settings, config_path: Path) -> Place:
     return Place(base / "clips", base / "render", config)
 
 
-def inline_place(settings: Settings, clips: Clips, where: str) -> Place:
-    """The place of a clip set given inline (``[clips]`` conditions and/or animations over the default file)."""
+def inline_place(settings: Settings, clips: Clips, where: str, owner_id: int | None = None) -> Place:
+    """The place of a clip set given inline (``[clips]`` conditions and/or animations over the default file),
+    one per owner: a researcher's inline clips are built, rendered and listed apart from every other
+    researcher's, whatever they are named (``owner_id`` None: a study without owner, made on the server's
+    command line)."""
     config = inline_config(clips.animations, clips.conditions, where)
     tables = json.dumps({"animations": clips.animations, "conditions": clips.conditions}, sort_keys=True)
-    key = hashlib.sha256(b"inline\0" + tables.encode() + b"\0" + DEFAULT_CONFIG.read_bytes()).hexdigest()[:16]
+    owner = b"" if owner_id is None else f"owner {owner_id}\0".encode()
+    key = hashlib.sha256(b"inline\0" + owner + tables.encode() + b"\0" + DEFAULT_CONFIG.read_bytes()
+                         ).hexdigest()[:16]
     base = settings.var / CLIPSETS / key
     return Place(base / "clips", base / "render", config)
 
 
-def study_place(settings: Settings, study_file: StudyFile, study_path: Path | None) -> Place:
+def study_place(settings: Settings, study_file: StudyFile, study_path: Path | None,
+                owner_id: int | None = None) -> Place:
     """The clip set ``study_file`` uses: its ``[clips] set`` (relative to ``study_path``'s folder), its inline
-    ``[clips]``, or the server's."""
+    ``[clips]`` (``owner_id``'s: :func:`inline_place`), or the server's."""
     clips = study_file.clips
     if clips is None:
         return server_place(settings)
     if clips.set is None:
-        return inline_place(settings, clips, str(study_path or "the study file"))
+        return inline_place(settings, clips, str(study_path or "the study file"), owner_id)
     base = Path(study_path).parent if study_path is not None else Path.cwd()
     return file_place(settings, base / clips.set)
 
@@ -185,14 +193,15 @@ def render(settings: Settings, place: Place, wanted: list[tuple[str, str]], rend
 
 def prepare(settings: Settings, session: Session, study_file: StudyFile, study_path: Path | None = None,
             render_settings: RenderSettings | None = None, progress: Progress = lambda _m: None,
-            workers: int = 2, videos_done: Callable[[int, int], None] = lambda _d, _t: None
-            ) -> tuple[RenderManifest, Place]:
+            workers: int = 2, videos_done: Callable[[int, int], None] = lambda _d, _t: None,
+            owner_id: int | None = None) -> tuple[RenderManifest, Place]:
     """Build and render what ``study_file`` needs that is missing; returns the render manifest to create it over
-    and the place of its clip set (pass ``place.clips_dir`` to ``create_study``)."""
+    and the place of its clip set (pass ``place.clips_dir`` to ``create_study``); ``owner_id``: the study's
+    owner (whose inline ``[clips]`` they are)."""
     from server.clipset.build import build_clip_set
     from server.clipset.manifest import write_clip_set
 
-    place = study_place(settings, study_file, study_path)
+    place = study_place(settings, study_file, study_path, owner_id)
     if place.config is None:
         if not (place.clips_dir / MANIFEST).is_file():
             progress(f"building the server's clip set in {place.clips_dir}")

@@ -324,13 +324,16 @@ def export_columns(study: Study) -> list[str]:
     return base[:at] + [q["id"] for q in study.questions] + base[at:] + list(study.recruitment["parameters"])
 
 
-def pairs_in_use(session: Session) -> list[tuple[str, str]]:
-    """(left clip, right clip) of every pair video some study shows (rendering must keep them)."""
+def pairs_in_use(session: Session, clip_ids: Collection[str]) -> list[tuple[str, str]]:
+    """(left clip, right clip) of every pair video some study shows (rendering must keep them), as far as both
+    clips are among ``clip_ids`` (the clip set being rendered).  Studies over other clip sets (a study file's
+    ``[clips]``, another researcher's inline clips) show clips this one does not have: asking for those made
+    every other build and render fail, naming the other study's animation (issue 36)."""
     reference, test = aliased(Stimulus), aliased(Stimulus)
     rows = session.execute(select(reference.clip_id, test.clip_id)
                            .join(Comparison, Comparison.reference_id == reference.id)
                            .join(test, Comparison.test_id == test.id)).all()
-    return list(dict.fromkeys(p for r, t in rows for p in ((r, t), (t, r))))
+    return list(dict.fromkeys(p for r, t in rows if r in clip_ids and t in clip_ids for p in ((r, t), (t, r))))
 
 
 def pairs_to_render(session: Session, design: Design, clips_dir: Path, media_dir: Path) -> list[tuple[str, str]]:
@@ -340,7 +343,7 @@ def pairs_to_render(session: Session, design: Design, clips_dir: Path, media_dir
     index = clip_set_index(clips_dir)
     clip_ids = set(index.values())
     before = [p for p in rendered_pairs(media_dir) if set(p) <= clip_ids]
-    return list(dict.fromkeys([*pairs_in_use(session), *before, *required_pairs(design, index)]))
+    return list(dict.fromkeys([*pairs_in_use(session, clip_ids), *before, *required_pairs(design, index)]))
 
 
 def screening_rules(study: Study) -> Screening:

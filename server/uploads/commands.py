@@ -68,7 +68,7 @@ def render_job(settings: Settings, factory: sessionmaker[Session], params: dict[
             raise BuildError(f"{path}: {exc.detail}") from None
     # The studies' own pairs too, so that the render manifest (what new studies are made over) lists them.
     with factory() as session:
-        pairs = list(dict.fromkeys([*needed, *pairs_in_use(session)]))
+        pairs = list(dict.fromkeys([*needed, *pairs_in_use(session, set(clip_set_index(clips_dir).values()))]))
     try:
         render_media(settings.data, clips_dir, out, settings.secret, RenderSettings(**params["settings"]),
                      pairs=pairs, workers=params["workers"], every_clip=params["every_clip"],
@@ -96,7 +96,8 @@ def study_job(settings: Settings, factory: sessionmaker[Session], job_id: int, p
         owner = session.get(Researcher, params["owner_id"]) if params.get("owner_id") is not None else None
         session.commit()  # no transaction held while building: the job's progress is written meanwhile
         media, place = pipeline.prepare(settings, session, study_file, path, size,
-                                        progress=lambda m: progress(message=m), videos_done=rendering(progress))
+                                        progress=lambda m: progress(message=m), videos_done=rendering(progress),
+                                        owner_id=params.get("owner_id"))
         progress(stage="study", done=0, total=1, message=f"creating study {study_file.slug!r}")
         study = service.create_study(session, media, study_file, owner, media_dir=settings.media_dir,
                                      clips_dir=place.clips_dir)

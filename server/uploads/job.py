@@ -17,8 +17,10 @@ Stages (``build_jobs.stage``; ``done``/``total`` count each stage's steps):
 3. ``study``: the assets' animations are added to the study's design (its comparisons rebuilt over the videos).
 4. ``done`` (state ``done``), or state ``failed`` with ``error`` at the stage where it failed.
 
-One build runs at a time on a var directory (an ``flock`` on ``<assets dir>/.build.lock``): all share the clip
-set and the videos.
+Builds into one clip set take turns (an ``flock`` on ``<assets dir>/.build.lock`` for the server's clip set, which
+every upload goes into; on ``.build.lock`` beside an inline ``[clips]`` clip set, one per owner): a job whose
+clip set is busy waits for its turn.  The API starts one build per researcher and ``ANIMSTUDY_BUILDS_MAX`` in
+all (:func:`server.uploads.service.check_build_slot`).
 
 The same runner runs the jobs of the commands ``render`` and ``study create`` (``build_jobs.kind``;
 :mod:`server.uploads.commands`), and any job that ``animstudy serve`` resumes
@@ -41,7 +43,8 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.config import Settings
-from server.db import make_engine, session_factory, utcnow
+from server.db import make_engine, session_factory
+from server.errors import ServiceError
 from server.studies.models import Study, StudyState
 from server.studies.studyfile import Clips
 
@@ -102,10 +105,17 @@ def assets_config(assets: Sequence[StudyAsset], asset_file: Callable[[StudyAsset
     from server.clipset.config import clip_set_config
 
     animations = {a.name: {"kind": a.kind, "source": str(asset_file(a)), "frames": [a.first_frame, a.last_frame],
-                           **_reading(a, asset_file(a))} for a in assets}
+                           **_playback(a), **_reading(a, asset_file(a))} for a in assets}
     conditions = [{"id": cid, "method": method, **({"params": params} if params else {})}
                   for cid, method, params in base.conditions]
     return clip_set_config(animations, conditions, base.fps, base.relocate, base.character, "the study's assets")
+
+
+def _playback(asset: StudyAsset) -> dict[str, Any]:
+    """Kind ``other``: the playback inspecting the file suggested (a take that travels loops: played ping-pong it
+    would move backwards, and the build refuses that); the other kinds play as their kind does."""
+    playback = ((asset.report or {}).get("suggested") or {}).get("playback")
+    return {"playback": playback} if asset.kind == "other" and playback in ("loop", "pingpong") else {}
 
 
 def _reading(asset: StudyAsset, path: Path) -> dict[str, Any]:
@@ -168,17 +178,36 @@ def run(settings: Settings, factory: sessionmaker[Session], job_id: int,
         finish(progress, lambda: run_command(settings, factory, job_id, kind, params or {}, progress))
         return
     progress = Progress(factory, job_id, settings)
-    lock_path = settings.assets_dir / ".build.lock"
+    lock_path = build_lock(settings, factory, job_id)
     lock_path.parent.mkdir(parents=True, exist_ok=True)
     with lock_path.open("w") as lock:
         try:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            progress(state=BuildState.failed, error="another build is running on this server; start again when it "
-                     "has finished", finished_at=utcnow())
-            return
+            # Another build into the same clip set: this one takes its turn after it (the API allows one build
+            # per researcher and ANIMSTUDY_BUILDS_MAX in all), instead of failing and being refused again.
+            progress(message="waiting for another build into the same clip set to finish")
+            fcntl.flock(lock, fcntl.LOCK_EX)
         progress(state=BuildState.running, stage="building", message="reading the assets", pid=os.getpid())
         finish(progress, lambda: _run(settings, factory, job_id, progress))
+
+
+def build_lock(settings: Settings, factory: sessionmaker[Session], job_id: int) -> Path:
+    """The lock that builds into one clip set take turns on: beside the study's own clip set (inline
+    ``[clips]``, one per owner), or the server's (every upload goes into it)."""
+    from server.studies import pipeline
+
+    with factory() as session:
+        job = session.get(BuildJob, job_id)
+        study = session.get(Study, job.study_id) if job is not None and job.study_id is not None else None
+        owner_id = study.owner_id if study is not None else None
+    try:
+        clips = study_clips(settings, study.id) if study is not None else None
+        if clips is not None:
+            return pipeline.inline_place(settings, clips, "the study file", owner_id).clips_dir.parent / ".build.lock"
+    except (ValueError, ServiceError):  # unreadable [clips]: the build itself says so, under the server's lock
+        pass
+    return settings.assets_dir / ".build.lock"
 
 
 def draft(session: Session, study_id: int) -> Study:
@@ -279,8 +308,9 @@ def _run_clips(settings: Settings, factory: sessionmaker[Session], study_id: int
     from server.studies.service import show_design
 
     with factory() as session:
-        design = Design.model_validate(draft(session, study_id).design)
-    place = pipeline.inline_place(settings, clips, "the study file")
+        study = draft(session, study_id)
+        design, owner_id = Design.model_validate(study.design), study.owner_id
+    place = pipeline.inline_place(settings, clips, "the study file", owner_id)
     if place.config is None:  # an inline clip set is always described: not reached
         raise BuildError("the study's [clips] describe no clip set")
     progress(stage="building", done=0, total=len(design.animations), message="building the clips the design needs")

@@ -18,7 +18,8 @@ class StudyAsset(Base):
 
     __tablename__ = "study_assets"
     __table_args__ = (UniqueConstraint("study_id", "filename", name="uq_study_assets_filename"),
-                      UniqueConstraint("study_id", "name", name="uq_study_assets_name"))
+                      UniqueConstraint("study_id", "name", name="uq_study_assets_name"),
+                      {"sqlite_autoincrement": True})  # ids never reused (migration 0012)
 
     id: Mapped[int] = mapped_column(primary_key=True)
     study_id: Mapped[int] = mapped_column(ForeignKey("studies.id", ondelete="CASCADE"), index=True)
@@ -54,6 +55,7 @@ class BuildJob(Base):
     failed until then); ``params`` what a command's job runs (again, when resumed)."""
 
     __tablename__ = "build_jobs"
+    __table_args__ = ({"sqlite_autoincrement": True},)  # ids never reused (migration 0012): a job's log is named by it
 
     id: Mapped[int] = mapped_column(primary_key=True)
     kind: Mapped[str] = mapped_column(String(16), default=JobKind.upload, server_default=JobKind.upload.value)
@@ -78,7 +80,8 @@ class AnimationShare(Base):
 
     __tablename__ = "animation_shares"
     __table_args__ = (UniqueConstraint("study_id", "animation", "researcher_id",
-                                       name="uq_animation_shares_study_id"),)
+                                       name="uq_animation_shares_study_id"),
+                      {"sqlite_autoincrement": True})  # ids never reused (migration 0012)
 
     id: Mapped[int] = mapped_column(primary_key=True)
     study_id: Mapped[int] = mapped_column(ForeignKey("studies.id", ondelete="CASCADE"), index=True)

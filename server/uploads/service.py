@@ -132,7 +132,8 @@ def report_json(report: Any, motions: list[str]) -> dict[str, Any]:
             "units": n.units, "metres_per_unit": n.metres_per_unit, "up_axis": n.up_axis, "notes": list(n.notes),
             "fps": report.fps, "frames": report.n_frames, "duration_s": report.duration,
             "contacts": {k: [list(p) for p in v] for k, v in report.contacts.items()},
-            "suggested": {"kind": report.kind, "frames": list(report.frames), "reason": report.reason},
+            "suggested": {"kind": report.kind, "frames": list(report.frames), "reason": report.reason,
+                          "playback": report.playback},
             "mapping": [{"joint": d.canonical, "source": d.source, "reason": d.reason} for d in m.decisions],
             "unmapped": list(m.unmapped)}
 
@@ -446,21 +447,28 @@ def job_environment(settings: Settings, engine: Engine) -> dict[str, str]:
     return env
 
 
-def check_no_build(session: Session) -> None:
-    """409 while a build (of any study: they share the clip sets and the videos) is running."""
+def check_build_slot(session: Session, settings: Settings, owner_id: int | None) -> None:
+    """409 while the researcher ``owner_id`` has a build running (one at a time each, naming their own study),
+    or while the server runs ``ANIMSTUDY_BUILDS_MAX`` builds (naming none: they may be other researchers').
+    Builds into one clip set take turns in the job (:func:`server.uploads.job.run`), so one researcher's long
+    build never refuses another's."""
     running = active_jobs(session)
-    if running:
-        slug = session.get(Study, running[0].study_id)
-        raise Conflict(f"a build is running (study {slug.slug if slug else '?'!r}); wait until it has finished")
+    studies = {s.id: s for s in session.scalars(select(Study).where(Study.id.in_([j.study_id for j in running])))}
+    own = [studies[j.study_id] for j in running if j.study_id in studies and studies[j.study_id].owner_id == owner_id]
+    if own:
+        raise Conflict(f"your build of study {own[0].slug!r} is running; wait until it has finished")
+    if len(running) >= settings.builds_max:
+        raise Conflict(f"the server is running as many builds as it allows ({settings.builds_max}); try again in "
+                       "a few minutes")
 
 
 def start_build(session: Session, settings: Settings, engine: Engine, study: Study) -> BuildJob:
     """Queue the build of the study's assets (or of the ``[clips]`` it was created with, :func:`study_clips`)
     and start its process (``python -m server.uploads.job ID``); 409 if the study has nothing to build or a build
-    is running."""
+    is running (:func:`check_build_slot`)."""
     if not list_assets(session, study) and not study_clips_path(settings, study.id).is_file():
         raise Conflict(f"study {study.slug!r} has no assets to build; upload a BVH or glTF file first")
-    check_no_build(session)
+    check_build_slot(session, settings, study.owner_id)
     return _launch(session, settings, engine, study)
 
 
@@ -562,7 +570,7 @@ def create_building(session: Session, settings: Settings, engine: Engine, study_
         raise Unprocessable("clips.set: a clip-set file names files on the server; through the API give the "
                             "clip set inline ([[clips.conditions]] and/or [clips.animations.<name>], motions from "
                             "the server's data directory), or run `animstudy study create FILE` on the server")
-    check_no_build(session)
+    check_build_slot(session, settings, owner.id)
     try:
         config = inline_config(clips.animations, clips.conditions, "the study file")
     except ConfigError as exc:
