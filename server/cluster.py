@@ -107,8 +107,10 @@ def dask_client(scheduler: str | None, workers: int | None = None) -> Iterator[C
     # their pipes): its ports on 127.0.0.1 are open to every user of the machine, and a Dask scheduler runs any
     # code it is sent.  Without the certificate nobody connects (docs/cluster.md).
     security = Security.temporary()
+    # Only critical worker logs: a task's failure ("Compute Failed", logged at ERROR with its traceback) reaches the
+    # caller as the task's own exception, which every command reports as one line (issue 37).
     cluster = LocalCluster(n_workers=workers or machine_workers(), threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=logging.ERROR, security=security,
+                           dashboard_address=None, silence_logs=logging.CRITICAL, security=security,
                            protocol="tls://")
     client = Client(cluster, security=security, set_as_default=False)
     try:
