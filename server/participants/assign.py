@@ -7,22 +7,29 @@ pairs its session was given (its stored trials) and the information they promise
 
 from __future__ import annotations
 
+import hashlib
+import json
 from collections import defaultdict
+from collections.abc import Iterable
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
+import numpy as np
 from sqlalchemy import Select, func, select
 from sqlalchemy.orm import Session, aliased
 
-from server.studies.adaptive import information_gain, posterior
+from server.studies.adaptive import counts_posterior, information_gain, vote_counts
 from server.studies.assign import adaptive_batches, incomplete_pairs, pair_comparisons
 from server.studies.design import ComparisonIds, Design
 from server.studies.models import Comparison, ComparisonKind, Stimulus, Study
 from server.studies.ranking import GradedComparison
 from server.studies.service import comparison_ids
+from server.studies.statistics import counted
 
-from .models import ParticipantSession, Trial, Vote
+from .models import ParticipantSession, SessionState, Trial, Vote
+
+_REFERENCE, _TEST = aliased(Stimulus), aliased(Stimulus)  # a comparison's two stimuli
 
 
 def sessions_started(session: Session, study: Study) -> int:
@@ -42,16 +49,75 @@ def _test_trials(study: Study, *columns: Any) -> Select:
                    Trial.practice.is_(False)))
 
 
+# (study, its screening settings, the sessions that had finished) -> the sessions screened out; see screened_out
+_SCREENED_OUT: dict[tuple[int, str, str], frozenset[str]] = {}
+
+
+def _finished_key(study: Study, finished: Iterable[str]) -> tuple[int, str, str]:
+    settings = json.dumps([study.screening, study.recruitment], sort_keys=True, default=str)
+    return study.id, settings, hashlib.sha256("\n".join(sorted(finished)).encode()).hexdigest()
+
+
+def screened_out(session: Session, study: Study) -> frozenset[str]:
+    """The sessions of ``study`` its screening rules leave out of the results (pilot sessions not screened with
+    them, as in the results).
+
+    The rules look only at finished sessions (``screening.screen``), whose votes no longer change (a withdrawal
+    deletes them and the session is no longer finished), so the answer is a pure function of the study's settings
+    and which sessions had finished: it is remembered by those, and stays right on every server instance sharing
+    the database.  A session finishing costs one screening pass (the results' own) at the next new session."""
+    finished = session.scalars(select(ParticipantSession.id).where(
+        ParticipantSession.study_id == study.id, ParticipantSession.state == SessionState.completed,
+        ParticipantSession.pilot.is_(False))).all()
+    key = _finished_key(study, finished)
+    if key not in _SCREENED_OUT:
+        # Imported here: the export reads the votes through participants.service, which assigns a new session's
+        # comparisons through this module.
+        from server.research.export import screened_rows
+
+        records = screened_rows(session, study)[1]
+        if len(_SCREENED_OUT) >= 64:
+            _SCREENED_OUT.clear()
+        # Keyed by the sessions the records were made from: a session that finished between the two reads
+        # must not file them under the newer set.
+        _SCREENED_OUT[_finished_key(study, records)] = frozenset(s for s, r in records.items() if r.screened_out)
+        return _SCREENED_OUT[_finished_key(study, records)]
+    return _SCREENED_OUT[key]
+
+
+@dataclass(frozen=True)
+class CountedVote:
+    animation: str
+    vote: GradedComparison
+    answered_at: datetime
+
+
+def counted_votes(session: Session, study: Study) -> list[CountedVote]:
+    """The votes of ``study`` that its results count (``statistics.counted``: test votes of participants not
+    screened out; no pilot sessions), in the order they were answered: what the adaptive design plans on."""
+    excluded = screened_out(session, study)
+    query = (select(Trial.session_id, Trial.practice, Comparison.kind, Vote.answered_at, Vote.score,
+                    _REFERENCE.animation, _REFERENCE.condition, _TEST.condition)
+             .select_from(Vote).join(Trial, Vote.trial_id == Trial.id)
+             .join(ParticipantSession, Trial.session_id == ParticipantSession.id)
+             .join(Comparison, Trial.comparison_id == Comparison.id)
+             .join(_REFERENCE, Comparison.reference_id == _REFERENCE.id).join(_TEST, Comparison.test_id == _TEST.id)
+             .where(Comparison.study_id == study.id, ParticipantSession.pilot.is_(False))
+             .order_by(Vote.answered_at, Vote.id))
+    return [CountedVote(animation, GradedComparison(sid, ref, tst, score), answered_at)
+            for sid, practice, kind, answered_at, score, animation, ref, tst in session.execute(query)
+            if counted({"practice": practice, "catch": kind == ComparisonKind.catch,
+                        "outcome": "screened_out" if sid in excluded else None})]
+
+
 def study_votes(session: Session, study: Study, before: datetime | None = None
                 ) -> dict[str, list[GradedComparison]]:
-    """The test votes of ``study`` per animation (practice excluded), optionally only those answered before
-    ``before``."""
-    query = _test_trials(study, Vote.score).join(Vote, Vote.trial_id == Trial.id).order_by(Vote.id)
-    if before is not None:
-        query = query.where(Vote.answered_at < before)
+    """The counted votes (:func:`counted_votes`) of ``study`` per animation, optionally only those answered
+    before ``before``."""
     out: dict[str, list[GradedComparison]] = defaultdict(list)
-    for sid, animation, ref, tst, score in session.execute(query):
-        out[animation].append(GradedComparison(sid, ref, tst, score))
+    for v in counted_votes(session, study):
+        if before is None or v.answered_at < before:
+            out[v.animation].append(v.vote)
     return out
 
 
@@ -86,22 +152,34 @@ class Round:
 
 def session_batches(session: Session, study: Study) -> list[Round]:
     """Every session of an adaptive study, in order: the pairs it was given (from its trials, which stay when a
-    participant withdraws) and their expected information gain given the votes stored before it started (a
-    withdrawal deletes votes, so a round after one can show less information than it promised then)."""
+    participant withdraws) and their expected information gain given the votes counted now that were answered
+    before it started (a withdrawal deletes votes and a participant screened out later no longer counts, so a
+    round can show other information than it promised then).
+
+    One pass: the sessions in the order they started, each round's vote counts those of the round before plus the
+    votes answered in between, and the posterior a pure function of the counts (``adaptive.counts_posterior``,
+    remembered), so a request refits only the rounds whose votes changed since the last one."""
     design = Design.model_validate(study.design)
     conditions = design.all_conditions()
     index = {c: i for i, c in enumerate(conditions)}
     given: dict[str, dict[str, set[tuple[str, str]]]] = defaultdict(lambda: defaultdict(set))
     for sid, animation, ref, tst in session.execute(_test_trials(study)):
         given[sid][animation].add(tuple(sorted((ref, tst), key=index.__getitem__)))
+    votes = counted_votes(session, study)
+    counts = {a: np.zeros((len(conditions), len(conditions), 5), dtype=np.int64) for a in design.animations}
+    seen = 0
     rounds = []
     for ps in session.scalars(select(ParticipantSession).where(ParticipantSession.study_id == study.id)
                               .order_by(ParticipantSession.created_at, ParticipantSession.id)):
-        votes = study_votes(session, study, before=ps.created_at)
+        while seen < len(votes) and votes[seen].answered_at < ps.created_at:
+            v = votes[seen]
+            if v.animation in counts:
+                counts[v.animation] += vote_counts([v.vote], conditions)
+            seen += 1
         pairs = {a: sorted(given[ps.id][a], key=lambda p: (index[p[0]], index[p[1]])) for a in design.animations}
         information = {}
         for a, shown in pairs.items():
-            post = posterior(votes.get(a, []), conditions)
+            post = counts_posterior(counts[a], tuple(conditions))
             information[a] = float(sum(information_gain(post, index[x], index[y]) for x, y in shown))
-        rounds.append(Round(ps.id, ps.created_at, sum(len(v) for v in votes.values()), information, pairs))
+        rounds.append(Round(ps.id, ps.created_at, seen, information, pairs))
     return rounds

@@ -27,6 +27,7 @@ import numpy as np
 from scipy import optimize
 
 from .ranking import GradedComparison, _cdf_pdf, _scores, rank_conditions
+from .statistics import counted
 
 BOOT_PRIOR_SD = 10.0
 N_BOOT = 200
@@ -138,7 +139,7 @@ def animation_scale(animation: str, votes: Sequence[GradedComparison], condition
 def study_scales(rows: Sequence[dict], conditions: Sequence[str], n_boot: int = N_BOOT) -> list[dict]:
     """The scale of every animation from a study's export rows (practice, catch and screened-out participants'
     votes left out, as in the statistics); ``conditions``: the design's, the reference first."""
-    analysed = [r for r in rows if not r["practice"] and not r["catch"] and r["outcome"] != "screened_out"]
+    analysed = [r for r in rows if counted(r)]
     out = []
     for animation in sorted({r["animation"] for r in analysed}):
         votes = [GradedComparison(r["session_id"], r["reference_condition"], r["test_condition"], r["score"])
