@@ -7,11 +7,9 @@ pairs its session was given (its stored trials) and the information they promise
 
 from __future__ import annotations
 
-import hashlib
-import json
+import threading
 from collections import defaultdict
-from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
 
@@ -49,40 +47,52 @@ def _test_trials(study: Study, *columns: Any) -> Select:
                    Trial.practice.is_(False)))
 
 
-# (study, its screening settings, the sessions that had finished) -> the sessions screened out; see screened_out
-_SCREENED_OUT: dict[tuple[int, str, str], frozenset[str]] = {}
+@dataclass
+class _Finished:
+    """The export rows of a study's finished sessions, which no longer change, and its comparisons' playback."""
+
+    rows: dict[str, list[dict[str, Any]]] = field(default_factory=dict)  # session id -> its rows
+    playback: dict[tuple[str, str, str], float] = field(default_factory=dict)
+    lock: threading.Lock = field(default_factory=threading.Lock)
 
 
-def _finished_key(study: Study, finished: Iterable[str]) -> tuple[int, str, str]:
-    settings = json.dumps([study.screening, study.recruitment], sort_keys=True, default=str)
-    return study.id, settings, hashlib.sha256("\n".join(sorted(finished)).encode()).hexdigest()
+_FINISHED: dict[int, _Finished] = {}  # study id -> its finished sessions' rows, for the last few studies
 
 
 def screened_out(session: Session, study: Study) -> frozenset[str]:
     """The sessions of ``study`` its screening rules leave out of the results (pilot sessions not screened with
-    them, as in the results).
+    them, as in the results): the results' own screening (``export.screen_rows``) of the finished sessions.
 
     The rules look only at finished sessions (``screening.screen``), whose votes no longer change (a withdrawal
-    deletes them and the session is no longer finished), so the answer is a pure function of the study's settings
-    and which sessions had finished: it is remembered by those, and stays right on every server instance sharing
-    the database.  A session finishing costs one screening pass (the results' own) at the next new session."""
-    finished = session.scalars(select(ParticipantSession.id).where(
-        ParticipantSession.study_id == study.id, ParticipantSession.state == SessionState.completed,
-        ParticipantSession.pilot.is_(False))).all()
-    key = _finished_key(study, finished)
-    if key not in _SCREENED_OUT:
-        # Imported here: the export reads the votes through participants.service, which assigns a new session's
-        # comparisons through this module.
-        from server.research.export import screened_rows
+    deletes them and the session is no longer finished), so their export rows are remembered and only the
+    sessions finished since are read; the rows kept are those of the sessions the database says are finished, so
+    the answer is the same on every server instance sharing it.  Screening itself runs each time: the panel rules
+    compare every finished participant with all the others."""
+    # Imported here: the export reads the votes through participants.service, which assigns a new session's
+    # comparisons through this module.
+    from server.research.export import screen_rows, vote_rows
 
-        records = screened_rows(session, study)[1]
-        if len(_SCREENED_OUT) >= 64:
-            _SCREENED_OUT.clear()
-        # Keyed by the sessions the records were made from: a session that finished between the two reads
-        # must not file them under the newer set.
-        _SCREENED_OUT[_finished_key(study, records)] = frozenset(s for s, r in records.items() if r.screened_out)
-        return _SCREENED_OUT[_finished_key(study, records)]
-    return _SCREENED_OUT[key]
+    finished = set(session.scalars(select(ParticipantSession.id).where(
+        ParticipantSession.study_id == study.id, ParticipantSession.state == SessionState.completed,
+        ParticipantSession.pilot.is_(False))).all())
+    if study.id not in _FINISHED and len(_FINISHED) >= 8:
+        _FINISHED.pop(next(iter(_FINISHED)))
+    cache = _FINISHED.setdefault(study.id, _Finished())
+    with cache.lock:
+        for gone in set(cache.rows) - finished:  # withdrawn (or, after SQLite reused an id, another study's)
+            del cache.rows[gone]
+        new = finished - set(cache.rows)
+        if new:
+            rows, playback = vote_rows(session, study, sessions=new)
+            cache.rows.update({sid: [] for sid in new})
+            for row in rows:  # a session withdrawn since the first read has no rows left
+                if row["session_state"] == SessionState.completed:
+                    cache.rows[row["session_id"]].append(row)
+            cache.playback.update(playback)
+        rows = [row for kept in cache.rows.values() for row in kept]
+        playback = dict(cache.playback)
+    records = screen_rows(study, rows, playback)
+    return frozenset(sid for sid, record in records.items() if record.screened_out)
 
 
 @dataclass(frozen=True)
@@ -104,10 +114,16 @@ def counted_votes(session: Session, study: Study) -> list[CountedVote]:
              .join(_REFERENCE, Comparison.reference_id == _REFERENCE.id).join(_TEST, Comparison.test_id == _TEST.id)
              .where(Comparison.study_id == study.id, ParticipantSession.pilot.is_(False))
              .order_by(Vote.answered_at, Vote.id))
-    return [CountedVote(animation, GradedComparison(sid, ref, tst, score), answered_at)
-            for sid, practice, kind, answered_at, score, animation, ref, tst in session.execute(query)
-            if counted({"practice": practice, "catch": kind == ComparisonKind.catch,
-                        "outcome": "screened_out" if sid in excluded else None})]
+    verdicts: dict[tuple[bool, str, bool], bool] = {}  # counted() of each kind of vote: a few, not one per vote
+    out = []
+    for sid, practice, kind, answered_at, score, animation, ref, tst in session.execute(query):
+        key = (practice, kind, sid in excluded)
+        if key not in verdicts:
+            verdicts[key] = counted({"practice": practice, "catch": kind == ComparisonKind.catch,
+                                     "outcome": "screened_out" if key[2] else None})
+        if verdicts[key]:
+            out.append(CountedVote(animation, GradedComparison(sid, ref, tst, score), answered_at))
+    return out
 
 
 def study_votes(session: Session, study: Study, before: datetime | None = None
