@@ -237,3 +237,26 @@ def test_results_rounds_equal_todays_computation(db, monkeypatch):
             post = _per_vote_posterior(votes.get(animation, []), conditions)
             expected = sum(information_gain(post, index[x], index[y]) for x, y in pairs)
             assert got["information"][animation] == pytest.approx(expected, abs=TOLERANCE)
+
+
+def test_scale_bootstrap_from_counts_equals_the_per_vote_resamples():
+    """The scale's bootstrap (the rest of a results request that grew with the votes) fits each resample over the
+    cells (pair, answer) with counts; today's fitted every resampled vote.  Same intervals to ``TOLERANCE``."""
+    from server.studies import interval_scale
+
+    conditions = ["keyframe", "a", "b", "c", "d", "e"]
+    design = Design(mode="all-pairs", reference="keyframe", conditions=conditions[1:], animations=["walk"])
+    votes = simulate(design, {c: 0.5 * i for i, c in enumerate(conditions)}, 30, seed=4).votes["walk"]
+    got = interval_scale.animation_scale("walk", votes, conditions, n_boot=40)
+    used = [v for v in votes if v.reference != v.test]
+    people = list(dict.fromkeys(v.participant for v in used))
+    x, y = interval_scale._design(used, conditions)
+    rows = {p: [i for i, v in enumerate(used) if v.participant == p] for p in people}
+    start = interval_scale._ridge(x, y, None, np.ones(len(y)))
+    samples = np.zeros((40, len(conditions)))
+    for b, draw in enumerate(interval_scale.bootstrap_draws(people, 40, 0)):
+        take = np.concatenate([rows[people[i]] for i in draw])
+        samples[b, 1:] = interval_scale._ridge(x[take], y[take], start, np.ones(take.size))[: len(conditions) - 1]
+    low, high = np.percentile(samples, [2.5, 97.5], axis=0)
+    for i, interval in enumerate(got.ci95[1:], start=1):
+        assert interval == pytest.approx((low[i], high[i]), abs=TOLERANCE)
