@@ -56,7 +56,9 @@ class _Finished:
     lock: threading.Lock = field(default_factory=threading.Lock)
 
 
-_FINISHED: dict[int, _Finished] = {}  # study id -> its finished sessions' rows, for the last few studies
+# (study id, slug, creation time) -> its finished sessions' rows, for the last few studies: not the id alone, which
+# SQLite can give a new study after a deletion
+_FINISHED: dict[tuple[int, str, datetime], _Finished] = {}
 
 
 def screened_out(session: Session, study: Study) -> frozenset[str]:
@@ -75,11 +77,12 @@ def screened_out(session: Session, study: Study) -> frozenset[str]:
     finished = set(session.scalars(select(ParticipantSession.id).where(
         ParticipantSession.study_id == study.id, ParticipantSession.state == SessionState.completed,
         ParticipantSession.pilot.is_(False))).all())
-    if study.id not in _FINISHED and len(_FINISHED) >= 8:
+    key = (study.id, study.slug, study.created_at)
+    if key not in _FINISHED and len(_FINISHED) >= 8:
         _FINISHED.pop(next(iter(_FINISHED)))
-    cache = _FINISHED.setdefault(study.id, _Finished())
+    cache = _FINISHED.setdefault(key, _Finished())
     with cache.lock:
-        for gone in set(cache.rows) - finished:  # withdrawn (or, after SQLite reused an id, another study's)
+        for gone in set(cache.rows) - finished:  # withdrawn
             del cache.rows[gone]
         new = finished - set(cache.rows)
         if new:
