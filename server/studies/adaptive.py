@@ -33,6 +33,8 @@ the study's vote log (the votes answered before the session started) and the ses
 
 from __future__ import annotations
 
+import hashlib
+import threading
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from itertools import combinations
@@ -107,18 +109,25 @@ def counts_posterior(counts: np.ndarray, conditions: tuple[str, ...]) -> Posteri
     """:func:`posterior` from the votes' :func:`vote_counts`.  A pure function of the counts, remembered for the
     last ``POSTERIORS`` of them: the dashboard replays every adaptive round, and all but the newest rounds saw the
     same votes as at the last request."""
-    key = (conditions, counts.tobytes())
-    post = _POSTERIORS.get(key)
-    if post is None:
-        post = _fit(counts, conditions)
-        if len(_POSTERIORS) >= POSTERIORS:
-            _POSTERIORS.pop(next(iter(_POSTERIORS)))  # the oldest: rounds are replayed in order
+    key = (conditions, hashlib.sha256(counts.tobytes()).digest())
+    with _POSTERIORS_LOCK:
+        post = _POSTERIORS.pop(key, None)
+        if post is not None:
+            _POSTERIORS[key] = post  # the most recently used last
+            return post
+    post = _fit(counts, conditions)
+    with _POSTERIORS_LOCK:
         _POSTERIORS[key] = post
+        while len(_POSTERIORS) > POSTERIORS:
+            _POSTERIORS.pop(next(iter(_POSTERIORS)))  # the least recently used
     return post
 
 
-POSTERIORS = 20_000  # ~ every round of two studies of 10,000 participants; ~3 kB each at six conditions
+# Every round of studies with 20,000 sessions x animations in all (~0.8 kB each at six conditions); a study with
+# more rounds than that is refitted in full at every request, as all of them were before issue 36.
+POSTERIORS = 20_000
 _POSTERIORS: dict[tuple[tuple[str, ...], bytes], Posterior] = {}
+_POSTERIORS_LOCK = threading.Lock()
 
 
 def _fit(counts: np.ndarray, conditions: tuple[str, ...]) -> Posterior:
