@@ -122,6 +122,13 @@ def test_the_design_counts_exactly_the_votes_the_results_count(db, monkeypatch):
     got = Counter((v.vote.participant, v.animation, v.vote.reference, v.vote.test, v.vote.score)
                   for v in counted_votes(db, study))
     assert got == expected and len({k[0] for k in got}) == 2
+    # The same when the finished sessions are read with all the others (as a new server process reads many).
+    from server.participants import assign
+
+    assign._FINISHED.clear()
+    monkeypatch.setattr(assign, "NAMED_SESSIONS", 0)
+    assert Counter((v.vote.participant, v.animation, v.vote.reference, v.vote.test, v.vote.score)
+                   for v in counted_votes(db, study)) == expected
     assert sum(len(v) for v in study_votes(db, study).values()) == sum(expected.values())
 
 

@@ -56,6 +56,9 @@ class _Finished:
     lock: threading.Lock = field(default_factory=threading.Lock)
 
 
+# Finished sessions read by name at most; more (the first read) are read with all the others: a statement has room
+# for only so many parameters.
+NAMED_SESSIONS = 500
 # (study id, slug, creation time) -> its finished sessions' rows, for the last few studies: not the id alone, which
 # SQLite can give a new study after a deletion
 _FINISHED: dict[tuple[int, str, datetime], _Finished] = {}
@@ -86,10 +89,10 @@ def screened_out(session: Session, study: Study) -> frozenset[str]:
             del cache.rows[gone]
         new = finished - set(cache.rows)
         if new:
-            rows, playback = vote_rows(session, study, sessions=new)
+            rows, playback = vote_rows(session, study, sessions=new if len(new) <= NAMED_SESSIONS else None)
             cache.rows.update({sid: [] for sid in new})
             for row in rows:  # a session withdrawn since the first read has no rows left
-                if row["session_state"] == SessionState.completed:
+                if row["session_id"] in new and row["session_state"] == SessionState.completed:
                     cache.rows[row["session_id"]].append(row)
             cache.playback.update(playback)
         rows = [row for kept in cache.rows.values() for row in kept]
