@@ -1,8 +1,9 @@
 """Which comparisons a new session shows (:mod:`server.studies.assign` chooses the pairs by the design's mode).
 
 The choices are pure functions of what is stored (the session's seed, its position among the study's sessions,
-the votes and when they were answered).  :func:`session_batches` shows every adaptive round afterwards with the
-pairs its session was given (its stored trials) and the information they promised given the votes before it.
+the votes the results count and when they were answered).  :func:`session_batches` shows every adaptive round
+afterwards with the pairs its session was given (its stored trials) and the information they promised given the
+votes before it.
 """
 
 from __future__ import annotations
@@ -56,8 +57,8 @@ class _Finished:
     lock: threading.Lock = field(default_factory=threading.Lock)
 
 
-# Finished sessions read by name at most; more (the first read) are read with all the others: a statement has room
-# for only so many parameters.
+# At most this many newly finished sessions are read by name; more (a new server process's first read) are read
+# with all the others, as a statement has room for only so many parameters.
 NAMED_SESSIONS = 500
 # (study id, slug, creation time) -> its finished sessions' rows, for the last few studies: not the id alone, which
 # SQLite can give a new study after a deletion
