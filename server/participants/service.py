@@ -417,10 +417,12 @@ def completion_times(session: Session, study: Study, include_pilot: bool = False
                                          *([] if include_pilot else [ParticipantSession.pilot.is_(False)])))]
 
 
-def vote_records(session: Session, study: Study, include_pilot: bool = False) -> Iterator[Row[Any]]:
-    """Every vote of ``study`` in session and trial order, with its trial, its session and what the comparison
-    showed (kind; reference animation and condition, test condition; both clips, videos, frames and fps; the two
-    pair videos): the rows :func:`server.research.export.screened_rows` turns into the export."""
+def vote_records(session: Session, study: Study, include_pilot: bool = False,
+                 sessions: Collection[str] | None = None) -> Iterator[Row[Any]]:
+    """Every vote of ``study`` (of ``sessions`` only, if given) in session and trial order, with its trial, its
+    session and what the comparison showed (kind; reference animation and condition, test condition; both clips,
+    videos, frames and fps; the two pair videos): the rows :func:`server.research.export.screened_rows` turns into
+    the export."""
     reference, test = aliased(Stimulus), aliased(Stimulus)
     query = (
         select(Vote, Trial, ParticipantSession, Comparison.kind, reference.animation, reference.condition,
@@ -437,4 +439,6 @@ def vote_records(session: Session, study: Study, include_pilot: bool = False) ->
     )
     if not include_pilot:
         query = query.where(ParticipantSession.pilot.is_(False))
+    if sessions is not None:
+        query = query.where(ParticipantSession.id.in_(sessions))
     yield from session.execute(query)

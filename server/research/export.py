@@ -6,7 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import unicodedata
-from collections.abc import Iterator
+from collections.abc import Collection, Iterable, Iterator
 from typing import Any
 
 from sqlalchemy.orm import Session
@@ -71,6 +71,29 @@ def screened_rows(session: Session, study: Study, include_pilot: bool = False
                   ) -> tuple[list[dict[str, Any]], dict[str, ParticipantScreening]]:
     """The export rows (see :func:`export_rows`) and every completed participant's screening record, by the
     study's ``[screening]`` rules (``screening.screen``).  Pilot sessions only with ``include_pilot``."""
+    rows, playback = vote_rows(session, study, include_pilot)
+    records = screen_rows(study, rows, playback)
+    for row in rows:
+        record = records.get(row["session_id"])
+        if record is not None:  # a completed session
+            row["outcome"] = "screened_out" if record.screened_out else "completed"
+            row["screened_by"] = ";".join(record.flagged_by) or None
+    return rows, records
+
+
+Playback = dict[tuple[str, str, str], float]
+
+
+def screen_rows(study: Study, rows: Iterable[dict[str, Any]], playback: Playback
+                ) -> dict[str, ParticipantScreening]:
+    """The screening record of every completed participant of ``rows`` (:func:`vote_rows`) by the study's rules."""
+    return screen(rows, screening_rules(study), recruitment(study).catch_failures_allowed, playback)
+
+
+def vote_rows(session: Session, study: Study, include_pilot: bool = False, sessions: Collection[str] | None = None
+              ) -> tuple[list[dict[str, Any]], Playback]:
+    """The export rows before screening (``outcome`` and ``screened_by`` empty), of the given ``sessions`` only if
+    given, and the duration of one playback of each comparison's pair video (ms, the ``fast`` rule's)."""
     questions = [q["id"] for q in study.questions]
     parameters = list(study.recruitment["parameters"])
     pinned = study.stimulus_set
@@ -80,10 +103,10 @@ def screened_rows(session: Session, study: Study, include_pilot: bool = False
     unfaithful = {c.id for c in content.clips if c.metrics.get("unfaithful")} if content is not None else set()
     mode = study.design.get("mode", "reference")  # designs stored before issue 27 have no mode
     rows: list[dict[str, Any]] = []
-    playback: dict[tuple[str, str, str], float] = {}
+    playback: Playback = {}
     for (vote, trial, ps, kind, animation, ref_condition, test_condition, ref_clip, test_clip, ref_video, test_video,
          pair_ref_left, pair_ref_right, ref_frames, ref_fps, test_frames, test_fps) in vote_records(session, study,
-                                                                                         include_pilot):
+                                                                                         include_pilot, sessions):
         # one playback of the pair video: until the longer of its two clips has ended
         playback[(animation, ref_condition, test_condition)] = 1000 * max(ref_frames / ref_fps,
                                                                           test_frames / test_fps)
@@ -111,13 +134,7 @@ def screened_rows(session: Session, study: Study, include_pilot: bool = False
             "screened_by": None, "pilot": ps.pilot,
             **{p: external.get(p) for p in parameters},
         })
-    records = screen(rows, screening_rules(study), recruitment(study).catch_failures_allowed, playback)
-    for row in rows:
-        record = records.get(row["session_id"])
-        if record is not None:  # a completed session
-            row["outcome"] = "screened_out" if record.screened_out else "completed"
-            row["screened_by"] = ";".join(record.flagged_by) or None
-    return rows, records
+    return rows, playback
 
 
 def export_rows(session: Session, study: Study, include_pilot: bool = False) -> Iterator[dict[str, Any]]:

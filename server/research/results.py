@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from sqlalchemy.orm import Session
 
-from server.participants.assign import session_batches, sessions_started
+from server.participants.assign import session_batches
 from server.participants.service import completion_times
 from server.stimuli import service as stimulus_sets
 from server.studies import scale
@@ -47,19 +47,11 @@ def _scales_cached(votes: tuple[tuple[tuple[str, Any], ...], ...], conditions: t
     return study_scales([dict(v) for v in votes], conditions)
 
 
-# (study id, sessions, votes) -> the adaptive rounds: replaying every round refits the model once per session.
-_ROUNDS: dict[tuple[int, int, int], list[dict[str, Any]]] = {}
-
-
-def adaptive_rounds(session: Session, study: Study, n_votes: int) -> list[dict[str, Any]]:
-    """Per session of an adaptive study, in order: the votes before it and the information its batch promised."""
-    key = (study.id, sessions_started(session, study), n_votes)
-    if key not in _ROUNDS:
-        if len(_ROUNDS) > 16:
-            _ROUNDS.clear()
-        _ROUNDS[key] = [{"round": i + 1, "votes_before": r.votes_before, "information": r.information,
-                         "pairs": r.pairs} for i, r in enumerate(session_batches(session, study))]
-    return copy.deepcopy(_ROUNDS[key])
+def adaptive_rounds(session: Session, study: Study) -> list[dict[str, Any]]:
+    """Per session of an adaptive study, in order: the votes before it and the information its batch promised
+    (``session_batches``: one pass over the counted votes; only rounds whose votes changed are refitted)."""
+    return [{"round": i + 1, "votes_before": r.votes_before, "information": r.information, "pairs": r.pairs}
+            for i, r in enumerate(session_batches(session, study))]
 
 
 def _number(value: float) -> float | None:
@@ -197,7 +189,6 @@ def study_results(session: Session, study: Study, benchmark_path: Path,
     mode = study.design.get("mode", "reference")
     results["overview"]["design_mode"] = mode
     results["scale"] = copy.deepcopy(_scales_cached(votes, (study.design["reference"], *study.design["conditions"])))
-    results["adaptive_rounds"] = (adaptive_rounds(session, study, results["overview"]["votes"]) if mode == "adaptive"
-                                  else None)
+    results["adaptive_rounds"] = adaptive_rounds(session, study) if mode == "adaptive" else None
     results["answer_scale"] = scale.describe()
     return results

@@ -33,7 +33,9 @@ the study's vote log (the votes answered before the session started) and the ses
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import hashlib
+import threading
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from itertools import combinations
 
@@ -65,34 +67,74 @@ class Posterior:
     n_votes: int
 
 
-def _votes_matrix(votes: Sequence[GradedComparison], names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-    """(votes, N) rows +1 at the test and -1 at the reference of the usable votes, and their answers 0..4; votes
-    of other conditions and catch votes (a condition against itself) are left out."""
-    index = {c: i for i, c in enumerate(names)}
-    used = [v for v in votes if v.reference != v.test and v.reference in index and v.test in index]
-    x = np.zeros((len(used), len(names)))
-    for row, v in enumerate(used):
-        x[row, index[v.test]] += 1
-        x[row, index[v.reference]] -= 1
-    return x, np.array([v.score + 2 for v in used], dtype=int)
+def vote_counts(votes: Iterable[GradedComparison], conditions: Sequence[str]) -> np.ndarray:
+    """The sufficient statistics of ``votes`` for the posterior: (N, N, 5) counts of [reference, test, answer
+    0..4]; votes of other conditions and catch votes (a condition against itself) are left out.  Counts add up:
+    the counts of two sets of votes are the sum of their counts."""
+    index = {c: i for i, c in enumerate(conditions)}
+    counts = np.zeros((len(index), len(index), 5), dtype=np.int64)
+    for v in votes:
+        if v.reference != v.test and v.reference in index and v.test in index:
+            counts[index[v.reference], index[v.test], v.score + 2] += 1
+    return counts
 
 
-def _planning_cov(x: np.ndarray, mean: np.ndarray, cuts: np.ndarray) -> np.ndarray:
-    """The inverse of the prior precision plus the expected Fisher information of the rows' pairs at ``mean``."""
+def _cells(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The non-empty cells of ``counts``: (cells, N) rows +1 at the test and -1 at the reference, their answers
+    0..4 and how many votes gave each: the likelihood of the votes is the cells' likelihoods raised to those
+    counts, so fitting costs the same at 100 votes as at 10,000."""
+    reference, test, answer = np.nonzero(counts)
+    x = np.zeros((reference.size, counts.shape[0]))
+    x[np.arange(reference.size), test] += 1
+    x[np.arange(reference.size), reference] -= 1
+    return x, answer, counts[reference, test, answer].astype(float)
+
+
+def _planning_cov(x: np.ndarray, weight: np.ndarray, mean: np.ndarray, cuts: np.ndarray) -> np.ndarray:
+    """The inverse of the prior precision plus the expected Fisher information of the rows' pairs (each
+    ``weight`` times) at ``mean``."""
     precision = np.eye(mean.size) / PRIOR_SD**2  # positive definite: the prior's precision is on the diagonal
     if x.size:
-        precision = precision + (x * answer_information(x @ mean, cuts)[:, None]).T @ x
+        precision = precision + (x * (weight * answer_information(x @ mean, cuts))[:, None]).T @ x
     return np.linalg.inv(precision)
 
 
 def posterior(votes: Sequence[GradedComparison], conditions: Sequence[str]) -> Posterior:
     """The posterior of the scale values of ``conditions`` (the first is the anchor) given ``votes``; votes of
     other conditions and catch votes (a condition against itself) are ignored."""
-    names = list(conditions)
-    x, y = _votes_matrix(votes, names)
+    return counts_posterior(vote_counts(votes, conditions), tuple(conditions))
+
+
+def counts_posterior(counts: np.ndarray, conditions: tuple[str, ...]) -> Posterior:
+    """:func:`posterior` from the votes' :func:`vote_counts`.  A pure function of the counts, remembered for the
+    last ``POSTERIORS`` of them: the dashboard replays every adaptive round, and all but the newest rounds saw the
+    same votes as at the last request."""
+    key = (conditions, hashlib.sha256(counts.tobytes()).digest())
+    with _POSTERIORS_LOCK:
+        post = _POSTERIORS.pop(key, None)
+        if post is not None:
+            _POSTERIORS[key] = post  # the most recently used last
+            return post
+    post = _fit(counts, conditions)
+    with _POSTERIORS_LOCK:
+        _POSTERIORS[key] = post
+        while len(_POSTERIORS) > POSTERIORS:
+            _POSTERIORS.pop(next(iter(_POSTERIORS)))  # the least recently used
+    return post
+
+
+# Every round of studies with 20,000 sessions x animations in all (~0.8 kB each at six conditions); a study with
+# more rounds than that is refitted in full at every request, as all of them were before issue 36.
+POSTERIORS = 20_000
+_POSTERIORS: dict[tuple[tuple[str, ...], bytes], Posterior] = {}
+_POSTERIORS_LOCK = threading.Lock()
+
+
+def _fit(counts: np.ndarray, conditions: tuple[str, ...]) -> Posterior:
+    x, y, weight = _cells(counts)
     # Every condition has the same prior, the anchor too, so that no pair looks more or less certain because of
     # which condition is called the origin; the values are moved to the anchor's origin afterwards.
-    n = len(names)
+    n = len(conditions)
     prior_mean = np.concatenate([np.zeros(n), CUT_PRIOR])
     prior_precision = np.concatenate([np.full(n, 1 / PRIOR_SD**2), np.ones(CUT_PRIOR.size)])
 
@@ -100,14 +142,17 @@ def posterior(votes: Sequence[GradedComparison], conditions: Sequence[str]) -> P
         diff = params - prior_mean
         value, grad = 0.5 * float(diff @ (prior_precision * diff)), prior_precision * diff
         if y.size:
-            loglik, per_vote = _scores(params, x, y, False, n, "logit")
-            value, grad = value - float(loglik.sum()), grad - per_vote.sum(axis=0)
+            loglik, per_cell = _scores(params, x, y, False, n, "logit")
+            value, grad = value - float(weight @ loglik), grad - weight @ per_cell
         return value, grad
 
     opt = optimize.minimize(objective, prior_mean, jac=True, method="BFGS", options={"gtol": 1e-7})
     mean = opt.x[:n] - opt.x[0]
     cuts, _ = _cuts(opt.x[n:], False)
-    return Posterior(tuple(names), mean, _planning_cov(x, mean, cuts), cuts, int(y.size))
+    cov = _planning_cov(x, weight, mean, cuts)
+    for shared in (mean, cov, cuts):  # remembered and handed to every caller: nobody may change them
+        shared.flags.writeable = False
+    return Posterior(conditions, mean, cov, cuts, int(weight.sum()))
 
 
 def known_posterior(votes: Sequence[GradedComparison], conditions: Sequence[str], values: dict[str, float],
@@ -116,10 +161,10 @@ def known_posterior(votes: Sequence[GradedComparison], conditions: Sequence[str]
     units) and cut points ``cuts`` (4,): the same covariance, at the truth.  Planning on it shows how much an
     adaptive design loses by learning the values as it goes (the design bench's ``oracle``)."""
     names = list(conditions)
-    x, y = _votes_matrix(votes, names)
+    x, _, weight = _cells(vote_counts(votes, names))
     mean = np.array([values[c] - values[names[0]] for c in names])
-    return Posterior(tuple(names), mean, _planning_cov(x, mean, np.asarray(cuts, dtype=float)), np.asarray(cuts),
-                     int(y.size))
+    return Posterior(tuple(names), mean, _planning_cov(x, weight, mean, np.asarray(cuts, dtype=float)),
+                     np.asarray(cuts), int(weight.sum()))
 
 
 def _answer_probabilities(delta: np.ndarray, cuts: np.ndarray) -> np.ndarray:

@@ -27,6 +27,7 @@ import numpy as np
 from scipy import optimize
 
 from .ranking import GradedComparison, _cdf_pdf, _scores, rank_conditions
+from .statistics import counted
 
 BOOT_PRIOR_SD = 10.0
 N_BOOT = 200
@@ -44,7 +45,8 @@ def _design(votes: Sequence[GradedComparison], names: Sequence[str]) -> tuple[np
     return x, np.array([v.score + 2 for v in votes], dtype=int)
 
 
-def _ridge(x: np.ndarray, y: np.ndarray, start: np.ndarray | None) -> np.ndarray:
+def _ridge(x: np.ndarray, y: np.ndarray, start: np.ndarray | None, weight: np.ndarray) -> np.ndarray:
+    """The ridge fit of the rows ``x``, ``y``, each counted ``weight`` times."""
     n = x.shape[1]
     precision = np.concatenate([np.full(n, BOOT_PRIOR_SD**-2), np.full(2, 1e-2)])
     centre = np.concatenate([np.zeros(n), _CUT_START])
@@ -52,7 +54,7 @@ def _ridge(x: np.ndarray, y: np.ndarray, start: np.ndarray | None) -> np.ndarray
     def objective(params: np.ndarray) -> tuple[float, np.ndarray]:
         loglik, grad = _scores(params, x, y, False, n, "logit")
         diff = params - centre
-        return -float(loglik.sum()) + 0.5 * float(diff @ (precision * diff)), -grad.sum(axis=0) + precision * diff
+        return -float(weight @ loglik) + 0.5 * float(diff @ (precision * diff)), -weight @ grad + precision * diff
 
     return optimize.minimize(objective, centre if start is None else start, jac=True, method="BFGS",
                              options={"gtol": 1e-6}).x
@@ -115,14 +117,19 @@ def animation_scale(animation: str, votes: Sequence[GradedComparison], condition
     jnd = jnd_unit(ranking.fit.thresholds) if len(ranking.fit.thresholds) == 4 else None
     if len(people) >= 2 and n >= 2 and ranking.fit.status in ("ok", "separated", "not_converged"):
         x, y = _design(used, names)
-        rows = {p: [] for p in people}
-        for i, v in enumerate(used):
-            rows[v.participant].append(i)
-        start = _ridge(x, y, None)  # the full data's ridge fit: a close start for every resample
+        # Every vote is one of a few cells (a pair and an answer) and a resample takes each participant's cells as
+        # often as it draws them: each fit is over the cells, whatever the number of votes (issue 36).
+        cells, cell_of = np.unique(np.column_stack([x, y]), axis=0, return_inverse=True)
+        person = {p: i for i, p in enumerate(people)}
+        per_person = np.zeros((len(people), len(cells)))
+        np.add.at(per_person, ([person[v.participant] for v in used], cell_of.ravel()), 1)
+        cx, cy = cells[:, :-1], cells[:, -1].astype(int)
+        start = _ridge(cx, cy, None, per_person.sum(axis=0))  # the full data's fit: a close start for resamples
         samples = np.zeros((n_boot, n))
         for b, draw in enumerate(bootstrap_draws(people, n_boot, seed)):
-            take = np.concatenate([rows[people[i]] for i in draw])
-            samples[b, 1:] = _ridge(x[take], y[take], start)[: n - 1]
+            weight = np.bincount(draw, minlength=len(people)) @ per_person
+            taken = weight > 0
+            samples[b, 1:] = _ridge(cx[taken], cy[taken], start, weight[taken])[: n - 1]
         low, high = np.percentile(samples, [2.5, 97.5], axis=0)
         ci = [(0.0, 0.0) if i == 0 else (float(low[i]), float(high[i])) for i in range(n)]
         above = (samples[:, :, None] > samples[:, None, :]).mean(axis=0)
@@ -138,7 +145,7 @@ def animation_scale(animation: str, votes: Sequence[GradedComparison], condition
 def study_scales(rows: Sequence[dict], conditions: Sequence[str], n_boot: int = N_BOOT) -> list[dict]:
     """The scale of every animation from a study's export rows (practice, catch and screened-out participants'
     votes left out, as in the statistics); ``conditions``: the design's, the reference first."""
-    analysed = [r for r in rows if not r["practice"] and not r["catch"] and r["outcome"] != "screened_out"]
+    analysed = [r for r in rows if counted(r)]
     out = []
     for animation in sorted({r["animation"] for r in analysed}):
         votes = [GradedComparison(r["session_id"], r["reference_condition"], r["test_condition"], r["score"])

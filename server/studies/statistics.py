@@ -150,12 +150,20 @@ def _summary(x: Sequence[float]) -> dict[str, Any]:
             "wilcoxon_p": wilcoxon_p(x), "sign_test_p": sign_test_p(x), "rank_biserial": rank_biserial(x)}
 
 
+def counted(vote: Mapping[str, Any]) -> bool:
+    """Whether the results count a vote (an export row, or a mapping with its ``practice``, ``catch`` and
+    ``outcome``): a test vote of a participant not screened out (finished or not).  Pilot sessions' votes are not
+    among the rows unless pilot sessions are asked for.  The one definition of "counted": the statistics, the
+    scale and the adaptive design (``server.participants.assign.counted_votes``) all use it."""
+    return not vote["practice"] and not vote["catch"] and vote["outcome"] != "screened_out"
+
+
 def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
             questions: Sequence[str] = (), anchor: str | None = None) -> dict[str, Any]:
     """The results document of a study from its votes (export rows), participant counts and question ids;
     ``anchor``: the condition at 0 of the scales (the study's reference; needed when pairs have several first
     conditions, as in all-pairs designs)."""
-    analysed = [v for v in votes if not v["practice"] and not v["catch"] and v["outcome"] != "screened_out"]
+    analysed = [v for v in votes if counted(v)]
     by_comparison: dict[tuple[str, str, str], dict[str, list[tuple[int, int, str]]]] = defaultdict(
         lambda: defaultdict(list))
     for v in analysed:
