@@ -16,7 +16,7 @@ from sqlalchemy import event
 
 from server.participants import service
 from server.participants.assign import session_batches, study_votes
-from server.research.export import screened_rows
+from server.participants.rows import screened_rows
 from server.research.results import study_results
 from server.studies import adaptive
 from server.studies.adaptive import information_gain, next_batch, posterior

@@ -67,16 +67,17 @@ _FINISHED: dict[tuple[int, str, datetime], _Finished] = {}
 
 def screened_out(session: Session, study: Study) -> frozenset[str]:
     """The sessions of ``study`` its screening rules leave out of the results (pilot sessions not screened with
-    them, as in the results): the results' own screening (``export.screen_rows``) of the finished sessions.
+    them, as in the results): the results' own screening (:func:`server.participants.rows.screen_rows`) of the
+    finished sessions.
 
     The rules look only at finished sessions (``screening.screen``), whose votes no longer change (a withdrawal
     deletes them and the session is no longer finished), so their export rows are remembered and only the
     sessions finished since are read; the rows kept are those of the sessions the database says are finished, so
     the answer is the same on every server instance sharing it.  Screening itself runs each time: the panel rules
     compare every finished participant with all the others."""
-    # Imported here: the export reads the votes through participants.service, which assigns a new session's
+    # Imported here: the rows read the votes through participants.service, which assigns a new session's
     # comparisons through this module.
-    from server.research.export import screen_rows, vote_rows
+    from .rows import screen_rows, vote_rows
 
     finished = set(session.scalars(select(ParticipantSession.id).where(
         ParticipantSession.study_id == study.id, ParticipantSession.state == SessionState.completed,

@@ -421,7 +421,7 @@ def vote_records(session: Session, study: Study, include_pilot: bool = False,
                  sessions: Collection[str] | None = None) -> Iterator[Row[Any]]:
     """Every vote of ``study`` (of ``sessions`` only, if given) in session and trial order, with its trial, its
     session and what the comparison showed (kind; reference animation and condition, test condition; both clips,
-    videos, frames and fps; the two pair videos): the rows :func:`server.research.export.screened_rows` turns into
+    videos, frames and fps; the two pair videos): the rows :func:`server.participants.rows.screened_rows` turns into
     the export."""
     reference, test = aliased(Stimulus), aliased(Stimulus)
     query = (

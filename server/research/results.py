@@ -14,6 +14,7 @@ import numpy as np
 from sqlalchemy.orm import Session
 
 from server.participants.assign import session_batches
+from server.participants.rows import screened_rows
 from server.participants.service import completion_times
 from server.stimuli import service as stimulus_sets
 from server.studies import scale
@@ -25,7 +26,6 @@ from server.studies.service import screening_rules
 from server.studies.statistics import analyse
 from server.studies.subject_model import fit
 
-from .export import screened_rows
 from .service import participant_counts
 
 

@@ -7,12 +7,11 @@ from collections.abc import Mapping
 from sqlalchemy.orm import Session
 
 from server.participants import service as participants
+from server.participants.rows import screened_rows
 from server.studies.models import Study, StudyState
 from server.studies.schemas import StudySummary
 from server.studies.screening import ParticipantScreening
 from server.studies.service import screening_rules, trials_total
-
-from .export import screened_rows
 
 
 def participant_counts(session: Session, study: Study, include_pilot: bool = False,
