@@ -7,6 +7,8 @@ STAMP := $(VENV)/.installed-stamp
 AXE := var/node/node_modules/axe-core/axe.min.js
 # MathJax for the manual's formulas; a prefix of its own, since npm prunes what it did not just install.
 MATHJAX := var/node-docs/node_modules/mathjax/es5/tex-svg.js
+# pytest-xdist worker processes for `make test` (`auto`: one per core); `make test TEST_WORKERS=0` runs serially.
+TEST_WORKERS ?= auto
 
 .PHONY: install run test lint docs clean
 
@@ -51,7 +53,20 @@ test: lint
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq npm; }
 	@test -f $(AXE) || npm install --no-save --no-audit --no-fund --prefix var/node axe-core@4
 	@$(MAKE) --no-print-directory docs
-	$(BIN)/python -m pytest
+	@# In parallel (pytest-xdist, TEST_WORKERS processes, whole files per worker so that module fixtures are built
+	@# once; each worker has its own databases and var dir, see tests/conftest.py), then the tests marked `serial`
+	@# (PostgreSQL stopped for everyone) alone; exit status 5 there is "none selected" (no TEST_DATABASE_URL).
+	@start=$$(date +%s); rc=0; \
+	echo "$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile -m 'not serial'"; \
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile -m 'not serial' --durations=15 || rc=$$?; \
+	parallel=$$(( $$(date +%s) - start )); \
+	echo "$(BIN)/python -m pytest -p no:xdist -m serial"; \
+	$(BIN)/python -m pytest -p no:xdist -m serial || { s=$$?; test $$s -eq 5 || rc=$$s; }; \
+	total=$$(( $$(date +%s) - start )); \
+	printf 'make test: pytest took %dm%02ds (parallel step %dm%02ds with -n %s, serial step %dm%02ds)\n' \
+		$$((total / 60)) $$((total % 60)) $$((parallel / 60)) $$((parallel % 60)) "$(TEST_WORKERS)" \
+		$$(((total - parallel) / 60)) $$(((total - parallel) % 60)); \
+	exit $$rc
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache *.egg-info var/site

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +12,84 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 pytest_plugins = ["tests.server_fixtures"]
+
+# --- parallel runs (pytest-xdist, `make test`) -----------------------------------------------------------------
+# Each xdist worker (PYTEST_XDIST_WORKER = gw0, gw1, ...) gets its own of everything a test may share:
+# - its PostgreSQL test database: TEST_DATABASE_URL is pointed at ``<database>_<worker>`` (created at session start,
+#   dropped at the end with every ``<database>_<worker>_*`` database that :func:`own_database` derived from it), so
+#   the schema drops, migrations and commits of one worker never meet another's;
+# - its var directory: ANIMSTUDY_VAR_DIR defaults to a directory of the worker's own (tests that need one set their
+#   own anyway; this catches a command run without one, which would otherwise write ./var of the checkout);
+# - its temporary directories (pytest's basetemp is per worker under xdist), hence its SQLite files, its Dask
+#   scheduler's directory (LocalCluster and tests/test_cluster.py take free ports and temp dirs) and rendered media.
+# Ports are always taken free from the kernel (port 0), so they need nothing.  Numba's on-disk cache
+# (anim_core/**/__pycache__) stays shared: numba writes it atomically (a temp file renamed), and a per-worker cache
+# would only compile every kernel twice.  Tests that cannot share the machine (PostgreSQL stopped for everyone) are
+# marked ``serial`` and run by `make test` in a step of their own after the parallel one.
+WORKER = os.environ.get("PYTEST_XDIST_WORKER")
+
+
+def _worker_database_url(url: str, worker: str) -> str:
+    from sqlalchemy import make_url
+
+    base = make_url(url)
+    return base.set(database=f"{base.database}_{worker}").render_as_string(hide_password=False)
+
+
+if WORKER and os.environ.get("TEST_DATABASE_URL"):  # before any test module reads it (tests/test_faults.py does)
+    os.environ.setdefault("TEST_BASE_DATABASE_URL", os.environ["TEST_DATABASE_URL"])
+    os.environ["TEST_DATABASE_URL"] = _worker_database_url(os.environ["TEST_BASE_DATABASE_URL"], WORKER)
+
+
+def _admin_engine():
+    """An AUTOCOMMIT engine on the server's maintenance database (to create and drop the workers' databases)."""
+    from sqlalchemy import make_url
+
+    from server.config import normalize_database_url
+    from server.db import make_engine
+
+    url = make_url(normalize_database_url(os.environ["TEST_BASE_DATABASE_URL"])).set(database="postgres")
+    return make_engine(url.render_as_string(hide_password=False)).execution_options(isolation_level="AUTOCOMMIT")
+
+
+def _worker_databases(conn, name: str) -> list[str]:
+    from sqlalchemy import text
+
+    pattern = name.replace("\\", "\\\\").replace("_", "\\_").replace("%", "\\%") + "\\_%"
+    return list(conn.scalars(text("SELECT datname FROM pg_database WHERE datname = :n OR datname LIKE :p"),
+                             {"n": name, "p": pattern}))
+
+
+def pytest_sessionstart(session):
+    if WORKER and "ANIMSTUDY_VAR_DIR" not in os.environ:
+        os.environ["ANIMSTUDY_VAR_DIR"] = tempfile.mkdtemp(prefix=f"animstudy-var-{WORKER}-")
+        session.config.add_cleanup(lambda: shutil.rmtree(os.environ.pop("ANIMSTUDY_VAR_DIR"), ignore_errors=True))
+    if not (WORKER and os.environ.get("TEST_BASE_DATABASE_URL")):
+        return
+    from sqlalchemy import make_url, text
+
+    name = make_url(os.environ["TEST_DATABASE_URL"]).database
+    admin = _admin_engine()
+    with admin.connect() as conn:
+        for stale in _worker_databases(conn, name):  # left by an interrupted run
+            conn.execute(text(f'DROP DATABASE IF EXISTS "{stale}" WITH (FORCE)'))
+        conn.execute(text(f'CREATE DATABASE "{name}"'))
+    admin.dispose()
+
+
+def pytest_sessionfinish(session, exitstatus):
+    if not (WORKER and os.environ.get("TEST_BASE_DATABASE_URL")):
+        return
+    from sqlalchemy import make_url, text
+
+    name = make_url(os.environ["TEST_DATABASE_URL"]).database
+    admin = _admin_engine()
+    try:
+        with admin.connect() as conn:
+            for database in _worker_databases(conn, name):
+                conn.execute(text(f'DROP DATABASE IF EXISTS "{database}" WITH (FORCE)'))
+    finally:
+        admin.dispose()
 
 
 def data_dir() -> Path:

@@ -98,6 +98,7 @@ def site(data, tmp_path_factory):
     engine.dispose()
 
 
+@pytest.mark.slow  # tens of seconds (the serial run's slowest; still run by `make test`)
 def test_six_conditions_run_adaptively_in_the_browser(site):
     base, factory = site
     ARTIFACTS.mkdir(parents=True, exist_ok=True)

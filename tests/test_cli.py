@@ -6,6 +6,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 
 def test_a_closed_pipe_ends_quietly(data):
     """`animstudy inspect | head -1`: the reader closes the pipe early; no traceback, exit status 1."""
@@ -20,6 +22,7 @@ def test_a_closed_pipe_ends_quietly(data):
     assert "Traceback" not in err and "BrokenPipeError" not in err, err
 
 
+@pytest.mark.slow  # tens of seconds (the serial run's slowest; still run by `make test`)
 def test_bench_times_every_condition_of_a_clip_set(data, tmp_path):
     """`animstudy bench --quick --config conditions16.toml`: every clip of that clip set is timed from its keys,
     beside its animation's keyframe clip, and listed with its cost and ratio; a bad clip-set file is an error."""

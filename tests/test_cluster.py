@@ -119,6 +119,7 @@ def broken_clip_set(clips_dir: Path, out: Path) -> tuple[Path, Any]:
 
 
 
+@pytest.mark.slow  # tens of seconds (the serial run's slowest; still run by `make test`)
 def test_a_worker_killed_mid_job_and_the_videos_are_byte_identical_to_a_local_render(
         data, clips_dir, pairs, local_render, dask_cluster, tmp_path):
     address, observer, procs = dask_cluster
@@ -249,6 +250,7 @@ def test_a_clip_set_builds_on_the_cluster_as_in_this_process(data, clips_dir, da
                 np.testing.assert_array_equal(arrays[name], stored[name], err_msg=f"{clip.id} {name}")
 
 
+@pytest.mark.slow  # tens of seconds (the serial run's slowest; still run by `make test`)
 def test_the_scheduler_restarted_mid_job_and_the_job_goes_on_with_what_is_missing(
         data, clips_dir, pairs, local_render, tmp_path, monkeypatch):
     """kill -9 the scheduler after the first video is stored; a new scheduler on the same address and a new

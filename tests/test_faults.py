@@ -5,6 +5,7 @@ with what schemas cannot describe (NaN, Infinity, lone surrogates, bytes that ar
 import json
 import os
 
+import pytest
 import schemathesis
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -34,6 +35,9 @@ def test_sigkill_in_the_middle_loses_and_doubles_nothing():
 
 if os.environ.get("TEST_DATABASE_URL"):  # a PostgreSQL scenario: defined only where PostgreSQL is configured
 
+    # Serial: it stops the whole PostgreSQL server (pg_ctlcluster), which would fail every other worker's database
+    # tests of a parallel run; `make test` runs it alone after the parallel step.
+    @pytest.mark.serial
     def test_postgresql_outage_answers_503_and_loses_nothing():
         url = make_url(normalize_database_url(os.environ["TEST_DATABASE_URL"]))
         url = url.set(database=own_database(url, "test_animstudy_load"))

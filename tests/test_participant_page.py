@@ -160,6 +160,7 @@ def vote_by_keyboard(pg, key="3"):
     pg.keyboard.press("Enter")
 
 
+@pytest.mark.slow  # tens of seconds (the serial run's slowest; still run by `make test`)
 def test_full_run_by_keyboard_with_real_videos(site, page):
     base, factory = site
     begin(page, base, screenshots=True)
@@ -595,6 +596,7 @@ def english_on_screen(pg, english):
     return sorted({t for t in texts for e in english if t == e or (len(e) >= 4 and e in t)})
 
 
+@pytest.mark.slow  # tens of seconds (the serial run's slowest; still run by `make test`)
 def test_swedish_study_end_to_end_shows_no_english(site, browser):
     base, factory = site
     english = english_strings()

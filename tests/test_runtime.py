@@ -168,6 +168,7 @@ def runtimes16(clips16):
     return {c.id: R.runtime_for(c.clip) for c in clips16}
 
 
+@pytest.mark.slow  # tens of seconds (the serial run's slowest; still run by `make test`)
 def test_issue16_runtimes_match_their_clips(clips16, runtimes16, rng):
     """Each condition's kernel against its own ``sample``: float32 rounding for the keyframe-type clips and the C2
     spline (<= 0.002 degrees, 0.1 mm); foot locking within its base's fit error (FOOT_LOCK_TOLERANCE_DEG = 0.25

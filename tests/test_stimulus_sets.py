@@ -225,6 +225,7 @@ def test_gc_command(tmp_path, monkeypatch, capsys):
 FUTURE_WORK = Path(__file__).resolve().parents[1] / "studies" / "future-work.toml"
 
 
+@pytest.mark.slow  # tens of seconds (the serial run's slowest; still run by `make test`)
 def test_study_create_builds_and_renders_the_clip_set_a_study_file_names(tmp_path, monkeypatch, capsys, data):
     """`study create studies/future-work.toml` on a fresh server: its [clips] set (conditions16.toml) is built for
     the study's animations and conditions and rendered, in one command; a second study over the same clip set

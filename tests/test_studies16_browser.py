@@ -99,6 +99,7 @@ def page(browser):
     assert not errors, errors
 
 
+@pytest.mark.slow  # tens of seconds (the serial run's slowest; still run by `make test`)
 def test_only_what_the_studies_show_is_rendered_and_the_counts_agree(site):
     _, _, settings, logs = site
     clip_set = tomllib.loads(CLIP_SET.read_text(encoding="utf-8"))
@@ -176,6 +177,7 @@ def walked(site, browser) -> dict[str, int]:
     return seen
 
 
+@pytest.mark.slow  # tens of seconds (the serial run's slowest; still run by `make test`)
 def test_a_participant_completes_each_study(site, walked):
     _, factory, _, _ = site
     for slug, d in designs().items():

@@ -7,6 +7,7 @@ are marked unfaithful in the export."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from fastapi.testclient import TestClient
 
 from anim_core.io.bvh import format_bvh, parse_bvh
@@ -22,6 +23,7 @@ from tests.test_uploads import SECRET, excerpt, login
 from tests.test_wild_motion import _swapped, wild_rig
 
 
+@pytest.mark.slow  # tens of seconds (the serial run's slowest; still run by `make test`)
 def test_mixed_cmu_and_bandai_style_rig_build_render_and_serve(tmp_path, tmp_path_factory, data):
     engine = _fresh_engine("sqlite", tmp_path_factory)
     settings = Settings(var_dir=tmp_path / "var", data_dir=data, secret_key=SECRET)
