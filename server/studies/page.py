@@ -18,7 +18,10 @@ RTL_LANGUAGES = frozenset({"ar", "dv", "fa", "he", "ks", "ku", "ps", "sd", "ug",
 Lang = Annotated[str, StringConstraints(pattern=r"^[a-z]{2,3}(-[A-Za-z0-9]{2,8})*$")]
 
 
-class _Strict(BaseModel):
+class Strict(BaseModel):
+    """The base of every table of a study file (here and in :mod:`server.studies.studyfile`): unknown fields
+    refused, text stripped, no bidirectional controls."""
+
     model_config = ConfigDict(extra="forbid", str_strip_whitespace=True)
 
     @field_validator("*")
@@ -31,7 +34,7 @@ def _s(default: str) -> str:
     return Field(default, min_length=1, max_length=300)
 
 
-class Chrome(_Strict):
+class Chrome(Strict):
     """The page's wording (English defaults)."""
 
     withdraw: str = _s("Withdraw and delete my answers")
@@ -76,14 +79,14 @@ class Chrome(_Strict):
                            min_length=1, max_length=1000)
 
 
-class DeviceGate(_Strict):
+class DeviceGate(Strict):
     """Below this, the participant sees ``gate_text`` and cannot start (checked again on resize/rotation)."""
 
     min_scale: float = Field(0.8, gt=0, le=1, description="smallest allowed scale of the pair video (each "
                              "character at >= this share of its rendered width and height)")
 
 
-class Page(_Strict):
+class Page(Strict):
     lang: Lang = Field("en", description="the page's language (BCP 47, e.g. sv, ar); right-to-left scripts are "
                        "laid out right to left")
     chrome: Chrome = Field(default_factory=Chrome)

@@ -16,7 +16,6 @@ from typing import Annotated, Any, Literal, Self
 from urllib.parse import quote, urlsplit
 
 from pydantic import (
-    BaseModel,
     ConfigDict,
     Field,
     StringConstraints,
@@ -26,11 +25,9 @@ from pydantic import (
     model_validator,
 )
 
-from server.security import refuse_bidi_controls
-
 from .columns import EXPORT_COLUMNS
 from .design import Design
-from .page import Page
+from .page import Page, Strict
 from .scale import DEFAULT_LABELS, DEFAULT_QUESTION
 from .screening import Screening
 
@@ -53,16 +50,7 @@ def _text(max_length: int, description: str) -> Any:
     return Field(min_length=1, max_length=max_length, description=description)
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True)
-
-    @field_validator("*")
-    @classmethod
-    def no_bidi_controls(cls, value: Any) -> Any:
-        return refuse_bidi_controls(value)
-
-
-class Texts(_Strict):
+class Texts(Strict):
     """What the participant page says.  Blank lines separate paragraphs."""
 
     information: str = _text(5000, "the study information shown first")
@@ -74,7 +62,7 @@ class Texts(_Strict):
     thanks: str = _text(1000, "shown after the last trial")
 
 
-class Scale(_Strict):
+class Scale(Strict):
     """The five answers, from 'left much better' to 'right much better' (the scoring is fixed, see scale.py)."""
 
     question: str = Field(DEFAULT_QUESTION, min_length=1, max_length=200)
@@ -84,7 +72,7 @@ class Scale(_Strict):
     right: str = Field("Right", min_length=1, max_length=40, description="what the right side is called")
 
 
-class Choice(_Strict):
+class Choice(Strict):
     id: Key
     label: str = Field(min_length=1, max_length=120)
 
@@ -93,7 +81,7 @@ QuestionType = Literal["choice", "number", "text", "likert"]
 Label = Annotated[str, StringConstraints(min_length=1, max_length=120)]
 
 
-class Question(_Strict):
+class Question(Strict):
     """A demographic or screening question; an export column named ``id``.  ``type``:
 
     - ``choice`` (the default): one answer from ``choices``, exported as the choice's id;
@@ -181,7 +169,7 @@ THESIS_QUESTIONS = (
 )
 
 
-class Outcome(_Strict):
+class Outcome(Strict):
     """What a participant gets at the end: a code to paste and/or a link back to the recruiting platform."""
 
     code: str | None = Field(None, min_length=1, max_length=64)
@@ -189,7 +177,7 @@ class Outcome(_Strict):
                             "plain {code} and {<accepted URL parameter>} placeholders, e.g. {PROLIFIC_PID}")
 
 
-class Recruitment(_Strict):
+class Recruitment(Strict):
     parameters: list[Param] = Field(default_factory=list, max_length=10, description="URL parameters of the "
                                     "participant link kept with the session and exported, e.g. PROLIFIC_PID, "
                                     "STUDY_ID, SESSION_ID; MTurk workerId, assignmentId, hitId; SONA id")
@@ -269,7 +257,7 @@ def template_problem(url: str, fields: set[str]) -> str | None:
     return None
 
 
-class Clips(_Strict):
+class Clips(Strict):
     """The clip set a study's clips come from (``[clips]``): ``set``, a clip-set file (README "Clip-set file")
     relative to the study file; or inline ``conditions`` (``[[clips.conditions]]``, as a clip-set file's
     ``[[conditions]]``) and/or ``animations`` (``[clips.animations.<name>]``, sources under the data directory),
@@ -293,7 +281,7 @@ class Clips(_Strict):
         return self
 
 
-class StudyFile(_Strict):
+class StudyFile(Strict):
     """A study: what it shows, what it says, what it asks and where participants go at the end."""
 
     model_config = ConfigDict(title="animstudy study file", json_schema_extra={"$schema":
