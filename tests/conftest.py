@@ -180,3 +180,23 @@ def db(engine):
     session.close()
     transaction.rollback()
     connection.close()
+
+
+@pytest.fixture(scope="session")
+def character(data: Path):
+    """The MakeHuman character of the data directory (a module may define its own ``character``)."""
+    from server.assets import character as load_character
+
+    return load_character(data)
+
+
+@pytest.fixture(scope="session")
+def cmu_walk(data: Path):
+    """Two seconds of the CMU walk 02_01 after its T-pose frame (two steps): the motion the wild-rig tests re-express
+    on other rigs."""
+    import dataclasses
+
+    from anim_core.io.bvh import read_bvh
+
+    bvh = read_bvh(data / "mocap" / "cmu" / "02_01_walk.bvh.gz")
+    return dataclasses.replace(bvh, motion=bvh.motion[1:241])

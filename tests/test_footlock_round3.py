@@ -22,18 +22,12 @@ from anim_core.methods.footplant import leg_angles
 from anim_core.methods.ik import hinge_axis
 from anim_core.rig.character import LEGS
 from anim_core.rig.rigmap import normalize_bvh
-from server.assets import character as load_character
 from server.clipset.build import load_source
 
 RELOCATE = ("LHipJoint", "RHipJoint")
 CONDITIONS = (Condition.parse("keyframe", "keyframe", {}), Condition.parse("hybrid0", "hybrid", {"increment": 0}),
               Condition.parse("hybrid_ik0", "hybrid_ik", {"increment": 0}),
               Condition.parse("hybrid_ik1", "hybrid_ik", {"increment": 1}))
-
-
-@pytest.fixture(scope="module")
-def character(data):
-    return load_character(data)
 
 
 def _leg_changes(clip) -> tuple[float, float]:

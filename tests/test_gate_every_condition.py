@@ -9,7 +9,7 @@ import pytest
 
 from anim_core.clips import fidelity
 from anim_core.clips.build import AnimationConfig, ConfigError, build_animation, source_from_bvh
-from anim_core.io.bvh import format_bvh, parse_bvh, read_bvh
+from anim_core.io.bvh import format_bvh, parse_bvh
 from anim_core.math import contacts
 from anim_core.math.clip import KeyframeClip
 from anim_core.math.skeleton import Skeleton
@@ -18,21 +18,9 @@ from anim_core.methods.hybrid import build_gait
 from anim_core.rig.character import retarget
 from anim_core.rig.mirror import Mirror
 from anim_core.rig.rigmap import normalize_bvh
-from server.assets import character as load_character
 
 CONDITIONS = (Condition.parse("keyframe", "keyframe", {}), Condition.parse("hybrid1", "hybrid", {"increment": 1}))
 JOINT = {n: i for i, n in enumerate(fidelity.CANONICAL_NAMES)}
-
-
-@pytest.fixture(scope="module")
-def character(data):
-    return load_character(data)
-
-
-@pytest.fixture(scope="module")
-def walk(data):
-    bvh = read_bvh(data / "mocap" / "cmu" / "02_01_walk.bvh.gz")
-    return dataclasses.replace(bvh, motion=bvh.motion[1:241])
 
 
 def _build(character, bvh, **config):
@@ -45,8 +33,8 @@ def _build(character, bvh, **config):
 
 
 @pytest.fixture(scope="module")
-def built(character, walk):
-    return _build(character, walk)
+def built(character, cmu_walk):
+    return _build(character, cmu_walk)
 
 
 def test_the_shipped_walk_passes_with_every_figure_reported(built):
@@ -74,13 +62,13 @@ def _names_shifted_by_one(bvh):
     return parse_bvh(format_bvh(rig), "shifted.bvh")
 
 
-def test_thighs_from_one_point_are_refused_naming_the_mapping(character, walk):
+def test_thighs_from_one_point_are_refused_naming_the_mapping(character, cmu_walk):
     """Before issue 35 the gate compared the clip with the source *as mapped* (both with stacked thighs) and said
     ok."""
     with pytest.raises(ConfigError, match=r"the source's thighs start from one point \(hip width 0\.00 leg lengths\)"
                                           r": the mapping's LeftUpLeg and RightUpLeg are not the thigh heads"):
-        _build(character, _names_shifted_by_one(walk), units="cmu")
-    marked = _build(character, _names_shifted_by_one(walk), units="cmu", accept_unfaithful=True)
+        _build(character, _names_shifted_by_one(cmu_walk), units="cmu")
+    marked = _build(character, _names_shifted_by_one(cmu_walk), units="cmu", accept_unfaithful=True)
     assert all(c.metrics["unfaithful"] == 1.0 for c in marked)
 
 
@@ -124,10 +112,10 @@ def test_a_foot_hovering_through_one_stance_is_refused(built):
     assert check.foot_reach_m < fidelity.FOOT_REACH_M  # the whole-clip figure alone would not have told
 
 
-def test_a_gait_mirrored_about_a_stride_is_refused(character, walk):
+def test_a_gait_mirrored_about_a_stride_is_refused(character, cmu_walk):
     """The hybrid of the walk taken relative to a stride (its most upright frame), mirrored about that rest (what the
     code did before issue 35), is refused by the mirror check; mirrored about the character's bind pose it passes."""
-    out = normalize_bvh(walk, rest="motion")
+    out = normalize_bvh(cmu_walk, rest="motion")
     b = out.bvh
     rc = retarget(character, b.posed_skeleton(), b.end_sites)
     rot, root = b.pose_arrays()

@@ -4,12 +4,11 @@ the real CMU walk by the test itself (:func:`tests.test_wild_motion.wild_rig`): 
 rest pose (the most upright frame of the motion, a stride with the hips turned 4.7 degrees) and other joint
 frames."""
 
-import dataclasses
 
 import numpy as np
 import pytest
 
-from anim_core.io.bvh import Bvh, format_bvh, parse_bvh, read_bvh
+from anim_core.io.bvh import Bvh, format_bvh, parse_bvh
 from anim_core.math.clip import KeyframeClip
 from anim_core.math.quat import quat_from_axis_angle, rotate
 from anim_core.math.skeleton import Skeleton
@@ -17,7 +16,6 @@ from anim_core.methods.hybrid import build_gait
 from anim_core.rig.character import retarget
 from anim_core.rig.mirror import Mirror
 from anim_core.rig.rigmap import Normalized, normalize_bvh
-from server.assets import character as load_character
 
 from .test_wild_motion import wild_rig
 
@@ -26,17 +24,6 @@ Y = np.array([0.0, 1.0, 0.0])
 #: pelvis bones, hip centre -> thigh head).  Their direction is bound in the parent's rest frame
 #: (docs/motion-from-the-wild.md): a rest pose whose pelvis is turned moves them, and the mirror doubles that turn.
 PELVIS = ("LeftUpLeg", "RightUpLeg")
-
-
-@pytest.fixture(scope="module")
-def character(data):
-    return load_character(data)
-
-
-@pytest.fixture(scope="module")
-def walk(data):
-    bvh = read_bvh(data / "mocap" / "cmu" / "02_01_walk.bvh.gz")
-    return dataclasses.replace(bvh, motion=bvh.motion[1:241])
 
 
 def _hybrid_bone_directions(character, out: Normalized, bind: bool, keys_only: slice | None = None
@@ -86,19 +73,19 @@ MIRRORED = slice(4, 8)  # increment 1: keys 0..3 from the mocap, 4..7 their mirr
 
 
 @pytest.mark.parametrize("bind", [True, False], ids=["about the bind pose", "about the rig's rest"])
-def test_the_mirrored_keys_do_not_depend_on_the_rig_the_motion_came_on(character, walk, rng, bind):
+def test_the_mirrored_keys_do_not_depend_on_the_rig_the_motion_came_on(character, cmu_walk, rng, bind):
     """The CMU walk with its T-pose as rest, taken relative to its most upright frame (a stride: the hips turned 4.7
     degrees), on a rig with bones along X and a lying zero pose, and on that rig with helper joints: mirrored about
     the character's bind pose, every bone of every mirrored key points the same way to 1e-6 degrees, but the two
     pelvis bones (under 10 degrees:
     twice the rest frame's pelvis turn, geometry the character hangs off zero-length CMU bones).  Mirrored about the
     rig's rest (what the code did before) the feet and hands are 30-70 degrees off."""
-    plain, names = _hybrid_bone_directions(character, normalize_bvh(walk), bind, MIRRORED)
+    plain, names = _hybrid_bone_directions(character, normalize_bvh(cmu_walk), bind, MIRRORED)
     pelvis = [names.index(n) for n in PELVIS]
     others = [k for k in range(len(names)) if k not in pelvis]
-    lying = wild_rig(walk, rng, "x-bones", scale=100 * 0.0254 / 0.45)
+    lying = wild_rig(cmu_walk, rng, "x-bones", scale=100 * 0.0254 / 0.45)
     helpers = [("lShin", "LeftLeg"), ("rShin", "RightLeg"), ("lCollar", "Spine1"), ("rCollar", "Spine1")]
-    for out in (normalize_bvh(walk, rest="motion"), normalize_bvh(lying),
+    for out in (normalize_bvh(cmu_walk, rest="motion"), normalize_bvh(lying),
                 normalize_bvh(_with_helper_joints(lying, helpers))):
         assert out.reference_frame == 110
         diff = _angles(_hybrid_bone_directions(character, out, bind, MIRRORED)[0], plain)
@@ -109,12 +96,12 @@ def test_the_mirrored_keys_do_not_depend_on_the_rig_the_motion_came_on(character
             assert diff[others].max() > 30.0
 
 
-def test_between_the_keys_the_rigs_differ_by_the_twist_their_rest_pose_gives(character, walk, rng):
+def test_between_the_keys_the_rigs_differ_by_the_twist_their_rest_pose_gives(character, cmu_walk, rng):
     """Between the keys SQUAD interpolates rotations, and how a bone with one child is twisted about itself in the
     bind is the rig's rest pose's (a shortest arc from it): the mirrored keys' twists differ between the rigs, and so
     do the interpolated directions, by under 3 degrees on this walk (the rig's-rest mirror: up to 68)."""
-    plain, names = _hybrid_bone_directions(character, normalize_bvh(walk), True)
+    plain, names = _hybrid_bone_directions(character, normalize_bvh(cmu_walk), True)
     pelvis = [names.index(n) for n in PELVIS]
     others = [k for k in range(len(names)) if k not in pelvis]
-    diff = _angles(_hybrid_bone_directions(character, normalize_bvh(walk, rest="motion"), True)[0], plain)
+    diff = _angles(_hybrid_bone_directions(character, normalize_bvh(cmu_walk, rest="motion"), True)[0], plain)
     assert diff[others].max() < 3.0, dict(zip(names, diff.round(2), strict=True))
