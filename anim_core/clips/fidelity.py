@@ -11,7 +11,7 @@ Two kinds of check (:func:`check_reference`, :func:`check_condition`):
   (``foot_reach_m``: the larger of the two feet's lowest clearance) and nothing goes under it (``under_floor_m``:
   the deepest joint below the floor); *handedness* — the character's left hip is on its left (``handedness``:
   the share of frames where the left hip lies on the side that "up x forward" points to, forward being where the
-  toes point).
+  bent knees point).
 * **Pose against the source** (the reference only): angles between bones (:data:`ANGLES`: knees, elbows, thighs
   and upper arms against the spine, the hip line against the shoulder line) of the character against the same
   angles of the source file's own forward kinematics at the same source time (``pose_error_deg``: the largest
