@@ -214,7 +214,7 @@ def source_from_bvh(bvh: Bvh, character: Character, config: AnimationConfig, rel
     if last >= bvh.n_frames:
         raise ConfigError(f"[animations.{config.name}] frames {first}..{last} exceed {config.source}'s "
                           f"{bvh.n_frames} frames")
-    rc = retarget(character, bvh.skeleton, bvh.end_sites, relocate=relocate)
+    rc = retarget(character, bvh.skeleton, bvh.end_sites, relocate=relocate, motion=rotations[first:last + 1])
     pose = rc.pose(Pose(rotations[first:last + 1], root[first:last + 1]))
     times = np.arange(last - first + 1) * bvh.frame_time
     straightened = None
@@ -467,8 +467,9 @@ def _reference(source: Source, fps: int) -> tuple[Animation, dict[str, Any], Arr
         keyframe = _planted(source, keyframe, src_t)
         key_grid = (0.0, keyframe.duration)
         source_info = {"file": cfg.source, "frames": [int(keys[0]), int(keys[1])], "key_frames": list(keys)}
+    rc = source.character
     animation = Animation(cfg.name, cfg.kind, keyframe, key_grid, keyframe.duration, cfg.in_place, fps,
-                          source.character.bind_rotations)
+                          rc.bind_rotations if rc.mirror_bind is None else rc.mirror_bind)
     return animation, source_info, src_t
 
 

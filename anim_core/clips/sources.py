@@ -317,7 +317,7 @@ def export_on_character(normalized: Normalized, character: Character, path: str 
                         name: str = "motion") -> None:
     """Write a normalized motion retargeted onto ``character`` (:func:`write_motion`)."""
     bvh = normalized.bvh
-    rt = retarget(character, bvh.posed_skeleton(), bvh.end_sites)
     rot, root = bvh.pose_arrays()
+    rt = retarget(character, bvh.posed_skeleton(), bvh.end_sites, motion=rot)
     ends = {j: np.asarray(e) * rt.root_scale for j, e in bvh.end_sites.items()}
     write_motion(path, rt.skeleton, rt.mesh, rt.faces, rot, root * rt.root_scale, bvh.frame_time, ends, name)
