@@ -371,7 +371,8 @@ def lock_feet(base: HybridClip, reference: KeyframeClip, legs: Sequence[tuple[in
     offsets, weights = swing_offsets(targets - ankles, held, loop, blend_frames)
     for leg, chain in enumerate(chains):  # step 6, one leg at a time
         limited = leg_limited_targets(sk, pose.rotations, root, chain, ankles[:, leg] + offsets[:, leg],
-                                      weights[:, leg], np.radians(max_leg_change_deg), None, hinges[leg], soft)
+                                      weights[:, leg], np.radians(max_leg_change_deg), None, hinges[leg], soft,
+                                      smooth_frames=blend_frames, periodic=loop)
         offsets[:, leg] = limited - ankles[:, leg]
     if swing_clearance:
         # Step 7: each foot's joints' heights above their standing heights, the hybrid's where the offsets put them

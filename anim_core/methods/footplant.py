@@ -23,6 +23,7 @@ from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.ndimage import minimum_filter1d, uniform_filter1d
 
 from ..math.contacts import contact_intervals
 from ..math.skeleton import Skeleton
@@ -155,14 +156,20 @@ def leg_angles(skeleton: Skeleton, rot: Array, root: Array, chain: tuple[int, in
 
 def leg_limited_targets(skeleton: Skeleton, rot: Array, root: Array, chain: tuple[int, int, int], targets: Array,
                         weights: Array, tolerance: float, pole: Array | None, hinge: Array | None,
-                        soft: float = 0.0) -> Array:
+                        soft: float = 0.0, smooth_frames: int = 0, periodic: bool = False) -> Array:
     """``(T, 3)`` ankle targets for :func:`anim_core.methods.ik.two_bone_ik` (with ``weights``, ``pole (T, 3)``
     or None, ``hinge`` and ``soft``, as :func:`plant_feet` or :meth:`anim_core.methods.footlock.FootLockedClip.sample`
     solves) on the poses ``rot``/``root`` such that the solved leg's thigh turns by at most ``tolerance`` radians
     and its knee bends within ``tolerance`` of the animated bend: each target moves from the animated ankle
     towards the given one as far as that holds (bisection on the solve; the thigh and the knee are the leg's
     angles that the fidelity gate compares with the source, :mod:`anim_core.clips.fidelity`).  Targets the leg
-    reaches within the tolerance are returned unchanged."""
+    reaches within the tolerance are returned unchanged.
+
+    ``smooth_frames`` > 0: how far each target goes is also made to change gradually from frame to frame (the least
+    over ``2 * smooth_frames + 1`` frames, then averaged over as many; ``periodic`` for a loop), never further than
+    the frame itself allows: where the allowed way jumps between two frames, a target following it would move the
+    knee by several centimetres in one frame (a pop; the walk's hybrid_ik 0: 9 cm).  The leg then fits at least
+    as well where the solve is monotonic in the way, as a two-bone leg's is."""
     thigh0, bend0 = leg_angles(skeleton, rot, root, chain)
     ankle = skeleton.forward_kinematics(rot, root)[1][:, chain[2]]
     way = targets - ankle
@@ -175,17 +182,21 @@ def leg_limited_targets(skeleton: Skeleton, rot: Array, root: Array, chain: tupl
         turn = np.arccos(np.clip(np.sum(thigh * thigh0[frames], axis=-1), -1.0, 1.0))
         return (turn <= tolerance) & (np.abs(bend - bend0[frames]) <= tolerance)
 
-    out = np.array(targets, dtype=np.float64)
     bad = np.flatnonzero(~fits(np.ones(len(targets)), np.arange(len(targets))))
     if bad.size == 0:
-        return out
+        return np.array(targets, dtype=np.float64)
     lo, hi = np.zeros(bad.size), np.ones(bad.size)
     for _ in range(16):  # to 1/65536 of the way
         mid = 0.5 * (lo + hi)
         ok = fits(mid, bad)
         lo, hi = np.where(ok, mid, lo), np.where(ok, hi, mid)
-    out[bad] = ankle[bad] + lo[:, None] * way[bad]
-    return out
+    share = np.ones(len(targets))
+    share[bad] = lo
+    if smooth_frames > 0:
+        k = 2 * smooth_frames + 1
+        mode = "wrap" if periodic else "nearest"
+        share = uniform_filter1d(minimum_filter1d(share, k, mode=mode), k, mode=mode)
+    return ankle + share[:, None] * way
 
 
 def _hinge(skeleton: Skeleton, local_rotations: ArrayLike, root: Array, chain: tuple[int, int, int]) -> Array | None:
