@@ -39,11 +39,13 @@ from ..math import contacts
 from ..math.clip import KeyframeClip, PlaybackMode, Pose, horizontal
 from ..math.quat import quat_from_axis_angle, quat_mul, rotate, slerp
 from ..math.skeleton import Skeleton
+from ..math.skinning import SkinnedMesh
 from ..methods.conditions import REFERENCE, Animation, Condition, Kind, get_method
 from ..methods.footlock import FootLockedClip
 from ..methods.footplant import plant_feet
 from ..methods.ik import smoothstep
 from ..methods.keypick import pick_keys
+from ..methods.lod import max_influences
 from ..rig.character import FEET, LEGS, UP, Character, RetargetedCharacter, retarget
 from ..rig.rigmap import UNITS
 from . import fidelity
@@ -547,7 +549,8 @@ def build_animation(source: Source, fps: int, conditions: Sequence[Condition],
                                condition.params_dict(), clip, key_times, np.asarray(clip.key_rotations), fps,
                                n_frames, cfg.playback, cfg.in_place, speed, source_info, source.character,
                                pose.rotations, pose.root_translation,
-                               *source.character.skeleton.forward_kinematics(*pose)))
+                               *source.character.skeleton.forward_kinematics(*pose), ladder=condition.ladder,
+                               level=condition.level, render=condition.render_settings()))
     placed = _place_on_floor(built)
     if cfg.playback == "loop" and not cfg.in_place:
         # A loop that travels is measured as an in-place one over ground moving under it, as in_place clips are:
@@ -564,7 +567,47 @@ def build_animation(source: Source, fps: int, conditions: Sequence[Condition],
         stored = condition.stored_bytes(c.clip)
         if stored is not None:
             c.metrics["bytes"] = stored
-    return _gate(source, measured, src_t)
+    gated = _gate(source, measured, src_t)
+    if any(c.ladder is not None for c in gated):
+        distinct_levels(cfg.name, gated, source.character.mesh.weights)
+        for c in gated:
+            if c.ladder is not None or c.method == REFERENCE:
+                c.metrics.update(run_time_cost(c, source.character.mesh))
+    return gated
+
+
+def _skin_level(c: BuiltClip, weights: Array) -> int | None:
+    """The influences per vertex a clip is rendered with, None for the full skin (also when a level keeps every
+    weight of the character's skin: at least its most influences per vertex)."""
+    k = (c.render or {}).get("skin_influences")
+    return None if k is None or k >= max_influences(weights) else int(k)
+
+
+def distinct_levels(animation: str, clips: Sequence[BuiltClip], weights: Array) -> None:
+    """Every level of a ladder makes a clip of its own: a level whose clip has the same frames (local rotations
+    and root) and is rendered with the same skin as the reference's or another level's is a ConfigError naming
+    the ladder, the level and the clip it repeats."""
+    seen: dict[tuple[bytes, bytes, int | None], BuiltClip] = {}
+    for c in clips:  # the reference first
+        key = (np.ascontiguousarray(c.local_rotations).tobytes(), np.ascontiguousarray(c.root_positions).tobytes(),
+               _skin_level(c, weights))
+        same = seen.get(key)
+        if same is not None and c.ladder is not None:
+            what = "the reference" if same.method == REFERENCE else f"condition {same.condition!r}"
+            raise ConfigError(f"[[ladders]] id = {c.ladder!r} level {c.level!r} ({c.method}): on animation "
+                              f"{animation!r} it makes the same clip as {what}; drop the level")
+        seen.setdefault(key, c)
+
+
+def run_time_cost(c: BuiltClip, mesh: SkinnedMesh) -> dict[str, float]:
+    """The clip's measured run-time cost (:mod:`anim_core.bench.cost`): ``cost_ms_per_1000``, and for a
+    render-time condition ``skin_ms_per_1000`` (the reference gets both, to compare with)."""
+    from ..bench.cost import pose_cost_ms_per_1000, skin_cost_ms_per_1000
+
+    out = {"cost_ms_per_1000": round(pose_cost_ms_per_1000(c.clip), 4)}
+    if c.render is not None or c.method == REFERENCE:
+        out["skin_ms_per_1000"] = round(skin_cost_ms_per_1000(c.clip, mesh, _skin_level(c, mesh.weights)), 2)
+    return out
 
 
 #: Kind ``other``: the tolerances (mm) :func:`suggest_tolerance` tries in turn, the default first, and the largest
