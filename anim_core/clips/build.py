@@ -45,7 +45,7 @@ from ..methods.footlock import FootLockedClip
 from ..methods.footplant import plant_feet
 from ..methods.ik import smoothstep
 from ..methods.keypick import pick_keys
-from ..methods.lod import max_influences
+from ..methods.lod import HeldClip, max_influences
 from ..rig.character import FEET, LEGS, UP, Character, RetargetedCharacter, retarget
 from ..rig.rigmap import UNITS
 from . import fidelity
@@ -711,7 +711,7 @@ def _gate(source: Source, clips: list[BuiltClip], src_t: Array) -> list[BuiltCli
     checks = [fidelity.check_reference(reference.world_positions, contact, candidates, slack, source_frames,
                                        bone_slack)]
     loop = cfg.playback == "loop"
-    checks += [fidelity.check_condition(c.world_positions, contact, reference.world_positions, loop,
+    checks += [fidelity.check_condition(c.world_positions, contact, _gate_reference(c, reference), loop,
                                         _mirrored_half(cfg, c), c.fps) for c in clips[1:]]
     out = []
     for c, check in zip(clips, checks, strict=True):
@@ -725,6 +725,17 @@ def _gate(source: Source, clips: list[BuiltClip], src_t: Array) -> list[BuiltCli
         metrics = {**c.metrics, **check.as_metrics(), "unfaithful": 1.0 if unfaithful else 0.0}
         out.append(replace(c, metrics=metrics, fidelity=check))
     return out
+
+
+def _gate_reference(c: BuiltClip, reference: BuiltClip) -> Array:
+    """What the gate compares a condition's frames with: the reference's frames, or for a held clip
+    (``update_rate``, :class:`~anim_core.methods.lod.HeldClip`) the reference's frames held as it holds them.  A
+    held clip shows only the reference's own poses (its tests check each frame is the reference's held frame);
+    what it loses between two updates, a foot's landing say, is the condition a study measures, not a fault of
+    the clip."""
+    if isinstance(c.clip, HeldClip):
+        return reference.world_positions[c.clip.shown[:c.n_frames]]
+    return reference.world_positions
 
 
 def _mirrored_half(cfg: AnimationConfig, clip: BuiltClip) -> tuple[NDArray[np.intp], int] | None:
