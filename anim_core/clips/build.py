@@ -570,9 +570,8 @@ def build_animation(source: Source, fps: int, conditions: Sequence[Condition],
     gated = _gate(source, measured, src_t)
     if any(c.ladder is not None for c in gated):
         distinct_levels(cfg.name, gated, source.character.mesh.weights)
-        for c in gated:
-            if c.ladder is not None or c.method == REFERENCE:
-                c.metrics.update(run_time_cost(c, source.character.mesh))
+        for c in gated:  # every clip of a clip set with ladders: the levels compare with all of them
+            c.metrics.update(run_time_cost(c, source.character.mesh))
     return gated
 
 

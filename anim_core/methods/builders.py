@@ -32,8 +32,8 @@
 * ``skin_influences`` (:class:`SkinInfluencesParams`): the reference's motion rendered with the ``influences``
   strongest skin weights per vertex (a render-time condition: :func:`skin_influences_render`).
 
-Stored bytes (the ``bytes`` metric) of ``hybrid_ik`` and ``quantized`` differ from a clip of float32 keys; their
-``stored_bytes`` functions are registered with them.
+Stored bytes (the ``bytes`` metric) of ``hybrid_ik``, ``quantized`` and ``bone_lod`` (its held joints store one
+pose) differ from a clip of float32 keys; their ``stored_bytes`` functions are registered with them.
 """
 
 from __future__ import annotations
@@ -180,6 +180,12 @@ def update_rate_refused(params: UpdateRateParams, fps: int) -> str | None:
         return (f"rate {params.rate:g} poses/s is at or above the clips' own rate of {fps} keys/s: every frame "
                 f"would be updated, the clip would be the reference")
     return None
+
+
+def bone_lod_bytes(clip: BoneLodClip, params: BoneLodParams) -> int:
+    # The moving joints' keys (float32, with the root and time per key) and one float32 pose of the held joints.
+    held = int(clip.frozen.sum())
+    return keyframe_bytes(clip.key_times.size, clip.skeleton.n_joints - held) + held * 4 * 4
 
 
 def build_update_rate(animation: Animation, params: UpdateRateParams) -> HeldClip:

@@ -211,7 +211,7 @@ BUILT_IN: tuple[tuple[str, type[Params], Callable[[Animation, Any], AnimClip], C
     ("reduced", b.ReducedParams, b.build_reduced, None, False, "epsilon_deg"),
     ("quantized", b.QuantizedParams, b.build_quantized, b.quantized_bytes, False, "bits"),
     ("update_rate", b.UpdateRateParams, b.build_update_rate, None, False, "rate"),
-    ("bone_lod", b.BoneLodParams, b.build_bone_lod, None, False, "depth"),
+    ("bone_lod", b.BoneLodParams, b.build_bone_lod, b.bone_lod_bytes, False, "depth"),
     ("skin_influences", b.SkinInfluencesParams, b.build_skin_influences, None, False, "influences"),
 )
 REFUSE: dict[str, Callable[[Any, int], str | None]] = {"update_rate": b.update_rate_refused}
