@@ -210,3 +210,17 @@ def test_a_level_making_the_same_clip_as_another_is_refused(built, tmp_path, dat
     with pytest.raises(ConfigError, match=r"id = 'depth' level 7 \(bone_lod\): on animation 'walk' it makes the "
                                           r"same clip as condition 'fingers'"):
         build_clip_set(data, load_config(path))
+
+
+def test_the_renderer_skins_each_clip_with_its_render_settings(built):
+    from anim_core.methods.lod import max_influences
+    from server.media.build import clip_mesh
+
+    out, clips = built
+    by = {e.condition: e for e in read_clip_manifest(out).clips}
+    mesh = clips[0].character.mesh
+    assert clip_mesh(mesh, by["keyframe"]) is mesh and clip_mesh(mesh, by["pps4"]) is mesh
+    for k in (1, 2, 4):
+        skinned = clip_mesh(mesh, by[f"skin{k}"])
+        assert max_influences(skinned.weights) == k
+        np.testing.assert_allclose(skinned.weights.sum(axis=1), 1.0, atol=1e-12)
