@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 
 from ..math.skinning import SkinnedMesh
-from ..methods.lod import BoneLodClip, HeldClip, strongest_influences
-from ..runtime import HeldCrowd, runtime_for
+from ..methods.lod import BoneLodClip, strongest_influences
+from ..runtime import HeldRuntime, runtime_for
 from ..runtime.crowd import CrowdBuffers
 from .suite import FPS
 
@@ -51,10 +51,9 @@ def _median_ms(step: Callable[[np.ndarray], Any], phases: np.ndarray, frames: in
 def pose_step(clip: Any, n: int) -> Callable[[np.ndarray], Any]:
     """A function posing ``n`` characters playing ``clip`` at running times ``t (n,)``, as the crowd runtime
     does for its kind of clip (module docstring)."""
-    if isinstance(clip, HeldClip):
-        crowd = HeldCrowd(clip, runtime_for(clip.base), n)
-        return crowd.pose
     runtime = runtime_for(clip)
+    if isinstance(runtime, HeldRuntime):
+        return runtime.crowd(n).pose
     buffers = CrowdBuffers.for_crowd(n, runtime.skeleton.n_joints)
     active = (~clip.frozen).astype(np.uint8) if isinstance(clip, BoneLodClip) else None
     return lambda t: runtime.pose(t, buffers, False, active)

@@ -17,7 +17,7 @@ from .checks import (
     sample_times,
 )
 from .crowd import numba
-from .held import HeldCrowd
+from .held import HeldCrowd, HeldRuntime
 from .kinds import (
     BONE_LODS,
     AnyRuntime,
@@ -49,7 +49,7 @@ if numba is not None:  # compiled only where numba is present
 
 __all__ = [
     "BONE_LODS", "C2_TOLERANCE_DEG", "FIT_TOLERANCE_DEG", "FOOT_LOCK_TOLERANCE_DEG", "AnyRuntime", "C2Runtime",
-    "FootLockRuntime", "HeldCrowd", "QuantizedRuntime", "SplineRuntime", "SpringRuntime", "TableRuntime",
+    "FootLockRuntime", "HeldCrowd", "HeldRuntime", "QuantizedRuntime", "SplineRuntime", "SpringRuntime", "TableRuntime",
     "angle_error_deg",
     "bone_lod_mask", "c2_runtime", "check_inputs", "crouch_params", "exact_global", "foot_lock_runtime", "lod_pose",
     "max_error_deg", "period", "pose_crowd", "quantized_runtime", "runtime_for", "sample_times", "spline_runtime",
