@@ -11,6 +11,8 @@ levels save, beside what they look like.
   (positions and normals) of the character's body, scaled to 1,000 characters from :data:`SKIN_CHARACTERS`
   characters over :data:`SKIN_FRAMES` frames (median).
 
+The clips (or skins) of one animation are timed interleaved, frame by frame, as the bench times its cases.
+
 Each measurement takes a few hundred milliseconds at most; they are timings on a shared machine, not exact
 figures (the bench's interleaved rounds compare conditions more fairly).
 """
@@ -18,7 +20,7 @@ figures (the bench's interleaved rounds compare conditions more fairly).
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -37,15 +39,19 @@ SKIN_FRAMES = 9
 SEED = 38
 
 
-def _median_ms(step: Callable[[np.ndarray], Any], phases: np.ndarray, frames: int, warmup: int) -> float:
-    times = []
+def _medians_ms(steps: Sequence[Callable[[np.ndarray], Any]], phases: np.ndarray, frames: int, warmup: int
+                ) -> list[float]:
+    """The median milliseconds of each step, timed interleaved (A B C A B C ...) so that a shared machine's load
+    hits them alike, as the bench does."""
+    times: list[list[float]] = [[] for _ in steps]
     for frame in range(warmup + frames):
         t = phases + frame / FPS
-        start = time.perf_counter()
-        step(t)
-        if frame >= warmup:
-            times.append((time.perf_counter() - start) * 1000.0)
-    return float(np.median(times))
+        for k, step in enumerate(steps):
+            start = time.perf_counter()
+            step(t)
+            if frame >= warmup:
+                times[k].append((time.perf_counter() - start) * 1000.0)
+    return [float(np.median(ms)) for ms in times]
 
 
 def pose_step(clip: Any, n: int) -> Callable[[np.ndarray], Any]:
@@ -59,10 +65,13 @@ def pose_step(clip: Any, n: int) -> Callable[[np.ndarray], Any]:
     return lambda t: runtime.pose(t, buffers, False, active)
 
 
-def pose_cost_ms_per_1000(clip: Any, frames: int = FRAMES, seed: int = SEED) -> float:
-    """``cost_ms_per_1000`` of ``clip`` (module docstring); per 1,000 characters, measured at 1,000."""
-    phases = np.random.default_rng(seed).uniform(0.0, 2.0 * float(clip.duration), CHARACTERS)
-    return _median_ms(pose_step(clip, CHARACTERS), phases, frames, WARMUP) * 1000.0 / CHARACTERS
+def pose_costs_ms_per_1000(clips: Sequence[Any], frames: int = FRAMES, seed: int = SEED) -> list[float]:
+    """``cost_ms_per_1000`` of each clip (module docstring), the clips of one animation timed interleaved; per
+    1,000 characters, measured at 1,000."""
+    duration = max(float(c.duration) for c in clips)
+    phases = np.random.default_rng(seed).uniform(0.0, 2.0 * duration, CHARACTERS)
+    steps = [pose_step(c, CHARACTERS) for c in clips]
+    return [ms * 1000.0 / CHARACTERS for ms in _medians_ms(steps, phases, frames, WARMUP)]
 
 
 def skinned_mesh(mesh: SkinnedMesh, influences: int | None) -> SkinnedMesh:
@@ -73,21 +82,25 @@ def skinned_mesh(mesh: SkinnedMesh, influences: int | None) -> SkinnedMesh:
     return SkinnedMesh(mesh.vertices, mesh.normals, joints, weights, mesh.inverse_bind)
 
 
-def skin_cost_ms_per_1000(clip: Any, mesh: SkinnedMesh, influences: int | None, frames: int = SKIN_FRAMES,
-                          seed: int = SEED) -> float:
-    """``skin_ms_per_1000``: linear blend skinning of ``mesh`` (cut to ``influences``) posed by ``clip``, per
-    1,000 characters per frame (measured on :data:`SKIN_CHARACTERS`, scaled)."""
-    skinned = skinned_mesh(mesh, influences)
+def skin_costs_ms_per_1000(clip: Any, mesh: SkinnedMesh, influences: Sequence[int | None],
+                           frames: int = SKIN_FRAMES, seed: int = SEED) -> list[float]:
+    """``skin_ms_per_1000`` for each entry of ``influences`` (None: the full skin): linear blend skinning of
+    ``mesh``, cut to that many influences, posed by ``clip`` (the poses computed first, only the skinning timed),
+    the skins timed interleaved; per 1,000 characters per frame, measured on :data:`SKIN_CHARACTERS`."""
+    skins = [skinned_mesh(mesh, k) for k in influences]
     phases = np.random.default_rng(seed).uniform(0.0, 2.0 * float(clip.duration), SKIN_CHARACTERS)
     pose = pose_step(clip, SKIN_CHARACTERS)
-    posed = {}
-
-    def step(t: np.ndarray) -> Any:
-        out = posed[float(t[0])]
-        return skinned.skin(skinned.skinning_matrices(out.rotations, out.positions))
-
-    for frame in range(WARMUP + frames):  # the poses first: only the skinning is timed
+    posed: dict[float, CrowdBuffers] = {}
+    for frame in range(WARMUP + frames):
         t = phases + frame / FPS
         out = pose(t)
         posed[float(t[0])] = CrowdBuffers(out.rotations.copy(), out.positions.copy())
-    return _median_ms(step, phases, frames, WARMUP) * 1000.0 / SKIN_CHARACTERS
+
+    def skinning(skin: SkinnedMesh) -> Callable[[np.ndarray], Any]:
+        def step(t: np.ndarray) -> Any:
+            out = posed[float(t[0])]
+            return skin.skin(skin.skinning_matrices(out.rotations, out.positions))
+        return step
+
+    medians = _medians_ms([skinning(s) for s in skins], phases, frames, WARMUP)
+    return [ms * 1000.0 / SKIN_CHARACTERS for ms in medians]

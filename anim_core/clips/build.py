@@ -570,8 +570,8 @@ def build_animation(source: Source, fps: int, conditions: Sequence[Condition],
     gated = _gate(source, measured, src_t)
     if any(c.ladder is not None for c in gated):
         distinct_levels(cfg.name, gated, source.character.mesh.weights)
-        for c in gated:  # every clip of a clip set with ladders: the levels compare with all of them
-            c.metrics.update(run_time_cost(c, source.character.mesh))
+        for c, cost in zip(gated, run_time_costs(gated, source.character.mesh), strict=True):
+            c.metrics.update(cost)  # every clip of a clip set with ladders: the levels compare with all of them
     return gated
 
 
@@ -598,14 +598,16 @@ def distinct_levels(animation: str, clips: Sequence[BuiltClip], weights: Array) 
         seen.setdefault(key, c)
 
 
-def run_time_cost(c: BuiltClip, mesh: SkinnedMesh) -> dict[str, float]:
-    """The clip's measured run-time cost (:mod:`anim_core.bench.cost`): ``cost_ms_per_1000``, and for a
-    render-time condition ``skin_ms_per_1000`` (the reference gets both, to compare with)."""
-    from ..bench.cost import pose_cost_ms_per_1000, skin_cost_ms_per_1000
+def run_time_costs(clips: Sequence[BuiltClip], mesh: SkinnedMesh) -> list[dict[str, float]]:
+    """Each clip's measured run-time cost (:mod:`anim_core.bench.cost`): ``cost_ms_per_1000``, and for the
+    reference and each render-time condition ``skin_ms_per_1000``; one animation's clips timed interleaved."""
+    from ..bench.cost import pose_costs_ms_per_1000, skin_costs_ms_per_1000
 
-    out = {"cost_ms_per_1000": round(pose_cost_ms_per_1000(c.clip), 4)}
-    if c.render is not None or c.method == REFERENCE:
-        out["skin_ms_per_1000"] = round(skin_cost_ms_per_1000(c.clip, mesh, _skin_level(c, mesh.weights)), 2)
+    out = [{"cost_ms_per_1000": round(ms, 4)} for ms in pose_costs_ms_per_1000([c.clip for c in clips])]
+    skinned = [k for k, c in enumerate(clips) if c.render is not None or c.method == REFERENCE]
+    levels = [_skin_level(clips[k], mesh.weights) for k in skinned]
+    for k, ms in zip(skinned, skin_costs_ms_per_1000(clips[0].clip, mesh, levels), strict=True):
+        out[k]["skin_ms_per_1000"] = round(ms, 2)
     return out
 
 
