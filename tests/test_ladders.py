@@ -159,6 +159,9 @@ def test_built_ladder_clips_carry_level_cost_and_render_settings(built):
         assert e.metrics["cost_ms_per_1000"] > 0 and e.metrics["bytes"] > 0
     for k in ("keyframe", "skin1", "skin2", "skin4"):
         assert by[k].metrics["skin_ms_per_1000"] > 0
+    # Weights blended: one per vertex at 1 influence (the body's 13,380 vertices), more with more, most at full.
+    blended = [by[k].metrics["skin_weights"] for k in ("skin1", "skin2", "skin4", "keyframe")]
+    assert blended[0] == 13380 and blended == sorted(set(blended))
     # The held-update path poses about 4/60 of the crowd a frame: cheaper than posing everyone, really measured.
     assert by["pps4"].metrics["cost_ms_per_1000"] < 0.6 * by["keyframe"].metrics["cost_ms_per_1000"]
     # Fewer updates store fewer keys: a 40-frame loop updated 4 times a second has 6 (frames 0, 8, 15, 23, 30, 38).

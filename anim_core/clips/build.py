@@ -45,7 +45,7 @@ from ..methods.footlock import FootLockedClip
 from ..methods.footplant import plant_feet
 from ..methods.ik import smoothstep
 from ..methods.keypick import pick_keys
-from ..methods.lod import HeldClip, max_influences
+from ..methods.lod import HeldClip, max_influences, strongest_influences
 from ..rig.character import FEET, LEGS, UP, Character, RetargetedCharacter, retarget
 from ..rig.rigmap import UNITS
 from . import fidelity
@@ -600,14 +600,18 @@ def distinct_levels(animation: str, clips: Sequence[BuiltClip], weights: Array) 
 
 def run_time_costs(clips: Sequence[BuiltClip], mesh: SkinnedMesh) -> list[dict[str, float]]:
     """Each clip's measured run-time cost (:mod:`anim_core.bench.cost`): ``cost_ms_per_1000``, and for the
-    reference and each render-time condition ``skin_ms_per_1000``; one animation's clips timed interleaved."""
+    reference and each render-time condition ``skin_ms_per_1000`` and ``skin_weights`` (the non-zero skin weights
+    of the body it is skinned with: what an engine's per-vertex loop blends); one animation's clips timed
+    interleaved."""
     from ..bench.cost import pose_costs_ms_per_1000, skin_costs_ms_per_1000
 
     out = [{"cost_ms_per_1000": round(ms, 4)} for ms in pose_costs_ms_per_1000([c.clip for c in clips])]
     skinned = [k for k, c in enumerate(clips) if c.render is not None or c.method == REFERENCE]
     levels = [_skin_level(clips[k], mesh.weights) for k in skinned]
-    for k, ms in zip(skinned, skin_costs_ms_per_1000(clips[0].clip, mesh, levels), strict=True):
+    for k, level, ms in zip(skinned, levels, skin_costs_ms_per_1000(clips[0].clip, mesh, levels), strict=True):
         out[k]["skin_ms_per_1000"] = round(ms, 2)
+        weights = mesh.weights if level is None else strongest_influences(mesh.joints, mesh.weights, level)[1]
+        out[k]["skin_weights"] = int(np.count_nonzero(weights))  # weights blended per character and frame
     return out
 
 
