@@ -31,7 +31,7 @@ def _hybrid_bone_directions(character, out: Normalized, bind: bool, keys_only: s
     rc = retarget(character, b.posed_skeleton(), b.end_sites, motion=rot)
     dt = b.frame_time
     clip = KeyframeClip(rc.skeleton, np.arange(len(rot)) * dt, rot, root * rc.root_scale, mode="clamp")
-    mirror = Mirror(rc.skeleton, bind=rc.mirror_bind if bind else None)
+    mirror = Mirror(rc.skeleton, bind=rc.mirror_bind(rot) if bind else None)
     hybrid = build_gait(clip, [30 * dt, 50 * dt], 70 * dt, increment=1, mirror=mirror)
     frames = np.arange(70) * dt if keys_only is None else hybrid.key_times[keys_only]
     _, p = rc.skeleton.forward_kinematics(*hybrid.sample(frames))
@@ -117,4 +117,4 @@ def test_the_mirror_bind_only_turns_bones_about_themselves(character, cmu_walk):
         if not c or j in relocated:
             continue
         d = sk.offsets[c[0]]
-        np.testing.assert_allclose(rotate(rc.mirror_bind[j], d), rotate(rc.bind_rotations[j], d), atol=1e-9)
+        np.testing.assert_allclose(rotate(rc.mirror_bind(rot)[j], d), rotate(rc.bind_rotations[j], d), atol=1e-9)
