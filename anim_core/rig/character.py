@@ -322,6 +322,14 @@ def retarget(character: Character, mocap: Skeleton, end_sites: Mapping[int, Arra
         elif mocap_dir is not None:
             q_bind[j] = quat_mul(_arc(rotate(q_parent, mocap_dir), rig_vec), q_parent)
             bones[j] = np.asarray(mocap_dir, np.float64)
+        elif mocap.names[j] == "Head" and motion is not None:
+            # A head without a bone of its own (an End Site at the joint: the Bandai Namco rigs) says nothing of
+            # where the face points.  Bound as the rest pose holds it on its neck, it tilts with whatever the rest
+            # pose's neck does against the character's (the Bandai walk: the face turned up to the sky); so it is
+            # bound level instead: the world's up, averaged over the take in its frame, onto the mesh's up.
+            world = mocap.forward_kinematics(_frames(motion))[0][:, j]
+            up = rotate(quat_conj(world), np.array([0.0, 1.0, 0.0])).mean(axis=0)
+            q_bind[j] = quat_mul(_arc(rotate(q_parent, up), np.array([0.0, 1.0, 0.0])), q_parent)
         else:
             q_bind[j] = q_parent
     for j in range(1, n):
