@@ -469,9 +469,9 @@ def _reference(source: Source, fps: int) -> tuple[Animation, dict[str, Any], Arr
         keyframe = _planted(source, keyframe, src_t)
         key_grid = (0.0, keyframe.duration)
         source_info = {"file": cfg.source, "frames": [int(keys[0]), int(keys[1])], "key_frames": list(keys)}
-    rc = source.character
+    # Mirrored about a bind made from the clip itself, so that the hybrid is the same whatever rig the take came on.
     animation = Animation(cfg.name, cfg.kind, keyframe, key_grid, keyframe.duration, cfg.in_place, fps,
-                          rc.bind_rotations if rc.mirror_bind is None else rc.mirror_bind)
+                          source.character.mirror_bind(keyframe.rotations))
     return animation, source_info, src_t
 
 

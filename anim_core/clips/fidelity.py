@@ -105,7 +105,8 @@ STANCE_MIN_S = 0.12
 #: (docs/motion-from-the-wild.md).
 MIRROR_MARGIN_DEG = 5.0
 #: ... and its mirrored half must be the mirror image of its keyed half as a viewer sees the body (degrees, 95th
-#: percentile of the largest bone angle): exact but for the pelvis a rig's rest pose binds (docs: under 10 degrees).
+#: percentile of the largest bone angle): exact at the keys; between them SQUAD interpolates twists the mirror gives
+#: the mirrored keys, and a foot-locked hybrid's IK targets follow each half's own contacts.
 SELF_MIRROR_DEG = 10.0
 _PARTNER = mirror_partners(CANONICAL_NAMES)
 

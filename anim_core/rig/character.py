@@ -11,7 +11,9 @@ Retargeting (:func:`retarget`) plays the local joint rotations of a BVH skeleton
 character's bone lengths and the mocap's rest bone directions, so every bone of the character points exactly
 where the mocap's bone points, at every frame.  The mesh is bound to that skeleton by one rotation per joint
 (``bind_rotations``), the rotation that turns the joint's mocap rest direction into the direction the bone has in
-the A-posed mesh; it is computed down each chain relative to the parent's, so twist carries over smoothly.
+the A-posed mesh; it is computed down each chain relative to the parent's, so twist carries over smoothly.  A
+gait is mirrored about a bind made from the clip itself (:func:`mirror_bind`), so that its hybrid does not depend on
+the rig the take came on.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from __future__ import annotations
 import gzip
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -208,8 +210,8 @@ class RetargetedCharacter:
     bound to it (joint indices in the mocap's order).  ``bind_rotations``/``bind_positions``: ``(J, 4)``/``(J, 3)``
     joint frames in the A-posed mesh.  ``root_scale``: metres per mocap length unit (ratio of leg lengths).
     ``contact_heights``: ``(J,)`` height of each joint above the soles in the A-pose (feet flat on the floor).
-    ``mirror_bind``: ``(J, 4)`` the bind made independent of the mocap rig (:func:`mirror_bind`), for mirroring;
-    None when no take was given.
+    ``bones``: the joints ``bind_rotations`` turns by a bone, each with that bone's mocap rest direction (what
+    :meth:`mirror_bind` needs).
     """
 
     skeleton: Skeleton
@@ -219,11 +221,16 @@ class RetargetedCharacter:
     bind_positions: Array
     root_scale: float
     contact_heights: Array
-    mirror_bind: Array | None = None
+    bones: Mapping[int, Array] = field(default_factory=dict, repr=False)
 
     def pose(self, mocap: Pose) -> Pose:
         """The character's pose for a batch of mocap poses: same rotations, root translation scaled to metres."""
         return Pose(np.asarray(mocap.rotations), np.asarray(mocap.root_translation) * self.root_scale)
+
+    def mirror_bind(self, motion: ArrayLike) -> Array:
+        """The bind a clip is mirrored about (:func:`mirror_bind`): ``motion`` ``(F, J, 4)``, the local rotations
+        of the clip as it is mirrored (its root's in the frame whose plane ``x = 0`` is the mirror)."""
+        return mirror_bind(self.skeleton, self.bind_rotations, self.bones, motion)
 
 
 def bind_mesh(character: Character, joint_names: Sequence[str], bind_rotations: Array, bind_positions: Array,
@@ -256,7 +263,12 @@ def retarget(character: Character, mocap: Skeleton, end_sites: Mapping[int, Arra
     ``name_map``: mocap -> rig joint names where they differ (default :data:`CMU_TO_RIG`); ``relocate``: mocap
     joints with a zero-length bone to their parent whose mesh keeps its parent's orientation; the joint itself is
     moved instead so that its child bone gets the mocap's direction while the child stays where the mesh has it
-    (joints of ``relocate`` without such a bone are bound as the others).
+    (joints of ``relocate`` without such a bone are bound as the others); ``motion``: ``(F, J, 4)`` local rotations
+    of the take that will play on it (w, x, y, z).  Given the take, the pelvis is bound as the take holds it, not as
+    the rig's rest pose happens to: the root by its mean hip line and up direction (:func:`_symmetric_root`), the
+    hip joints of ``relocate`` at their mean turn against it; so the same world motion on rigs with other rest
+    poses binds the same pelvis, and the joints the character places from it (CMU's zero-length hip joints and
+    lower back) land in the same places (issue 35).
     """
     name_map = dict(CMU_TO_RIG if name_map is None else name_map)
     if not np.allclose(mocap.rest_rotations, identity((mocap.n_joints,))):
@@ -277,11 +289,17 @@ def retarget(character: Character, mocap: Skeleton, end_sites: Mapping[int, Arra
     children = [mocap.children(j) for j in range(n)]
     zero = np.linalg.norm(mocap.offsets, axis=1) < 1e-9
     q_bind = identity((n,))  # mocap rest frame -> A-pose frame, per joint
+    if motion is not None:
+        # The pelvis as the take holds it, facing along its own sagittal plane, not as the rig's rest pose happens
+        # to (with it, the zero-length CMU hip joints and lower back are placed; :func:`mirror_bind`).
+        q_bind[0] = _symmetric_root(mocap, *mocap.forward_kinematics(_frames(motion)))
     p_bind = heads.copy()
     offsets = np.zeros((n, 3))
     bones: dict[int, Array] = {}  # joints bound by a bone: its mocap rest direction
     for j in range(n):  # once per skeleton
         p = mocap.parents[j]
+        if p < 0 and motion is not None:
+            continue  # bound above
         q_parent = q_bind[p] if p >= 0 else identity()
         # The bone that orients this joint's segment: its (single) child with a mocap direction, or its End Site.
         # (A bone the mesh's rig has no length for, e.g. a palm bone of another rig, says nothing either.)
@@ -304,6 +322,14 @@ def retarget(character: Character, mocap: Skeleton, end_sites: Mapping[int, Arra
         elif mocap_dir is not None:
             q_bind[j] = quat_mul(_arc(rotate(q_parent, mocap_dir), rig_vec), q_parent)
             bones[j] = np.asarray(mocap_dir, np.float64)
+        elif mocap.names[j] == "Head" and motion is not None:
+            # A head without a bone of its own (an End Site at the joint: the Bandai Namco rigs) says nothing of
+            # where the face points.  Bound as the rest pose holds it on its neck, it tilts with whatever the rest
+            # pose's neck does against the character's (the Bandai walk: the face turned up to the sky); so it is
+            # bound level instead: the world's up, averaged over the take in its frame, onto the mesh's up.
+            world = mocap.forward_kinematics(_frames(motion))[0][:, j]
+            up = rotate(quat_conj(world), np.array([0.0, 1.0, 0.0])).mean(axis=0)
+            q_bind[j] = quat_mul(_arc(rotate(q_parent, up), np.array([0.0, 1.0, 0.0])), q_parent)
         else:
             q_bind[j] = q_parent
     for j in range(1, n):
@@ -325,9 +351,28 @@ def retarget(character: Character, mocap: Skeleton, end_sites: Mapping[int, Arra
     mocap_leg = sum(np.linalg.norm(mocap.offsets[j]) for k, j in enumerate(chain) if k % 3)
     character_leg = sum(np.linalg.norm(offsets[j]) for k, j in enumerate(chain) if k % 3)
     contact = p_bind[:, 1] - character.sole_height
-    mirror = None if motion is None else mirror_bind(mocap, q_bind, bones, heads, motion)
     return RetargetedCharacter(skeleton, mesh, character.faces, q_bind, p_bind, character_leg / mocap_leg, contact,
-                               mirror)
+                               bones)
+
+
+def _symmetric_root(skeleton: Skeleton, world: Array, positions: Array) -> Array:
+    """The root's symmetric frame (quaternion, rest frame -> A-pose frame) from poses ``world``/``positions``
+    (``(F, J, 4)``/``(F, J, 3)``): the mean line from the right thigh's head to the left's in the root's frame turned
+    onto +x exactly, the mean up direction as near +y as that leaves; for a skeleton without two thighs apart (the
+    gate refuses stacked ones), the root's mean orientation."""
+    inverse = quat_conj(world[:, 0])
+    up = rotate(inverse, np.array([0.0, 1.0, 0.0])).mean(axis=0)
+    try:
+        left, right = skeleton.index("LeftUpLeg"), skeleton.index("RightUpLeg")
+    except KeyError:
+        return _chordal_mean(world[:, 0])
+    across = rotate(inverse, positions[:, left] - positions[:, right]).mean(axis=0)
+    if min(np.linalg.norm(across), np.linalg.norm(up)) < 1e-9 or np.linalg.norm(
+            np.cross(across / np.linalg.norm(across), up / np.linalg.norm(up))) < 1e-3:
+        return _chordal_mean(world[:, 0])
+    fit, _ = Rotation.align_vectors(np.eye(3)[:2], np.stack([across / np.linalg.norm(across),
+                                                             up / np.linalg.norm(up)]), weights=[np.inf, 1.0])
+    return fit.as_quat(scalar_first=True)
 
 
 def _chordal_mean(q: Array) -> Array:
@@ -342,49 +387,43 @@ def _frames(motion: ArrayLike) -> Array:
     return rot[:: max(1, len(rot) // 256)]
 
 
-def mirror_bind(mocap: Skeleton, bind: Array, bones: Mapping[int, Array], heads: Array, motion: ArrayLike) -> Array:
-    """The bind ``bind`` (``(J, 4)``, mocap rest frame -> A-pose frame per joint) with what the mocap rig's rest pose
-    put into it taken out, from the take ``motion`` (``(F, J, 4)`` local rotations): the pose a gait is mirrored
-    about (:class:`anim_core.rig.mirror.Mirror`).  ``bones``: the joints ``bind`` turns by a bone, each with that
-    bone's mocap rest direction; ``heads``: ``(J, 3)`` the rig's joint heads in the mocap's order.
+def mirror_bind(skeleton: Skeleton, bind: Array, bones: Mapping[int, Array], motion: ArrayLike) -> Array:
+    """The bind ``bind`` (``(J, 4)``, rest frame -> A-pose frame per joint of ``skeleton``) with what the mocap rig's
+    rest pose put into it taken out, from the clip ``motion`` (``(F, J, 4)`` local rotations, the root's in the frame
+    whose plane ``x = 0`` it is mirrored through): the pose a gait is mirrored about
+    (:class:`anim_core.rig.mirror.Mirror`).  ``bones``: the joints ``bind`` turns by a bone, each with that bone's
+    rest direction (:attr:`RetargetedCharacter.bones`).
 
     Which way each bone's mesh is twisted about the bone is not in the bone directions, and what a rig's rest pose
     says about it (and about joints without a bone of their own: the CMU root, hip joints and chest) is an accident
     of that rig: mirrored about such a bind, a gait's mirrored keys carry the rest pose's twists, and the frames
-    between the keys differ from rig to rig.  Here every joint is set from the take alone, parents first:
+    between the keys differ from rig to rig.  Here every joint is set from the clip alone, parents first:
 
-    * the root: the line from the right thigh's head to the left's, and the up direction, each averaged over the
-      take in the root's frame, onto the A-pose's (the pelvis as it is held on average, upright);
+    * the root: its line from the right thigh's head to the left's, averaged over the clip in the root's frame, along
+      the A-pose's left (+x), and the up direction as near the A-pose's as that leaves (:func:`_symmetric_root`, as
+      :func:`retarget` binds it when given the take); the pelvis's own sagittal plane is then the plane a gait is
+      mirrored through.  Bound otherwise (at its mean orientation, or as a rest pose turned against the pelvis
+      has it), the root is mirrored about a turned plane and the joints below it make up the difference at the
+      keys but not between them (measured: the Bandai run's hybrid 0 28.3 degrees from its reference, p95,
+      against 25.4; its walk's 49.9 against 42.5);
     * a joint bound by a bone: turned about the bone so that its twist relative to its parent is zero on average (a
       circular mean, each frame weighted by how far the bone is from pointing against its bind direction, where the
       twist is least defined); only the twist changes, so the bone still points where the mocap's does;
     * any other (a hip joint the character moves instead of turning, a joint without a bone): turned so that its
       rotation relative to its parent is the identity on average (the chordal mean).
 
-    A rig's rest pose and joint frames change every local rotation of the take by constant rotations on either side,
+    A rig's rest pose and joint frames change every local rotation of the clip by constant rotations on either side,
     and each of these means follows such a change, so the result is the same on every rig of the same world motion
     (tests/test_mirror_on_the_character.py: to 1e-6 degrees in every bone of the hybrid, at and between the keys).
-    The mesh stays bound by ``bind``: for a left/right-symmetric take the two differ by left/right-symmetric turns,
+    The mesh stays bound by ``bind``: for a left/right-symmetric gait the two differ by left/right-symmetric turns,
     which a mirror carries over unchanged.
     """
-    world, positions = mocap.forward_kinematics(_frames(motion))
+    world, positions = skeleton.forward_kinematics(_frames(motion))
     out = np.asarray(bind, dtype=np.float64).copy()
-    try:
-        left, right = mocap.index("LeftUpLeg"), mocap.index("RightUpLeg")
-    except KeyError:
-        left = right = -1
-    inverse = quat_conj(world[:, 0])
-    across = rotate(inverse, positions[:, left] - positions[:, right]).mean(axis=0) if left >= 0 else np.zeros(3)
-    up = rotate(inverse, np.eye(3)[1]).mean(axis=0)
-    rig_across = heads[left] - heads[right]
-    pelvis = min(np.linalg.norm(np.cross(across, up)), np.linalg.norm(np.cross(rig_across, np.eye(3)[1]))) > 1e-6
-    if pelvis:  # else (no thighs, or both start from one point: the gate refuses that) the root keeps its bind
-        rig = np.stack([rig_across / np.linalg.norm(rig_across), np.eye(3)[1]])
-        fit, _ = Rotation.align_vectors(rig, np.stack([across / np.linalg.norm(across), up / np.linalg.norm(up)]))
-        out[0] = fit.as_quat(scalar_first=True)
-    for j in range(1 if pelvis else 0, mocap.n_joints):
-        p = mocap.parents[j]
-        parent_mesh = quat_mul(world[:, p], quat_conj(out[p])) if p >= 0 else identity((len(world),))
+    out[0] = _symmetric_root(skeleton, world, positions)
+    for j in range(1, skeleton.n_joints):
+        p = skeleton.parents[j]
+        parent_mesh = quat_mul(world[:, p], quat_conj(out[p]))
         local = quat_mul(quat_conj(parent_mesh), quat_mul(world[:, j], quat_conj(out[j])))
         if j in bones:
             bone = rotate(out[j], bones[j] / np.linalg.norm(bones[j]))
