@@ -227,3 +227,59 @@ def test_the_renderer_skins_each_clip_with_its_render_settings(built):
         skinned = clip_mesh(mesh, by[f"skin{k}"])
         assert max_influences(skinned.weights) == k
         np.testing.assert_allclose(skinned.weights.sum(axis=1), 1.0, atol=1e-12)
+
+
+def test_a_skin_level_renders_other_pixels_only_where_weights_were_dropped(built, data):
+    """One frame of the walk rendered small without shadows: with every weight kept (7 influences, the body's
+    most) it is the full skin's frame pixel for pixel; with 1 influence pixels change, and every changed pixel lies
+    in the screen box (1 px wider) of a triangle with a vertex that lost weights."""
+    from anim_core.bench.cost import skinned_mesh
+    from anim_core.rig.character import bind_mesh
+    from server.assets import character as load_character
+    from server.media.build import BODY_PADDING_M, clip_mesh
+    from server.media.renderer import ClipRenderer
+    from server.media.scene import RenderSettings, frame_motion
+
+    out, _ = built
+    by = {e.condition: e for e in read_clip_manifest(out).clips}
+    a = np.load(by["keyframe"].path)
+    body = load_character(data)
+    mesh = bind_mesh(body, [str(n) for n in a["joint_names"]], a["bind_rotations"], a["bind_positions"])
+    settings = RenderSettings(width=160, height=120, shadows=False)
+    pos = a["world_positions"]
+    framing = frame_motion(pos, settings, BODY_PADDING_M)
+    bounds = np.array([pos.reshape(-1, 3).min(axis=0) - 0.3, pos.reshape(-1, 3).max(axis=0) + 0.3])
+    renderer = ClipRenderer(mesh, body.faces, framing, settings, bounds)
+    frame = slice(10, 11)
+    try:
+        def render(skin):
+            (image,) = renderer.render(a["world_rotations"][frame], a["world_positions"][frame], mesh=skin)
+            return image.astype(int)
+
+        full, kept, cut = render(mesh), render(skinned_mesh(mesh, 7)), render(clip_mesh(mesh, by["skin1"]))
+    finally:
+        renderer.close()
+    assert np.array_equal(kept, full)
+    changed = np.abs(cut - full).max(axis=-1) > 0
+    assert changed.sum() > 20
+    # Where the weights were dropped, projected: the camera looks down -Z of its pose, pyrender's perspective.
+    one = clip_mesh(mesh, by["skin1"])
+    matrices = mesh.skinning_matrices(a["world_rotations"][10], a["world_positions"][10])
+    v_full, _ = mesh.skin(matrices)
+    v_cut, _ = one.skin(one.skinning_matrices(a["world_rotations"][10], a["world_positions"][10]))
+    dropped = np.count_nonzero(mesh.weights, axis=1) > 1
+    faces = body.faces[dropped[body.faces].any(axis=1)]
+    world_to_camera = np.linalg.inv(framing.pose())
+    ty = np.tan(np.radians(settings.yfov_deg) / 2)
+    tx = ty * settings.width / settings.height
+    allowed = np.zeros_like(changed)
+    for v in (v_full, v_cut):
+        cam = v @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
+        col = (cam[:, 0] / -cam[:, 2] / tx + 1) / 2 * settings.width
+        row = (1 - cam[:, 1] / -cam[:, 2] / ty) / 2 * settings.height
+        c, r = col[faces], row[faces]
+        for c0, c1, r0, r1 in zip(np.floor(c.min(1)) - 1, np.ceil(c.max(1)) + 1, np.floor(r.min(1)) - 1,
+                                  np.ceil(r.max(1)) + 1, strict=True):
+            allowed[max(int(r0), 0):max(int(r1), 0) + 1, max(int(c0), 0):max(int(c1), 0) + 1] = True
+    assert allowed.mean() < 0.5  # the boxes leave most of the picture out
+    assert not (changed & ~allowed).any()
