@@ -502,7 +502,7 @@ def _read_truth(path: Path, conditions: list[str]) -> dict[str, float]:
 
 
 def _simulate_or_plan(args: argparse.Namespace, design: Any) -> int:
-    from server.studies import simulate as sim
+    from server.analysis import simulate as sim
 
     if args.study_command == "simulate":
         try:
