@@ -4,7 +4,8 @@ from it (:mod:`anim_core.methods.conditions`), the clips sampled, placed on the 
 For each animation (an :class:`AnimationConfig`, read from the clip-set file by ``server.clipset``) the builder
 
 1. takes the motion, already on the canonical CMU skeleton (any common rig is brought there first by
-   :func:`anim_core.rig.rigmap.normalize_bvh`), and retargets it onto the character (metres, Y up), turned to face +Z;
+   :func:`anim_core.rig.normalize.normalize_bvh`), and retargets it onto the character (metres, Y up), turned to face
+   +Z;
    a turning gait (or a traveling ``other`` loop) is straightened onto one heading (:func:`source_from_bvh`,
    :func:`straighten_heading`);
 2. picks what the description does not give: the gait cycle and keys from the feet, the crouch keys from the hip
@@ -91,10 +92,9 @@ class AnimationConfig:
 
     How the caller reads the source: ``animation`` picks a glTF file's animation by name or index (default: the
     first); ``mapping`` names an explicit joint-mapping file, ``units`` (a key of :data:`anim_core.rig.rigmap.UNITS`)
-    and
-    ``up_axis`` (``"y"``/``"z"``) override the detection (:func:`anim_core.rig.rigmap.normalize_bvh`).  ``tolerance_mm``
-    (kind ``other``): the largest joint position error, mm, of the hybrid through the picked keys against the
-    reference; ``max_keys`` (kind ``other``): the most keys the picking may take to reach it.
+    and ``up_axis`` (``"y"``/``"z"``) override the detection (:func:`anim_core.rig.normalize.normalize_bvh`).
+    ``tolerance_mm`` (kind ``other``): the largest joint position error, mm, of the hybrid through the picked keys
+    against the reference; ``max_keys`` (kind ``other``): the most keys the picking may take to reach it.
     ``accept_unfaithful``: build even if the fidelity gate (:mod:`anim_core.clips.fidelity`) fails; the clips are
     marked as such."""
 
@@ -209,7 +209,7 @@ def source_from_bvh(bvh: Bvh, character: Character, config: AnimationConfig, rel
     sideways and backwards).
 
     ``source_positions``: ``(F, 31, 3)`` the canonical joints by the source file's own forward kinematics
-    (:attr:`anim_core.rig.rigmap.Normalized.source_positions`), for the fidelity gate; default: ``bvh``'s (a CMU file
+    (:attr:`anim_core.rig.normalize.Normalized.source_positions`), for the fidelity gate; default: ``bvh``'s (a CMU file
     is its own source)."""
     rotations, root = bvh.pose_arrays()
     first, last = config.frames

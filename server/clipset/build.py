@@ -16,7 +16,8 @@ from anim_core.clips.sources import read_motions
 from anim_core.methods.conditions import Condition
 from anim_core.rig.character import Character
 from anim_core.rig.gltf_character import MappedCharacter
-from anim_core.rig.rigmap import Normalized, read_mapping_file
+from anim_core.rig.normalize import Normalized
+from anim_core.rig.rigmap import read_mapping_file
 from server import assets
 from server.assets import AssetError
 
