@@ -7,7 +7,8 @@ motion on the character as glTF or BVH (``animstudy clips convert FILE OUT``, :f
 mapping with reasons, units, up axis, fps, frames, duration, the foot-contact phases (frame intervals,
 :mod:`anim_core.math.contacts` on the motion in metres) and a suggested ``kind`` and frame range.  Suggestions
 are heuristics stated in :func:`suggest`; the user decides.  Every failure is a ``ValueError`` subclass naming the
-file (:class:`~anim_core.io.bvh.BvhError` with its line, :class:`~anim_core.io.gltf.GltfError`, :class:`~anim_core.rig.rigmap.RigMapError`).
+file (:class:`~anim_core.io.bvh.BvhError` with its line, :class:`~anim_core.io.gltf.GltfError`,
+:class:`~anim_core.rig.rigmap.RigMapError`).
 """
 
 from __future__ import annotations
