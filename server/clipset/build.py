@@ -10,6 +10,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from anim_core.bench.cost import with_run_time_costs
 from anim_core.clips.build import AnimationConfig, Source, build_animation, source_from_bvh
 from anim_core.clips.record import BuiltClip
 from anim_core.clips.sources import read_motions
@@ -126,7 +127,15 @@ def animation_clips(data_dir: Path, character: Character, config: AnimationConfi
     """The clips of one animation (its motion file read by :func:`load_source`), one per condition, the reference
     first (:func:`anim_core.clips.build.build_animation`).  Raises :class:`AssetError` (file) or
     :class:`~anim_core.clips.build.ConfigError` (entry, field or condition); nothing is written."""
-    return build_animation(load_source(data_dir, character, config, relocate), fps, conditions, progress)
+    return built_clips(load_source(data_dir, character, config, relocate), fps, conditions, progress)
+
+
+def built_clips(source: Source, fps: int, conditions: Sequence[Condition],
+                progress: Callable[[str], None] = lambda _msg: None) -> list[BuiltClip]:
+    """One animation's clips (:func:`anim_core.clips.build.build_animation`) with their measured run-time costs
+    when the clip set has ladders (:func:`anim_core.bench.cost.with_run_time_costs`; measured here, above
+    ``anim_core.clips``, which the bench imports)."""
+    return with_run_time_costs(build_animation(source, fps, conditions, progress), source.character.mesh)
 
 
 class AnimationError(ValueError):
@@ -142,7 +151,7 @@ class AnimationError(ValueError):
 def clips_task(normalized: Normalized, character: Character, config: AnimationConfig, fps: int,
                conditions: Sequence[Condition], relocate: tuple[str, ...]) -> list[BuiltClip]:
     """A pure task: one animation's clips from its motion as read (a worker reads no file)."""
-    return build_animation(_retargeted(normalized, character, config, relocate), fps, conditions)
+    return built_clips(_retargeted(normalized, character, config, relocate), fps, conditions)
 
 
 def build_each(data_dir: Path, character: Character, wanted: Sequence[tuple[AnimationConfig, Sequence[Condition]]],
@@ -164,8 +173,7 @@ def build_each(data_dir: Path, character: Character, wanted: Sequence[tuple[Anim
         built = []
         for cfg, conditions, normalized in sources:
             try:
-                built += build_animation(_retargeted(normalized, character, cfg, relocate), fps, conditions,
-                                         progress)
+                built += built_clips(_retargeted(normalized, character, cfg, relocate), fps, conditions, progress)
             except ValueError as exc:
                 raise AnimationError(cfg.name, exc) from None
         return built
