@@ -11,7 +11,8 @@ from pathlib import Path
 from typing import Any
 
 from anim_core.bench.cost import with_run_time_costs
-from anim_core.clips.build import AnimationConfig, Source, build_animation, source_from_bvh
+from anim_core.clips.build import build_animation, source_from_bvh
+from anim_core.clips.entry import AnimationConfig, Source
 from anim_core.clips.record import BuiltClip
 from anim_core.clips.sources import read_motions
 from anim_core.methods.conditions import Condition

@@ -10,7 +10,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from anim_core.clips.build import DEFAULT_MAX_KEYS, DEFAULT_TOLERANCE_MM, AnimationConfig, ConfigError
+from anim_core.clips.build import ConfigError
+from anim_core.clips.entry import DEFAULT_MAX_KEYS, DEFAULT_TOLERANCE_MM, AnimationConfig
 from anim_core.math.clip import PLAYBACK_MODES
 from anim_core.methods.conditions import KINDS, REFERENCE, Condition, ConditionError, get_method
 from anim_core.rig.rigmap import UNITS
