@@ -61,6 +61,7 @@ from typing import Any, Generic, TypeVar
 from pydantic import ValidationError
 
 from . import builders as b
+from . import composite_builders as cb
 from .base import KINDS, REFERENCE, Animation, ConditionError, Kind, Params
 from .hybrid import AnimClip
 
@@ -80,6 +81,8 @@ __all__ = [
 ]
 
 P = TypeVar("P", bound=Params)
+#: What an animation of a clip set is: a source take, or a composite (issue 39) of takes in sequence or in layers.
+ANIMATION_FORMS = ("take", "sequence", "layered")
 
 
 @dataclass(frozen=True)
@@ -92,23 +95,29 @@ class Method(Generic[P]):
     stored_bytes: Callable[[Any, P], int] | None = None
     #: its gait clips' second half cycle mirrors the first (the fidelity gate checks the mirrored half)
     mirrors: bool = False
+    #: the animations it builds clips of: ``"take"`` (a source take), ``"sequence"``, ``"layered"`` (composites)
+    applies_to: tuple[str, ...] = ("take",)
 
 
 _METHODS: dict[str, Method[Any]] = {}
 
 
-def register(name: str, params: type[P], stored_bytes: Callable[[Any, P], int] | None = None, mirrors: bool = False
+def register(name: str, params: type[P], stored_bytes: Callable[[Any, P], int] | None = None, mirrors: bool = False,
+             applies_to: tuple[str, ...] = ("take",)
              ) -> Callable[[Callable[[Animation, P], AnimClip]], Callable[[Animation, P], AnimClip]]:
     """Decorator: register ``build`` as method ``name`` with parameter model ``params`` (names are unique),
     ``stored_bytes(clip, params)`` if its clips are not stored as float32 keys, and ``mirrors`` if a gait's second
-    half cycle is the mirror image of its first (the fidelity gate then checks the mirrored half)."""
+    half cycle is the mirror image of its first (the fidelity gate then checks the mirrored half); ``applies_to``:
+    the animations it builds clips of (:data:`ANIMATION_FORMS`; a clip set builds only the pairs that apply)."""
+    if not applies_to or any(a not in ANIMATION_FORMS for a in applies_to):
+        raise ValueError(f"applies_to of method {name!r}: some of {ANIMATION_FORMS}, got {applies_to!r}")
     if not (isinstance(params, type) and issubclass(params, Params)):
         raise TypeError(f"the parameters of method {name!r} must be a subclass of anim_core.methods.conditions.Params")
 
     def decorator(build: Callable[[Animation, P], AnimClip]) -> Callable[[Animation, P], AnimClip]:
         if name in _METHODS:
             raise ValueError(f"method {name!r} is registered already")
-        _METHODS[name] = Method(name, params, build, stored_bytes, mirrors)
+        _METHODS[name] = Method(name, params, build, stored_bytes, mirrors, tuple(applies_to))
         return build
 
     return decorator
@@ -156,6 +165,10 @@ class Condition:
     def params_dict(self) -> dict[str, Any]:
         return self.params.model_dump()
 
+    def applies(self, form: str) -> bool:
+        """Whether the method builds clips of an animation of ``form`` (:data:`ANIMATION_FORMS`)."""
+        return form in get_method(self.method).applies_to
+
     def build(self, animation: Animation) -> AnimClip:
         return get_method(self.method).build(animation, self.params)
 
@@ -170,7 +183,7 @@ class Condition:
 #: (name, parameter model, builder, stored bytes or None, mirrors a gait), in the order :func:`methods` lists them.
 BUILT_IN: tuple[tuple[str, type[Params], Callable[[Animation, Any], AnimClip], Callable[[Any, Any], int] | None,
                       bool], ...] = (
-    (REFERENCE, b.KeyframeParams, b.build_keyframe, None, False),
+    (REFERENCE, b.KeyframeParams, cb.build_reference, None, False),
     ("hybrid", b.HybridParams, b.build_hybrid, None, True),
     ("hybrid_ik", b.HybridIkParams, b.build_hybrid_ik, b.hybrid_ik_bytes, True),
     ("hybrid_c2", b.HybridC2Params, b.build_hybrid_c2, None, True),
@@ -178,4 +191,8 @@ BUILT_IN: tuple[tuple[str, type[Params], Callable[[Animation, Any], AnimClip], C
     ("quantized", b.QuantizedParams, b.build_quantized, b.quantized_bytes, False),
 )
 for _name, _params, _build, _stored, _mirrors in BUILT_IN:
-    register(_name, _params, _stored, _mirrors)(_build)
+    register(_name, _params, _stored, _mirrors, ANIMATION_FORMS if _name == REFERENCE else ("take",))(_build)
+# The transitions of sequences (issue 39; the reference of a composite is its plain form: a sequence's cut, the
+# layers as described): anim_core.methods.composite_builders.
+for _name, _params, _build, _forms in cb.COMPOSITE_METHODS:
+    register(_name, _params, None, False, _forms)(_build)
