@@ -257,6 +257,9 @@ def _print_comparison(clips: list, warnings: list[str]) -> None:
         print(f"{c.id:{width}} {m['foot_skate_ratio']:6.3f} {m['source_foot_skate_ratio']:6.3f} "
               f"{m['seam_jump_mm']:7.1f} {m['median_step_mm']:7.1f} {_fmt(m['phase_hips_r'], 2):>6} "
               f"{_fmt(m['phase_hips_lag'], 0):>4} {_fmt(m['phase_knee_r'], 2):>6} {_fmt(m['phase_knee_lag'], 0):>4}")
+    from anim_core.clips.composite import format_transitions  # issue 39: sequences' transition metrics
+
+    print(format_transitions(clips), end="")
     for w in warnings:
         print(f"warning: {w}", flush=True)
 
