@@ -175,12 +175,17 @@ def build_composite(spec: CompositeSpec, sources: Mapping[str, Source], fps: int
         pose = clip.sample(np.arange(n_frames) / fps)
         built.append(BuiltClip(clip_id, spec.name, "other", condition.id, condition.method, condition.params_dict(),
                                clip, np.asarray(clip.key_times), np.asarray(clip.key_rotations), fps, n_frames,
-                               clip.mode, clip.in_place, 0.0,
+                               clip.mode, clip.in_place,
+                               float(np.linalg.norm(clip.velocity)) if clip.in_place else 0.0,
                                {"composite": spec.form, "takes": list(spec.takes),
                                 **({"sequence": [[n, s] for n, s in spec.segments]} if spec.segments else {})},
                                source.character, pose.rotations, pose.root_translation,
                                *source.character.skeleton.forward_kinematics(*pose)))
     placed = _place_on_floor(built)
+    if spec.form == "layered":  # plays as its base does (in place: a treadmill at the base's speed)
+        base = placed[0].clip
+        ground = np.asarray(base.velocity) if base.in_place else np.zeros(3)
+        return measure(placed, ground, "other", source_skate)
     # A composite's speed changes along it: measured on its frames as they are, against a still ground.
     # The periodic metrics (seam, jerk, phase) on one period with the loop's travel spread over it, as a take's
     # travelling loop is measured; the feet then in world space on the frames as they are.

@@ -362,14 +362,16 @@ def compose_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, t
 def layered(base: KeyframeClip, layers: Sequence[tuple[KeyframeClip, NDArray[np.bool_], str, Array | None]],
             fps: int, name: str = "") -> KeyframeClip:
     """``base`` with ``layers`` ``[(clip, joint mask, mode, reference pose (J, 4) or None), ...]`` applied in
-    order on the base's frame grid (the layer played by its own playback): ``override`` (local) or ``additive``
-    (delta against the reference pose; None: the layer's first frame)."""
-    n = max(2, round(base.duration * fps))
-    times = np.arange(n + 1) / n * base.duration
-    pose = base.sample(np.minimum(times, np.nextafter(base.duration, 0)) if base.mode == "loop" else times)
-    rot = pose.rotations
+    order at the base's own keys (the layer sampled there by its own playback; a loop's last key takes the layer
+    at time 0, so the loop stays closed): ``override`` (local) or ``additive`` (delta against the reference pose;
+    None: the layer's first frame).  Joints outside every layer keep the base's keys bit for bit."""
+    times = base.times
+    layer_times = times.copy()
+    if base.mode == "loop":
+        layer_times[-1] = 0.0
+    rot = base.rotations.copy()
     for clip, mask, mode, reference in layers:
-        layer = clip.sample(times).rotations
+        layer = clip.sample(layer_times).rotations
         if mode == "override":
             rot = override(rot, layer, mask)
         elif mode == "additive":
@@ -377,7 +379,5 @@ def layered(base: KeyframeClip, layers: Sequence[tuple[KeyframeClip, NDArray[np.
             rot = additive(rot, additive_delta(layer, ref), mask)
         else:
             raise CompositeError(f"mode: 'override' or 'additive', got {mode!r}")
-    if base.mode == "loop":
-        rot[-1] = rot[0]
-    return KeyframeClip(base.skeleton, times, rot, pose.root_translation, base.mode,
-                        base.in_place, base.up_axis, name)
+    return KeyframeClip(base.skeleton, times, rot, base.root_translation, base.mode, base.in_place, base.up_axis,
+                        name)
