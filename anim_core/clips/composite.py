@@ -203,5 +203,17 @@ def build_composite(spec: CompositeSpec, sources: Mapping[str, Source], fps: int
         m.update(metrics.foot_metrics(c.world_positions[:, feet], contact, fps, periodic=False))
         m["foot_skate_ratio"] = contacts.foot_skate_ratio(c.world_positions[:, feet], fps, UP, periodic=False)
         m.update(transition_metrics(c, source_skate))
-        out.append(replace(c, metrics=m))
+        out.append(_shown_in_place(replace(c, metrics=m)))
     return out
+
+
+def _shown_in_place(c: BuiltClip) -> BuiltClip:
+    """A travelling sequence's frames as the renderer shows them: the horizontal travel since frame 0 taken off
+    the stored positions and kept as ``floor_travel`` (its component along +Z, the takes' heading), which the
+    renderer moves the ground by; the metrics were measured on the travelling frames before."""
+    travel = c.root_positions - c.root_positions[0]
+    travel[:, UP] = 0.0
+    if not np.any(travel):
+        return c
+    return replace(c, root_positions=c.root_positions - travel, world_positions=c.world_positions - travel[:, None],
+                   floor_travel=travel[:, 2].copy())
