@@ -70,3 +70,16 @@ def test_layers_leave_the_rest_of_the_base(by_id: dict) -> None:
     assert np.array_equal(np.abs(still.local_rotations[:, ~upper]), np.abs(walk.local_rotations[:, ~upper]))
     assert not np.allclose(np.abs(still.local_rotations[:, upper]), np.abs(walk.local_rotations[:, upper]))
     assert arms.metrics["foot_skate_ratio"] == walk.metrics["foot_skate_ratio"]
+
+
+def test_a_travelling_sequence_is_stored_in_place_with_its_floor_travel(by_id: dict) -> None:
+    seq, walk, run = by_id["idle_walk_run-crossfade250"], by_id["walk-keyframe"], by_id["run-keyframe"]
+    # shown in place: the body stays within 0.75 m of its place (surge, sway, the smoothing lag at a change of pace;
+    # seen: 0.54 m)
+    assert np.ptp(seq.root_positions[:, 2]) < 0.75
+    travel = seq.floor_travel
+    assert travel is not None and np.diff(travel).min() > -0.002  # the ground moves backwards by < 2 mm a frame
+    # 3 s of walk and 3 s of run at their speeds, within the 2 x 0.25 s of blending (speeds from the take clips)
+    expected = 3 * walk.root_speed_mps + 3 * run.root_speed_mps
+    assert abs(travel[-1] - expected) < 0.5 * (walk.root_speed_mps + run.root_speed_mps) * 0.25 + 0.1
+    assert "floor_travel_m" in seq.arrays() and "floor_travel_m" not in walk.arrays()

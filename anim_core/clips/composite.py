@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.ndimage import gaussian_filter1d
 
 from ..math import contacts
 from ..math.quat import canonicalize, quat_conj, quat_log, quat_mul
@@ -40,6 +41,8 @@ Array = NDArray[np.float64]
 WINDOW_BEFORE_S = 0.25
 WINDOW_AFTER_S = 0.25
 MIN_WINDOW_S = 0.25
+#: Seconds (Gaussian sigma) over which a sequence's forward velocity is smoothed into the floor's travel.
+FLOOR_SMOOTHING_S = 0.3
 
 
 @dataclass(frozen=True)
@@ -208,12 +211,18 @@ def build_composite(spec: CompositeSpec, sources: Mapping[str, Source], fps: int
 
 
 def _shown_in_place(c: BuiltClip) -> BuiltClip:
-    """A travelling sequence's frames as the renderer shows them: the horizontal travel since frame 0 taken off
-    the stored positions and kept as ``floor_travel`` (its component along +Z, the takes' heading), which the
-    renderer moves the ground by; the metrics were measured on the travelling frames before."""
-    travel = c.root_positions - c.root_positions[0]
-    travel[:, UP] = 0.0
-    if not np.any(travel):
+    """A travelling sequence's frames as the renderer shows them: its travel along +Z (the takes' heading) taken off
+    the stored positions and kept as ``floor_travel``, which the renderer moves the ground by; the metrics were
+    measured on the travelling frames before.  The travel is the root's forward velocity smoothed over
+    :data:`FLOOR_SMOOTHING_S` (periodic) and integrated, so a walk's surge within its cycle and an idle's sway stay
+    on the body, as on a take's treadmill (its mean speed)."""
+    clip = c.clip
+    step = np.diff(np.append(c.root_positions[:, 2], c.root_positions[0, 2] + clip.velocity[2] * clip.duration))
+    if not np.any(step):
         return c
-    return replace(c, root_positions=c.root_positions - travel, world_positions=c.world_positions - travel[:, None],
-                   floor_travel=travel[:, 2].copy())
+    smooth = gaussian_filter1d(step, FLOOR_SMOOTHING_S * c.fps, mode="wrap")
+    travel = np.concatenate([[0.0], np.cumsum(smooth)[:-1]])
+    shift = np.zeros_like(c.root_positions)
+    shift[:, 2] = travel
+    return replace(c, root_positions=c.root_positions - shift, world_positions=c.world_positions - shift[:, None],
+                   floor_travel=travel)
