@@ -205,11 +205,17 @@ def build_clip_set(data_dir: Path, config: ClipSetConfig | None = None,
     progress("loading the character")
     character, record = load_character(data_dir, config.character, progress)
     try:
-        clips = build_each(data_dir, character, [(cfg, config.conditions) for cfg in config.animations.values()],
+        takes = [c for c in config.conditions if c.applies("take")]
+        clips = build_each(data_dir, character, [(cfg, takes) for cfg in config.animations.values()],
                            config.fps, config.relocate, progress, lambda k, name: progress(
                                f"[{k + 1}/{len(config.animations)}] {name}: {config.animations[name].source}"),
                            scheduler, workers)
     except AnimationError as exc:  # as it was raised: its message names the entry
         raise exc.cause from None
+    if config.composites:  # issue 39: sequences and layers of the takes
+        from .composites import build_composites
+
+        clips += build_composites(data_dir, character, config.composites, config.animations, config.fps,
+                                  config.conditions, config.relocate, progress)
     # Every clip records the character it was built for; the manifest keeps it once (``character``).
     return [dataclasses.replace(c, source={**c.source, "character": record}) for c in clips]
