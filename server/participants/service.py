@@ -303,12 +303,19 @@ def record_event(session: Session, ps: ParticipantSession, kind: str, trial_key:
 
 
 def failed_catch_trials(session: Session, study: Study, session_id: str | None = None) -> dict[str, int]:
-    """Failed catch trials per participant session of ``study`` (or of the one session ``session_id``): a
-    'significantly better' answer when both sides show the same clip.  Sessions without a failure are absent."""
+    """Failed catch trials per participant session of ``study`` (or of the one session ``session_id``), by the
+    study's answer format (``scale.catch_row_failed``): a 'significantly better' answer (rating5) or "different"
+    (same_different) when both sides show the same clip; the wrong side (2afc) or "same" on a threshold design's
+    catch trial (its easiest level).  Sessions without a failure are absent."""
+    answer_format = (study.scale or {}).get("format", "rating5")
+    same_clip = Comparison.reference_id == Comparison.test_id
+    failed = {"rating5": func.abs(Vote.score) == MAX_SCORE,
+              "2afc": ~same_clip & (Vote.score == 1),  # the test side taken for the original
+              "same_different": (same_clip & (Vote.score == -1)) | (~same_clip & (Vote.score == 0))}[answer_format]
     query = (select(Trial.session_id, func.count(Vote.id)).join(Vote, Vote.trial_id == Trial.id)
              .join(Comparison, Trial.comparison_id == Comparison.id)
-             .where(Comparison.study_id == study.id, Comparison.kind == ComparisonKind.catch,
-                    func.abs(Vote.score) == MAX_SCORE).group_by(Trial.session_id))
+             .where(Comparison.study_id == study.id, Comparison.kind == ComparisonKind.catch, failed)
+             .group_by(Trial.session_id))
     if session_id is not None:
         query = query.where(Trial.session_id == session_id)
     return {sid: n for sid, n in session.execute(query).all()}

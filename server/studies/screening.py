@@ -61,7 +61,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from scipy import stats
 
-from .scale import CHOICE_SCORES
+from .scale import CHOICE_SCORES, catch_row_failed
 from .screening_design import MEANT_FOR, Calibration, calibrate, fast_limit, planned
 
 RULES = ("catch", "straight_lining", "z_outlier", "bt500", "correlation", "disagreement", "fast")
@@ -395,7 +395,7 @@ def screen(votes: Iterable[Mapping[str, Any]], rules: Screening, catch_failures_
         catch: dict[str, list[int]] = defaultdict(list)
         for v in completed:
             if v["catch"]:
-                catch[v["session_id"]].append(abs(v["score"]) == 2)
+                catch[v["session_id"]].append(catch_row_failed(v))  # by the study's answer format
         for s in sessions:
             failed = sum(catch[s]) if s in catch else None
             out[s]["catch"] = RuleResult(failed, catch_failures_allowed,
