@@ -124,3 +124,11 @@ def catch_row_failed(row: dict[str, Any]) -> bool:
     if row["test_condition"] == row["reference_condition"]:
         return catch_failed(answer_format, row["choice"])
     return row.get("correct") is False
+
+
+def public(stored: dict[str, Any]) -> dict[str, Any]:
+    """A study's ``[scale]`` as the participant page reads it: its format (``rating5`` for scales stored before
+    formats existed) and that format's answer ids (``choices``, in the order of ``labels``), so the page never
+    spells an id itself."""
+    answer_format = stored.get("format", "rating5")
+    return {**stored, "format": answer_format, "choices": list(format_choices(answer_format))}

@@ -38,7 +38,8 @@ def needed_stimuli(design: Design) -> list[tuple[ComparisonKind, StimulusKey, St
     out = [(ComparisonKind.test, (a, first), (a, second))
            for a in design.animations for first, second in design.pairs()]
     caught = design.easiest() if design.mode in LADDER_MODES else design.reference  # ladders: the easiest level
-    out += [(ComparisonKind.catch, (a, design.reference), (a, caught)) for a in design.animations[: design.catch_trials]]
+    out += [(ComparisonKind.catch, (a, design.reference), (a, caught))
+            for a in design.animations[: design.catch_trials]]
     if design.practice:
         a = design.animations[0]
         out.append((ComparisonKind.practice, (a, design.reference), (a, design.practice)))
