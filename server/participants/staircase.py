@@ -17,11 +17,15 @@ false-alarm rates for same/different) and a small lapse rate.
 
 from __future__ import annotations
 
+import copy
 import math
 import random
+import threading
+from collections import OrderedDict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 from sqlalchemy import select
@@ -59,18 +63,47 @@ def _domains(xs: tuple[float, ...], answer_format: str) -> tuple[dict, dict]:
     return {"intensity": list(xs)}, params
 
 
+# Staircases after a history, most recently used last: a session's next answer extends its last history by one,
+# so a vote costs one QUEST+ update (~20 ms) instead of a replay of the whole history (a cache miss, e.g. on
+# another server instance, replays it: the same result).
+_STATES: OrderedDict[tuple, Any] = OrderedDict()
+_STATES_MAX = 512
+_LOCK = threading.Lock()
+
+
+def _staircase(xs: tuple[float, ...], answer_format: str, history: tuple[tuple[float, bool], ...]) -> Any:
+    """The QUEST+ state after ``history`` ((intensity, detected) pairs), from the longest cached prefix."""
+    import questplus  # a second or so to import; only staircase studies need it
+
+    with _LOCK:
+        for n in range(len(history), -1, -1):
+            cached = _STATES.get((xs, answer_format, history[:n]))
+            if cached is not None:
+                _STATES.move_to_end((xs, answer_format, history[:n]))
+                q = copy.deepcopy(cached)
+                break
+        else:
+            stim, params = _domains(xs, answer_format)
+            q = questplus.QuestPlus(stim_domain=stim, param_domain=params,
+                                    outcome_domain={"response": ["Yes", "No"]}, func="norm_cdf",
+                                    stim_scale="linear", stim_selection_method="min_entropy")
+            _STATES[(xs, answer_format, ())] = copy.deepcopy(q)
+            n = 0
+    for x, seen in history[n:]:
+        q.update(stim={"intensity": x}, outcome={"response": "Yes" if seen else "No"})
+    with _LOCK:
+        _STATES[(xs, answer_format, history)] = q
+        while len(_STATES) > _STATES_MAX:
+            _STATES.popitem(last=False)
+    return q
+
+
 def next_condition(design: Design, answer_format: str, history: Iterable[tuple[str, bool]]) -> str:
     """The level (condition id) QUEST+ chooses after ``history``: (condition shown, detected) of one animation's
     staircase trials so far, in order."""
-    import questplus  # a second or so to import; only staircase studies need it
-
     levels = intensities(design)
     by_x = {round(x, 12): c for c, x in levels.items()}
-    stim, params = _domains(tuple(levels.values()), answer_format)
-    q = questplus.QuestPlus(stim_domain=stim, param_domain=params, outcome_domain={"response": ["Yes", "No"]},
-                            func="norm_cdf", stim_scale="linear", stim_selection_method="min_entropy")
-    for condition, seen in history:
-        q.update(stim={"intensity": levels[condition]}, outcome={"response": "Yes" if seen else "No"})
+    q = _staircase(tuple(levels.values()), answer_format, tuple((levels[c], bool(d)) for c, d in history))
     return by_x[round(float(q.next_stim["intensity"]), 12)]
 
 
