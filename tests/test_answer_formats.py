@@ -265,7 +265,7 @@ def test_constant_stimuli_shows_every_level_on_both_sides(db):
     assert len(catch) == 1 and catch[0].comparison.test.condition == "pps4"  # the easiest level
     assert shown == Counter({(a, c, s): 2 for a in ("walk", "run") for c in PPS for s in ("left", "right")})
     assert ps.trials_total == 2 * 6 * 2 * 2 + 1
-    rows = export_rows(db, study)
+    rows = list(export_rows(db, study))
     assert {r["answer_format"] for r in rows} == {"same_different"}
     assert all(r["correct"] == (r["choice"] == "different") for r in rows)
 
