@@ -30,10 +30,9 @@ DEFAULT_QUESTION = "Which animation looks better?"
 
 
 def describe() -> dict[str, Any]:
-    """The scale as the API gives it (the dashboard draws its axes and legends from it), with every answer
-    format's ids (``formats``)."""
+    """The scale as the API gives it (the dashboard draws its axes and legends from it)."""
     return {"choices": list(CHOICES), "scores": list(SCORES), "min": -MAX_SCORE, "max": MAX_SCORE,
-            "choice_scores": CHOICE_SCORES, "formats": {f: list(ids) for f, ids in FORMAT_CHOICES.items()}}
+            "choice_scores": CHOICE_SCORES}
 
 
 def other_side(side: str) -> str:

@@ -86,14 +86,17 @@ class Scale(Strict):
             data = {"question": question, "labels": list(labels), **data}
         return data
 
-    @model_validator(mode="after")
-    def one_label_per_answer(self) -> Self:
-        wanted = len(format_choices(self.format))
-        if len(self.labels) != wanted:
-            raise ValueError(f"labels: format {self.format!r} has {wanted} answers "
-                             f"({', '.join(format_choices(self.format))}), so it takes {wanted} labels, "
-                             f"not {len(self.labels)}")
-        return self
+    @field_validator("labels")
+    @classmethod
+    def one_label_per_answer(cls, labels: list[str], info: ValidationInfo) -> list[str]:
+        answer_format = info.data.get("format")
+        if answer_format is None:  # the format itself was refused
+            return labels
+        ids = format_choices(answer_format)
+        if len(labels) != len(ids):
+            raise ValueError(f"format {answer_format!r} has {len(ids)} answers ({', '.join(ids)}), so it takes "
+                             f"{len(ids)} labels, not {len(labels)}")
+        return labels
 
     def choices(self) -> list[str]:
         return list(format_choices(self.format))
