@@ -283,3 +283,18 @@ def test_design_validation_of_threshold_modes():
                detectable_at="high", animations=["walk"])
     assert list(d.levels()) == ["eps0_5", "eps1", "eps2"] and d.easiest() == "eps2"
     assert d.trials_total() == 10 and d.pairs() == [("keyframe", c) for c in d.conditions]
+
+
+@pytest.mark.parametrize("answer_format", ["2afc", "same_different"])
+def test_results_and_exports_of_a_threshold_study_answer(db, client, researcher_headers, tmp_path, answer_format):
+    """The researcher's endpoints never fail on a threshold study's votes (no 5xx), whatever they make of them."""
+    study = make_threshold_study(db, threshold_file(answer_format=answer_format, trials=8), tmp_path / "var" / "media")
+    study.owner_id = None
+    db.commit()
+    for threshold in (6, 12, 20):
+        run_session(db, study, observer(threshold, random.Random(threshold), answer_format))
+    for path in ("results", "export.csv", "export.json", "export.sureal.json", "export.pwcmp.csv", "definition"):
+        r = client.get(f"/api/v1/studies/update-rate/{path}", headers=researcher_headers)
+        assert r.status_code == 200, (path, r.status_code, r.text[:300])
+    header = client.get("/api/v1/studies/update-rate/export.csv", headers=researcher_headers).text.splitlines()[0]
+    assert header.split(",")[-7:-3] == ["answer_format", "ladder", "level", "correct"]

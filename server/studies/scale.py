@@ -131,3 +131,8 @@ def public(stored: dict[str, Any]) -> dict[str, Any]:
     spells an id itself."""
     answer_format = stored.get("format", "rating5")
     return {**stored, "format": answer_format, "choices": list(format_choices(answer_format))}
+
+
+#: The raw answer of every format's ids from the left side's point of view, whatever is shown where (the side bias
+#: and the screening rules read it): the five-point scale's CHOICE_SCORES, 2AFC left +1 / right -1, same/different 0.
+RAW_SCORES: dict[str, int] = {**CHOICE_SCORES, "left": 1, "right": -1, "same": 0, "different": 0}
