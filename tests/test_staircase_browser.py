@@ -56,10 +56,10 @@ def tiny_video(path: Path, width: int = 324, height: int = 120, frames: int = 20
     return path.read_bytes()
 
 
-def study_file() -> StudyFile:
+def study_file(**changes: object) -> StudyFile:
     raw = load_study_file(UPDATE_RATE).model_dump()
     raw["design"]["trials"] = TRIALS
-    return StudyFile.model_validate(raw)
+    return StudyFile.model_validate({**raw, **changes})
 
 
 @pytest.fixture(scope="module")
@@ -80,6 +80,8 @@ def site(tmp_path_factory):
     factory = session_factory(engine)
     with factory() as db:
         set_state(db, create_study(db, media, study_file(), media_dir=settings.media_dir), StudyState.open)
+        phone = study_file(slug="update-rate-phone", page={"device_gate": {"min_scale": 0.25}})  # a phone's width
+        set_state(db, create_study(db, media, phone, media_dir=settings.media_dir), StudyState.open)
     with live_server(create_app(settings, engine, run_migrations=False)) as base:
         yield base, factory
     engine.dispose()
@@ -189,3 +191,32 @@ def test_update_rate_staircase_with_simulated_and_real_participants(site):
         assert len(rows) == (SIMULATED + 1) * (2 * TRIALS + 2)
         assert {r["answer_format"] for r in rows} == {"2afc"} and {r["ladder"] for r in rows} == {"pps"}
         assert all(r["correct"] == (r["choice"] == r["reference_side"]) for r in rows)
+
+
+def test_2afc_answers_stay_side_by_side_on_a_phone(site):
+    """On a phone-sized screen the five-point answers stack; the two 2AFC answers stay in one row, left first."""
+    base, _ = site
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        context = browser.new_context(viewport={"width": 390, "height": 844}, is_mobile=True, has_touch=True)
+        page = context.new_page()
+        page.goto(f"{base}/s/update-rate-phone")
+        page.wait_for_selector("#page-info:not([hidden])")
+        page.tap("#info-next")
+        page.wait_for_selector("#page-consent:not([hidden])")
+        page.tap("#consent-box")
+        page.tap("#consent-next")
+        page.wait_for_selector("#page-demographics:not([hidden])")
+        page.tap("input[name=gamer][value=no]")
+        page.tap("input[name=tech_savvy][value=no]")
+        page.tap("#demographics-form button")
+        page.wait_for_selector("#page-instructions:not([hidden])")
+        page.tap("#instructions-next")
+        wait_until(page, "document.getElementById('trial-progress').textContent.startsWith('Trial 1 of')")
+        boxes = [page.locator("#vote-form label").nth(i).bounding_box() for i in range(2)]
+        assert page.locator("#vote-form label").count() == 2
+        assert boxes[0] and boxes[1] and abs(boxes[0]["y"] - boxes[1]["y"]) < 2 and boxes[0]["x"] < boxes[1]["x"]
+        assert boxes[1]["x"] + boxes[1]["width"] <= 390
+        page.screenshot(path=str(ARTIFACTS / "update-rate-phone.png"))
+        context.close()
+        browser.close()
