@@ -298,3 +298,20 @@ def test_results_and_exports_of_a_threshold_study_answer(db, client, researcher_
         assert r.status_code == 200, (path, r.status_code, r.text[:300])
     header = client.get("/api/v1/studies/update-rate/export.csv", headers=researcher_headers).text.splitlines()[0]
     assert header.split(",")[-7:-3] == ["answer_format", "ladder", "level", "correct"]
+
+
+def test_planted_observers_staircases_find_their_threshold():
+    """QUEST+ over the update-rate ladder (40 trials) against planted observers of thresholds 7 and 14 poses per
+    second (detection 50 % there): the posterior threshold lands near the planted one, and the two apart."""
+    design = Design(mode="staircase", ladder="pps", conditions=PPS, trials=40, animations=["walk"])
+    found = {}
+    for planted in (7.0, 14.0):
+        def detect(level: float, planted: float = planted) -> float:
+            return 0.01 + 0.98 / (1 + (level / planted) ** 6)
+        estimates = [staircase.estimate(design, "2afc", staircase.simulate(design, "2afc", detect,
+                                                                           random.Random(seed)))["threshold_level"]
+                     for seed in range(8)]
+        found[planted] = sorted(estimates)[len(estimates) // 2]
+        near = sum(planted / 1.5 <= e <= planted * 1.5 for e in estimates)
+        assert near >= 7, (planted, estimates)
+    assert found[7.0] < found[14.0]

@@ -22,7 +22,7 @@ import math
 import random
 import threading
 from collections import OrderedDict
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
@@ -195,3 +195,30 @@ def replay(design: Design, answer_format: str,
         if choice is not None:
             history.setdefault(animation, []).append((shown, detected(answer_format, choice, side)))
     return out
+
+
+def estimate(design: Design, answer_format: str, history: Iterable[tuple[str, bool]]) -> dict[str, float]:
+    """The posterior mean of the staircase's parameters after ``history``, the threshold (``mean``) and spread
+    (``sd``) also as a ladder level (``threshold_level``: the level at the midpoint between guess rate and 1)."""
+    levels = intensities(design)
+    q = _staircase(tuple(levels.values()), answer_format, tuple((levels[c], bool(d)) for c, d in history))
+    params = {k: float(v) for k, v in q.param_estimate.items()}
+    logged = all(v > 0 for v in design.levels().values())
+    x = params["mean"] * (-1.0 if design.detectable_at == "low" else 1.0)
+    params["threshold_level"] = 10**x if logged else x
+    return params
+
+
+def simulate(design: Design, answer_format: str, detect: Callable[[float], float], rng: random.Random
+             ) -> list[tuple[str, bool]]:
+    """One simulated staircase of ``design.trials`` trials: a planted observer who detects a level with
+    probability ``detect(level)`` (a 2AFC guess adds half the rest); (condition, detected) per trial."""
+    levels = design.levels()
+    history: list[tuple[str, bool]] = []
+    for _ in range(design.trials or 0):
+        condition = next_condition(design, answer_format, history)
+        p = detect(levels[condition])
+        if answer_format == "2afc":
+            p += (1 - p) / 2
+        history.append((condition, rng.random() < p))
+    return history
