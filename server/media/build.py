@@ -37,6 +37,7 @@ from .manifest import RenderedClip, RenderedPair, RenderManifest, read_render_ma
 from .scene import Framing, RenderSettings, frame_motion
 
 if TYPE_CHECKING:
+    from anim_core.math.skinning import SkinnedMesh
     from anim_core.rig.character import Character
 
 #: A video's or poster's file name.  Check names with ``MEDIA_NAME.fullmatch``, never ``match``: Python's ``$``
@@ -319,6 +320,15 @@ def store_rendered(out_dir: Path, files: Sequence[RenderedFile]) -> None:
         os.replace(tmp, out_dir / f.name)
 
 
+def clip_mesh(mesh: SkinnedMesh, clip: ClipEntry) -> SkinnedMesh:
+    """The body as ``clip`` is skinned: with its render settings' ``skin_influences`` strongest weights per vertex
+    (renormalised), or as bound."""
+    from anim_core.bench.cost import skinned_mesh
+
+    influences = clip.render.skin_influences if clip.render is not None else None
+    return skinned_mesh(mesh, influences)
+
+
 def run_job(job: AnimationJob, arrays: Arrays | None = None, character: Character | None = None,
             stored: Callable[[str], None] = lambda _name: None) -> list[tuple[str, float]]:
     """Render the job's outputs into ``job.out_dir``; returns (output name, seconds) per finished video.
@@ -361,7 +371,8 @@ def run_job(job: AnimationJob, arrays: Arrays | None = None, character: Characte
         n = _rendered_frames(clip)
         shift = (np.arange(n) / clip.fps * clip.root_speed_mps) % job.grid_spacing_m
         rendered = []
-        for f, rgb in enumerate(renderer.render(a["world_rotations"][:n], a["world_positions"][:n], shift)):
+        for f, rgb in enumerate(renderer.render(a["world_rotations"][:n], a["world_positions"][:n], shift,
+                                                clip_mesh(mesh, clip))):
             planes = yuv420(rgb)
             rendered.append(planes)
             yield f, planes, rgb
