@@ -10,11 +10,11 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
+from server.analysis.screening import ParticipantScreening, screen
 from server.stimuli import service as stimulus_sets
 from server.studies.ladder import level_of
 from server.studies.models import ComparisonKind, Study
 from server.studies.scale import correct, other_side
-from server.studies.screening import ParticipantScreening, screen
 from server.studies.service import recruitment, screening_rules
 
 from .service import vote_records
