@@ -165,3 +165,58 @@ def test_observer_probability_at_threshold() -> None:
     o = Observer(threshold=10.0, width=0.5, lapse=0.02)
     assert o.p(np.array([10.0]))[0] == pytest.approx(0.5 + 0.48 / 2)
     assert math.isclose(o.p(np.array([1000.0]))[0], 0.5, abs_tol=1e-6)
+
+
+def _manifest(tmp_path, costs: dict[str, float]):
+    from server.clipset.manifest import MANIFEST, ClipEntry, ClipManifest, write_json
+
+    clips = [ClipEntry(id=f"walk-{c}", animation="walk", kind="gait", condition=c, method="update_rate",
+                       params={"rate": int(c[3:])}, key_count=10, duration_s=1.0, fps=30, frames=30,
+                       playback="loop", in_place=True, root_speed_mps=0.0,
+                       metrics={"cost_ms_per_1000": v, "bytes": 1000 * v}, source={}, file=f"walk-{c}.npz",
+                       ladder="pps", level=int(c[3:])) for c, v in costs.items()]
+    write_json(tmp_path / MANIFEST, ClipManifest(clips=clips))
+    return tmp_path
+
+
+def test_study_frontier_command_over_an_export(tmp_path, capsys) -> None:
+    import csv
+    import json
+
+    from server import cli
+
+    answers = {"pps4": (40, 38), "pps8": (40, 30), "pps12": (40, 22), "pps24": (40, 20)}
+    rows = []
+    for c, (n, k) in answers.items():
+        rows += [{"animation": "walk", "test_condition": c, "level": c[3:], "correct": str(i < k).lower(),
+                  "catch": "false", "practice": "false"} for i in range(n)]
+    rows.append({"animation": "walk", "test_condition": "pps4", "level": "4", "correct": "false", "catch": "true",
+                 "practice": "false"})  # a catch trial: not counted
+    export = tmp_path / "votes.csv"
+    with export.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    (tmp_path / "clips").mkdir()
+    clips = _manifest(tmp_path / "clips", {"pps4": 1.0, "pps8": 1.5, "pps12": 2.0, "pps24": 3.5})
+    out_svg = tmp_path / "f.svg"
+    assert cli.main(["study", "frontier", str(export), "--manifest", str(clips), "--svg", str(out_svg)]) == 0
+    (walk,) = json.loads(capsys.readouterr().out)
+    assert walk["cheapest_indistinguishable"]["condition"] == "pps12"
+    assert [p["detection"]["trials"] for p in walk["points"]] == [40, 40, 40, 40]
+    assert walk["fit"]["threshold"]["low"] <= walk["fit"]["threshold"]["estimate"] <= walk["fit"]["threshold"]["high"]
+    ET.fromstring(out_svg.read_text())
+    # bytes as the cost
+    assert cli.main(["study", "frontier", str(export), "--manifest", str(clips), "--metric", "bytes"]) == 0
+    assert json.loads(capsys.readouterr().out)[0]["points"][0]["cost"] == 1000.0
+
+
+def test_study_frontier_command_without_threshold_rows(tmp_path, capsys) -> None:
+    from server import cli
+
+    export = tmp_path / "votes.json"
+    export.write_text('[{"animation": "walk", "test_condition": "hybrid1", "level": "", "correct": ""}]')
+    (tmp_path / "clips").mkdir()
+    clips = _manifest(tmp_path / "clips", {"pps4": 1.0})
+    assert cli.main(["study", "frontier", str(export), "--manifest", str(clips)]) == 1
+    assert "no answered threshold trials" in capsys.readouterr().err
