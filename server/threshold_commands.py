@@ -143,15 +143,18 @@ def read_export(path: Path) -> list[dict[str, Any]]:
     return list(csv.DictReader(text.splitlines()))
 
 
-def counts(rows: list[dict[str, Any]]) -> dict[str, list[tuple[str, float, int, int]]]:
-    """Per animation, (condition, level, trials, correct) of the rows with a level and a ``correct``
-    (catch and practice trials left out)."""
-    acc: dict[str, dict[tuple[str, float], list[int]]] = defaultdict(lambda: defaultdict(lambda: [0, 0]))
+def counts(rows: list[dict[str, Any]], key: tuple[str, ...] = ("animation",)
+           ) -> dict[Any, list[tuple[str, float, int, int]]]:
+    """Per animation (or per ``key`` columns, e.g. ``("animation", "session_id")`` for each participant),
+    (condition, level, trials, correct) of the rows with a level and a ``correct`` (catch and practice trials
+    left out)."""
+    acc: dict[Any, dict[tuple[str, float], list[int]]] = defaultdict(lambda: defaultdict(lambda: [0, 0]))
     for r in rows:
         ok = _truthy(r.get("correct"))
         if ok is None or r.get("level") in (None, "") or _truthy(r.get("catch")) or _truthy(r.get("practice")):
             continue
-        c = acc[str(r["animation"])][(str(r["test_condition"]), float(r["level"]))]
+        group = str(r[key[0]]) if len(key) == 1 else tuple(str(r.get(k)) for k in key)
+        c = acc[group][(str(r["test_condition"]), float(r["level"]))]
         c[0] += 1
         c[1] += int(ok)
     return {a: [(c, lv, n, k) for (c, lv), (n, k) in sorted(by.items(), key=lambda i: i[0][1])]
@@ -160,11 +163,12 @@ def counts(rows: list[dict[str, Any]]) -> dict[str, list[tuple[str, float, int, 
 
 def frontier_command(args: argparse.Namespace) -> int:
     from server.analysis.frontier_plot import svg
-    from server.analysis.psychometric import frontier
+    from server.analysis.psychometric import fit, frontier
     from server.clipset.manifest import read_clip_manifest
 
     try:
-        per_animation = counts(read_export(args.export))
+        rows = read_export(args.export)
+        per_animation = counts(rows)
         manifest = read_clip_manifest(args.manifest)
     except (OSError, ValueError, KeyError) as exc:
         print(str(exc), file=sys.stderr)
@@ -183,7 +187,14 @@ def frontier_command(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(str(exc), file=sys.stderr)
         return 1
-    print(json.dumps([asdict(f) for f in fronts], indent=2))
+    out = [asdict(f) for f in fronts]
+    for entry in out:  # each participant's own fit (3 levels or more answered), fewer resamples
+        entry["participants"] = {}
+        for (animation, session), c in sorted(counts(rows, ("animation", "session_id")).items()):
+            if animation == entry["animation"] and len({lv for _, lv, _, _ in c}) >= 3:
+                f = fit([lv for _, lv, _, _ in c], [n for *_, n, _ in c], [k for *_, k in c], bootstrap=200)
+                entry["participants"][session] = asdict(f)
+    print(json.dumps(out, indent=2))
     if args.svg:
         args.svg.write_text(svg(fronts), encoding="utf-8")
     return 0

@@ -189,9 +189,9 @@ def test_study_frontier_command_over_an_export(tmp_path, capsys) -> None:
     rows = []
     for c, (n, k) in answers.items():
         rows += [{"animation": "walk", "test_condition": c, "level": c[3:], "correct": str(i < k).lower(),
-                  "catch": "false", "practice": "false"} for i in range(n)]
+                  "catch": "false", "practice": "false", "session_id": f"s{i % 2}"} for i in range(n)]
     rows.append({"animation": "walk", "test_condition": "pps4", "level": "4", "correct": "false", "catch": "true",
-                 "practice": "false"})  # a catch trial: not counted
+                 "practice": "false", "session_id": "s0"})  # a catch trial: not counted
     export = tmp_path / "votes.csv"
     with export.open("w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
@@ -205,6 +205,8 @@ def test_study_frontier_command_over_an_export(tmp_path, capsys) -> None:
     assert walk["cheapest_indistinguishable"]["condition"] == "pps12"
     assert [p["detection"]["trials"] for p in walk["points"]] == [40, 40, 40, 40]
     assert walk["fit"]["threshold"]["low"] <= walk["fit"]["threshold"]["estimate"] <= walk["fit"]["threshold"]["high"]
+    assert sorted(walk["participants"]) == ["s0", "s1"]  # each participant's own fit
+    assert all(p["trials"] == 80 for p in walk["participants"].values())
     ET.fromstring(out_svg.read_text())
     # bytes as the cost
     assert cli.main(["study", "frontier", str(export), "--manifest", str(clips), "--metric", "bytes"]) == 0
