@@ -222,3 +222,34 @@ def test_study_frontier_command_without_threshold_rows(tmp_path, capsys) -> None
     clips = _manifest(tmp_path / "clips", {"pps4": 1.0})
     assert cli.main(["study", "frontier", str(export), "--manifest", str(clips)]) == 1
     assert "no answered threshold trials" in capsys.readouterr().err
+
+
+def test_threshold_plan_command(capsys) -> None:
+    from server import cli
+
+    # a generous target (0.8 log10 units) is met at the first trial count of each design: 20 trials, rounded
+    # down to whole repeats of the 7 levels for constant stimuli (14)
+    assert cli.main(["study", "threshold-plan", "--levels", "4,6,8,12,16,24,30", "--width", "0.8",
+                     "--seeds", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "constant-stimuli: 14 trials" in out and "staircase: 20 trials" in out and "QUEST+ / constant" in out
+    assert cli.main(["study", "threshold-plan", "--levels", "4,4,8"]) == 2
+
+
+def test_simulate_and_plan_of_a_threshold_design(capsys) -> None:
+    """The hook `study simulate`/`plan` take for a design whose mode is a threshold mode (the design as the
+    study-file parser makes it: levels(), detectable_at, trials, repeats)."""
+    import argparse
+    from types import SimpleNamespace
+
+    from server import threshold_commands as tc
+
+    design = SimpleNamespace(mode="constant-stimuli", repeats=2, trials=None, detectable_at="low",
+                             levels=lambda: {f"pps{v}": v for v in PPS_LEVELS})
+    args = argparse.Namespace(study_command="simulate", seeds=3, threshold=None, slope_width=0.5, width=0.8)
+    assert tc.simulate_or_plan(args, design) == 0
+    out = capsys.readouterr().out
+    assert "constant-stimuli 28 trials" in out and "observer threshold 10.95" in out
+    args.study_command = "plan"
+    assert tc.simulate_or_plan(args, design) == 0
+    assert "14 trials per participant and animation" in capsys.readouterr().out
