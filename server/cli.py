@@ -342,7 +342,12 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
         return 0
     try:
         if command in ("simulate", "plan"):
-            return _simulate_or_plan(args, load_study_file(args.file).design)
+            from server import threshold_commands  # issue 38: threshold designs
+
+            design = load_study_file(args.file).design
+            if getattr(design, "mode", None) in threshold_commands.THRESHOLD_MODES:
+                return threshold_commands.simulate_or_plan(args, design)
+            return _simulate_or_plan(args, design)
         if command == "validate":
             study_file = load_study_file(args.file)
             if study_file.clips is not None:
@@ -507,11 +512,7 @@ def _read_truth(path: Path, conditions: list[str]) -> dict[str, float]:
 
 
 def _simulate_or_plan(args: argparse.Namespace, design: Any) -> int:
-    from server import threshold_commands
     from server.studies import simulate as sim
-
-    if getattr(design, "mode", None) in threshold_commands.THRESHOLD_MODES:
-        return threshold_commands.simulate_or_plan(args, design)
 
     if args.study_command == "simulate":
         try:
