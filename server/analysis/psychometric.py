@@ -89,6 +89,11 @@ class Fit:
     trials: int
     bootstrap: int
     confidence: float
+    #: the threshold's profile-likelihood interval (level units, and on the fitting scale): the thresholds whose
+    #: likelihood, maximised over width and lapse, is within chi2(1) of the best.  Valid for adaptive (QUEST+)
+    #: data too, where the bootstrap at the observed counts per level ignores how the levels were chosen.
+    threshold_profile: Interval | None = None
+    log_threshold_profile: Interval | None = None
 
     def x(self, level: float | np.ndarray) -> np.ndarray:
         return _to_x(np.asarray(level, dtype=float), self.log_scale)
@@ -150,6 +155,12 @@ def _refine(x: np.ndarray, k: np.ndarray, n: np.ndarray, guess: float, sign: flo
     return float(best[0]), float(np.exp(best[1])), float(best[2])
 
 
+def _nll_at(x: np.ndarray, k: np.ndarray, n: np.ndarray, guess: float, sign: float, m: float, w: float,
+            lapse: float) -> float:
+    p = np.clip(_pc(x, m, sign * w / (2 * _Z), lapse, guess), _EPS, 1 - _EPS)
+    return -float(np.sum(k * np.log(p) + (n - k) * np.log1p(-p)))
+
+
 def fit(levels: Sequence[float], trials: Sequence[int], correct: Sequence[int], *, guess: float = GUESS_2AFC,
         log_scale: bool | None = None, increasing: bool | None = None, max_lapse: float = 0.1,
         bootstrap: int = 1000, confidence: float = 0.95, seed: int = 0,
@@ -205,10 +216,19 @@ def fit(levels: Sequence[float], trials: Sequence[int], correct: Sequence[int], 
 
     thr = interval(m, bm)
     back = (lambda v: 10 ** v) if log_scale else (lambda v: v)
+    ll = _loglik(g, k[None, :], n)[0].astype(float)
+    ms, inverse = np.unique(g.m, return_inverse=True)
+    prof = np.full(len(ms), -np.inf)
+    np.maximum.at(prof, inverse, ll)
+    inside = ms[2 * (max(prof.max(), -_nll_at(x, k, n, guess, sign, m, w, lapse)) - prof)
+                <= stats.chi2.ppf(confidence, 1)]
+    half = (ms[1] - ms[0]) / 2
+    lp = Interval(m, float(min(inside.min() - half, m)), float(max(inside.max() + half, m))) if len(inside) else thr
     return Fit(threshold=Interval(back(thr.estimate), back(thr.low), back(thr.high)), log_threshold=thr,
                width=interval(w, bw), slope=interval(float(slope(m, w, lapse)), slope(bm, bw, bl)),
                lapse=interval(lapse, bl), guess=guess, log_scale=log_scale, increasing=sign > 0,
-               trials=int(n.sum()), bootstrap=bootstrap, confidence=confidence)
+               trials=int(n.sum()), bootstrap=bootstrap, confidence=confidence,
+               threshold_profile=Interval(back(lp.estimate), back(lp.low), back(lp.high)), log_threshold_profile=lp)
 
 
 # ----------------------------------------------------------------------------------------------- cost and quality

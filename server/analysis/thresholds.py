@@ -86,8 +86,9 @@ def quest_plus(observer: Observer, levels: Sequence[float], trials: int, rng: np
 @dataclass(frozen=True)
 class Run:
     fit: Fit
-    covered: bool
-    log_span: float  # width of the threshold's interval, log10 units
+    covered: bool  # the planted threshold inside the bootstrap interval
+    covered_profile: bool  # ... inside the profile-likelihood interval
+    log_span: float  # width of the threshold's bootstrap interval, log10 units
 
 
 def run(design: str, observer: Observer, levels: Sequence[float], trials: int, seed: int,
@@ -102,7 +103,9 @@ def run(design: str, observer: Observer, levels: Sequence[float], trials: int, s
     else:
         raise ValueError(f"design {design!r}: constant-stimuli or staircase")
     f = fit(c.levels, c.trials, c.correct, increasing=observer.increasing, bootstrap=bootstrap, seed=seed)
-    return Run(f, f.threshold.contains(observer.threshold), f.log_threshold.span)
+    assert f.threshold_profile is not None
+    return Run(f, f.threshold.contains(observer.threshold), f.threshold_profile.contains(observer.threshold),
+               f.log_threshold.span)
 
 
 @dataclass(frozen=True)
