@@ -257,6 +257,9 @@ def _print_comparison(clips: list, warnings: list[str]) -> None:
         print(f"{c.id:{width}} {m['foot_skate_ratio']:6.3f} {m['source_foot_skate_ratio']:6.3f} "
               f"{m['seam_jump_mm']:7.1f} {m['median_step_mm']:7.1f} {_fmt(m['phase_hips_r'], 2):>6} "
               f"{_fmt(m['phase_hips_lag'], 0):>4} {_fmt(m['phase_knee_r'], 2):>6} {_fmt(m['phase_knee_lag'], 0):>4}")
+    from anim_core.clips.composite import format_transitions  # issue 39: sequences' transition metrics
+
+    print(format_transitions(clips), end="")
     for w in warnings:
         print(f"warning: {w}", flush=True)
 
@@ -512,7 +515,7 @@ def _read_truth(path: Path, conditions: list[str]) -> dict[str, float]:
 
 
 def _simulate_or_plan(args: argparse.Namespace, design: Any) -> int:
-    from server.studies import simulate as sim
+    from server.analysis import simulate as sim
 
     if args.study_command == "simulate":
         try:
@@ -710,6 +713,9 @@ def bench(settings: Settings, json_path: Path, characters: list[int], stages: li
     except OSError as exc:
         return _fail(f"cannot write the results: {exc}")
     _print_bench(doc)
+    from anim_core.bench.blend import format_blend
+
+    print(format_blend(doc["results"]), end="")
     print(f"results: {json_path}; plots: {', '.join(p.name for p in plots)}; "
           f"{time.perf_counter() - started:.0f} s in all")
     return 0
@@ -793,8 +799,8 @@ def _int_list(minimum: int, example: str) -> Callable[[str], list[int]]:
 
 def _stages(text: str) -> list[str]:
     stages = [s.strip() for s in text.split(",") if s.strip()]
-    if not stages or any(s not in ("pose", "skin") for s in stages):
-        raise argparse.ArgumentTypeError(f"stages are pose and skin, got {text!r}")
+    if not stages or any(s not in ("pose", "skin", "blend") for s in stages):
+        raise argparse.ArgumentTypeError(f"stages are pose, skin and blend, got {text!r}")
     return stages
 
 
@@ -963,7 +969,7 @@ def build_parser() -> argparse.ArgumentParser:
     bn.add_argument("--quick", action="store_true",
                     help=f"short run: {QUICK_BENCH} unless given")
     bn.add_argument("--characters", type=_int_list(1, "10,200"), default=None, help="crowd sizes, e.g. 10,200,10000")
-    bn.add_argument("--stages", type=_stages, default=None, help="pose, skin or both (default)")
+    bn.add_argument("--stages", type=_stages, default=None, help="pose, skin (default: both), blend (blending jobs)")
     bn.add_argument("--frames", type=int, default=None, help="timed frames per measurement (default: 200)")
     bn.add_argument("--variants", type=_variants, default=None,
                     help="comma-separated: keys, baked, reference, naive (default: all)")

@@ -10,10 +10,10 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
+from server.analysis.screening import ParticipantScreening, screen
 from server.stimuli import service as stimulus_sets
 from server.studies.models import ComparisonKind, Study
 from server.studies.scale import other_side
-from server.studies.screening import ParticipantScreening, screen
 from server.studies.service import recruitment, screening_rules
 
 from .service import vote_records

@@ -18,6 +18,7 @@ from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.engine import Row
 from sqlalchemy.orm import Session, aliased, joinedload
 
+from server.analysis.screening import ParticipantScreening
 from server.config import Settings
 from server.db import utcnow
 from server.errors import Conflict, Forbidden, NotFound, TooManyRequests, Unauthorized
@@ -25,7 +26,6 @@ from server.media.manifest import RenderManifest
 from server.studies.design import Design, trial_order
 from server.studies.models import Comparison, ComparisonKind, Stimulus, Study, StudyState
 from server.studies.scale import MAX_SCORE, score
-from server.studies.screening import ParticipantScreening
 from server.studies.service import (
     check_deletable,
     recruitment,

@@ -9,7 +9,7 @@ Modes (``Design.mode``):
   consecutive slices of one seeded cyclic order of the pairs, so every pair is shown equally often (±1) over
   participants (see ``server.studies.sessions``).
 - ``adaptive``: each participant sees the N-1 pairs (N conditions) of a spanning tree chosen from the answers so
-  far (ASAP-style batches; ``server.studies.adaptive``): by default (``aim = "reference"``) the one expected to make
+  far (ASAP-style batches; ``server.analysis.adaptive``): by default (``aim = "reference"``) the one expected to make
   the values against the reference most precise; with ``aim = "order"`` ASAP's own, the tree of the largest expected
   information gain about the whole scale.
 
