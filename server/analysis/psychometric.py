@@ -23,7 +23,8 @@ from scipy import optimize, stats
 
 #: psignifit's width: the sigmoid's rise from ALPHA to 1 - ALPHA
 WIDTH_ALPHA = 0.05
-_Z = float(stats.norm.ppf(1 - WIDTH_ALPHA))  # width = 2 * _Z * s
+#: width = 2 * Z_WIDTH * s (the normal sigmoid from 5 % to 95 %)
+Z_WIDTH = float(stats.norm.ppf(1 - WIDTH_ALPHA))
 GUESS_2AFC = 0.5
 CRITERION_2AFC = 0.75
 _EPS = 1e-9
@@ -100,7 +101,7 @@ class Fit:
 
     def p(self, level: float | np.ndarray) -> np.ndarray:
         """The fitted probability correct at ``level``."""
-        s = self.width.estimate / (2 * _Z) * (1 if self.increasing else -1)
+        s = self.width.estimate / (2 * Z_WIDTH) * (1 if self.increasing else -1)
         return _pc(self.x(level), self.log_threshold.estimate, s, self.lapse.estimate, self.guess)
 
 
@@ -130,7 +131,7 @@ def _grid(x: np.ndarray, guess: float, sign: float, max_lapse: float, steps: tup
     w = np.geomspace(gap / 2, 3 * span, steps[1])
     la = np.linspace(0.0, max_lapse, steps[2]) if max_lapse > 0 else np.zeros(1)
     M, W, L = (a.ravel() for a in np.meshgrid(m, w, la, indexing="ij"))
-    p = _pc(x[:, None], M[None, :], sign * W[None, :] / (2 * _Z), L[None, :], guess)
+    p = _pc(x[:, None], M[None, :], sign * W[None, :] / (2 * Z_WIDTH), L[None, :], guess)
     p = np.clip(p, _EPS, 1 - _EPS)
     return _Grid(M, W, L, (np.log(p) - np.log1p(-p)).astype(np.float32), np.log1p(-p))
 
@@ -145,7 +146,7 @@ def _refine(x: np.ndarray, k: np.ndarray, n: np.ndarray, guess: float, sign: flo
             start: tuple[float, float, float], gap: float, span: float) -> tuple[float, float, float]:
     def nll(theta: np.ndarray) -> float:
         m, logw, lapse = theta
-        p = np.clip(_pc(x, m, sign * np.exp(logw) / (2 * _Z), lapse, guess), _EPS, 1 - _EPS)
+        p = np.clip(_pc(x, m, sign * np.exp(logw) / (2 * Z_WIDTH), lapse, guess), _EPS, 1 - _EPS)
         return -float(np.sum(k * np.log(p) + (n - k) * np.log1p(-p)))
 
     m0, w0, l0 = start
@@ -157,7 +158,7 @@ def _refine(x: np.ndarray, k: np.ndarray, n: np.ndarray, guess: float, sign: flo
 
 def _nll_at(x: np.ndarray, k: np.ndarray, n: np.ndarray, guess: float, sign: float, m: float, w: float,
             lapse: float) -> float:
-    p = np.clip(_pc(x, m, sign * w / (2 * _Z), lapse, guess), _EPS, 1 - _EPS)
+    p = np.clip(_pc(x, m, sign * w / (2 * Z_WIDTH), lapse, guess), _EPS, 1 - _EPS)
     return -float(np.sum(k * np.log(p) + (n - k) * np.log1p(-p)))
 
 
@@ -197,7 +198,7 @@ def fit(levels: Sequence[float], trials: Sequence[int], correct: Sequence[int], 
     m, w, lapse = _refine(x, k, n, guess, sign, max_lapse, (g.m[i], g.w[i], g.lapse[i]), gap, span)
 
     rng = np.random.default_rng(seed)
-    p_fit = _pc(x, m, sign * w / (2 * _Z), lapse, guess)
+    p_fit = _pc(x, m, sign * w / (2 * Z_WIDTH), lapse, guess)
     bm, bw, bl = np.empty(bootstrap), np.empty(bootstrap), np.empty(bootstrap)
     chunk = max(1, 2_000_000 // len(g.m))
     for start in range(0, bootstrap, chunk):
@@ -212,7 +213,7 @@ def fit(levels: Sequence[float], trials: Sequence[int], correct: Sequence[int], 
         return Interval(est, float(min(lo, est)), float(max(hi, est)))
 
     def slope(mm: np.ndarray | float, ww: np.ndarray | float, ll: np.ndarray | float) -> np.ndarray:
-        return np.asarray((1 - guess - np.asarray(ll)) * stats.norm.pdf(0) * 2 * _Z / np.asarray(ww))
+        return np.asarray((1 - guess - np.asarray(ll)) * stats.norm.pdf(0) * 2 * Z_WIDTH / np.asarray(ww))
 
     thr = interval(m, bm)
     back = (lambda v: 10 ** v) if log_scale else (lambda v: v)

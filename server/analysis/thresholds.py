@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from .psychometric import _Z, GUESS_2AFC, Fit, fit
+from .psychometric import GUESS_2AFC, Z_WIDTH, Fit, fit
 
 #: the ladder of the issue's example (poses per second) and a planted observer on it
 PPS_LEVELS: tuple[float, ...] = (4, 6, 8, 12, 16, 24, 30)
@@ -31,7 +31,7 @@ class Observer:
     guess: float = GUESS_2AFC
 
     def p(self, levels: np.ndarray) -> np.ndarray:
-        z = (np.log10(levels) - math.log10(self.threshold)) / (self.width / (2 * _Z))
+        z = (np.log10(levels) - math.log10(self.threshold)) / (self.width / (2 * Z_WIDTH))
         return self.guess + (1 - self.guess - self.lapse) * stats.norm.cdf(z if self.increasing else -z)
 
 
