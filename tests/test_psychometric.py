@@ -262,3 +262,15 @@ def test_simulate_and_plan_of_a_threshold_design(capsys) -> None:
     args.study_command = "plan"
     assert tc.simulate_or_plan(args, design) == 0
     assert "14 trials per participant and animation" in capsys.readouterr().out
+
+
+def test_simulate_the_update_rate_study(capsys) -> None:
+    """`study simulate` of the issue's study file (2AFC staircase over pps) goes through the threshold hook."""
+    from pathlib import Path
+
+    from server import cli
+
+    study = Path(__file__).resolve().parent.parent / "studies" / "update-rate.toml"
+    assert cli.main(["study", "simulate", str(study), "--participants", "1", "--seeds", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "staircase design over 6 levels" in out and "threshold interval median" in out
