@@ -266,10 +266,10 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies
     """Render the clip set's videos into ``out`` (building the clip set first if it is missing): the pairs the
     ``studies`` files (default: the thesis study file) show, the pairs of every study in the database, and the
     clips of those pairs (``every_clip``: every clip).  A job of the database (kind ``render``,
-    :mod:`server.uploads.commands`): resumed by ``animstudy serve`` if this process dies mid-job."""
+    :mod:`server.pipeline.commands`): resumed by ``animstudy serve`` if this process dies mid-job."""
+    from server.jobs.models import BuildState, JobKind
+    from server.pipeline.jobs import run_in_this_process
     from server.studies.studyfile import THESIS_FILE, StudyFileError, load_study_file
-    from server.uploads.job import run_in_this_process
-    from server.uploads.models import BuildState, JobKind
 
     files = studies or [THESIS_FILE]
     try:
@@ -282,26 +282,6 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies
         "studies": [str(Path(f).resolve()) for f in files], "workers": workers, "every_clip": every_clip,
         "settings": {"width": width, "height": height, "shadows": shadows}})
     return 0 if job.state == BuildState.done else _fail(f"{job.error} (job {job.id})")
-
-
-def prepare_study(settings: Settings, session_factory: object) -> None:
-    """When the database holds no study: build the clip set and the videos the thesis study
-    (studies/thesis.toml) needs (what is missing), then create and open it."""
-    from sqlalchemy import select
-
-    from server.studies import pipeline
-    from server.studies.models import Study
-    from server.studies.service import create_study, open_study
-    from server.studies.studyfile import thesis_study
-
-    with session_factory() as session:  # type: ignore[operator]
-        if session.scalar(select(Study.id).limit(1)) is not None:
-            return
-        study_file = thesis_study()
-        media, place = pipeline.prepare(settings, session, study_file, progress=lambda m: print(m, flush=True))
-        study = create_study(session, media, study_file, media_dir=settings.media_dir, clips_dir=place.clips_dir)
-        open_study(session, study, settings.media_dir)
-        print(f"created and opened study {study.slug!r} ({len(study.comparisons)} comparisons)", flush=True)
 
 
 def _study_session(settings: Settings) -> object:
@@ -321,15 +301,16 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
     from server.assets import AssetError
     from server.clipset.manifest import MANIFEST
     from server.errors import MediaError, ServiceError
+    from server.jobs.models import BuildState, JobKind
+    from server.pipeline import stimuli as pipeline
+    from server.pipeline.jobs import run_in_this_process
     from server.research import export
     from server.research.service import study_summary
     from server.researchers.models import Researcher
     from server.researchers.service import normalize_email
-    from server.studies import pipeline, service
+    from server.studies import service
     from server.studies.models import Study, StudyState
     from server.studies.studyfile import StudyFile, StudyFileError, load_study_file
-    from server.uploads.job import run_in_this_process
-    from server.uploads.models import BuildState, JobKind
 
     command = args.study_command
     if command == "schema":
@@ -408,20 +389,25 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
                       f"({len(study.stimulus_set.content['pairs'])} pair videos) -> {out} "
                       f"({out.stat().st_size / 2**20:.1f} MiB)")
             elif command == "import-archive":
-                from server.studies.archive import ArchiveLimits, import_archive
+                from server.studies.archive import ArchiveLimits
 
-                owner = None
+                owner_id = None
                 if args.owner:
-                    owner = session.scalar(select(Researcher).where(Researcher.email == normalize_email(args.owner)))
-                    if owner is None:
+                    owner_id = session.scalar(select(Researcher.id).where(
+                        Researcher.email == normalize_email(args.owner)))
+                    if owner_id is None:
                         return _fail(f"no researcher {args.owner!r} (create one with `animstudy researcher create`)")
-                limits = ArchiveLimits()
+                limits = {}
                 if args.max_mib is not None:
-                    limits = ArchiveLimits(total_bytes=args.max_mib * 2**20,
-                                           member_bytes=min(limits.member_bytes, args.max_mib * 2**20))
-                study = import_archive(session, args.file, settings.media_dir, owner, limits)
-                if args.open:
-                    service.open_study(session, study, settings.media_dir)
+                    limits = {"total_bytes": args.max_mib * 2**20,
+                              "member_bytes": min(ArchiveLimits().member_bytes, args.max_mib * 2**20)}
+                session.rollback()  # no transaction open while the job writes (SQLite would lock)
+                job = run_in_this_process(settings, JobKind.archive, {
+                    "file": str(Path(args.file).resolve()), "owner_id": owner_id, "limits": limits,
+                    "open": bool(args.open)})
+                if job.state != BuildState.done or job.study_id is None:
+                    return _fail(f"{job.error} (job {job.id})")
+                study = session.get(Study, job.study_id)
                 print(f"imported study {study.slug!r} ({study.state}) with its stimulus set "
                       f"{study.stimulus_set.digest[:12]}; participant link: /s/{study.slug}")
             elif command == "export":
@@ -455,9 +441,9 @@ def gc(settings: Settings, dry_run: bool) -> int:
     uses, and the clip files no clip set's manifest names (``--dry-run``: list them).  Refused while a job runs:
     what it has made is named by nothing until it ends."""
     from server.clipset.manifest import unreferenced_clip_files
+    from server.jobs.control import running_jobs
+    from server.pipeline.stimuli import clip_set_dirs, render_manifest_dirs
     from server.stimuli.service import collect
-    from server.studies.pipeline import clip_set_dirs, render_manifest_dirs
-    from server.uploads.service import running_jobs
 
     with _study_session(settings) as session:  # type: ignore[attr-defined]
         if running := running_jobs(session):
@@ -558,13 +544,18 @@ def serve(settings: Settings, host: str, port: int, workers: int) -> int:
     from server.assets import AssetError
     from server.db import make_engine, migrate, session_factory
     from server.errors import MediaError, ServiceError
-    from server.uploads.service import resume_lost_jobs
+    from server.jobs.control import resume_lost_jobs
+    from server.jobs.models import BuildState
+    from server.pipeline.jobs import prepare_default
 
     engine = make_engine(settings.sqlalchemy_url)
     try:
         migrate(engine, media_dir=settings.media_dir, clips_dir=settings.clips_dir)
         factory = session_factory(engine)
-        prepare_study(settings, factory)
+        # The default study is a job like any other, so a server stopped while rendering it goes on where it was.
+        job = prepare_default(settings, factory)
+        if job is not None and job.state != BuildState.done:
+            return _fail(f"{job.error} (job {job.id})")
         ensure_researcher(settings, factory)
         with factory() as session:  # jobs whose process ended mid-job (this server's, a command's) go on
             for job in resume_lost_jobs(session, settings, engine):

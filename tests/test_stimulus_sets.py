@@ -29,11 +29,11 @@ from server.media.build import MEDIA_NAME, render_media
 from server.media.manifest import read_render_manifest
 from server.media.scene import RenderSettings
 from server.participants.service import update_study
+from server.pipeline.stimuli import render_manifest_dirs
 from server.researchers.service import create_researcher
 from server.stimuli import service as stimulus_sets
 from server.studies import service
 from server.studies.design import Design
-from server.studies.pipeline import render_manifest_dirs
 from server.studies.service import clip_set_index, required_pairs
 from server.studies.studyfile import parse_study_text
 from tests.conftest import DATABASES, _fresh_engine
@@ -485,7 +485,7 @@ def test_gc_collects_the_clip_files_a_killed_build_left_and_waits_for_running_jo
     import os
 
     from server.clipset.manifest import MANIFEST, read_clip_manifest
-    from server.uploads.models import BuildJob, BuildState, JobKind
+    from server.jobs.models import BuildJob, BuildState, JobKind
 
     monkeypatch.setenv("ANIMSTUDY_VAR_DIR", str(tmp_path / "var"))
     monkeypatch.setenv("ANIMSTUDY_SECRET_KEY", "gc-clips-secret-0123456789abcdef0123")
