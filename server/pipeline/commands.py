@@ -34,36 +34,24 @@ def _study_file(path: Path) -> Any:
 def render_job(settings: Settings, factory: sessionmaker[Session], job_id: int, params: dict[str, Any],
                progress: Progress) -> None:
     """``animstudy render``: the clip set (built first if it is missing), the pairs of the study files and of
-    every study in the database, the clips of those pairs (``every_clip``: every clip)."""
-    from server.clipset.build import build_clip_set
-    from server.clipset.manifest import MANIFEST, write_clip_set
-    from server.errors import Unprocessable
-    from server.media.build import render_media
+    every study in the database, the clips of those pairs (``every_clip``: every clip), into ``out``
+    (:func:`server.pipeline.stimuli.make_stimuli` over the command's own folders)."""
     from server.media.scene import RenderSettings
-    from server.studies.service import clip_set_index, pairs_in_use, required_pairs
+
+    from . import stimuli as pipeline
 
     clips_dir, out = Path(params["clips_dir"]), Path(params["out"])
-    if not (clips_dir / MANIFEST).is_file():
-        progress(stage="building", message=f"no clip set in {clips_dir}: building it")
-        write_clip_set(build_clip_set(settings.data, progress=lambda m: progress(message=m),
-                                      scheduler=settings.dask_scheduler, workers=params["workers"]), clips_dir)
-    needed = []
-    for path in map(Path, params["studies"]):
-        design = _study_file(path).design
-        try:
-            needed += required_pairs(design, clip_set_index(clips_dir))
-        except Unprocessable as exc:
-            raise BuildError(f"{path}: {exc.detail}") from None
-    # The studies' own pairs too, so that the render manifest (what new studies are made over) lists them.
+    # The render manifest lists what was asked for (and the studies' own pairs, so that new studies can be made
+    # over it), not what the folder held before.
+    place = pipeline.Place(clips_dir, out, media_dir=out, keep_rendered=False)
+    designs = {path: _study_file(Path(path)).design for path in params["studies"]}
     with factory() as session:
-        pairs = list(dict.fromkeys([*needed, *pairs_in_use(session, set(clip_set_index(clips_dir).values()))]))
-    try:
-        render_media(settings.data, clips_dir, out, settings.secret, RenderSettings(**params["settings"]),
-                     pairs=pairs, workers=params["workers"], every_clip=params["every_clip"],
-                     progress=lambda m: progress(message=m), scheduler=settings.dask_scheduler,
-                     videos_done=rendering(progress))
-    except OSError as exc:
-        raise BuildError(f"cannot write videos to {out}: {exc}") from None
+        try:
+            pipeline.make_stimuli(settings, session, place, designs, RenderSettings(**params["settings"]),
+                                  progress=lambda m: progress(message=m), workers=params["workers"],
+                                  every_clip=params["every_clip"], videos_done=rendering(progress))
+        except OSError as exc:
+            raise BuildError(f"cannot write videos to {out}: {exc}") from None
 
 
 def study_job(settings: Settings, factory: sessionmaker[Session], job_id: int, params: dict[str, Any],

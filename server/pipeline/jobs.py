@@ -89,12 +89,8 @@ def build_job(settings: Settings, factory: sessionmaker[Session], job_id: int, p
               progress: Progress) -> None:
     """The job of kind ``upload``: the study's assets built into the server's clip set (or the inline
     ``[clips]`` it was created with, :func:`_run_clips`), their videos rendered, their animations added."""
-    from server.clipset.build import AnimationError
-    from server.media.build import rendered_settings
     from server.participants.service import update_study
     from server.studies.design import Design
-
-    place = pipeline.server_place(settings)
 
     with factory() as session:
         job = session.get(BuildJob, job_id)
@@ -109,6 +105,32 @@ def build_job(settings: Settings, factory: sessionmaker[Session], job_id: int, p
         return _run_clips(settings, factory, study.id, clips, progress)
     if not assets:
         raise BuildError("the study has no assets")
+    _build_assets(settings, assets, progress)
+
+    with factory() as session:
+        study = draft(session, study.id)
+        design = Design.model_validate(study.design)
+        animations = list(dict.fromkeys([*design.animations, *(a.name for a in assets)]))
+        new_design = design.model_copy(update={"animations": animations})
+        Design.model_validate(new_design.model_dump())
+        # The server's clip set has its manifest now: the pipeline builds nothing more, and renders every clip.
+        media = pipeline.make_stimuli(settings, session, pipeline.server_place(settings), {"": new_design},
+                                      progress=lambda m: progress(message=m), workers=1, every_clip=True,
+                                      videos_done=rendering(progress))
+
+    progress(stage="study", done=0, total=1, message="adding the animations to the study's design")
+    with factory() as session:
+        study = draft(session, study.id)
+        update_study(session, study, {"design": new_design.model_dump()}, media, settings.media_dir,
+                     settings.clips_dir)
+    progress(stage="study", done=1, total=1, message=f"the design shows {', '.join(animations)}")
+
+
+def _build_assets(settings: Settings, assets: list[StudyAsset], progress: Progress) -> None:
+    """Stage ``building``: the clips of every asset in all its conditions (again: an asset's clips replace its
+    earlier ones), merged into the server's clip set."""
+    from server.clipset.build import AnimationError
+
     files = {a.id: asset_path(settings, a) for a in assets}
 
     def asset_file(a: StudyAsset) -> Path:
@@ -128,35 +150,11 @@ def build_job(settings: Settings, factory: sessionmaker[Session], job_id: int, p
 
     try:
         built = pipeline.build_animations(settings.data, config, dict.fromkeys(config.animations, config.conditions),
-                                 lambda m: progress(message=m.strip()), each, settings.dask_scheduler)
+                                          lambda m: progress(message=m.strip()), each, settings.dask_scheduler)
     except AnimationError as exc:  # ConfigError, AssetError of an asset: they name the field and the file
         raise BuildError(f"asset {exc}") from None
     merge_clips(settings.clips_dir, built)
     progress(stage="building", done=len(assets), total=len(assets), message=f"{len(built)} clips built")
-
-    with factory() as session:
-        study = draft(session, study.id)
-        design = Design.model_validate(study.design)
-        animations = list(dict.fromkeys([*design.animations, *(a.name for a in assets)]))
-        new_design = design.model_copy(update={"animations": animations})
-        Design.model_validate(new_design.model_dump())
-        pairs = pipeline.pairs(session, place, new_design, settings.media_dir)
-    media = _render(settings, place, pairs, rendered_settings(settings.media_dir), progress, every_clip=True)
-
-    progress(stage="study", done=0, total=1, message="adding the animations to the study's design")
-    with factory() as session:
-        study = draft(session, study.id)
-        update_study(session, study, {"design": new_design.model_dump()}, media, settings.media_dir,
-                     settings.clips_dir)
-    progress(stage="study", done=1, total=1, message=f"the design shows {', '.join(animations)}")
-
-
-def _render(settings: Settings, place: Any, pairs: list[tuple[str, str]], render: Any, progress: Progress,
-            every_clip: bool = False) -> Any:
-    """Stage ``rendering``: :func:`server.pipeline.stimuli.render` with one worker process (the server keeps a
-    core), its videos counted as they are stored; returns the render manifest of ``place``."""
-    return pipeline.render(settings, place, pairs, render, lambda m: progress(message=m), workers=1,
-                           every_clip=every_clip, videos_done=rendering(progress))
 
 
 def _run_clips(settings: Settings, factory: sessionmaker[Session], study_id: int, clips: Clips,
@@ -165,8 +163,6 @@ def _run_clips(settings: Settings, factory: sessionmaker[Session], study_id: int
     (:func:`create_building`): what :func:`server.pipeline.stimuli.prepare` does for
     ``animstudy study create`` (the clips the design needs built into the clip set of those ``[clips]``, their
     videos rendered, at the size of the videos there already), then the study's comparisons and stimulus set."""
-    from server.clipset.manifest import MANIFEST
-    from server.media.build import rendered_settings
     from server.studies.design import Design
     from server.studies.service import show_design
 
@@ -177,14 +173,14 @@ def _run_clips(settings: Settings, factory: sessionmaker[Session], study_id: int
     if place.config is None:  # an inline clip set is always described: not reached
         raise BuildError("the study's [clips] describe no clip set")
     progress(stage="building", done=0, total=len(design.animations), message="building the clips the design needs")
-    built = pipeline.build(settings.data, place.config, place.clips_dir, design, lambda m: progress(message=m),
-                           settings.dask_scheduler)
-    progress(stage="building", done=len(design.animations), total=len(design.animations),
-             message=f"{built} clips built")
+
+    def built(count: int) -> None:
+        progress(stage="building", done=len(design.animations), total=len(design.animations),
+                 message=f"{count} clips built")
+
     with factory() as session:
-        pairs = pipeline.pairs(session, place, design, settings.media_dir)
-    before = place.render_dir if (place.render_dir / MANIFEST).is_file() else settings.media_dir
-    media = _render(settings, place, pairs, rendered_settings(before), progress)
+        media = pipeline.make_stimuli(settings, session, place, {"": design}, progress=lambda m: progress(message=m),
+                                      workers=1, videos_done=rendering(progress), built=built)
     progress(stage="study", done=0, total=1, message="making the study's comparisons over the videos")
     with factory() as session:
         study = draft(session, study_id)
