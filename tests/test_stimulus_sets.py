@@ -26,8 +26,9 @@ from server.clipset.manifest import write_clip_set
 from server.config import Settings
 from server.db import migrate
 from server.deps import get_session
-from server.media.build import MEDIA_NAME, render_media
+from server.media.build import render_media
 from server.media.manifest import read_render_manifest
+from server.media.plan import MEDIA_NAME
 from server.media.scene import RenderSettings
 from server.participants.service import update_study
 from server.pipeline.stimuli import render_manifest_dirs

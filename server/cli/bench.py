@@ -19,7 +19,8 @@ from server.clipset.config import load_config
 from server.clipset.manifest import write_clip_set
 from server.config import Settings
 from server.errors import MediaError
-from server.media.build import plan, render_tasks, run_on_dask
+from server.media.build import render_tasks, run_on_dask
+from server.media.plan import plan
 from server.media.scene import RenderSettings
 from server.studies.service import clip_set_index, required_pairs
 from server.studies.studyfile import thesis_study

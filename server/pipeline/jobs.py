@@ -18,7 +18,7 @@ Stages of the build of a study's assets (``build_jobs.stage``; ``done``/``total`
    earlier ones; the manifest is replaced last, in one step).
 2. ``rendering``: one step per video missing: every clip's and the pairs the study's design (with the new
    animations) and every other study show, with the size and shadows the videos have already
-   (:func:`server.media.build.rendered_settings`, :func:`server.pipeline.stimuli.render`, one worker process
+   (:func:`server.media.plan.rendered_settings`, :func:`server.pipeline.stimuli.render`, one worker process
    so the server keeps a core).
 3. ``study``: the assets' animations are added to the study's design (its comparisons rebuilt over the videos).
 4. ``done`` (state ``done``), or state ``failed`` with ``error`` at the stage where it failed.

@@ -41,8 +41,9 @@ from server.clipset.config import DEFAULT_CONFIG, ClipSetConfig, inline_config, 
 from server.clipset.manifest import MANIFEST, ManifestError, merge_clip_set, read_clip_manifest
 from server.config import Settings
 from server.errors import Unprocessable
-from server.media.build import rendered_pairs, rendered_settings
+from server.media.build import rendered_pairs
 from server.media.manifest import RenderManifest, read_render_manifest
+from server.media.plan import rendered_settings
 from server.media.scene import RenderSettings
 from server.studies.design import Design
 from server.studies.studyfile import Clips, StudyFile
