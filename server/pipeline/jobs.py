@@ -274,16 +274,14 @@ def prepare_default(settings: Settings, factory: sessionmaker[Session],
     with factory() as session:
         if session.scalar(select(Study.id).limit(1)) is not None:
             return None
-        for job in lost_jobs(session, JobKind.default):
-            if claim(session, job):
-                job_id = job.id
-                session.commit()
-                run(settings, factory, job_id, echo)
-                finished = session.get(BuildJob, job_id)
-                session.refresh(finished)
-                session.expunge(finished)
-                return finished
-    return run_in_this_process(settings, JobKind.default, {}, echo)
+        claimed = next((job.id for job in lost_jobs(session, JobKind.default) if claim(session, job)), None)
+    if claimed is None:
+        return run_in_this_process(settings, JobKind.default, {}, echo)
+    run(settings, factory, claimed, echo)
+    with factory() as session:
+        finished = session.get(BuildJob, claimed)
+        session.expunge(finished)
+        return finished
 
 
 def main(argv: Sequence[str] | None = None) -> int:
