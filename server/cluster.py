@@ -109,8 +109,11 @@ def dask_client(scheduler: str | None, workers: int | None = None) -> Iterator[C
     security = Security.temporary()
     # Only critical worker logs: a task's failure ("Compute Failed", logged at ERROR with its traceback) reaches the
     # caller as the task's own exception, which every command reports as one line (issue 37).
+    # The scheduler's HTTP server (health and metrics routes) starts even with dashboard_address=None, on port 8787
+    # of every interface (dask/distributed#8136): a second cluster warned "Port 8787 is already in use".  A free
+    # port on loopback instead; no dashboard is served (bokeh is not installed).
     cluster = LocalCluster(n_workers=workers or machine_workers(), threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=logging.CRITICAL, security=security,
+                           dashboard_address="127.0.0.1:0", silence_logs=logging.CRITICAL, security=security,
                            protocol="tls://")
     client = Client(cluster, security=security, set_as_default=False)
     try:

@@ -325,3 +325,21 @@ def test_the_scheduler_restarted_mid_job_and_the_job_goes_on_with_what_is_missin
     mine = _files(out)
     assert mine.keys() == local.keys() and all(mine[n] == local[n] for n in local)
 
+
+
+def test_the_local_cluster_opens_no_port_beyond_loopback():
+    """dask/distributed#8136: ``dashboard_address=None`` still starts the scheduler's HTTP server, on port 8787 of
+    every interface (a second cluster on the machine warned "Port 8787 is already in use").  The local cluster's
+    scheduler listens on 127.0.0.1 only, on a free port, and two run side by side without a warning."""
+    import warnings
+
+    from server.cluster import dask_client
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # "Port 8787 is already in use" is a UserWarning
+        with dask_client(None, workers=1) as first, dask_client(None, workers=1) as second:
+            for client in (first, second):
+                scheduler = client.cluster.scheduler
+                assert scheduler.http_server is not None
+                hosts = {s.getsockname()[0] for s in scheduler.http_server._sockets.values()}
+                assert hosts == {"127.0.0.1"}, hosts

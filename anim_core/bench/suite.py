@@ -11,6 +11,8 @@ Variants:
   closed-form spring and unclamped slerp for the crouch; a ``reduced`` clip's keys at their own times, a
   ``quantized`` clip's integers dequantized in the kernel, a ``hybrid_c2`` clip's control points, a
   ``hybrid_ik`` clip's hybrid runtime plus its foot tracks and two-bone IK.  The headline figures.
+  An ``update_rate`` clip is posed by the held-update path (:class:`anim_core.runtime.HeldCrowd`: a character
+  only when its held pose changes).
 * ``baked``: every hybrid baked into a uniform table of keys (:func:`anim_core.runtime.crowd.bake`), posed like a
   keyframe clip: the speed of dense keys bought with their memory.
 * ``reference``: the numpy reference implementation (``clip.sample`` + ``Skeleton.forward_kinematics``), with
@@ -43,8 +45,10 @@ from ..math.clip import KeyframeClip
 from ..methods.c2spline import C2Clip
 from ..methods.footlock import FootLockedClip
 from ..methods.hybrid import SpringClip, SquadClip
+from ..methods.lod import HeldClip
 from ..runtime import (
     AnyRuntime,
+    HeldRuntime,
     TableRuntime,
     angle_error_deg,
     bone_lod_mask,
@@ -99,8 +103,11 @@ def _naive_step(clip: SquadClip) -> Callable[[np.ndarray, int], Any]:
     return lambda t, _f: clip.skeleton.forward_kinematics(*clip.sample(t, controls=clip.tangents()))
 
 
-def _runtime_step(runtime: AnyRuntime, n: int, parallel: bool = False, bone_lod: int = 0, update_every: int = 1,
-                  fk_only: bool = False) -> Callable[[np.ndarray, int], Any]:
+def _runtime_step(runtime: AnyRuntime | HeldRuntime, n: int, parallel: bool = False, bone_lod: int = 0,
+                  update_every: int = 1, fk_only: bool = False) -> Callable[[np.ndarray, int], Any]:
+    if isinstance(runtime, HeldRuntime) and bone_lod == 0 and update_every == 1 and not fk_only:
+        crowd = runtime.crowd(n)  # the held-update path: a character posed only when its held pose changes
+        return lambda t, _f: crowd.pose(t, parallel)
     buffers = CrowdBuffers.for_crowd(n, runtime.skeleton.n_joints)
     active = bone_lod_mask(runtime.skeleton, bone_lod)
     if fk_only:
@@ -155,6 +162,8 @@ def reference_bytes(clip: Any, naive: bool = False) -> int:
     precomputed control points (not for ``naive``, which recomputes them) and the root spline's coefficients; a
     C2 clip's control points and knots beside its SQUAD clip's; a foot-locked clip's targets and weights and
     their splines beside its hybrid's; a quantized clip's dequantized keys (what it samples)."""
+    if isinstance(clip, HeldClip):  # the reference's keys, sampled at held times
+        return reference_bytes(clip.base)
     if isinstance(clip, SquadClip):
         seg_times, q, a, b, root = clip.precomputed()
         arrays = [clip.key_times, clip.key_rotations, clip.key_root, clip.velocity, seg_times, root.x, root.c]
@@ -172,7 +181,7 @@ def reference_bytes(clip: Any, naive: bool = False) -> int:
     return int(sum(np.asarray(a).nbytes for a in arrays))
 
 
-def _accuracy(c: BuiltClip, variant: str, runtime: AnyRuntime | None, rate: float, lod: dict[str, Any]
+def _accuracy(c: BuiltClip, variant: str, runtime: AnyRuntime | HeldRuntime | None, rate: float, lod: dict[str, Any]
               ) -> dict[str, float]:
     """Largest and mean angle (degrees) between a joint's global rotation from ``variant`` and from the exact
     curve; for a LOD variant also against the keys runtime without LOD (what the LOD alone costs)."""
@@ -198,12 +207,12 @@ def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTE
         raise ValueError(f"variants are {', '.join(VARIANTS)}, got {', '.join(variants) or 'none'}")
     rng = np.random.default_rng(seed)
     started = time.perf_counter()
-    runtimes: dict[str, dict[str, AnyRuntime]] = {"keys": {}, "baked": {}}
+    runtimes: dict[str, dict[str, AnyRuntime | HeldRuntime]] = {"keys": {}, "baked": {}}
     for c in clips:
         if "keys" in variants:
             runtimes["keys"][c.id] = runtime_for(c.clip)
         if "baked" in variants:
-            runtimes["baked"][c.id] = (runtime_for(c.clip) if c.method == "keyframe"
+            runtimes["baked"][c.id] = (runtime_for(c.clip) if c.method == "keyframe" or isinstance(c.clip, HeldClip)
                                        else TableRuntime.from_table(bake(c.clip)))
     progress(f"runtimes built ({time.perf_counter() - started:.0f} s)")
     timed_variants = list(variants) + ([name for name, _ in lod_variants()] if "keys" in variants else [])

@@ -39,11 +39,13 @@ from ..math import contacts
 from ..math.clip import KeyframeClip, PlaybackMode, Pose, horizontal
 from ..math.quat import quat_from_axis_angle, quat_mul, rotate, slerp
 from ..math.skeleton import Skeleton
+from ..math.skinning import SkinnedMesh
 from ..methods.conditions import REFERENCE, Animation, Condition, Kind, get_method
 from ..methods.footlock import FootLockedClip
 from ..methods.footplant import plant_feet
 from ..methods.ik import smoothstep
 from ..methods.keypick import pick_keys
+from ..methods.lod import HeldClip, max_influences, strongest_influences
 from ..rig.character import FEET, LEGS, UP, Character, RetargetedCharacter, retarget
 from ..rig.rigmap import UNITS
 from . import fidelity
@@ -547,7 +549,8 @@ def build_animation(source: Source, fps: int, conditions: Sequence[Condition],
                                condition.params_dict(), clip, key_times, np.asarray(clip.key_rotations), fps,
                                n_frames, cfg.playback, cfg.in_place, speed, source_info, source.character,
                                pose.rotations, pose.root_translation,
-                               *source.character.skeleton.forward_kinematics(*pose)))
+                               *source.character.skeleton.forward_kinematics(*pose), ladder=condition.ladder,
+                               level=condition.level, render=condition.render_settings()))
     placed = _place_on_floor(built)
     if cfg.playback == "loop" and not cfg.in_place:
         # A loop that travels is measured as an in-place one over ground moving under it, as in_place clips are:
@@ -564,7 +567,52 @@ def build_animation(source: Source, fps: int, conditions: Sequence[Condition],
         stored = condition.stored_bytes(c.clip)
         if stored is not None:
             c.metrics["bytes"] = stored
-    return _gate(source, measured, src_t)
+    gated = _gate(source, measured, src_t)
+    if any(c.ladder is not None for c in gated):
+        distinct_levels(cfg.name, gated, source.character.mesh.weights)
+        for c, cost in zip(gated, run_time_costs(gated, source.character.mesh), strict=True):
+            c.metrics.update(cost)  # every clip of a clip set with ladders: the levels compare with all of them
+    return gated
+
+
+def _skin_level(c: BuiltClip, weights: Array) -> int | None:
+    """The influences per vertex a clip is rendered with, None for the full skin (also when a level keeps every
+    weight of the character's skin: at least its most influences per vertex)."""
+    k = (c.render or {}).get("skin_influences")
+    return None if k is None or k >= max_influences(weights) else int(k)
+
+
+def distinct_levels(animation: str, clips: Sequence[BuiltClip], weights: Array) -> None:
+    """Every level of a ladder makes a clip of its own: a level whose clip has the same frames (local rotations
+    and root) and is rendered with the same skin as the reference's or another level's is a ConfigError naming
+    the ladder, the level and the clip it repeats."""
+    seen: dict[tuple[bytes, bytes, int | None], BuiltClip] = {}
+    for c in clips:  # the reference first
+        key = (np.ascontiguousarray(c.local_rotations).tobytes(), np.ascontiguousarray(c.root_positions).tobytes(),
+               _skin_level(c, weights))
+        same = seen.get(key)
+        if same is not None and c.ladder is not None:
+            what = "the reference" if same.method == REFERENCE else f"condition {same.condition!r}"
+            raise ConfigError(f"[[ladders]] id = {c.ladder!r} level {c.level!r} ({c.method}): on animation "
+                              f"{animation!r} it makes the same clip as {what}; drop the level")
+        seen.setdefault(key, c)
+
+
+def run_time_costs(clips: Sequence[BuiltClip], mesh: SkinnedMesh) -> list[dict[str, float]]:
+    """Each clip's measured run-time cost (:mod:`anim_core.bench.cost`): ``cost_ms_per_1000``, and for the
+    reference and each render-time condition ``skin_ms_per_1000`` and ``skin_weights`` (the non-zero skin weights
+    of the body it is skinned with: what an engine's per-vertex loop blends); one animation's clips timed
+    interleaved."""
+    from ..bench.cost import pose_costs_ms_per_1000, skin_costs_ms_per_1000
+
+    out = [{"cost_ms_per_1000": round(ms, 4)} for ms in pose_costs_ms_per_1000([c.clip for c in clips])]
+    skinned = [k for k, c in enumerate(clips) if c.render is not None or c.method == REFERENCE]
+    levels = [_skin_level(clips[k], mesh.weights) for k in skinned]
+    for k, level, ms in zip(skinned, levels, skin_costs_ms_per_1000(clips[0].clip, mesh, levels), strict=True):
+        out[k]["skin_ms_per_1000"] = round(ms, 2)
+        weights = mesh.weights if level is None else strongest_influences(mesh.joints, mesh.weights, level)[1]
+        out[k]["skin_weights"] = int(np.count_nonzero(weights))  # weights blended per character and frame
+    return out
 
 
 #: Kind ``other``: the tolerances (mm) :func:`suggest_tolerance` tries in turn, the default first, and the largest
@@ -668,7 +716,7 @@ def _gate(source: Source, clips: list[BuiltClip], src_t: Array) -> list[BuiltCli
     checks = [fidelity.check_reference(reference.world_positions, contact, candidates, slack, source_frames,
                                        bone_slack)]
     loop = cfg.playback == "loop"
-    checks += [fidelity.check_condition(c.world_positions, contact, reference.world_positions, loop,
+    checks += [fidelity.check_condition(c.world_positions, contact, _gate_reference(c, reference), loop,
                                         _mirrored_half(cfg, c), c.fps) for c in clips[1:]]
     out = []
     for c, check in zip(clips, checks, strict=True):
@@ -682,6 +730,17 @@ def _gate(source: Source, clips: list[BuiltClip], src_t: Array) -> list[BuiltCli
         metrics = {**c.metrics, **check.as_metrics(), "unfaithful": 1.0 if unfaithful else 0.0}
         out.append(replace(c, metrics=metrics, fidelity=check))
     return out
+
+
+def _gate_reference(c: BuiltClip, reference: BuiltClip) -> Array:
+    """What the gate compares a condition's frames with: the reference's frames, or for a held clip
+    (``update_rate``, :class:`~anim_core.methods.lod.HeldClip`) the reference's frames held as it holds them.  A
+    held clip shows only the reference's own poses (its tests check each frame is the reference's held frame);
+    what it loses between two updates, a foot's landing say, is the condition a study measures, not a fault of
+    the clip."""
+    if isinstance(c.clip, HeldClip):
+        return reference.world_positions[c.clip.shown[:c.n_frames]]
+    return reference.world_positions
 
 
 def _mirrored_half(cfg: AnimationConfig, clip: BuiltClip) -> tuple[NDArray[np.intp], int] | None:

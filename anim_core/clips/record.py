@@ -43,6 +43,9 @@ class BuiltClip:
     world_positions: Array = field(repr=False)
     metrics: dict[str, float | None] = field(default_factory=dict)
     fidelity: Fidelity | None = None  # the fidelity gate's verdict (build_animation)
+    ladder: str | None = None  # the ladder ([[ladders]]) the condition is a level of, and its level
+    level: float | int | None = None
+    render: dict[str, Any] | None = None  # per-clip render settings of a render-time condition
 
     @property
     def times(self) -> Array:

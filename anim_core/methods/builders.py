@@ -24,15 +24,23 @@
   ``bits`` bits per quaternion component (:func:`anim_core.methods.compression.quantized_clip`), dequantized at
   playback.
 
-Stored bytes (the ``bytes`` metric) of ``hybrid_ik`` and ``quantized`` differ from a clip of float32 keys; their
-``stored_bytes`` functions are registered with them.
+* ``update_rate`` (:class:`UpdateRateParams`): the reference's pose updated ``rate`` times a second and held in
+  between, on its own frame grid (:class:`anim_core.methods.lod.HeldClip`); a rate at or above the clip set's
+  ``fps`` would be the reference and is refused.
+* ``bone_lod`` (:class:`BoneLodParams`): the joints of a named set (``joints``: fingers, toes, neck) or deeper than
+  ``depth`` held at their bind pose, the others the reference's keys (:func:`anim_core.methods.lod.bone_lod`).
+* ``skin_influences`` (:class:`SkinInfluencesParams`): the reference's motion rendered with the ``influences``
+  strongest skin weights per vertex (a render-time condition: :func:`skin_influences_render`).
+
+Stored bytes (the ``bytes`` metric) of ``hybrid_ik``, ``quantized`` and ``bone_lod`` (its held joints store one
+pose) differ from a clip of float32 keys; their ``stored_bytes`` functions are registered with them.
 """
 
 from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from ..math.clip import KeyframeClip
 from ..rig.character import FEET, LEGS
@@ -42,6 +50,7 @@ from .c2spline import C2Clip, c2_from_squad
 from .compression import QuantizedClip, keyframe_bytes, quantized_clip, reduce_keys
 from .footlock import FootLockedClip, lock_feet
 from .hybrid import SpringClip, SquadClip, build_crouch, build_gait, build_idle, build_other
+from .lod import BoneLodClip, HeldClip, JointSet, bone_lod, frozen_joints
 
 
 class KeyframeParams(Params):
@@ -144,3 +153,57 @@ def build_quantized(animation: Animation, params: QuantizedParams) -> QuantizedC
     ref = animation.reference
     src = ref if params.reduced_epsilon_deg is None else reduce_keys(ref, params.reduced_epsilon_deg)
     return quantized_clip(src, params.bits)[0]
+
+
+class UpdateRateParams(Params):
+    rate: float = Field(gt=0, le=240, description="pose updates per second (each pose held 1/rate s)")
+
+
+class BoneLodParams(Params):
+    joints: JointSet | None = Field(None, description="the named set of joints held at their bind pose")
+    depth: int | None = Field(None, ge=0, le=64, description="joints deeper than this (the root is 0) are held at "
+                              "their bind pose")
+
+    @model_validator(mode="after")
+    def _one(self) -> BoneLodParams:
+        if (self.joints is None) == (self.depth is None):
+            raise ValueError("give exactly one of joints (a named set: fingers, toes, neck) and depth")
+        return self
+
+
+class SkinInfluencesParams(Params):
+    influences: int = Field(ge=1, le=4, description="skin weights kept per vertex, the strongest, renormalised")
+
+
+def update_rate_refused(params: UpdateRateParams, fps: int) -> str | None:
+    if params.rate >= fps:
+        return (f"rate {params.rate:g} poses/s is at or above the clips' own rate of {fps} keys/s: every frame "
+                f"would be updated, the clip would be the reference")
+    return None
+
+
+def bone_lod_bytes(clip: BoneLodClip, params: BoneLodParams) -> int:
+    # The moving joints' keys (float32, with the root and time per key) and one float32 pose of the held joints.
+    held = int(clip.frozen.sum())
+    return keyframe_bytes(clip.key_times.size, clip.skeleton.n_joints - held) + held * 4 * 4
+
+
+def build_update_rate(animation: Animation, params: UpdateRateParams) -> HeldClip:
+    reason = update_rate_refused(params, animation.fps)
+    if reason is not None:
+        raise ValueError(reason)
+    return HeldClip(animation.reference, params.rate, animation.fps)
+
+
+def build_bone_lod(animation: Animation, params: BoneLodParams) -> BoneLodClip:
+    ref = animation.reference
+    return bone_lod(ref, frozen_joints(ref.skeleton, params.joints, params.depth), animation.bind_rotations)
+
+
+def build_skin_influences(animation: Animation, params: SkinInfluencesParams) -> KeyframeClip:
+    """The reference's motion: the condition is how it is skinned (:func:`skin_influences_render`)."""
+    return animation.reference
+
+
+def skin_influences_render(params: SkinInfluencesParams) -> dict[str, int]:
+    return {"skin_influences": params.influences}

@@ -17,7 +17,9 @@ returns a clip (:data:`AnimClip`); whoever uses a clip reads it through the clip
 Today's methods: ``keyframe`` (the reference: the dense keys themselves, no parameters) and ``hybrid`` (the
 thesis method: 2 base keys plus ``increment`` extra keys per interval, mirroring, SQUAD or the spring; ``increment``
 0..4).
-``hybrid_ik``, ``hybrid_c2``, ``reduced`` and ``quantized`` (issue 16).  Every built-in builder and its parameter
+``hybrid_ik``, ``hybrid_c2``, ``reduced`` and ``quantized`` (issue 16); ``update_rate``, ``bone_lod`` and
+``skin_influences`` (issue 38, :mod:`anim_core.methods.lod`).  A method may name a ``graded`` parameter: the one a
+ladder of levels (``[[ladders]]`` of a clip-set file) grades by default.  Every built-in builder and its parameter
 model is in :mod:`anim_core.methods.builders`; they are registered at the end of this module, in one list.
 
 Adding a method (worked example: hold every pose for ``hold`` frames, a "stepped" look)::
@@ -92,23 +94,39 @@ class Method(Generic[P]):
     stored_bytes: Callable[[Any, P], int] | None = None
     #: its gait clips' second half cycle mirrors the first (the fidelity gate checks the mirrored half)
     mirrors: bool = False
+    #: the parameter a ladder of this method grades by default (``[[ladders]]``), or None: no default
+    graded: str | None = None
+    #: ``refuse(params, fps)``: why these parameters would make the reference itself at a clip rate of ``fps``
+    #: keys per second (checked when a clip-set file is read), or None when they do not
+    refuse: Callable[[Any, int], str | None] | None = None
+    #: ``render(params)``: the per-clip render settings of a render-time condition (the clip is the reference's
+    #: motion; the renderer skins it otherwise), or None: the clip's motion is the condition
+    render: Callable[[Any], dict[str, Any]] | None = None
 
 
 _METHODS: dict[str, Method[Any]] = {}
 
 
-def register(name: str, params: type[P], stored_bytes: Callable[[Any, P], int] | None = None, mirrors: bool = False
+def register(name: str, params: type[P], stored_bytes: Callable[[Any, P], int] | None = None, mirrors: bool = False,
+             graded: str | None = None, refuse: Callable[[P, int], str | None] | None = None,
+             render: Callable[[P], dict[str, Any]] | None = None,
              ) -> Callable[[Callable[[Animation, P], AnimClip]], Callable[[Animation, P], AnimClip]]:
     """Decorator: register ``build`` as method ``name`` with parameter model ``params`` (names are unique),
-    ``stored_bytes(clip, params)`` if its clips are not stored as float32 keys, and ``mirrors`` if a gait's second
-    half cycle is the mirror image of its first (the fidelity gate then checks the mirrored half)."""
+    ``stored_bytes(clip, params)`` if its clips are not stored as float32 keys, ``mirrors`` if a gait's second
+    half cycle is the mirror image of its first (the fidelity gate then checks the mirrored half), ``graded``:
+    the numeric parameter a ladder (``[[ladders]]`` of a clip-set file) grades unless it names another,
+    ``refuse(params, fps)``: a reason why parameters make the reference itself at ``fps`` keys per second (a ladder
+    level doing so is refused when the file is read), ``render(params)``: per-clip render settings of a
+    render-time condition."""
     if not (isinstance(params, type) and issubclass(params, Params)):
         raise TypeError(f"the parameters of method {name!r} must be a subclass of anim_core.methods.conditions.Params")
+    if graded is not None and graded not in params.model_fields:
+        raise TypeError(f"method {name!r}: graded parameter {graded!r} is not a field of {params.__name__}")
 
     def decorator(build: Callable[[Animation, P], AnimClip]) -> Callable[[Animation, P], AnimClip]:
         if name in _METHODS:
             raise ValueError(f"method {name!r} is registered already")
-        _METHODS[name] = Method(name, params, build, stored_bytes, mirrors)
+        _METHODS[name] = Method(name, params, build, stored_bytes, mirrors, graded, refuse, render)
         return build
 
     return decorator
@@ -133,21 +151,35 @@ def _field_errors(exc: ValidationError) -> str:
 @dataclass(frozen=True)
 class Condition:
     """One condition of a clip set: ``id`` (unique in the set; a clip's id is ``<animation>-<id>``), ``method`` and
-    its validated ``params``."""
+    its validated ``params``; a level of a ladder (``[[ladders]]``) also carries the ``ladder``'s id and its
+    ``level`` (the graded parameter's value)."""
 
     id: str
     method: str
     params: Params
+    ladder: str | None = None
+    level: float | int | None = None
 
     @classmethod
-    def parse(cls, id: str, method: str, params: Mapping[str, Any] | None = None) -> Condition:
+    def parse(cls, id: str, method: str, params: Mapping[str, Any] | None = None, ladder: str | None = None,
+              level: float | int | None = None) -> Condition:
         """Validate ``params`` with ``method``'s model; errors name the method and each failing field."""
         m = get_method(method)
         try:
             parsed = m.params.model_validate(dict(params or {}))
         except ValidationError as exc:
             raise ConditionError(f"params of method {method!r}: {_field_errors(exc)}") from None
-        return cls(id, method, parsed)
+        return cls(id, method, parsed, ladder, level)
+
+    def render_settings(self) -> dict[str, Any] | None:
+        """Per-clip render settings of a render-time condition (e.g. ``{"skin_influences": 2}``), else None."""
+        render = get_method(self.method).render
+        return None if render is None else render(self.params)
+
+    def refused(self, fps: int) -> str | None:
+        """Why this condition would make the reference itself at ``fps`` keys per second, if it would."""
+        refuse = get_method(self.method).refuse
+        return None if refuse is None else refuse(self.params, fps)
 
     @property
     def is_reference(self) -> bool:
@@ -167,15 +199,22 @@ class Condition:
 
 # --- the methods, registered in this one place ------------------------------------------------------------------
 
-#: (name, parameter model, builder, stored bytes or None, mirrors a gait), in the order :func:`methods` lists them.
+#: (name, parameter model, builder, stored bytes or None, mirrors a gait, graded parameter or None), in the order
+#: :func:`methods` lists them; ``REFUSE`` and ``RENDER`` hold the ``refuse`` and ``render`` functions of those that
+#: have one.
 BUILT_IN: tuple[tuple[str, type[Params], Callable[[Animation, Any], AnimClip], Callable[[Any, Any], int] | None,
-                      bool], ...] = (
-    (REFERENCE, b.KeyframeParams, b.build_keyframe, None, False),
-    ("hybrid", b.HybridParams, b.build_hybrid, None, True),
-    ("hybrid_ik", b.HybridIkParams, b.build_hybrid_ik, b.hybrid_ik_bytes, True),
-    ("hybrid_c2", b.HybridC2Params, b.build_hybrid_c2, None, True),
-    ("reduced", b.ReducedParams, b.build_reduced, None, False),
-    ("quantized", b.QuantizedParams, b.build_quantized, b.quantized_bytes, False),
+                      bool, str | None], ...] = (
+    (REFERENCE, b.KeyframeParams, b.build_keyframe, None, False, None),
+    ("hybrid", b.HybridParams, b.build_hybrid, None, True, "increment"),
+    ("hybrid_ik", b.HybridIkParams, b.build_hybrid_ik, b.hybrid_ik_bytes, True, "increment"),
+    ("hybrid_c2", b.HybridC2Params, b.build_hybrid_c2, None, True, "increment"),
+    ("reduced", b.ReducedParams, b.build_reduced, None, False, "epsilon_deg"),
+    ("quantized", b.QuantizedParams, b.build_quantized, b.quantized_bytes, False, "bits"),
+    ("update_rate", b.UpdateRateParams, b.build_update_rate, None, False, "rate"),
+    ("bone_lod", b.BoneLodParams, b.build_bone_lod, b.bone_lod_bytes, False, "depth"),
+    ("skin_influences", b.SkinInfluencesParams, b.build_skin_influences, None, False, "influences"),
 )
-for _name, _params, _build, _stored, _mirrors in BUILT_IN:
-    register(_name, _params, _stored, _mirrors)(_build)
+REFUSE: dict[str, Callable[[Any, int], str | None]] = {"update_rate": b.update_rate_refused}
+RENDER: dict[str, Callable[[Any], dict[str, Any]]] = {"skin_influences": b.skin_influences_render}
+for _name, _params, _build, _stored, _mirrors, _graded in BUILT_IN:
+    register(_name, _params, _stored, _mirrors, _graded, REFUSE.get(_name), RENDER.get(_name))(_build)

@@ -4,6 +4,7 @@
 * :mod:`.kernels`: their compiled kernels, one per kind, made serial and parallel by one factory;
 * :mod:`.offline`: building a runtime from a clip (:func:`runtime_for`), the fits and their tolerances;
 * :mod:`.checks`: accuracy: the exact curve, a pose under a LOD, the angle between them;
+* :mod:`.held`: the held-update path (:class:`HeldCrowd`): a character posed at its clip's update rate only;
 * :mod:`.crowd`: the uniform pose tables (and baking a hybrid into one) the table runtime starts from.
 """
 
@@ -16,6 +17,7 @@ from .checks import (
     sample_times,
 )
 from .crowd import numba
+from .held import HeldCrowd, HeldRuntime
 from .kinds import (
     BONE_LODS,
     AnyRuntime,
@@ -47,7 +49,8 @@ if numba is not None:  # compiled only where numba is present
 
 __all__ = [
     "BONE_LODS", "C2_TOLERANCE_DEG", "FIT_TOLERANCE_DEG", "FOOT_LOCK_TOLERANCE_DEG", "AnyRuntime", "C2Runtime",
-    "FootLockRuntime", "QuantizedRuntime", "SplineRuntime", "SpringRuntime", "TableRuntime", "angle_error_deg",
+    "FootLockRuntime", "HeldCrowd", "HeldRuntime", "QuantizedRuntime", "SplineRuntime", "SpringRuntime", "TableRuntime",
+    "angle_error_deg",
     "bone_lod_mask", "c2_runtime", "check_inputs", "crouch_params", "exact_global", "foot_lock_runtime", "lod_pose",
     "max_error_deg", "period", "pose_crowd", "quantized_runtime", "runtime_for", "sample_times", "spline_runtime",
     "spring_runtime",

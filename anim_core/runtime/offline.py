@@ -18,8 +18,10 @@ from ..methods.compression import QuantizedClip
 from ..methods.footlock import FootLockedClip
 from ..methods.hybrid import SpringClip, SquadClip, spring
 from ..methods.ik import _STRAIGHT
+from ..methods.lod import HeldClip
 from .checks import max_error_deg
 from .crowd import keyframe_root, table_from_keyframes, uniform
+from .held import HeldRuntime
 from .kinds import (
     AnimClip,
     AnyRuntime,
@@ -49,10 +51,13 @@ C2_TOLERANCE_DEG = 0.01
 FOOT_LOCK_TOLERANCE_DEG = FIT_TOLERANCE_DEG
 
 
-def runtime_for(clip: AnimClip) -> AnyRuntime:
+def runtime_for(clip: AnimClip | HeldClip) -> AnyRuntime | HeldRuntime:
     """The keys runtime of a clip, from what it stores: a keyframe clip's keys (on a grid, or at a reduced clip's
     own times), a quantized clip's integers, SQUAD keys as fitted segments, spring keys, a C2 spline's control
-    points, or a foot-locked hybrid's base runtime plus its tracks."""
+    points, or a foot-locked hybrid's base runtime plus its tracks; a held clip's (``update_rate``) is its base's
+    runtime evaluated at held times (:class:`anim_core.runtime.held.HeldRuntime`)."""
+    if isinstance(clip, HeldClip):
+        return HeldRuntime(clip, runtime_for(clip.base))  # type: ignore[arg-type]
     if isinstance(clip, QuantizedClip):
         return quantized_runtime(clip)
     if isinstance(clip, KeyframeClip):

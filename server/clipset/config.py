@@ -12,7 +12,7 @@ from typing import Any
 
 from anim_core.clips.build import DEFAULT_MAX_KEYS, DEFAULT_TOLERANCE_MM, AnimationConfig, ConfigError
 from anim_core.math.clip import PLAYBACK_MODES
-from anim_core.methods.conditions import KINDS, REFERENCE, Condition, ConditionError
+from anim_core.methods.conditions import KINDS, REFERENCE, Condition, ConditionError, get_method
 from anim_core.rig.rigmap import UNITS
 
 DEFAULT_CONFIG = Path(__file__).with_name("thesis.toml")
@@ -20,6 +20,8 @@ DEFAULT_CONFIG = Path(__file__).with_name("thesis.toml")
 #: designs): a clip's id is ``<animation>-<condition>``, so neither holds a "-".
 NAME_PATTERN = r"^[a-z0-9][a-z0-9_]{0,31}$"
 NAME = re.compile(NAME_PATTERN)
+#: A ladder has at least this many levels (fewer give no psychometric function).
+MIN_LADDER_LEVELS = 3
 #: The largest ``max_keys`` a clip-set entry may give: each key picked costs a pass of the hybrid over the take.
 MAX_KEYS_LIMIT = 1000
 
@@ -211,6 +213,81 @@ def _conditions(raw: Any, path: Path) -> tuple[Condition, ...]:
     return tuple(out)
 
 
+def level_id(ladder: str, level: float | int) -> str:
+    """A ladder level's condition id: the ladder's id and the level, "_" for a decimal point (``eps0_5``)."""
+    text = str(level) if isinstance(level, int) else f"{level:g}" if "e" not in f"{level:g}" else repr(level)
+    return f"{ladder}{text.replace('.', '_').replace('-', 'm').replace('+', '')}"
+
+
+def _ladders(raw: Any, path: Path, fps: int, explicit: tuple[Condition, ...]) -> tuple[Condition, ...]:
+    """The conditions of the ``[[ladders]]`` entries, one per level, each carrying its ladder's id and level;
+    every error names the ladder, the field and the level, and nothing is built."""
+    if raw is None:
+        return ()
+    if not isinstance(raw, list):
+        raise ConfigError(f"{path}: [[ladders]] must be a list of tables (id, method, levels, param?, params?)")
+    out: list[Condition] = []
+    taken = {c.id: "[[conditions]]" for c in explicit}
+    for k, entry in enumerate(raw, 1):
+        where = f"{path} [[ladders]] #{k}"
+        if not isinstance(entry, dict):
+            raise ConfigError(f"{where} must be a table")
+        if unknown := sorted(set(entry) - {"id", "method", "levels", "param", "params"}):
+            raise ConfigError(f"{where}: unknown field {unknown[0]!r}; allowed: id, method, levels, param, params")
+        lid = entry.get("id")
+        if not isinstance(lid, str) or not NAME.fullmatch(lid):
+            raise ConfigError(f"{where} id: 1..32 lower-case letters, digits or '_' (no '-'), got {lid!r}")
+        where = f"{path} [[ladders]] id = {lid!r}"
+        method = entry.get("method")
+        if not isinstance(method, str):
+            raise ConfigError(f"{where} method: a string naming a registered method")
+        try:
+            m = get_method(method)
+        except ConditionError as exc:
+            raise ConfigError(f"{where} method: {exc}") from None
+        if method == REFERENCE:
+            raise ConfigError(f"{where} method: {REFERENCE!r} is the reference, it has no levels")
+        param = entry.get("param", m.graded)
+        if param is None:
+            raise ConfigError(f"{where} param: method {method!r} grades no parameter by default; name one")
+        if not isinstance(param, str) or param not in m.params.model_fields:
+            raise ConfigError(f"{where} param: method {method!r} has no parameter {param!r}; it has "
+                              f"{', '.join(m.params.model_fields) or 'none'}")
+        params = entry.get("params", {})
+        if not isinstance(params, dict):
+            raise ConfigError(f"{where} params: a table of the method's other parameters, e.g. params = "
+                              f"{{ blend_frames = 3 }}")
+        if param in params:
+            raise ConfigError(f"{where} params: {param!r} is the graded parameter; its values are the levels")
+        levels = entry.get("levels")
+        if not isinstance(levels, list) or len(levels) < MIN_LADDER_LEVELS:
+            raise ConfigError(f"{where} levels: a list of at least {MIN_LADDER_LEVELS} levels, got {levels!r}")
+        for i, level in enumerate(levels):
+            if isinstance(level, bool) or not isinstance(level, int | float):
+                raise ConfigError(f"{where} levels: level {level!r} is not a number")
+            if i and level <= levels[i - 1]:
+                what = "repeated" if level == levels[i - 1] else "out of order"
+                raise ConfigError(f"{where} levels: level {level!r} is {what}; levels increase strictly, got "
+                                  f"{levels}")
+        for level in levels:
+            cid = level_id(lid, level)
+            if not NAME.fullmatch(cid):
+                raise ConfigError(f"{where} levels: level {level!r} makes the condition id {cid!r}, not 1..32 "
+                                  f"lower-case letters, digits or '_'; shorten the ladder's id")
+            if cid in taken:
+                raise ConfigError(f"{where} levels: level {level!r} makes the condition id {cid!r}, which "
+                                  f"{taken[cid]} has already")
+            try:
+                condition = Condition.parse(cid, method, {**params, param: level}, lid, level)
+            except ConditionError as exc:
+                raise ConfigError(f"{where} level {level!r}: {exc}") from None
+            if (reason := condition.refused(fps)) is not None:
+                raise ConfigError(f"{where} level {level!r}: {reason}; drop the level")
+            taken[cid] = f"[[ladders]] id = {lid!r}"
+            out.append(condition)
+    return tuple(out)
+
+
 def clip_set_config(animations: dict[str, dict[str, Any]], conditions: list[dict[str, Any]], fps: int,
                     relocate: tuple[str, ...], character: CharacterConfig, where: str) -> ClipSetConfig:
     """A clip-set description from its tables (``[animations.<name>]`` and ``[[conditions]]`` as dicts),
@@ -248,10 +325,10 @@ def load_config(path: Path = DEFAULT_CONFIG) -> ClipSetConfig:
         raise ConfigError(f"{path}: {exc}") from None
     except RecursionError:  # tomllib recurses per level of [ or {
         raise ConfigError(f"{path}: not a clip set file: its arrays or tables are nested too deeply") from None
-    if unknown := sorted(set(raw) - {"fps", "character", "animations", "conditions"}):
+    if unknown := sorted(set(raw) - {"fps", "character", "animations", "conditions", "ladders"}):
         hint = " (conditions are listed as [[conditions]] now)" if "increments" in unknown else ""
         raise ConfigError(f"{path}: unknown field {unknown[0]!r}{hint}; allowed: fps, character, animations, "
-                          f"conditions")
+                          f"conditions, ladders")
     fps = raw.get("fps", 30)
     if not isinstance(fps, int) or isinstance(fps, bool) or not 1 <= fps <= 240:
         raise ConfigError(f"{path}: fps must be a whole number of frames per second (1..240), got {fps!r}")
@@ -260,4 +337,6 @@ def load_config(path: Path = DEFAULT_CONFIG) -> ClipSetConfig:
     if not isinstance(table, dict) or not table:
         raise ConfigError(f"{path}: [animations.<name>] must describe at least one animation")
     animations = {name: _animation(name, entry, f"{path} [animations.{name}]") for name, entry in table.items()}
-    return ClipSetConfig(fps, relocate, animations, _conditions(raw.get("conditions"), path), character)
+    conditions = _conditions(raw.get("conditions"), path)
+    conditions += _ladders(raw.get("ladders"), path, fps, conditions)
+    return ClipSetConfig(fps, relocate, animations, conditions, character)

@@ -42,6 +42,13 @@ class Units(_Model):
     quaternion: Literal["w,x,y,z"] = "w,x,y,z"
 
 
+class RenderOptions(_Model):
+    """Per-clip render settings of a render-time condition: ``skin_influences``, the strongest skin weights kept
+    per vertex (renormalised) when the renderer skins the clip (method ``skin_influences``)."""
+
+    skin_influences: int | None = Field(None, ge=1, le=8)
+
+
 class ClipEntry(_Model):
     """One clip of a clip set, the one record of it on the server: the builder writes it, the renderer, the
     pipeline and the stimulus sets read it.  ``file`` (``<id>.npz``, or ``<id>.<hash>.npz`` when it replaced one,
@@ -64,6 +71,11 @@ class ClipEntry(_Model):
     metrics: dict[str, float | int | None]
     source: dict[str, Any]
     file: str
+    #: the ladder (``[[ladders]]`` of the clip-set file) the condition is a level of, and the level
+    ladder: str | None = None
+    level: float | int | None = None
+    #: how the renderer draws the clip otherwise than by default (render-time conditions); None: the default
+    render: RenderOptions | None = None
     _dir: Path | None = PrivateAttr(default=None)
     _digest: str | None = PrivateAttr(default=None)
 
@@ -76,10 +88,15 @@ class ClipEntry(_Model):
 
     @property
     def digest(self) -> str:
-        """sha256 of the clip's arrays (names, dtypes, shapes, bytes), read once: clips with equal arrays share their
-        videos.  Taken from the file rather than the manifest, so that arrays changed on disk are rendered anew."""
+        """sha256 of the clip's arrays (names, dtypes, shapes, bytes) and of its :attr:`render` settings if it has
+        any, read once: clips with equal arrays and settings share their videos.  Taken from the file rather than
+        the manifest, so that arrays changed on disk are rendered anew."""
         if self._digest is None:
-            self._digest = arrays_digest(self.path)
+            digest = arrays_digest(self.path)
+            if self.render is not None:  # the same motion skinned otherwise is another video
+                text = json.dumps({"arrays": digest, "render": self.render.model_dump()}, sort_keys=True)
+                digest = hashlib.sha256(text.encode()).hexdigest()
+            self._digest = digest
         return self._digest
 
 
@@ -111,7 +128,8 @@ def entry(c: BuiltClip, file: str | None = None) -> ClipEntry:
                      params=c.params, key_count=int(c.key_times.size), duration_s=c.duration_s, fps=c.fps,
                      frames=c.n_frames, playback=c.playback, in_place=c.in_place, root_speed_mps=c.root_speed_mps,
                      metrics=c.metrics, source={k: v for k, v in c.source.items() if k != "character"},
-                     file=file or f"{c.id}.npz")
+                     file=file or f"{c.id}.npz", ladder=c.ladder, level=c.level,
+                     render=None if c.render is None else RenderOptions.model_validate(c.render))
 
 
 def _readable(clips_dir: Path) -> ClipManifest | None:

@@ -192,15 +192,18 @@ class ClipRenderer:
         GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self._primitive._buffers[0])
         GL.glBufferSubData(GL.GL_ARRAY_BUFFER, 0, data.nbytes, data)
 
-    def render(self, world_rotations: Array, world_positions: Array, floor_shift: Array | None = None
-               ) -> Iterator[NDArray[np.uint8]]:
+    def render(self, world_rotations: Array, world_positions: Array, floor_shift: Array | None = None,
+               mesh: SkinnedMesh | None = None) -> Iterator[NDArray[np.uint8]]:
         """Frames ``(H, W, 3)`` uint8 for poses given by forward kinematics ``(T, J, 4)``, ``(T, J, 3)``.
 
-        ``floor_shift``: ``(T,)`` metres to move the ground along -Z per frame (a treadmill under an in-place walk).
+        ``floor_shift``: ``(T,)`` metres to move the ground along -Z per frame (a treadmill under an in-place walk);
+        ``mesh``: the same body skinned otherwise (a clip's render settings, e.g. fewer influences per vertex;
+        same vertices and faces), default the renderer's.
         """
+        skin = self.mesh if mesh is None else mesh
         shifts = np.zeros(len(world_rotations)) if floor_shift is None else np.asarray(floor_shift)
         for rot, pos, shift in zip(world_rotations, world_positions, shifts, strict=True):
-            v, n = self.mesh.skin(self.mesh.skinning_matrices(rot, pos))
+            v, n = skin.skin(skin.skinning_matrices(rot, pos))
             self._renderer._platform.make_current()
             self._upload(v, n)
             pose = np.eye(4)

@@ -26,6 +26,7 @@ from server.errors import MediaError
 from .plan import DIVIDER_PX, DIVIDER_RGB, AnimationJob, Output, rendered_frames
 
 if TYPE_CHECKING:
+    from anim_core.math.skinning import SkinnedMesh
     from anim_core.rig.character import Character
 
 def init_worker() -> None:
@@ -123,8 +124,17 @@ def _open_writers(job: AnimationJob, clip: ClipEntry, single: Output | None, rea
     return writers
 
 
-def _frames(job: AnimationJob, clip: ClipEntry, a: dict[str, NDArray[Any]],
-            renderer: Any) -> Iterator[tuple[int, Any, NDArray[np.uint8] | None]]:
+def clip_mesh(mesh: SkinnedMesh, clip: ClipEntry) -> SkinnedMesh:
+    """The body as ``clip`` is skinned: with its render settings' ``skin_influences`` strongest weights per vertex
+    (renormalised), or as bound."""
+    from anim_core.bench.cost import skinned_mesh
+
+    influences = clip.render.skin_influences if clip.render is not None else None
+    return skinned_mesh(mesh, influences)
+
+
+def _frames(job: AnimationJob, clip: ClipEntry, a: dict[str, NDArray[Any]], renderer: Any,
+            mesh: SkinnedMesh) -> Iterator[tuple[int, Any, NDArray[np.uint8] | None]]:
     """(frame, YUV planes, RGB or None) of ``clip`` in playback order.  The second half of a ping-pong period is
     the first half backwards (frame f shows the pose of frame T - f), so only the first half is rendered."""
     from .video import yuv420
@@ -132,7 +142,8 @@ def _frames(job: AnimationJob, clip: ClipEntry, a: dict[str, NDArray[Any]],
     n = rendered_frames(clip)
     shift = (np.arange(n) / clip.fps * clip.root_speed_mps) % job.grid_spacing_m
     rendered = []
-    for f, rgb in enumerate(renderer.render(a["world_rotations"][:n], a["world_positions"][:n], shift)):
+    for f, rgb in enumerate(renderer.render(a["world_rotations"][:n], a["world_positions"][:n], shift,
+                                            clip_mesh(mesh, clip))):
         planes = yuv420(rgb)
         rendered.append(planes)
         yield f, planes, rgb
@@ -180,7 +191,7 @@ def run_job(job: AnimationJob, arrays: Arrays | None = None, character: Characte
             frames: list[Planes] = []
             t0 = time.perf_counter()
             try:
-                for f, planes, rgb in _frames(job, clip, arrays[clip.id], renderer):
+                for f, planes, rgb in _frames(job, clip, arrays[clip.id], renderer, mesh):
                     if f == 0:
                         first_rgb[clip_id] = rgb
                     if single is not None:

@@ -1,0 +1,108 @@
+"""Run-time cost of one clip, measured on the build machine for the clip manifest (issue 38): what a ladder's
+levels save, beside what they look like.
+
+* ``cost_ms_per_1000``: milliseconds a frame to pose 1,000 characters playing the clip (every joint sampled plus
+  forward kinematics to model space, one thread), the median over :data:`FRAMES` frames of a clock advancing
+  1/60 s a frame, each character at its own random phase: the ``keys`` variant of ``animstudy bench`` at 1,000
+  characters (:mod:`anim_core.bench.suite`), in its units.  An ``update_rate`` clip is posed by the held-update
+  path (:class:`anim_core.runtime.HeldCrowd`: a character is posed only when its held pose changes); a ``bone_lod``
+  clip by its runtime with the held joints inactive.
+* ``skin_ms_per_1000`` (render-time conditions, ``skin_influences``): milliseconds a frame of linear blend skinning
+  (positions and normals) of the character's body, scaled to 1,000 characters from :data:`SKIN_CHARACTERS`
+  characters over :data:`SKIN_FRAMES` frames (median).
+
+The clips (or skins) of one animation are timed interleaved, frame by frame, as the bench times its cases.
+
+Each measurement takes a few hundred milliseconds at most; they are timings on a shared machine, not exact
+figures (the bench's interleaved rounds compare conditions more fairly).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from ..math.skinning import SkinnedMesh
+from ..methods.lod import BoneLodClip, strongest_influences
+from ..runtime import HeldRuntime, runtime_for
+from ..runtime.crowd import CrowdBuffers
+from .suite import FPS
+
+CHARACTERS = 1000
+FRAMES = 60
+WARMUP = 10
+SKIN_CHARACTERS = 2
+SKIN_FRAMES = 9
+SEED = 38
+
+
+def _medians_ms(steps: Sequence[Callable[[np.ndarray], Any]], phases: np.ndarray, frames: int, warmup: int
+                ) -> list[float]:
+    """The median milliseconds of each step, timed interleaved, in a new (seeded) order every frame: a shared
+    machine's load hits them alike, and no step always follows the same one (a step after one that posed the whole
+    crowd finds the caches emptied: measured, a held clip after a full one took half as long again)."""
+    times: list[list[float]] = [[] for _ in steps]
+    rng = np.random.default_rng(SEED)
+    for frame in range(warmup + frames):
+        t = phases + frame / FPS
+        for k in rng.permutation(len(steps)):
+            start = time.perf_counter()
+            steps[k](t)
+            if frame >= warmup:
+                times[k].append((time.perf_counter() - start) * 1000.0)
+    return [float(np.median(ms)) for ms in times]
+
+
+def pose_step(clip: Any, n: int) -> Callable[[np.ndarray], Any]:
+    """A function posing ``n`` characters playing ``clip`` at running times ``t (n,)``, as the crowd runtime
+    does for its kind of clip (module docstring)."""
+    runtime = runtime_for(clip)
+    if isinstance(runtime, HeldRuntime):
+        return runtime.crowd(n).pose
+    buffers = CrowdBuffers.for_crowd(n, runtime.skeleton.n_joints)
+    active = (~clip.frozen).astype(np.uint8) if isinstance(clip, BoneLodClip) else None
+    return lambda t: runtime.pose(t, buffers, False, active)
+
+
+def pose_costs_ms_per_1000(clips: Sequence[Any], frames: int = FRAMES, seed: int = SEED) -> list[float]:
+    """``cost_ms_per_1000`` of each clip (module docstring), the clips of one animation timed interleaved; per
+    1,000 characters, measured at 1,000."""
+    duration = max(float(c.duration) for c in clips)
+    phases = np.random.default_rng(seed).uniform(0.0, 2.0 * duration, CHARACTERS)
+    steps = [pose_step(c, CHARACTERS) for c in clips]
+    return [ms * 1000.0 / CHARACTERS for ms in _medians_ms(steps, phases, frames, WARMUP)]
+
+
+def skinned_mesh(mesh: SkinnedMesh, influences: int | None) -> SkinnedMesh:
+    """``mesh`` with only the ``influences`` strongest weights per vertex (None: as it is)."""
+    if influences is None:
+        return mesh
+    joints, weights = strongest_influences(mesh.joints, mesh.weights, influences)
+    return SkinnedMesh(mesh.vertices, mesh.normals, joints, weights, mesh.inverse_bind)
+
+
+def skin_costs_ms_per_1000(clip: Any, mesh: SkinnedMesh, influences: Sequence[int | None],
+                           frames: int = SKIN_FRAMES, seed: int = SEED) -> list[float]:
+    """``skin_ms_per_1000`` for each entry of ``influences`` (None: the full skin): linear blend skinning of
+    ``mesh``, cut to that many influences, posed by ``clip`` (the poses computed first, only the skinning timed),
+    the skins timed interleaved; per 1,000 characters per frame, measured on :data:`SKIN_CHARACTERS`."""
+    skins = [skinned_mesh(mesh, k) for k in influences]
+    phases = np.random.default_rng(seed).uniform(0.0, 2.0 * float(clip.duration), SKIN_CHARACTERS)
+    pose = pose_step(clip, SKIN_CHARACTERS)
+    posed: dict[float, CrowdBuffers] = {}
+    for frame in range(WARMUP + frames):
+        t = phases + frame / FPS
+        out = pose(t)
+        posed[float(t[0])] = CrowdBuffers(out.rotations.copy(), out.positions.copy())
+
+    def skinning(skin: SkinnedMesh) -> Callable[[np.ndarray], Any]:
+        def step(t: np.ndarray) -> Any:
+            out = posed[float(t[0])]
+            return skin.skin(skin.skinning_matrices(out.rotations, out.positions))
+        return step
+
+    medians = _medians_ms([skinning(s) for s in skins], phases, frames, WARMUP)
+    return [ms * 1000.0 / SKIN_CHARACTERS for ms in medians]
