@@ -1,7 +1,7 @@
 """Trials saved by the incomplete and adaptive designs against all-pairs, at equal precision (issue 27).
 
 For N = 4, 6, 8 conditions spanning the same quality range (true scale values evenly spaced over 0..SPAN logit
-units, one animation), simulated observers (server.studies.simulate: ordinal Bradley-Terry answers with
+units, one animation), simulated observers (server.analysis.simulate: ordinal Bradley-Terry answers with
 per-observer taste, side bias and noise) run through the real design code.
 
 Precision is the same number for every design: the root mean square error of the fitted scale values (maximum
@@ -39,10 +39,10 @@ from functools import partial
 import numpy as np
 from scipy import optimize
 
-from server.studies import adaptive
-from server.studies.assign import Belief
+from server.analysis import adaptive
+from server.analysis.adaptive import Belief
+from server.analysis.simulate import CUTS, Observers, simulate
 from server.studies.design import Design
-from server.studies.simulate import CUTS, Observers, simulate
 
 SPAN = 2.5
 GRID = (0.4, 0.6, 0.8, 1.0, 1.3)  # the other designs' trials, as shares of all-pairs' trials

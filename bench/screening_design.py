@@ -17,8 +17,9 @@ from collections import Counter
 
 import numpy as np
 
-from server.studies import screening_design
-from server.studies.screening import RULES, Screening, calibration, screen
+from server.analysis import screening_design
+from server.analysis.screening import calibration, screen
+from server.studies.screening import RULES, Screening
 from tests.screening_sim import THESIS_PLAYBACK, design_panel
 
 MODES = {

@@ -82,7 +82,8 @@ def main(panels: int) -> None:
     observers were flagged and bad ones missed."""
     from collections import Counter
 
-    from server.studies.screening import Screening, screen
+    from server.analysis.screening import screen
+    from server.studies.screening import Screening
 
     false_flags, missed, by_rule = Counter(), [], Counter()
     for seed in range(panels):
@@ -163,7 +164,8 @@ def design_main(panels: int) -> None:
     import time
     from collections import Counter
 
-    from server.studies.screening import Screening, screen
+    from server.analysis.screening import screen
+    from server.studies.screening import Screening
 
     good_by_rule, bad_by_rule, caught, at_most_one = Counter(), Counter(), Counter(), 0
     too_little: Counter = Counter()

@@ -14,16 +14,16 @@ import pytest
 from scipy import optimize
 from sqlalchemy import event
 
+from server.analysis import adaptive
+from server.analysis.adaptive import information_gain, next_batch, posterior
+from server.analysis.ranking import GradedComparison, symmetric_cuts, vote_log_likelihood
+from server.analysis.simulate import simulate
 from server.participants import service
 from server.participants.assign import session_batches, study_votes
 from server.participants.rows import screened_rows
 from server.research.results import study_results
-from server.studies import adaptive
-from server.studies.adaptive import information_gain, next_batch, posterior
 from server.studies.design import Design
-from server.studies.ranking import GradedComparison, _cuts, _scores
 from server.studies.scale import CHOICES
-from server.studies.simulate import simulate
 from tests.server_fixtures import make_study
 
 CONDITIONS = ["hybrid0", "hybrid1", "hybrid2"]  # with the reference keyframe: 4 conditions, 6 pairs
@@ -90,7 +90,7 @@ def test_bots_pilots_and_screened_out_sessions_do_not_steer_the_design(db, monke
     # The design did adapt: the later participants do not all get the first participant's star.
     assert len({tuple(_pairs(ps)) for ps, _ in real}) > 1
     # The bots and the pilot sessions are what the results leave out: no vote of theirs is counted.
-    from server.studies.statistics import counted  # (imported here: the test runs on the code before issue 36)
+    from server.analysis.statistics import counted  # (imported here: the test runs on the code before issue 36)
 
     rows, records = screened_rows(db, dirty)
     assert sum(r.screened_out for r in records.values()) == 40
@@ -107,8 +107,8 @@ def test_the_design_counts_exactly_the_votes_the_results_count(db, monkeypatch):
     """One definition (``statistics.counted``): the design's votes are the results' counted rows, with a finished
     participant, an unfinished one (counted, as the results count them), one screened out by the catch trial, one
     by the fast rule, and a pilot session."""
+    from server.analysis.statistics import counted
     from server.participants.assign import counted_votes
-    from server.studies.statistics import counted
 
     study = make_study(db, _design(), slug="mixed", screening=SCREENING)
     _session(db, study, monkeypatch, 1, lambda t: _choice(t, "a"))
@@ -136,7 +136,7 @@ def test_the_design_counts_exactly_the_votes_the_results_count(db, monkeypatch):
 
 
 def _work(db, monkeypatch, study) -> tuple[int, int]:
-    """(posterior fits of ``server.studies.adaptive``, SQL statements) of one results request."""
+    """(posterior fits of ``server.analysis.adaptive``, SQL statements) of one results request."""
     fits, statements = [], []
     minimize = optimize.minimize
 
@@ -197,13 +197,13 @@ def _per_vote_posterior(votes: list[GradedComparison], conditions: list[str]) ->
         diff = params - prior_mean
         value, grad = 0.5 * float(diff @ (prior_precision * diff)), prior_precision * diff
         if y.size:
-            loglik, per_vote = _scores(params, x, y, False, n, "logit")
+            loglik, per_vote = vote_log_likelihood(params, x, y, False, n, "logit")
             value, grad = value - float(loglik.sum()), grad - per_vote.sum(axis=0)
         return value, grad
 
     opt = optimize.minimize(objective, prior_mean, jac=True, method="BFGS", options={"gtol": 1e-7})
     mean = opt.x[:n] - opt.x[0]
-    cuts, _ = _cuts(opt.x[n:], False)
+    cuts, _ = symmetric_cuts(opt.x[n:], False)
     precision = np.eye(n) / adaptive.PRIOR_SD**2
     if y.size:
         precision = precision + (x * adaptive.answer_information(x @ mean, cuts)[:, None]).T @ x
@@ -249,7 +249,7 @@ def test_results_rounds_equal_todays_computation(db, monkeypatch):
 def test_scale_bootstrap_from_counts_equals_the_per_vote_resamples():
     """The scale's bootstrap (the rest of a results request that grew with the votes) fits each resample over the
     cells (pair, answer) with counts; today's fitted every resampled vote.  Same intervals to ``TOLERANCE``."""
-    from server.studies import interval_scale
+    from server.analysis import interval_scale
 
     conditions = ["keyframe", "a", "b", "c", "d", "e"]
     design = Design(mode="all-pairs", reference="keyframe", conditions=conditions[1:], animations=["walk"])

@@ -92,9 +92,9 @@ def test_adaptive_sessions_are_spanning_trees_reproducible_from_the_vote_log(cli
     # Catch votes are not test votes, and "left_much" on the catch trial fails it: the second participant is
     # screened out (the study's catch rule), so neither the results nor the design count their votes.
     assert [r.votes_before for r in rounds] == [0, 13 - 1, 12, 2 * 12]
+    from server.analysis.adaptive import adaptive_batches
     from server.participants.assign import study_votes
     from server.participants.models import ParticipantSession
-    from server.studies.assign import adaptive_batches
     design = Design.model_validate(study.design)
     for r in rounds:
         ps = db.get(ParticipantSession, r.session_id)
@@ -125,8 +125,8 @@ def test_adaptive_sessions_are_spanning_trees_reproducible_from_the_vote_log(cli
 
 def test_adaptive_choice_depends_on_the_votes(db):
     """Equal seeds, different vote logs: the batch follows the information, not a fixed pattern."""
-    from server.studies.adaptive import next_batch, posterior
-    from server.studies.ranking import GradedComparison
+    from server.analysis.adaptive import next_batch, posterior
+    from server.analysis.ranking import GradedComparison
 
     conditions = ["keyframe", *FOUR]
     empty = next_batch(posterior([], conditions), seed=5)
@@ -145,8 +145,8 @@ def test_adaptive_batches_aim_at_the_values_against_the_reference():
     """The tree is chosen for what the results report, each condition against the reference: before any vote that
     is every condition against it (ASAP's information-gain tree was any tree the seed picked); with conditions far
     apart, a chain of neighbours, never a pair whose answer is sure to be "much better"."""
-    from server.studies.adaptive import next_batch, posterior
-    from server.studies.simulate import simulate
+    from server.analysis.adaptive import next_batch, posterior
+    from server.analysis.simulate import simulate
 
     conditions = ["keyframe", *FOUR]
     for seed in range(5):
@@ -161,8 +161,8 @@ def test_aim_order_takes_asaps_information_tree():
     """``aim = "order"`` chooses the batches by ASAP's expected information gain about the whole scale: before any
     vote every pair tells the same, so the seed picks any tree (not always the star around the reference that the
     default aim takes); with conditions far apart it links neighbours, as the default does."""
-    from server.studies.assign import adaptive_batches
-    from server.studies.simulate import simulate
+    from server.analysis.adaptive import adaptive_batches
+    from server.analysis.simulate import simulate
 
     default, order = _design("adaptive"), _design("adaptive", aim="order")
     trees = {adaptive_batches(order, {}, seed)["walk"].pairs for seed in range(8)}
@@ -249,8 +249,8 @@ def test_batches_are_planned_with_the_expected_information_of_the_pairs_shown():
     import numpy as np
     from scipy import stats
 
-    from server.studies.adaptive import PRIOR_SD, posterior
-    from server.studies.ranking import GradedComparison
+    from server.analysis.adaptive import PRIOR_SD, posterior
+    from server.analysis.ranking import GradedComparison
 
     answers = (2, 1, 1, 0, 1, 2, 0, 1) * 5  # 40 answers to one pair, the second mostly better
     post = posterior([GradedComparison(str(i), "a", "b", s) for i, s in enumerate(answers)], ["a", "b", "c"])
@@ -277,8 +277,8 @@ def test_the_bench_oracle_plans_on_the_true_values_with_the_same_covariance():
     import numpy as np
     from scipy import stats
 
-    from server.studies.adaptive import PRIOR_SD, known_posterior, posterior
-    from server.studies.ranking import GradedComparison
+    from server.analysis.adaptive import PRIOR_SD, known_posterior, posterior
+    from server.analysis.ranking import GradedComparison
 
     votes = [GradedComparison(str(i), "a", "b", s) for i, s in enumerate((2, 1, 1, 0, 1, 2, 0, 1) * 5)]
     cuts = np.array([-2.0, -0.5, 0.5, 2.0])

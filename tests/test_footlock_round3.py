@@ -21,7 +21,7 @@ from anim_core.methods.footlock import HOLD_LEG_TOLERANCE_DEG, FootLockedClip, s
 from anim_core.methods.footplant import leg_angles
 from anim_core.methods.ik import hinge_axis
 from anim_core.rig.character import LEGS
-from anim_core.rig.rigmap import normalize_bvh
+from anim_core.rig.normalize import normalize_bvh
 from server.clipset.build import load_source
 
 RELOCATE = ("LHipJoint", "RHipJoint")

@@ -17,7 +17,7 @@ from anim_core.methods.conditions import Condition
 from anim_core.methods.hybrid import build_gait
 from anim_core.rig.character import retarget
 from anim_core.rig.mirror import Mirror
-from anim_core.rig.rigmap import normalize_bvh
+from anim_core.rig.normalize import normalize_bvh
 
 CONDITIONS = (Condition.parse("keyframe", "keyframe", {}), Condition.parse("hybrid1", "hybrid", {"increment": 1}))
 JOINT = {n: i for i, n in enumerate(fidelity.CANONICAL_NAMES)}

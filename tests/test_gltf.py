@@ -12,7 +12,7 @@ from anim_core.math.quat import quat_conj, quat_from_axis_angle, quat_mul, rotat
 from anim_core.math.skeleton import Skeleton
 from anim_core.math.skinning import SkinnedMesh
 from anim_core.rig.character import retarget
-from anim_core.rig.rigmap import normalize_motion
+from anim_core.rig.normalize import normalize_motion
 from server.assets import character as load_character
 
 

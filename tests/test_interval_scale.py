@@ -10,10 +10,10 @@ import pandas as pd
 import pytest
 from statsmodels.miscmodels.ordinal_model import OrderedModel
 
+from server.analysis.interval_scale import animation_scale, bootstrap_draws, jnd_unit
+from server.analysis.ranking import GradedComparison
+from server.analysis.simulate import simulate
 from server.studies.design import Design
-from server.studies.interval_scale import animation_scale, bootstrap_draws, jnd_unit
-from server.studies.ranking import GradedComparison
-from server.studies.simulate import simulate
 
 NAMES = ["ref", "a", "b", "c"]
 TRUE = np.array([0.0, 0.4, 1.0, 1.8])

@@ -15,7 +15,7 @@ from anim_core.math.skeleton import Skeleton
 from anim_core.methods.hybrid import build_gait
 from anim_core.rig.character import retarget
 from anim_core.rig.mirror import Mirror
-from anim_core.rig.rigmap import Normalized, normalize_bvh
+from anim_core.rig.normalize import Normalized, normalize_bvh
 
 from .test_wild_motion import wild_rig
 

@@ -78,3 +78,28 @@ def test_the_job_system_knows_no_kind_of_job():
 def test_uploads_only_store_files():
     """The build of uploads is a kind of job (server.pipeline): `uploads` never imports the pipeline."""
     assert package_imports("server")["server.uploads"].isdisjoint({"server.pipeline", "server.media"})
+
+
+def test_the_study_definition_knows_nothing_of_the_analysis():
+    assert "server.analysis" not in package_imports("server")["server.studies"]
+
+
+def test_the_analysis_imports_only_the_study_definition():
+    # the pure statistics read the answer scale, the design and the [screening] block, nothing that stores or serves
+    assert package_imports("server")["server.analysis"] <= {"server.studies"}
+
+
+def private_imports(top: str) -> list[str]:
+    """``path:line name`` of every import of another module's private (``_``) name under ``top``."""
+    found = []
+    for path in sorted((ROOT / top).rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom) and node.module != "__future__":
+                found += [f"{path.relative_to(ROOT)}:{node.lineno} {a.name}" for a in node.names
+                          if a.name.startswith("_")]
+    return found
+
+
+@pytest.mark.parametrize("top", ["server", "anim_core"])
+def test_no_module_imports_another_ones_private_names(top):
+    assert private_imports(top) == []

@@ -10,7 +10,7 @@ import pytest
 import statsmodels.api as sm
 from statsmodels.miscmodels.ordinal_model import OrderedModel
 
-from server.studies.ranking import GradedComparison, rank_conditions
+from server.analysis.ranking import GradedComparison, rank_conditions
 
 # Agresti (2002), Categorical Data Analysis, 2nd ed., p. 438: 1987 American League East, (home, away, home wins,
 # away wins); the same table is BradleyTerry2's `baseball` data set.

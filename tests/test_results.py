@@ -9,8 +9,8 @@ from collections import defaultdict
 import pytest
 from scipy import stats
 
+from server.analysis.ranking import rank_conditions
 from server.participants import service
-from server.studies.ranking import rank_conditions
 
 CHOICES = ["right_much", "right_slightly", "equal", "left_slightly", "left_much"]  # raw -2 .. +2 (left view)
 

@@ -9,7 +9,8 @@ from anim_core.math.quat import quat_conj, quat_from_axis_angle, quat_mul, rotat
 from anim_core.math.skeleton import Skeleton
 from anim_core.rig.character import retarget
 from anim_core.rig.mirror import mirror_partners
-from anim_core.rig.rigmap import CANONICAL_NAMES, RigMapError, map_skeleton, normalize_bvh, read_mapping_file
+from anim_core.rig.normalize import normalize_bvh
+from anim_core.rig.rigmap import CANONICAL_NAMES, RigMapError, map_skeleton, read_mapping_file
 from server.assets import character as load_character
 
 CMU = CANONICAL_NAMES
@@ -364,7 +365,7 @@ def rig_with_turned_frames(bvh: Bvh, rng: np.random.Generator):
 
 def test_rig_with_joint_frames_not_aligned_to_the_world(character, walks, rng):
     """Removing the rest pose of a rig whose joint frames are turned must give the very same character poses."""
-    from anim_core.rig.rigmap import normalize_motion
+    from anim_core.rig.normalize import normalize_motion
 
     bvh = walks[0]
     rig, local, root, ends = rig_with_turned_frames(bvh, rng)
@@ -462,7 +463,7 @@ def test_real_mixamo_and_unreal_hierarchies_map_as_expected():
     ("Lthing", None, "lthing", None),
 ])
 def test_names_read_as_side_and_stem(name, side, stem, partner):
-    from anim_core.rig.rigmap import partner_name, split_side
+    from anim_core.rig.names import partner_name, split_side
 
     s = split_side(name)
     assert (s.side, s.stem, partner_name(name)) == (side, stem, partner)

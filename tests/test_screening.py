@@ -1,4 +1,4 @@
-"""Observer screening (server/studies/screening.py): each rule on small hand-made cases with known outcomes, the
+"""Observer screening (server/analysis/screening.py): each rule on small hand-made cases with known outcomes, the
 BT.500 rule against sureal on sureal's datasets, and the simulated panel with planted bad observers."""
 
 from __future__ import annotations
@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from server.studies.screening import RULES, Screening, bt500, screen
+from server.analysis.screening import bt500, screen
+from server.studies.screening import RULES, Screening
 from tests.screening_sim import MEANT, PLAYBACK, panel
 from tests.test_subject_model import dataset, sureal_run
 

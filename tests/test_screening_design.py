@@ -13,8 +13,9 @@ import time
 import numpy as np
 import pytest
 
-from server.studies import screening_design
-from server.studies.screening import Screening, calibration, opinion_array, screen
+from server.analysis import screening_design
+from server.analysis.screening import calibration, opinion_array, screen
+from server.studies.screening import Screening
 from server.studies.studyfile import THESIS_FILE, parse_study_text
 from tests.screening_sim import THESIS_PLAYBACK, design_panel, panel
 

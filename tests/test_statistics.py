@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from server.studies.statistics import (
+from server.analysis.statistics import (
     holm,
     krippendorff_alpha_ordinal,
     participants_needed,

@@ -135,7 +135,7 @@ def bone_angles_deg(skeleton, a, b):
 @pytest.mark.parametrize("animation", ANIMATIONS)
 def test_planting_turns_only_the_legs_and_them_a_little(data, animation):
     """Bone directions stay the mocap's except where IK pins a foot; there the largest deviation is printed."""
-    from anim_core.clips import build as cs
+    from anim_core.clips import reference as cs
 
     config = load_config()
     cfg = config.animations[animation]

@@ -1,4 +1,4 @@
-"""The P.910/P.913 subject model (server/studies/subject_model.py) against Netflix's sureal 0.9.0.
+"""The P.910/P.913 subject model (server/analysis/subject_model.py) against Netflix's sureal 0.9.0.
 
 Datasets: sureal's own examples, copied as JSON into tests/reference/sureal/ (see "source" in each file):
 ``NFLX_dataset_public_raw`` (79 stimuli, 26 subjects, 9 contents; sureal's test suite's main dataset) and
@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from server.studies.subject_model import fit
+from server.analysis.subject_model import fit
 
 SUREAL_DIR = Path(__file__).parent / "reference" / "sureal"
 

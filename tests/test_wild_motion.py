@@ -15,7 +15,7 @@ from anim_core.math.quat import euler_from_quat, quat_conj, quat_from_axis_angle
 from anim_core.math.skeleton import Skeleton
 from anim_core.methods.conditions import Condition
 from anim_core.rig.character import retarget
-from anim_core.rig.rigmap import normalize_bvh
+from anim_core.rig.normalize import normalize_bvh
 from server.assets import character as load_character
 
 X, Y, Z = np.eye(3)

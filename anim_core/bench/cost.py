@@ -25,7 +25,10 @@ from typing import Any
 
 import numpy as np
 
+from ..clips.build import skin_level
+from ..clips.record import BuiltClip
 from ..math.skinning import SkinnedMesh
+from ..methods.base import REFERENCE
 from ..methods.lod import BoneLodClip, strongest_influences
 from ..runtime import HeldRuntime, runtime_for
 from ..runtime.crowd import CrowdBuffers
@@ -106,3 +109,28 @@ def skin_costs_ms_per_1000(clip: Any, mesh: SkinnedMesh, influences: Sequence[in
 
     medians = _medians_ms([skinning(s) for s in skins], phases, frames, WARMUP)
     return [ms * 1000.0 / SKIN_CHARACTERS for ms in medians]
+
+
+def run_time_costs(clips: Sequence[BuiltClip], mesh: SkinnedMesh) -> list[dict[str, float]]:
+    """Each clip's measured run-time cost (this module's): ``cost_ms_per_1000``, and for the
+    reference and each render-time condition ``skin_ms_per_1000`` and ``skin_weights`` (the non-zero skin weights
+    of the body it is skinned with: what an engine's per-vertex loop blends); one animation's clips timed
+    interleaved."""
+    out = [{"cost_ms_per_1000": round(ms, 4)} for ms in pose_costs_ms_per_1000([c.clip for c in clips])]
+    skinned = [k for k, c in enumerate(clips) if c.render is not None or c.method == REFERENCE]
+    levels = [skin_level(clips[k], mesh.weights) for k in skinned]
+    for k, level, ms in zip(skinned, levels, skin_costs_ms_per_1000(clips[0].clip, mesh, levels), strict=True):
+        out[k]["skin_ms_per_1000"] = round(ms, 2)
+        weights = mesh.weights if level is None else strongest_influences(mesh.joints, mesh.weights, level)[1]
+        out[k]["skin_weights"] = int(np.count_nonzero(weights))  # weights blended per character and frame
+    return out
+
+
+def with_run_time_costs(clips: list[BuiltClip], mesh: SkinnedMesh) -> list[BuiltClip]:
+    """One animation's built clips (:func:`anim_core.clips.build.build_animation`), each with its measured
+    :func:`run_time_costs` in its metrics when any of them is a ladder's level (then every clip of the animation:
+    the levels compare with all of them)."""
+    if any(c.ladder is not None for c in clips):
+        for c, cost in zip(clips, run_time_costs(clips, mesh), strict=True):
+            c.metrics.update(cost)
+    return clips

@@ -1,7 +1,8 @@
 """The thesis's performance test done properly: pose evaluation of crowds, keyframe against every other condition.
 
 Stages: ``pose`` = every joint of every character sampled at the character's own random phase, plus forward
-kinematics to model space; ``skin`` = the same plus linear blend skinning of the MakeHuman body.  Every clip of
+kinematics to model space; ``skin`` = the same plus linear blend skinning of the MakeHuman body; ``blend`` = the
+run-time blending and additive jobs beside keyframe playback (:mod:`anim_core.bench.blend`).  Every clip of
 the clip set given is timed (the thesis's keyframe and hybrid, and any other condition, e.g. those of
 ``server/clipset/conditions16.toml``), each against the keyframe clip of its animation in the same rounds.
 Variants:
@@ -237,7 +238,15 @@ def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTE
     results: list[dict[str, Any]] = []
     animations = list(dict.fromkeys(c.animation for c in clips))
     cores = os.cpu_count() or 2
+    blend_memory: list[dict[str, Any]] = []
     for stage in stages:
+        if stage == "blend":  # the blending jobs beside playback (issue 39): anim_core.bench.blend
+            from .blend import blend_stage
+
+            rows, blend_memory = blend_stage(clips, characters, frames, warmup, rng, _time)
+            results += rows
+            progress(f"  blend: done ({time.perf_counter() - started:.0f} s)")
+            continue
         sizes = [n for n in characters if stage == "pose" or n <= SKIN_MAX_CHARACTERS]
         for n in sizes:
             for animation in animations:
@@ -293,7 +302,7 @@ def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTE
                                                "stages": list(stages), "variants": list(variants),
                                                "clock_per_frame_s": 1 / FPS,
                                                "accuracy_samples_per_frame": ACCURACY_OVERSAMPLING},
-            "results": results, "memory": memory, "accuracy": accuracy,
+            "results": results, "memory": memory, "accuracy": accuracy, "blend_memory": blend_memory,
             "summary": summarize(results, memory, accuracy)}
 
 

@@ -71,7 +71,7 @@ _A = np.array([[[_I[a], _I[b]] for a, b in bones] for bones in ANGLES.values()])
 _FEET = np.array([[_I["LeftFoot"], _I["LeftToeBase"]], [_I["RightFoot"], _I["RightToeBase"]]])
 
 #: The reference may differ from the source's own pose angles by this much (degrees): foot planting turns thighs
-#: and bends knees (by at most half this, :data:`anim_core.clips.build.PLANT_LEG_TOLERANCE_DEG`; the shipped
+#: and bends knees (by at most half this, :data:`anim_core.clips.reference.PLANT_LEG_TOLERANCE_DEG`; the shipped
 #: references: 0.5..9.0 degrees) and a loop's seam fades between two cycles; a broken retarget (stacked hips, a
 #: thigh folded up) is off by 45..90 degrees.
 POSE_LIMIT_DEG = 20.0

@@ -43,6 +43,8 @@ class BuiltClip:
     world_positions: Array = field(repr=False)
     metrics: dict[str, float | None] = field(default_factory=dict)
     fidelity: Fidelity | None = None  # the fidelity gate's verdict (build_animation)
+    #: ``(T,)`` metres the ground moves along -Z under a composite shown in place (issue 39), or None
+    floor_travel: Array | None = field(default=None, repr=False)
     ladder: str | None = None  # the ladder ([[ladders]]) the condition is a level of, and its level
     level: float | int | None = None
     render: dict[str, Any] | None = None  # per-clip render settings of a render-time condition
@@ -63,4 +65,5 @@ class BuiltClip:
             "times": self.times, "local_rotations": self.local_rotations, "root_positions": self.root_positions,
             "world_rotations": self.world_rotations, "world_positions": self.world_positions,
             "key_times": self.key_times, "key_rotations": self.key_rotations,
+            **({} if self.floor_travel is None else {"floor_travel_m": self.floor_travel}),
         }

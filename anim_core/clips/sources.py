@@ -3,11 +3,12 @@ motion on the character as glTF or BVH (``animstudy clips convert FILE OUT``, :f
 ``animstudy clips export``).
 
 :func:`inspect_source` reads a BVH (``.bvh``, ``.bvh.gz``) or glTF (``.glb``, ``.gltf``) file, maps its skeleton
-(:mod:`anim_core.rig.rigmap`) and reports, per motion: joints, convention and mapping with reasons, units, up axis,
-fps, frames, duration, the foot-contact phases (frame intervals, :mod:`anim_core.math.contacts` on the motion in
-metres) and a suggested ``kind`` and frame range.  Suggestions are heuristics stated in :func:`suggest`; the
-user decides.  Every failure is a ``ValueError`` subclass naming the file (:class:`~anim_core.io.bvh.BvhError` with
-its line, :class:`~anim_core.io.gltf.GltfError`, :class:`~anim_core.rig.rigmap.RigMapError`).
+(:mod:`anim_core.rig.rigmap`, :mod:`anim_core.rig.normalize`) and reports, per motion: joints, convention and
+mapping with reasons, units, up axis, fps, frames, duration, the foot-contact phases (frame intervals,
+:mod:`anim_core.math.contacts` on the motion in metres) and a suggested ``kind`` and frame range.  Suggestions
+are heuristics stated in :func:`suggest`; the user decides.  Every failure is a ``ValueError`` subclass naming the
+file (:class:`~anim_core.io.bvh.BvhError` with its line, :class:`~anim_core.io.gltf.GltfError`,
+:class:`~anim_core.rig.rigmap.RigMapError`).
 """
 
 from __future__ import annotations
@@ -26,16 +27,8 @@ from ..math.contacts import contact_intervals, foot_down
 from ..math.skeleton import Skeleton
 from ..math.skinning import SkinnedMesh
 from ..rig.character import Character, retarget
-from ..rig.rigmap import (
-    CANONICAL_NAMES,
-    Normalized,
-    RigMapError,
-    detect_up_axis,
-    map_skeleton,
-    normalize_bvh,
-    normalize_motion,
-    units_from_height,
-)
+from ..rig.normalize import Normalized, detect_up_axis, normalize_bvh, normalize_motion, units_from_height
+from ..rig.rigmap import CANONICAL_NAMES, RigMapError, map_skeleton
 
 Array = NDArray[np.float64]
 
@@ -182,7 +175,7 @@ def read_motions(path: str | os.PathLike[str], explicit: Mapping[str, str] | Non
                  units: str | None = None, up_axis: str | None = None,
                  max_frame_joints: int = MAX_FRAME_JOINTS) -> list[tuple[str, Normalized]]:
     """Every motion of a BVH (one) or glTF file (one per animation; one-joint animations as one, see
-    :mod:`anim_core.io.gltf`), named and normalized (:func:`~anim_core.rig.rigmap.normalize_bvh`; a glTF's units
+    :mod:`anim_core.io.gltf`), named and normalized (:func:`~anim_core.rig.normalize.normalize_bvh`; a glTF's units
     from its skinned mesh's height where that is a human's, :func:`_mesh_units`); errors are ``ValueError``
     subclasses naming the file.  A motion
     of more than ``max_frame_joints`` frames × joints fails before it is read (the memory spent on a motion grows

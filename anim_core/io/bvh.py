@@ -35,7 +35,7 @@ MAX_FRAMES = 1_000_000
 OFFSET_MATCH = 1e-4
 #: A joint's translation that moves about its mean by at most this share of the mean's length is *still*: an
 #: exporter's rounding or a constant restated in keys, not motion (:func:`still_translation`).  The BVH reader
-#: averages such position channels below the root (:func:`anim_core.rig.rigmap.normalize_bvh`); the glTF reader
+#: averages such position channels below the root (:func:`anim_core.rig.normalize.normalize_bvh`); the glTF reader
 #: takes such translation keys as the joint's translation, and scale keys within this share of 1 as unscaled
 #: (:func:`anim_core.io.gltf.read_gltf`).  One rule for both formats.
 STILL_SHARE = 0.01

@@ -63,6 +63,7 @@ from typing import Any, Generic, TypeVar
 from pydantic import ValidationError
 
 from . import builders as b
+from . import composite_builders as cb
 from .base import KINDS, REFERENCE, Animation, ConditionError, Kind, Params
 from .hybrid import AnimClip
 
@@ -82,6 +83,8 @@ __all__ = [
 ]
 
 P = TypeVar("P", bound=Params)
+#: What an animation of a clip set is: a source take, or a composite (issue 39) of takes in sequence or in layers.
+ANIMATION_FORMS = ("take", "sequence", "layered")
 
 
 @dataclass(frozen=True)
@@ -102,6 +105,8 @@ class Method(Generic[P]):
     #: ``render(params)``: the per-clip render settings of a render-time condition (the clip is the reference's
     #: motion; the renderer skins it otherwise), or None: the clip's motion is the condition
     render: Callable[[Any], dict[str, Any]] | None = None
+    #: the animations it builds clips of: ``"take"`` (a source take), ``"sequence"``, ``"layered"`` (composites)
+    applies_to: tuple[str, ...] = ("take",)
 
 
 _METHODS: dict[str, Method[Any]] = {}
@@ -109,7 +114,7 @@ _METHODS: dict[str, Method[Any]] = {}
 
 def register(name: str, params: type[P], stored_bytes: Callable[[Any, P], int] | None = None, mirrors: bool = False,
              graded: str | None = None, refuse: Callable[[P, int], str | None] | None = None,
-             render: Callable[[P], dict[str, Any]] | None = None,
+             render: Callable[[P], dict[str, Any]] | None = None, applies_to: tuple[str, ...] = ("take",),
              ) -> Callable[[Callable[[Animation, P], AnimClip]], Callable[[Animation, P], AnimClip]]:
     """Decorator: register ``build`` as method ``name`` with parameter model ``params`` (names are unique),
     ``stored_bytes(clip, params)`` if its clips are not stored as float32 keys, ``mirrors`` if a gait's second
@@ -117,7 +122,10 @@ def register(name: str, params: type[P], stored_bytes: Callable[[Any, P], int] |
     the numeric parameter a ladder (``[[ladders]]`` of a clip-set file) grades unless it names another,
     ``refuse(params, fps)``: a reason why parameters make the reference itself at ``fps`` keys per second (a ladder
     level doing so is refused when the file is read), ``render(params)``: per-clip render settings of a
-    render-time condition."""
+    render-time condition; ``applies_to``: the animations it builds clips of (:data:`ANIMATION_FORMS`; a clip set
+    builds only the pairs that apply)."""
+    if not applies_to or any(a not in ANIMATION_FORMS for a in applies_to):
+        raise ValueError(f"applies_to of method {name!r}: some of {ANIMATION_FORMS}, got {applies_to!r}")
     if not (isinstance(params, type) and issubclass(params, Params)):
         raise TypeError(f"the parameters of method {name!r} must be a subclass of anim_core.methods.conditions.Params")
     if graded is not None and graded not in params.model_fields:
@@ -126,7 +134,8 @@ def register(name: str, params: type[P], stored_bytes: Callable[[Any, P], int] |
     def decorator(build: Callable[[Animation, P], AnimClip]) -> Callable[[Animation, P], AnimClip]:
         if name in _METHODS:
             raise ValueError(f"method {name!r} is registered already")
-        _METHODS[name] = Method(name, params, build, stored_bytes, mirrors, graded, refuse, render)
+        _METHODS[name] = Method(name, params, build, stored_bytes, mirrors, graded, refuse, render,
+                                tuple(applies_to))
         return build
 
     return decorator
@@ -188,6 +197,10 @@ class Condition:
     def params_dict(self) -> dict[str, Any]:
         return self.params.model_dump()
 
+    def applies(self, form: str) -> bool:
+        """Whether the method builds clips of an animation of ``form`` (:data:`ANIMATION_FORMS`)."""
+        return form in get_method(self.method).applies_to
+
     def build(self, animation: Animation) -> AnimClip:
         return get_method(self.method).build(animation, self.params)
 
@@ -204,7 +217,7 @@ class Condition:
 #: have one.
 BUILT_IN: tuple[tuple[str, type[Params], Callable[[Animation, Any], AnimClip], Callable[[Any, Any], int] | None,
                       bool, str | None], ...] = (
-    (REFERENCE, b.KeyframeParams, b.build_keyframe, None, False, None),
+    (REFERENCE, b.KeyframeParams, cb.build_reference, None, False, None),
     ("hybrid", b.HybridParams, b.build_hybrid, None, True, "increment"),
     ("hybrid_ik", b.HybridIkParams, b.build_hybrid_ik, b.hybrid_ik_bytes, True, "increment"),
     ("hybrid_c2", b.HybridC2Params, b.build_hybrid_c2, None, True, "increment"),
@@ -217,4 +230,9 @@ BUILT_IN: tuple[tuple[str, type[Params], Callable[[Animation, Any], AnimClip], C
 REFUSE: dict[str, Callable[[Any, int], str | None]] = {"update_rate": b.update_rate_refused}
 RENDER: dict[str, Callable[[Any], dict[str, Any]]] = {"skin_influences": b.skin_influences_render}
 for _name, _params, _build, _stored, _mirrors, _graded in BUILT_IN:
-    register(_name, _params, _stored, _mirrors, _graded, REFUSE.get(_name), RENDER.get(_name))(_build)
+    register(_name, _params, _stored, _mirrors, _graded, REFUSE.get(_name), RENDER.get(_name),
+             applies_to=ANIMATION_FORMS if _name == REFERENCE else ("take",))(_build)
+# The transitions of sequences (issue 39; the reference of a composite is its plain form: a sequence's cut, the
+# layers as described): anim_core.methods.composite_builders.
+for _name, _params, _build, _forms in cb.COMPOSITE_METHODS:
+    register(_name, _params, applies_to=_forms)(_build)

@@ -81,7 +81,7 @@ Array = NDArray[np.float64]
 ContactSource = Literal["reference", "union"]
 SOFT_REACH = 0.005  # the legs' soft IK starts this fraction of their reach short of full extension
 #: A hold keeps each thigh and knee bend within this many degrees of the hybrid's own leg (:func:`standing`): the
-#: tolerance of the reference's foot planting (``anim_core.clips.build.PLANT_LEG_TOLERANCE_DEG``, half the gate's
+#: tolerance of the reference's foot planting (``anim_core.clips.reference.PLANT_LEG_TOLERANCE_DEG``, half the gate's
 #: pose limit), for the same reason: a foot is held where the leg reaches it posed as in the motion.
 HOLD_LEG_TOLERANCE_DEG = 10.0
 

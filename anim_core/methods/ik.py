@@ -56,7 +56,7 @@ def _perpendicular(v: Array) -> Array:
     return c / np.linalg.norm(c, axis=-1, keepdims=True)
 
 
-_STRAIGHT = 0.05  # sin of the hip angle below which the pole gives way to the hinge (knee bent < ~6 degrees)
+STRAIGHT = 0.05  # sin of the hip angle below which the pole gives way to the hinge (knee bent < ~6 degrees)
 _TRUSTED = np.radians(30.0)  # a pole's plane further than this from the animated plane gives way to it (fully at 2x)
 
 
@@ -144,7 +144,7 @@ def two_bone_ik(skeleton: Skeleton, local_rotations: ArrayLike, root_translation
         h = rotate(g_rot[..., m, :], np.broadcast_to(np.asarray(hinge, dtype=np.float64), (*batch, 3)))
         h_thigh = _unit(h - np.sum(h * t_hat, axis=-1, keepdims=True) * t_hat, _perpendicular(thigh))
         flip = np.where(np.sum(normal * h, axis=-1, keepdims=True) < 0.0, -1.0, 1.0)
-        ease = smoothstep(np.linalg.norm(normal, axis=-1, keepdims=True) / (_STRAIGHT * a * b))
+        ease = smoothstep(np.linalg.norm(normal, axis=-1, keepdims=True) / (STRAIGHT * a * b))
         side = _unit(ease * flip * _unit(normal, h_thigh) + (1.0 - ease) * h_thigh, h_thigh)
     cos_inner = np.clip((a * a + b * b - d * d) / (2.0 * a * b), -1.0, 1.0)
     bend = (np.pi - np.arccos(cos_inner))[..., None]  # 0 = straight
@@ -172,7 +172,7 @@ def two_bone_ik(skeleton: Skeleton, local_rotations: ArrayLike, root_translation
         # anywhere (a one-frame twist of the thigh by up to 180 degrees).
         wanted = _unit(wanted * np.where(np.sum(wanted * h, axis=-1, keepdims=True) < 0.0, -1.0, 1.0), kept)
         kept = _unit(kept, h_thigh)
-        reach = np.maximum(_STRAIGHT * np.linalg.norm(p, axis=-1, keepdims=True), 1e-300)
+        reach = np.maximum(STRAIGHT * np.linalg.norm(p, axis=-1, keepdims=True), 1e-300)
         off_line = smoothstep(np.linalg.norm(np.cross(p, d_hat), axis=-1, keepdims=True) / reach)
         cos_lo, cos_hi = np.cos(2.0 * _TRUSTED), np.cos(_TRUSTED)
         agrees = smoothstep((np.sum(wanted * kept, axis=-1, keepdims=True) - cos_lo) / (cos_hi - cos_lo))

@@ -54,7 +54,7 @@ def pick_keys(source: KeyframeClip, tolerance: float = 0.02, metres_per_unit: fl
     (see module).
 
     Raises ``ValueError`` if ``max_keys`` keys do not reach the tolerance (the error reached is in the message); a
-    clip-set entry sets ``max_keys`` (default :data:`anim_core.clips.build.DEFAULT_MAX_KEYS`, 64).
+    clip-set entry sets ``max_keys`` (default :data:`anim_core.clips.entry.DEFAULT_MAX_KEYS`, 64).
     """
     if not tolerance > 0:
         raise ValueError(f"tolerance must be positive, got {tolerance}")

@@ -1,3 +1,4 @@
-"""Rigs: joint-name mapping and normalisation of any skeleton (:mod:`.rigmap`), the study's character and
+"""Rigs: joint names (:mod:`.names`), the structure of an unnamed skeleton (:mod:`.structure`), mapping onto the
+canonical joints (:mod:`.rigmap`) and normalisation of any motion (:mod:`.normalize`), the study's character and
 retargeting onto it (:mod:`.character`, :mod:`.gltf_character`), left/right mirroring (:mod:`.mirror`).
 """

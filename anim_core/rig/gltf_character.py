@@ -12,7 +12,8 @@ Nothing here opens a file (``server.assets`` finds and reads it); every failure 
   head, legs or arms is an error naming the missing parts.
 - **Units and up axis**: detected from the mesh's height (its bounding box along up; the joints' extent where
   the mesh is no human height in any unit) and the head-over-hips axis
-  (:func:`~anim_core.rig.rigmap.canonical_frame`), or given; the character is turned (quarter turns) so its left is +X.
+  (:func:`~anim_core.rig.normalize.canonical_frame`), or given; the character is turned (quarter turns) so its left
+  is +X.
 - **Joints the canonical skeleton has and the rig lacks** (``LHipJoint``, ``LowerBack``, finger bases, ...) are
   placed where the CMU skeleton has them: on their parent for those with a zero offset there (:data:`ON_PARENT`),
   else evenly on the segment between their mapped neighbours (a missing leaf: towards the parent's tail, see
@@ -39,16 +40,8 @@ from ..math.quat import rotate
 from ..math.skeleton import Skeleton
 from ..math.skinning import MAX_INFLUENCES
 from .character import CMU_TO_RIG, Character, CharacterError
-from .rigmap import (
-    CANONICAL_NAMES,
-    CANONICAL_PARENTS,
-    UNITS,
-    RigMapError,
-    RigMapping,
-    canonical_frame,
-    map_skeleton,
-    units_from_height,
-)
+from .normalize import canonical_frame, units_from_height
+from .rigmap import CANONICAL_NAMES, CANONICAL_PARENTS, UNITS, RigMapError, RigMapping, map_skeleton
 
 Array = NDArray[np.float64]
 
@@ -92,7 +85,7 @@ def _bind_positions(asset: GltfAsset) -> Array:
 
 def _mesh_units(asset: GltfAsset, bind: Array, source_index: NDArray[np.intp], up_axis: str | None) -> str | None:
     """The unit in which the mesh's height (bounding box along up) is a human height, or ``None`` (the joints'
-    extent decides, :func:`~anim_core.rig.rigmap.canonical_frame`): the mesh is the whole figure, head and feet
+    extent decides, :func:`~anim_core.rig.normalize.canonical_frame`): the mesh is the whole figure, head and feet
     included, where the joints stop short of both."""
     world = canonical_frame(bind, source_index, up_axis, "m")[0]
     try:

@@ -32,14 +32,14 @@ from numpy.typing import ArrayLike, NDArray
 from ..math.clip import Pose
 from ..math.quat import identity, quat_conj, quat_mul
 from ..math.skeleton import Skeleton
-from .rigmap import partner_name, split_side
+from .names import partner_name, split_side
 
 Array = NDArray[np.float64]
 
 def mirror_partners(names: Sequence[str], overrides: Mapping[str, str] | None = None) -> NDArray[np.intp]:
     """Index of each joint's left/right partner (its own index for central joints), shape ``(J,)``.
 
-    Partners are found from the names as :func:`anim_core.rig.rigmap.split_side` reads them: the same name with the
+    Partners are found from the names as :func:`anim_core.rig.names.split_side` reads them: the same name with the
     other side marker (``LeftArm``/``RightArm``, ``mixamorig:LeftArm``, ``LHipJoint``/``RHipJoint``, ``lShin``/
     ``rShin``, ``L_Hip``/``R_Hip``, ``hand.L``/``hand.R``, ``foot_l``/``foot_r``, ``ThighLeft``/``ThighRight``);
     ``overrides`` maps names to partners explicitly (both directions are set) and wins over the names.  A name

@@ -17,7 +17,7 @@ from ..methods.c2spline import C2Clip
 from ..methods.compression import QuantizedClip
 from ..methods.footlock import FootLockedClip
 from ..methods.hybrid import SpringClip, SquadClip, spring
-from ..methods.ik import _STRAIGHT
+from ..methods.ik import STRAIGHT
 from ..methods.lod import HeldClip
 from .checks import max_error_deg
 from .crowd import keyframe_root, table_from_keyframes, uniform
@@ -142,7 +142,7 @@ def foot_lock_runtime(clip: FootLockedClip, tolerance_deg: float = FOOT_LOCK_TOL
                               frozen(below, np.int32),
                               frozen(turns, np.int32), frozen(values, np.float32), frozen(slopes, np.float32),
                               frozen([clip.fps, 1.0 if loop else 0.0, clip.duration,
-                                       PLAYBACK_MODES.index(clip.mode), *travel, clip.soft, _STRAIGHT],
+                                       PLAYBACK_MODES.index(clip.mode), *travel, clip.soft, STRAIGHT],
                                       np.float64), 0.0)
     error = max_error_deg(runtime, clip, _CHECK_RATE)
     if error > tolerance_deg:

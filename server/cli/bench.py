@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from anim_core.bench import suite as benchmark
+from anim_core.bench.blend import format_blend
 from anim_core.bench.suite import DEFAULT_CHARACTERS, VARIANTS
 from anim_core.clips.build import ConfigError
 from server.assets import AssetError
@@ -25,7 +26,7 @@ from server.media.scene import RenderSettings
 from server.studies.service import clip_set_index, required_pairs
 from server.studies.studyfile import thesis_study
 
-from .common import _fail
+from .common import fail
 
 
 def bench_render(settings: Settings, width: int, height: int, animations: list[str] | None) -> int:
@@ -61,7 +62,7 @@ def bench_render(settings: Settings, width: int, height: int, animations: list[s
                 print(f"{workers} worker(s): {seconds:.1f} s, {fps[workers]:.1f} frames/s (cluster start "
                       "included)", flush=True)
         except (AssetError, MediaError) as exc:
-            return _fail(str(exc))
+            return fail(str(exc))
     print(f"render: 1 worker {fps[1]:.1f} frames/s, 2 workers {fps[2]:.1f} frames/s, ratio {fps[2] / fps[1]:.2f} "
           f"(on {os.cpu_count()} cores; load average {os.getloadavg()[0]:.1f})", flush=True)
     return 0
@@ -80,7 +81,7 @@ def bench(settings: Settings, json_path: Path, characters: list[int], stages: li
         print(f"building the clip set{f' of {config}' if config else ''}", flush=True)
         clips = build_clip_set(settings.data, load_config(config) if config else None)
     except (AssetError, ConfigError) as exc:
-        return _fail(str(exc))
+        return fail(str(exc))
     print(f"building the runtimes and measuring memory and accuracy ({', '.join(variants)})", flush=True)
     doc = benchmark.run(clips, characters, stages, frames=frames, variants=variants,
                         progress=lambda m: print(m, flush=True))
@@ -91,8 +92,9 @@ def bench(settings: Settings, json_path: Path, characters: list[int], stages: li
         json_path.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
         plots = benchmark.write_plots(doc, json_path.parent)
     except OSError as exc:
-        return _fail(f"cannot write the results: {exc}")
+        return fail(f"cannot write the results: {exc}")
     _print_bench(doc)
+    print(format_blend(doc["results"]), end="")
     print(f"results: {json_path}; plots: {', '.join(p.name for p in plots)}; "
           f"{time.perf_counter() - started:.0f} s in all")
     return 0

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from anim_core.clips.build import METRES_PER_CMU_UNIT, AnimationConfig, ConfigError, source_from_bvh, suggest_tolerance
+from anim_core.clips.composite import format_transitions
 from anim_core.clips.measure import clip_warnings
 from anim_core.clips.sources import (
     MotionReport,
@@ -31,7 +32,7 @@ from server.clipset.manifest import read_clip, read_clip_manifest, write_clip_se
 from server.config import Settings
 from server.uploads.service import max_frame_joints
 
-from .common import CLI_FRAME_JOINTS, _fail
+from .common import CLI_FRAME_JOINTS, fail
 
 
 def _frame_joints(path: Path, flag: int | None) -> int:
@@ -52,14 +53,14 @@ def clips_inspect(data_dir: Path, path: Path, mapping: Path | None, units: str |
     motion suggested as kind ``other``, a ``tolerance_mm`` measured by building it (:func:`_tolerance_line`)."""
 
     if not path.is_file():
-        return _fail(f"{path}: no such file")
+        return fail(f"{path}: no such file")
     try:
         explicit = read_mapping_file(mapping) if mapping else None
         reports = inspect_source(path, explicit, units, up_axis, _frame_joints(path, max_frame_joints))
     except (ValueError, OSError) as exc:  # BvhError, GltfError and RigMapError name the file (and line)
         # A skeleton that does not map: its joints, to write a mapping file from.
         table = joint_table(path) if isinstance(exc, RigMapError) else None
-        return _fail(_too_many(str(exc)) + (f"\n{table}" if table else ""))
+        return fail(_too_many(str(exc)) + (f"\n{table}" if table else ""))
     print(format_report(path, reports, [_tolerance_line(data_dir, path, r) if r.kind == "other" else None
                                         for r in reports]))
     return 0
@@ -86,13 +87,13 @@ def clips_convert(data_dir: Path, path: Path, out: Path, mapping: Path | None, u
     """Write a BVH/glTF motion retargeted onto the character as .glb/.gltf or .bvh (``animstudy clips convert``)."""
 
     if not path.is_file():
-        return _fail(f"{path}: no such file")
+        return fail(f"{path}: no such file")
     try:
         explicit = read_mapping_file(mapping) if mapping else None
         report = inspect_source(path, explicit, units, up_axis, _frame_joints(path, max_frame_joints))[0]
         export_on_character(report.normalized, data_character(data_dir), out, report.name)
     except (ValueError, OSError) as exc:  # file, mapping and character errors are ValueErrors naming the file
-        return _fail(_too_many(str(exc)))
+        return fail(_too_many(str(exc)))
     print(f"wrote {out} ({report.n_frames} frames at {report.fps:g} fps on the character)")
     return 0
 
@@ -116,7 +117,7 @@ def clips_export(data_dir: Path, clips_dir: Path, clip_id: str, out: Path) -> in
         write_motion(out, skeleton, mesh, character.faces, a["local_rotations"], a["root_positions"],
                      1.0 / entry.fps, ends, clip_id)
     except (ValueError, OSError) as exc:  # ManifestError, AssetError, GltfError name the file
-        return _fail(str(exc))
+        return fail(str(exc))
     print(f"wrote {out} ({entry.frames} frames at {entry.fps} fps, {entry.playback}: clip {clip_id} on the "
           f"character)")
     return 0
@@ -128,7 +129,7 @@ def inspect(data_dir: Path) -> int:
 
     paths = sorted(data_dir.glob("mocap/**/*.bvh*"))
     if not paths:
-        return _fail(f"no BVH files under {data_dir / 'mocap'}; set ANIMSTUDY_DATA_DIR (see docs/reference/data.md)")
+        return fail(f"no BVH files under {data_dir / 'mocap'}; set ANIMSTUDY_DATA_DIR (see docs/reference/data.md)")
     print(f"motion capture in {data_dir}:")
     print(f"{'file':34} {'frames':>6} {'fps':>5} {'seconds':>7} {'joints':>6} {'travel m':>8} {'speed m/s':>9}")
     status = 0
@@ -161,9 +162,9 @@ def clips_build(data_dir: Path, out: Path, config: Path | None, scheduler: str |
                                workers=2)
         manifest = write_clip_set(clips, out)
     except (AssetError, ConfigError) as exc:
-        return _fail(str(exc))
+        return fail(str(exc))
     except OSError as exc:
-        return _fail(f"cannot write the clip set to {out}: {exc}")
+        return fail(f"cannot write the clip set to {out}: {exc}")
     print(f"\n{len(clips)} clips in {time.perf_counter() - started:.1f} s -> {manifest}\n")
     width = max(16, *(len(c.id) for c in clips))
     print(f"{'clip':{width}} {'keys':>4} {'s':>5} {'skate':>6} {'slide mm':>8} {'pen mm':>6} {'float mm':>8} "
@@ -224,6 +225,7 @@ def _print_comparison(clips: list, warnings: list[str]) -> None:
         print(f"{c.id:{width}} {m['foot_skate_ratio']:6.3f} {m['source_foot_skate_ratio']:6.3f} "
               f"{m['seam_jump_mm']:7.1f} {m['median_step_mm']:7.1f} {_fmt(m['phase_hips_r'], 2):>6} "
               f"{_fmt(m['phase_hips_lag'], 0):>4} {_fmt(m['phase_knee_r'], 2):>6} {_fmt(m['phase_knee_lag'], 0):>4}")
+    print(format_transitions(clips), end="")  # issue 39: sequences' transition metrics
     for w in warnings:
         print(f"warning: {w}", flush=True)
 

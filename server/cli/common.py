@@ -12,12 +12,12 @@ import sys
 CLI_FRAME_JOINTS = 2_000_000
 
 
-def _fail(message: str) -> int:
+def fail(message: str) -> int:
     print(f"error: {message}", file=sys.stderr)
     return 2
 
 
-def _positive(text: str) -> int:
+def positive(text: str) -> int:
     try:
         value = int(text)
     except ValueError:
@@ -27,7 +27,7 @@ def _positive(text: str) -> int:
     return value
 
 
-def _even(text: str) -> int:
+def even(text: str) -> int:
     value = int(text)
     if value < 16 or value % 2:
         raise argparse.ArgumentTypeError(f"video sizes must be even and at least 16, got {value}")

@@ -6,7 +6,7 @@ import argparse
 from collections.abc import Callable
 from pathlib import Path
 
-from .common import CLI_FRAME_JOINTS, _even, _positive
+from .common import CLI_FRAME_JOINTS, even, positive
 
 QUICK_BENCH = "--characters 10,1000 --stages pose --frames 50 --variants keys"
 
@@ -36,8 +36,8 @@ def _int_list(minimum: int, example: str) -> Callable[[str], list[int]]:
 
 def _stages(text: str) -> list[str]:
     stages = [s.strip() for s in text.split(",") if s.strip()]
-    if not stages or any(s not in ("pose", "skin") for s in stages):
-        raise argparse.ArgumentTypeError(f"stages are pose and skin, got {text!r}")
+    if not stages or any(s not in ("pose", "skin", "blend") for s in stages):
+        raise argparse.ArgumentTypeError(f"stages are pose, skin and blend, got {text!r}")
     return stages
 
 
@@ -125,8 +125,8 @@ def _render_and_serve(sub: argparse._SubParsersAction) -> None:  # type: ignore[
                            "pairs of the studies in the database are kept too")
     rend.add_argument("--every-clip", action="store_true",
                       help="also a video of every clip of the clip set (default: of the clips the pairs show)")
-    rend.add_argument("--width", type=_even, default=640)
-    rend.add_argument("--height", type=_even, default=480)
+    rend.add_argument("--width", type=even, default=640)
+    rend.add_argument("--height", type=even, default=480)
     rend.add_argument("--no-shadows", action="store_true")
     srv = sub.add_parser("serve", help="migrate the database, prepare the default study if needed, and serve")
     srv.add_argument("--host", default="127.0.0.1")
@@ -156,8 +156,8 @@ def _study(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     sc.add_argument("--open", action="store_true", help="open it for participants at once")
     sc.add_argument("--owner", default=None, help="e-mail of the researcher who owns it (default: none; admins "
                     "manage it)")
-    sc.add_argument("--width", type=_even, default=None, help="video width when none were rendered before (640)")
-    sc.add_argument("--height", type=_even, default=None, help="video height (480)")
+    sc.add_argument("--width", type=even, default=None, help="video width when none were rendered before (640)")
+    sc.add_argument("--height", type=even, default=None, help="video height (480)")
     sc.add_argument("--no-shadows", action="store_true")
     st_sub.add_parser("list", help="every study with its state and counts")
     for name in ("open", "close"):
@@ -171,22 +171,22 @@ def _study(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     si.add_argument("file", type=Path)
     si.add_argument("--owner", default=None, help="e-mail of the researcher who owns it (default: none)")
     si.add_argument("--open", action="store_true", help="open it for participants at once")
-    si.add_argument("--max-mib", type=_positive, default=None, help="the most its files may take in all, in MiB "
+    si.add_argument("--max-mib", type=positive, default=None, help="the most its files may take in all, in MiB "
                     "(default 8192; each file at most 512)")
     sm = st_sub.add_parser("simulate", help="simulated observers through a study file's design: scale error and "
                            "rank correlation (docs/designs.md)")
     sm.add_argument("file", type=Path)
-    sm.add_argument("--participants", type=_positive, required=True)
+    sm.add_argument("--participants", type=positive, required=True)
     sm.add_argument("--truth", type=Path, default=None, help="TOML or JSON table: condition = true scale value "
                     "(logit units); default: the design's conditions evenly spaced over 0..2.5 in their order")
-    sm.add_argument("--seeds", type=_positive, default=20, help="simulated studies (default 20)")
+    sm.add_argument("--seeds", type=positive, default=20, help="simulated studies (default 20)")
     sp = st_sub.add_parser("plan", help="participants needed to detect a difference from the reference, by "
                            "simulation (docs/designs.md)")
     sp.add_argument("file", type=Path)
     sp.add_argument("--effect", type=float, required=True, help="the difference to detect, logit units of the "
                     "scale (every condition that far above the reference)")
     sp.add_argument("--power", type=float, default=0.8)
-    sp.add_argument("--seeds", type=_positive, default=100, help="simulated studies per participant count")
+    sp.add_argument("--seeds", type=positive, default=100, help="simulated studies per participant count")
     se = st_sub.add_parser("export", help="a study's votes, one row per vote (see the data dictionary)")
     se.add_argument("slug")
     se.add_argument("--format", choices=("csv", "json", "sureal", "pwcmp"), default="csv",
@@ -214,7 +214,7 @@ def _gc_and_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type
     bn.add_argument("--quick", action="store_true",
                     help=f"short run: {QUICK_BENCH} unless given")
     bn.add_argument("--characters", type=_int_list(1, "10,200"), default=None, help="crowd sizes, e.g. 10,200,10000")
-    bn.add_argument("--stages", type=_stages, default=None, help="pose, skin or both (default)")
+    bn.add_argument("--stages", type=_stages, default=None, help="pose, skin (default: both), blend (blending jobs)")
     bn.add_argument("--frames", type=int, default=None, help="timed frames per measurement (default: 200)")
     bn.add_argument("--variants", type=_variants, default=None,
                     help="comma-separated: keys, baked, reference, naive (default: all)")

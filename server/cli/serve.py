@@ -21,7 +21,7 @@ from server.pipeline.jobs import prepare_default
 from server.researchers.models import Researcher
 from server.researchers.service import create_researcher
 
-from .common import _fail
+from .common import fail
 
 
 def ensure_researcher(settings: Settings, session_factory: object) -> None:
@@ -50,14 +50,14 @@ def serve(settings: Settings, host: str, port: int, workers: int) -> int:
         # The default study is a job like any other, so a server stopped while rendering it goes on where it was.
         job = prepare_default(settings, factory)
         if job is not None and job.state != BuildState.done:
-            return _fail(f"{job.error} (job {job.id})")
+            return fail(f"{job.error} (job {job.id})")
         ensure_researcher(settings, factory)
         with factory() as session:  # jobs whose process ended mid-job (this server's, a command's) go on
             for job in resume_lost_jobs(session, settings, engine):
                 print(f"resumed {job.kind} job {job.id} (pid {job.pid}): it renders what is still missing",
                       flush=True)
     except (AssetError, ConfigError, MediaError, ServiceError) as exc:
-        return _fail(str(exc))
+        return fail(str(exc))
     finally:
         engine.dispose()
     print(f"serving on http://{host}:{port} (database {engine.url.render_as_string(hide_password=True)})",
@@ -98,7 +98,7 @@ def researcher_create(settings: Settings, email: str, password: str, admin: bool
         with session_factory(engine)() as session:
             researcher = create_researcher(session, email, password, admin=admin)
     except ServiceError as exc:
-        return _fail(exc.detail)
+        return fail(exc.detail)
     print(f"researcher {researcher.email} created{' (admin: sees and manages every study)' if admin else ''}")
     return 0
 
@@ -109,5 +109,5 @@ def run(settings: Settings, args: argparse.Namespace) -> int:
         return serve(settings, args.host, args.port, max(1, args.workers))
     password = read_password(args.password, args.password_stdin)
     if password is None:
-        return _fail("no password: give it at the prompt, or on standard input with --password-stdin")
+        return fail("no password: give it at the prompt, or on standard input with --password-stdin")
     return researcher_create(settings, args.email, password, args.admin)

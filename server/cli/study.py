@@ -16,6 +16,7 @@ from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session
 
 from anim_core.clips.build import ConfigError
+from server.analysis import simulate as sim
 from server.assets import AssetError
 from server.clipset.manifest import MANIFEST, unreferenced_clip_files
 from server.config import Settings
@@ -32,12 +33,11 @@ from server.researchers.models import Researcher
 from server.researchers.service import normalize_email
 from server.stimuli.service import collect
 from server.studies import service
-from server.studies import simulate as sim
 from server.studies.archive import ArchiveLimits, export_archive
 from server.studies.models import Study, StudyState
 from server.studies.studyfile import THESIS_FILE, StudyFile, StudyFileError, load_study_file
 
-from .common import _fail
+from .common import fail
 
 
 def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies: list[Path],
@@ -52,12 +52,12 @@ def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies
         for f in files:
             load_study_file(f)
     except StudyFileError as exc:
-        return _fail(f"{exc.source} is not a valid study file: {'; '.join(exc.errors)}")
+        return fail(f"{exc.source} is not a valid study file: {'; '.join(exc.errors)}")
     job = run_in_this_process(settings, JobKind.render, {
         "out": str(Path(out).resolve()), "clips_dir": str(Path(clips_dir).resolve()),
         "studies": [str(Path(f).resolve()) for f in files], "workers": workers, "every_clip": every_clip,
         "settings": {"width": width, "height": height, "shadows": shadows}})
-    return 0 if job.state == BuildState.done else _fail(f"{job.error} (job {job.id})")
+    return 0 if job.state == BuildState.done else fail(f"{job.error} (job {job.id})")
 
 
 def _study_session(settings: Settings) -> object:
@@ -89,11 +89,11 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
             print(f"  {line}", file=sys.stderr)
         return 2
     except ServiceError as exc:
-        return _fail(exc.detail)
+        return fail(exc.detail)
     except (AssetError, ConfigError, MediaError, OSError) as exc:
-        return _fail(str(exc))
+        return fail(str(exc))
     except OperationalError as exc:  # e.g. another process holding SQLite's writers for longer than the timeout
-        return _fail(f"the database could not be used: {exc.orig}; try again when the other command has finished")
+        return fail(f"the database could not be used: {exc.orig}; try again when the other command has finished")
     return 0
 
 
@@ -107,7 +107,7 @@ def _validate(settings: Settings, args: argparse.Namespace) -> int:
         lacking = [c for c in pipeline.needed_conditions(study_file.design) if c not in ids] + [
             a for a in study_file.design.animations if a not in config.animations]
         if lacking:
-            return _fail(f"{args.file}: {', '.join(lacking)} not in its clip set")
+            return fail(f"{args.file}: {', '.join(lacking)} not in its clip set")
         checked = "; its animations and conditions are in its own clip set ([clips])"
     elif (settings.clips_dir / MANIFEST).is_file():
         service.check_known(study_file.design, service.clip_set_index(settings.clips_dir))
@@ -126,9 +126,9 @@ def _create(settings: Settings, session: Session, args: argparse.Namespace) -> i
     if args.owner:
         owner = session.scalar(select(Researcher).where(Researcher.email == normalize_email(args.owner)))
         if owner is None:
-            return _fail(f"no researcher {args.owner!r} (create one with `animstudy researcher create`)")
+            return fail(f"no researcher {args.owner!r} (create one with `animstudy researcher create`)")
     if session.scalar(select(Study.id).where(Study.slug == study_file.slug)) is not None:
-        return _fail(f"a study with slug {study_file.slug!r} exists already")
+        return fail(f"a study with slug {study_file.slug!r} exists already")
     size = None
     if args.width or args.height or args.no_shadows:
         size = {"width": args.width or 640, "height": args.height or 480, "shadows": not args.no_shadows}
@@ -141,7 +141,7 @@ def _create(settings: Settings, session: Session, args: argparse.Namespace) -> i
         "file": str(Path(args.file).resolve()), "owner_id": owner_id,
         "open": bool(args.open), "settings": size})
     if job.state != BuildState.done or job.study_id is None:
-        return _fail(f"{job.error} (job {job.id})")
+        return fail(f"{job.error} (job {job.id})")
     study = session.get(Study, job.study_id)
     place = pipeline.study_place(settings, study_file, args.file, owner_id)
     print(f"created study {study.slug!r} ({study.state}, {service.trials_total(study)} trials per "
@@ -195,7 +195,7 @@ def _import_archive(settings: Settings, session: Session, args: argparse.Namespa
         owner_id = session.scalar(select(Researcher.id).where(
             Researcher.email == normalize_email(args.owner)))
         if owner_id is None:
-            return _fail(f"no researcher {args.owner!r} (create one with `animstudy researcher create`)")
+            return fail(f"no researcher {args.owner!r} (create one with `animstudy researcher create`)")
     limits = {}
     if args.max_mib is not None:
         limits = {"total_bytes": args.max_mib * 2**20,
@@ -205,7 +205,7 @@ def _import_archive(settings: Settings, session: Session, args: argparse.Namespa
         "file": str(Path(args.file).resolve()), "owner_id": owner_id, "limits": limits,
         "open": bool(args.open)})
     if job.state != BuildState.done or job.study_id is None:
-        return _fail(f"{job.error} (job {job.id})")
+        return fail(f"{job.error} (job {job.id})")
     study = session.get(Study, job.study_id)
     print(f"imported study {study.slug!r} ({study.state}) with its stimulus set "
           f"{study.stimulus_set.digest[:12]}; participant link: /s/{study.slug}")
@@ -236,7 +236,7 @@ def gc(settings: Settings, dry_run: bool) -> int:
     with _study_session(settings) as session:  # type: ignore[attr-defined]
         if running := running_jobs(session):
             listed = ", ".join(f"{j.kind} job {j.id}" for j in running)
-            return _fail(f"a job is running ({listed}); run gc when it has finished (what a running job has made "
+            return fail(f"a job is running ({listed}); run gc when it has finished (what a running job has made "
                          "is not yet named by any manifest)")
         found = collect(session, settings.media_dir, render_manifest_dirs(settings), dry_run=dry_run)
     clip_files = [f for d in clip_set_dirs(settings) if d.is_dir() for f in unreferenced_clip_files(d)]
@@ -280,7 +280,7 @@ def _simulate_or_plan(args: argparse.Namespace, design: Any) -> int:
         try:
             truth = (_read_truth(args.truth, design.all_conditions()) if args.truth else sim.even_truth(design))
         except (OSError, UnicodeDecodeError, ValueError) as exc:
-            return _fail(str(exc))
+            return fail(str(exc))
         print(f"{design.mode} design, {len(design.all_conditions())} conditions, {len(design.animations)} "
               f"animation(s); truth: " + ", ".join(f"{c} {v:g}" for c, v in truth.items()), flush=True)
         summary = sim.summarise(design, truth, args.participants, args.seeds, progress=lambda done: print(
@@ -291,13 +291,13 @@ def _simulate_or_plan(args: argparse.Namespace, design: Any) -> int:
               + (f"; {summary.failed} condition values infinite (one-sided answers)" if summary.failed else ""))
         return 0
     if not 0 < args.power < 1 or not math.isfinite(args.effect) or args.effect == 0:
-        return _fail("--power must be between 0 and 1 and --effect a non-zero number")
+        return fail("--power must be between 0 and 1 and --effect a non-zero number")
     print(f"{design.mode} design: simulating {args.seeds} studies per participant count "
           f"(effect {args.effect:g} logit units, power {args.power:g}) ...", flush=True)
     needed, achieved = sim.plan(design, args.effect, args.power, args.seeds, progress=lambda n, value: print(
         f"  {n} participants: power {100 * value:.0f} %", file=sys.stderr, flush=True))
     if needed is None:
-        return _fail(f"even 1000 participants give only {100 * achieved:.0f} % power")
+        return fail(f"even 1000 participants give only {100 * achieved:.0f} % power")
     trials = needed * design.trials_total()
     print(f"{needed} participants ({trials} trials; simulated power {100 * achieved:.0f} %)")
     return 0

@@ -10,13 +10,16 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from anim_core.clips.build import AnimationConfig, Source, build_animation, source_from_bvh
+from anim_core.bench.cost import with_run_time_costs
+from anim_core.clips.build import build_animation, source_from_bvh
+from anim_core.clips.entry import AnimationConfig, Source
 from anim_core.clips.record import BuiltClip
 from anim_core.clips.sources import read_motions
 from anim_core.methods.conditions import Condition
 from anim_core.rig.character import Character
 from anim_core.rig.gltf_character import MappedCharacter
-from anim_core.rig.rigmap import Normalized, read_mapping_file
+from anim_core.rig.normalize import Normalized
+from anim_core.rig.rigmap import read_mapping_file
 from server import assets
 from server.assets import AssetError
 
@@ -125,7 +128,15 @@ def animation_clips(data_dir: Path, character: Character, config: AnimationConfi
     """The clips of one animation (its motion file read by :func:`load_source`), one per condition, the reference
     first (:func:`anim_core.clips.build.build_animation`).  Raises :class:`AssetError` (file) or
     :class:`~anim_core.clips.build.ConfigError` (entry, field or condition); nothing is written."""
-    return build_animation(load_source(data_dir, character, config, relocate), fps, conditions, progress)
+    return built_clips(load_source(data_dir, character, config, relocate), fps, conditions, progress)
+
+
+def built_clips(source: Source, fps: int, conditions: Sequence[Condition],
+                progress: Callable[[str], None] = lambda _msg: None) -> list[BuiltClip]:
+    """One animation's clips (:func:`anim_core.clips.build.build_animation`) with their measured run-time costs
+    when the clip set has ladders (:func:`anim_core.bench.cost.with_run_time_costs`; measured here, above
+    ``anim_core.clips``, which the bench imports)."""
+    return with_run_time_costs(build_animation(source, fps, conditions, progress), source.character.mesh)
 
 
 class AnimationError(ValueError):
@@ -141,7 +152,7 @@ class AnimationError(ValueError):
 def clips_task(normalized: Normalized, character: Character, config: AnimationConfig, fps: int,
                conditions: Sequence[Condition], relocate: tuple[str, ...]) -> list[BuiltClip]:
     """A pure task: one animation's clips from its motion as read (a worker reads no file)."""
-    return build_animation(_retargeted(normalized, character, config, relocate), fps, conditions)
+    return built_clips(_retargeted(normalized, character, config, relocate), fps, conditions)
 
 
 def build_each(data_dir: Path, character: Character, wanted: Sequence[tuple[AnimationConfig, Sequence[Condition]]],
@@ -163,8 +174,7 @@ def build_each(data_dir: Path, character: Character, wanted: Sequence[tuple[Anim
         built = []
         for cfg, conditions, normalized in sources:
             try:
-                built += build_animation(_retargeted(normalized, character, cfg, relocate), fps, conditions,
-                                         progress)
+                built += built_clips(_retargeted(normalized, character, cfg, relocate), fps, conditions, progress)
             except ValueError as exc:
                 raise AnimationError(cfg.name, exc) from None
         return built
@@ -195,11 +205,17 @@ def build_clip_set(data_dir: Path, config: ClipSetConfig | None = None,
     progress("loading the character")
     character, record = load_character(data_dir, config.character, progress)
     try:
-        clips = build_each(data_dir, character, [(cfg, config.conditions) for cfg in config.animations.values()],
+        takes = [c for c in config.conditions if c.applies("take")]
+        clips = build_each(data_dir, character, [(cfg, takes) for cfg in config.animations.values()],
                            config.fps, config.relocate, progress, lambda k, name: progress(
                                f"[{k + 1}/{len(config.animations)}] {name}: {config.animations[name].source}"),
                            scheduler, workers)
     except AnimationError as exc:  # as it was raised: its message names the entry
         raise exc.cause from None
+    if config.composites:  # issue 39: sequences and layers of the takes
+        from .composites import build_composites
+
+        clips += build_composites(data_dir, character, config.composites, config.animations, config.fps,
+                                  config.conditions, config.relocate, progress)
     # Every clip records the character it was built for; the manifest keeps it once (``character``).
     return [dataclasses.replace(c, source={**c.source, "character": record}) for c in clips]

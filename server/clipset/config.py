@@ -7,10 +7,12 @@ import dataclasses
 import re
 import tomllib
 from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 from pathlib import Path
 from typing import Any
 
-from anim_core.clips.build import DEFAULT_MAX_KEYS, DEFAULT_TOLERANCE_MM, AnimationConfig, ConfigError
+from anim_core.clips.build import ConfigError
+from anim_core.clips.entry import DEFAULT_MAX_KEYS, DEFAULT_TOLERANCE_MM, AnimationConfig
 from anim_core.math.clip import PLAYBACK_MODES
 from anim_core.methods.conditions import KINDS, REFERENCE, Condition, ConditionError, get_method
 from anim_core.rig.rigmap import UNITS
@@ -45,6 +47,8 @@ class ClipSetConfig:
     animations: dict[str, AnimationConfig]
     conditions: tuple[Condition, ...]
     character: CharacterConfig = CharacterConfig()
+    #: composite animations (issue 39: sequences, layers), by name: server/clipset/composites.py
+    composites: dict[str, Any] = dataclass_field(default_factory=dict)
 
 
 def _frames(value: Any, where: str, count: int | None = None) -> tuple[int, ...]:
@@ -336,7 +340,12 @@ def load_config(path: Path = DEFAULT_CONFIG) -> ClipSetConfig:
     table = raw.get("animations")
     if not isinstance(table, dict) or not table:
         raise ConfigError(f"{path}: [animations.<name>] must describe at least one animation")
-    animations = {name: _animation(name, entry, f"{path} [animations.{name}]") for name, entry in table.items()}
+    from .composites import check_transitions, split_composites
+
+    animations, composites = split_composites(table, fps, path, _animation)
+    if not animations:
+        raise ConfigError(f"{path}: [animations.<name>] must describe at least one take (composites name takes)")
     conditions = _conditions(raw.get("conditions"), path)
     conditions += _ladders(raw.get("ladders"), path, fps, conditions)
-    return ClipSetConfig(fps, relocate, animations, conditions, character)
+    check_transitions(composites, conditions, path)
+    return ClipSetConfig(fps, relocate, animations, conditions, character, composites)

@@ -141,6 +141,8 @@ def _frames(job: AnimationJob, clip: ClipEntry, a: dict[str, NDArray[Any]], rend
 
     n = rendered_frames(clip)
     shift = (np.arange(n) / clip.fps * clip.root_speed_mps) % job.grid_spacing_m
+    if "floor_travel_m" in a:  # a travelling composite shown in place (issue 39): the ground moves instead
+        shift = a["floor_travel_m"][:n] % job.grid_spacing_m
     rendered = []
     for f, rgb in enumerate(renderer.render(a["world_rotations"][:n], a["world_positions"][:n], shift,
                                             clip_mesh(mesh, clip))):

@@ -1,4 +1,5 @@
-"""Which comparisons a new session shows (:mod:`server.studies.assign` chooses the pairs by the design's mode).
+"""Which comparisons a new session shows (:mod:`server.studies.assign` chooses the pairs by the design's mode,
+:func:`server.analysis.adaptive.adaptive_batches` an adaptive design's).
 
 The choices are pure functions of what is stored (the session's seed, its position among the study's sessions,
 the votes the results count and when they were answered).  :func:`session_batches` shows every adaptive round
@@ -18,13 +19,13 @@ import numpy as np
 from sqlalchemy import Select, func, select
 from sqlalchemy.orm import Session, aliased
 
-from server.studies.adaptive import counts_posterior, information_gain, vote_counts
-from server.studies.assign import adaptive_batches, incomplete_pairs, pair_comparisons
+from server.analysis.adaptive import adaptive_batches, counts_posterior, information_gain, vote_counts
+from server.analysis.ranking import GradedComparison
+from server.analysis.statistics import counted
+from server.studies.assign import incomplete_pairs, pair_comparisons
 from server.studies.design import ComparisonIds, Design
 from server.studies.models import Comparison, ComparisonKind, Stimulus, Study
-from server.studies.ranking import GradedComparison
 from server.studies.service import comparison_ids
-from server.studies.statistics import counted
 
 from .models import ParticipantSession, SessionState, Trial, Vote
 

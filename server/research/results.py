@@ -13,18 +13,19 @@ from typing import Any
 import numpy as np
 from sqlalchemy.orm import Session
 
+from server.analysis.interval_scale import study_scales
+from server.analysis.screening import flagged_counts, opinion_array, planned_calibration
+from server.analysis.statistics import analyse
+from server.analysis.subject_model import fit
 from server.participants.assign import session_batches
 from server.participants.rows import screened_rows
 from server.participants.service import completion_times
 from server.stimuli import service as stimulus_sets
 from server.studies import scale
 from server.studies.design import Design
-from server.studies.interval_scale import study_scales
 from server.studies.models import Study
-from server.studies.screening import RULES, flagged_counts, opinion_array, planned_calibration
+from server.studies.screening import RULES
 from server.studies.service import screening_rules
-from server.studies.statistics import analyse
-from server.studies.subject_model import fit
 
 from .service import participant_counts
 

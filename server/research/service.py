@@ -6,11 +6,11 @@ from collections.abc import Mapping
 
 from sqlalchemy.orm import Session
 
+from server.analysis.screening import ParticipantScreening
 from server.participants import service as participants
 from server.participants.rows import screened_rows
 from server.studies.models import Study, StudyState
 from server.studies.schemas import StudySummary
-from server.studies.screening import ParticipantScreening
 from server.studies.service import screening_rules, trials_total
 
 

@@ -1,24 +1,22 @@
 """Which pairs a session of a design shows, by the design's mode (``design.Design.mode``): the pure part of
-:mod:`server.participants.assign`, which reads the sessions and votes.
+:mod:`server.participants.assign`, which reads the sessions and votes (adaptive designs' batches are
+:func:`server.analysis.adaptive.adaptive_batches`).
 
 ``reference`` and ``all-pairs``: every test comparison of the study.  ``incomplete``: a slice of
 ``pairs_per_session`` pairs per animation from a fixed cyclic order of the pairs, the slice moving on by that many
 with every session, so over sessions every pair is shown equally often (±1).  ``adaptive``: per animation, the
 N-1 pairs picked from the votes answered before the session started (the vote log) and the session's seed, by
-:func:`server.studies.adaptive.next_batch` (``aim = "reference"``, the default) or
-:func:`server.studies.adaptive.information_tree` (``aim = "order"``).  Catch and practice comparisons are the same
+:func:`server.analysis.adaptive.next_batch` (``aim = "reference"``, the default) or
+:func:`server.analysis.adaptive.information_tree` (``aim = "order"``).  Catch and practice comparisons are the same
 in every mode.
 """
 
 from __future__ import annotations
 
 import random
-from collections.abc import Callable, Sequence
 
-from .adaptive import Batch, Posterior, information_tree, next_batch, posterior
 from .design import Design
 from .models import ComparisonKind, Study
-from .ranking import GradedComparison
 
 PairKey = tuple[str, str, str]  # (animation, first condition, second condition)
 
@@ -40,17 +38,3 @@ def incomplete_pairs(design: Design, slug: str, position: int) -> list[PairKey]:
         random.Random(f"{slug}/{animation}").shuffle(order)
         out += [(animation, *order[(position * k + j) % len(order)]) for j in range(k)]
     return out
-
-
-Belief = Callable[[Sequence[GradedComparison], Sequence[str]], Posterior]
-
-
-def adaptive_batches(design: Design, votes: dict[str, list[GradedComparison]], seed: int,
-                     belief: Belief = posterior) -> dict[str, Batch]:
-    """Per animation, the batch of pairs (indices into ``design.all_conditions()``) for a session with ``seed``.
-    ``belief``: what the batches are planned on, the posterior of the votes; the design bench swaps in the true
-    values to measure how much knowing them would save (its ``oracle``)."""
-    conditions = design.all_conditions()
-    choose = information_tree if design.aim == "order" else next_batch
-    return {a: choose(belief(votes.get(a, []), conditions), seed + i, 2 * design.repeats)
-            for i, a in enumerate(design.animations)}

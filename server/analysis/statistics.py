@@ -22,8 +22,9 @@ from scipy import stats
 from statsmodels.stats.multitest import multipletests
 from statsmodels.stats.power import TTestPower
 
+from server.studies.scale import MAX_SCORE, RAW_SCORES, SCORES
+
 from .ranking import GradedComparison, rank_conditions
-from .scale import CHOICE_SCORES, MAX_SCORE, SCORES
 
 WILCOXON_ARE = 3 / math.pi  # asymptotic relative efficiency of Wilcoxon against t for a normal parent
 
@@ -206,7 +207,7 @@ def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
     # Side bias: each participant's mean raw answer, left = +2 ... right = -2, whatever is shown where.
     raw: dict[str, list[int]] = defaultdict(list)
     for v in analysed:
-        raw[v["session_id"]].append(CHOICE_SCORES[v["choice"]])
+        raw[v["session_id"]].append(RAW_SCORES[v["choice"]])
     side_means = [float(np.mean(r)) for r in raw.values()]
 
     # Swap consistency: first against second showing of each comparison, per participant.
@@ -251,7 +252,7 @@ def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
             "multiplicity": "Holm over the Wilcoxon p-values of all the study's comparisons",
             "power": "t-test power (statsmodels) at the observed d_z, divided by the Wilcoxon ARE 3/pi",
             "ranking": "ordinal Bradley-Terry (Agresti 1992, logit) per animation, reference at 0; 95 % intervals "
-                       "from cluster-robust standard errors over participants (server/studies/ranking.py)",
+                       "from cluster-robust standard errors over participants (server/analysis/ranking.py)",
             "thesis_grouping": "per comparison: negative = reference significantly better (-2); positive = "
                                "everything else",
         },

@@ -1,6 +1,6 @@
 """One interval scale per animation for every design mode, with bootstrap intervals and P(better).
 
-The scale is the ordinal Bradley-Terry scale of :mod:`server.studies.ranking` (logit link, the study's reference
+The scale is the ordinal Bradley-Terry scale of :mod:`server.analysis.ranking` (logit link, the study's reference
 at 0; for reference designs the same numbers as the ``rankings`` section).  Its uncertainty here is the
 nonparametric bootstrap over participants, as pwcmp does (Perez-Ortiz & Mantiuk 2017, "A practical guide and
 software for analysing pairwise comparison experiments"): ``n_boot`` resamples of the participants with
@@ -26,7 +26,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import optimize
 
-from .ranking import GradedComparison, _cdf_pdf, _scores, rank_conditions
+from .ranking import GradedComparison, link_cdf_pdf, rank_conditions, vote_log_likelihood
 from .statistics import counted
 
 BOOT_PRIOR_SD = 10.0
@@ -52,7 +52,7 @@ def _ridge(x: np.ndarray, y: np.ndarray, start: np.ndarray | None, weight: np.nd
     centre = np.concatenate([np.zeros(n), _CUT_START])
 
     def objective(params: np.ndarray) -> tuple[float, np.ndarray]:
-        loglik, grad = _scores(params, x, y, False, n, "logit")
+        loglik, grad = vote_log_likelihood(params, x, y, False, n, "logit")
         diff = params - centre
         return -float(weight @ loglik) + 0.5 * float(diff @ (precision * diff)), -weight @ grad + precision * diff
 
@@ -65,8 +65,8 @@ def jnd_unit(cuts: Sequence[float]) -> float | None:
     c = np.asarray(cuts, dtype=float)
 
     def excess(delta: float) -> float:
-        better = 1 - _cdf_pdf(np.array([c[-2] - delta]), "logit")[0][0]  # P(y > 0)
-        worse = _cdf_pdf(np.array([c[1] - delta]), "logit")[0][0]  # P(y < 0)
+        better = 1 - link_cdf_pdf(np.array([c[-2] - delta]), "logit")[0][0]  # P(y > 0)
+        worse = link_cdf_pdf(np.array([c[1] - delta]), "logit")[0][0]  # P(y < 0)
         return better / (better + worse) - 0.75
 
     try:

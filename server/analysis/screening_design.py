@@ -41,7 +41,8 @@ from typing import Any, Literal
 import numpy as np
 from scipy import stats
 
-from .scale import MAX_SCORE
+from server.studies.scale import MAX_SCORE
+
 from .subject_model import fit
 
 SEED = 36  # every calibration draws the same simulated panels for the same design and model
@@ -88,7 +89,7 @@ class GoodObservers:
 PRIOR_BIAS_SD = 0.25
 PRIOR_INCONSISTENCY = 0.6
 PRIOR_SPAN = 1.0  # comparison scores evenly over -PRIOR_SPAN ... +PRIOR_SPAN
-PRIOR_SIDE_SD = 0.2  # as server.studies.simulate's observers
+PRIOR_SIDE_SD = 0.2  # as server.analysis.simulate's observers
 
 
 def prior(comparisons: int) -> GoodObservers:

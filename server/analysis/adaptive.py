@@ -5,7 +5,7 @@ message passing and information gain maximization" (ASAP): a round shows a batch
 conditions that form a spanning tree of the comparison graph, so that one round links every condition and spends
 its trials where they tell most.
 
-Here the model is the ordinal Bradley-Terry model of :mod:`server.studies.ranking` (the cumulative logit model of
+Here the model is the ordinal Bradley-Terry model of :mod:`server.analysis.ranking` (the cumulative logit model of
 the 5-point answers, the anchor condition at 0).  The posterior of the scale values is its Laplace approximation:
 the maximum a posteriori values under a weak normal prior (``PRIOR_SD`` logit units, which keeps them finite
 with few or one-sided answers) and the inverse of the posterior precision, the prior precision plus the
@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import hashlib
 import threading
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from itertools import combinations
 
@@ -43,7 +43,9 @@ import numpy as np
 from scipy import optimize
 from scipy.sparse.csgraph import minimum_spanning_tree
 
-from .ranking import GradedComparison, _cdf_pdf, _cuts, _scores
+from server.studies.design import Design
+
+from .ranking import GradedComparison, link_cdf_pdf, symmetric_cuts, vote_log_likelihood
 
 PRIOR_SD = 2.0  # logit units: a weak prior, a 2-point difference is 'much better' most of the time
 # Prior of the log-increments of the positive cut points (a ~ 0.5, b ~ 2 logit units), sd 1.
@@ -142,13 +144,13 @@ def _fit(counts: np.ndarray, conditions: tuple[str, ...]) -> Posterior:
         diff = params - prior_mean
         value, grad = 0.5 * float(diff @ (prior_precision * diff)), prior_precision * diff
         if y.size:
-            loglik, per_cell = _scores(params, x, y, False, n, "logit")
+            loglik, per_cell = vote_log_likelihood(params, x, y, False, n, "logit")
             value, grad = value - float(weight @ loglik), grad - weight @ per_cell
         return value, grad
 
     opt = optimize.minimize(objective, prior_mean, jac=True, method="BFGS", options={"gtol": 1e-7})
     mean = opt.x[:n] - opt.x[0]
-    cuts, _ = _cuts(opt.x[n:], False)
+    cuts, _ = symmetric_cuts(opt.x[n:], False)
     cov = _planning_cov(x, weight, mean, cuts)
     for shared in (mean, cov, cuts):  # remembered and handed to every caller: nobody may change them
         shared.flags.writeable = False
@@ -169,7 +171,7 @@ def known_posterior(votes: Sequence[GradedComparison], conditions: Sequence[str]
 
 def _answer_probabilities(delta: np.ndarray, cuts: np.ndarray) -> np.ndarray:
     """P(answer = -2..+2 | delta), shape (len(delta), 5)."""
-    cdf, _ = _cdf_pdf(cuts[None, :] - delta[:, None], "logit")
+    cdf, _ = link_cdf_pdf(cuts[None, :] - delta[:, None], "logit")
     ext = np.concatenate([np.zeros((delta.size, 1)), cdf, np.ones((delta.size, 1))], axis=1)
     return np.clip(np.diff(ext, axis=1), 1e-300, 1.0)
 
@@ -199,7 +201,7 @@ class Batch:
 
 def answer_information(delta: np.ndarray, cuts: np.ndarray) -> np.ndarray:
     """Fisher information (per logit unit squared) of one answer about the scale difference ``delta``."""
-    cdf, pdf = _cdf_pdf(cuts[None, :] - delta[:, None], "logit")
+    cdf, pdf = link_cdf_pdf(cuts[None, :] - delta[:, None], "logit")
     zeros, ones = np.zeros((delta.size, 1)), np.ones((delta.size, 1))
     p = np.clip(np.diff(np.concatenate([zeros, cdf, ones], axis=1), axis=1), 1e-300, 1.0)
     dp = np.diff(np.concatenate([zeros, pdf, zeros], axis=1), axis=1)
@@ -252,3 +254,17 @@ def information_tree(post: Posterior, seed: int, showings: int = 2) -> Batch:
     tree = minimum_spanning_tree(weights).tocoo()
     pairs = sorted((min(int(i), int(j)), max(int(i), int(j))) for i, j in zip(tree.row, tree.col, strict=True))
     return Batch(tuple(pairs), tuple(float(gains[i, j]) for i, j in pairs))
+
+
+Belief = Callable[[Sequence[GradedComparison], Sequence[str]], Posterior]
+
+
+def adaptive_batches(design: Design, votes: dict[str, list[GradedComparison]], seed: int,
+                     belief: Belief = posterior) -> dict[str, Batch]:
+    """Per animation, the batch of pairs (indices into ``design.all_conditions()``) for a session with ``seed``.
+    ``belief``: what the batches are planned on, the posterior of the votes; the design bench swaps in the true
+    values to measure how much knowing them would save (its ``oracle``)."""
+    conditions = design.all_conditions()
+    choose = information_tree if design.aim == "order" else next_batch
+    return {a: choose(belief(votes.get(a, []), conditions), seed + i, 2 * design.repeats)
+            for i, a in enumerate(design.animations)}

@@ -60,8 +60,9 @@ from scipy.sparse import csr_array
 from scipy.sparse.csgraph import breadth_first_order
 from statsmodels.tools.numdiff import approx_fprime
 
+from server.studies.scale import MAX_SCORE
+
 Link = Literal["logit", "probit"]
-MAX_SCORE = 2
 
 
 class GradedComparison(NamedTuple):
@@ -121,7 +122,7 @@ class Ranking:
     fit: RankingFit
 
 
-def _cdf_pdf(x: np.ndarray, link: Link) -> tuple[np.ndarray, np.ndarray]:
+def link_cdf_pdf(x: np.ndarray, link: Link) -> tuple[np.ndarray, np.ndarray]:
     if link == "logit":
         cdf = special.expit(x)
         return cdf, cdf * (1 - cdf)
@@ -129,7 +130,7 @@ def _cdf_pdf(x: np.ndarray, link: Link) -> tuple[np.ndarray, np.ndarray]:
     return special.ndtr(x), np.exp(-0.5 * clipped * clipped) / math.sqrt(2 * math.pi)
 
 
-def _cuts(eta: np.ndarray, zero_cut: bool) -> tuple[np.ndarray, np.ndarray]:
+def symmetric_cuts(eta: np.ndarray, zero_cut: bool) -> tuple[np.ndarray, np.ndarray]:
     """Symmetric cut points from log-increments ``eta`` (positive cuts t_j = sum_{i<=j} exp(eta_i)) and d cuts/d eta."""
     inc = np.exp(np.clip(eta, -50.0, 50.0))  # an optimiser's trial step must not overflow
     t = np.cumsum(inc)
@@ -141,18 +142,18 @@ def _cuts(eta: np.ndarray, zero_cut: bool) -> tuple[np.ndarray, np.ndarray]:
     return cuts, jac
 
 
-def _scores(params: np.ndarray, x: np.ndarray, y: np.ndarray, zero_cut: bool, n_beta: int,
+def vote_log_likelihood(params: np.ndarray, x: np.ndarray, y: np.ndarray, zero_cut: bool, n_beta: int,
             link: Link) -> tuple[np.ndarray, np.ndarray]:
     """Per-vote log-likelihood (n,) and its gradient (n, p) at ``params`` = (scale values, threshold log-increments)."""
     beta, eta = params[:n_beta], params[n_beta:]
-    cuts, jac = _cuts(eta, zero_cut)
+    cuts, jac = symmetric_cuts(eta, zero_cut)
     ext = np.concatenate([[-np.inf], cuts, [np.inf]])
     delta = x @ beta
     upper, lower = ext[y + 1] - delta, ext[y] - delta
-    f_up, d_up = _cdf_pdf(upper, link)
-    f_lo, d_lo = _cdf_pdf(lower, link)
+    f_up, d_up = link_cdf_pdf(upper, link)
+    f_lo, d_lo = link_cdf_pdf(lower, link)
     # Upper tail by symmetry keeps precision where both cdf values are near 1.
-    p = np.where(lower > 0, _cdf_pdf(-lower, link)[0] - _cdf_pdf(-upper, link)[0], f_up - f_lo)
+    p = np.where(lower > 0, link_cdf_pdf(-lower, link)[0] - link_cdf_pdf(-upper, link)[0], f_up - f_lo)
     p = np.maximum(p, 1e-300)
     grad = np.empty((y.size, params.size))
     grad[:, :n_beta] = (-(d_up - d_lo) / p)[:, None] * x
@@ -303,7 +304,7 @@ def _fit(votes: list[GradedComparison], others: list[str], link: Link,
     n_beta = len(free)
 
     def objective(params: np.ndarray) -> tuple[float, np.ndarray]:
-        loglik, grad = _scores(params, x, y, zero_cut, n_beta, link)
+        loglik, grad = vote_log_likelihood(params, x, y, zero_cut, n_beta, link)
         return -float(loglik.sum()), -grad.sum(axis=0)
 
     opt = optimize.minimize(objective, np.zeros(n_beta + len(magnitudes) - 1), jac=True, method="BFGS",
@@ -313,7 +314,7 @@ def _fit(votes: list[GradedComparison], others: list[str], link: Link,
     converged = bool(opt.success or np.max(np.abs(opt.jac)) < 1e-5)
     hessian = approx_fprime(params, lambda p: objective(p)[1], centered=True)
     hessian = (hessian + hessian.T) / 2
-    _, per_vote = _scores(params, x, y, zero_cut, n_beta, link)
+    _, per_vote = vote_log_likelihood(params, x, y, zero_cut, n_beta, link)
     clusters = {p: i for i, p in enumerate(dict.fromkeys(v.participant for v in votes))}
     g = len(clusters)
     cluster_scores = np.zeros((g, params.size))
@@ -339,7 +340,7 @@ def _fit(votes: list[GradedComparison], others: list[str], link: Link,
                                      int(np.count_nonzero(x[:, j]))))
 
     loglik = -float(opt.fun)
-    cuts, _ = _cuts(params[n_beta:], zero_cut)
+    cuts, _ = symmetric_cuts(params[n_beta:], zero_cut)
     # Saturated model: one multinomial per unordered pair, answers mirrored to one orientation (the model is
     # symmetric under swapping reference and test, so the orientation does not matter).
     cells: dict[tuple[str, str], Counter[int]] = defaultdict(Counter)

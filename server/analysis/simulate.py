@@ -1,6 +1,6 @@
 """Simulated observers run through the real design code: how well does a design recover a known scale?
 
-An observer answers like the ordinal Bradley-Terry model of :mod:`server.studies.ranking`: for a pair shown with
+An observer answers like the ordinal Bradley-Terry model of :mod:`server.analysis.ranking`: for a pair shown with
 condition ``t`` (the comparison's second, "test") and ``r``, the latent judgement is
 ``(mu_t + taste_t) - (mu_r + taste_r) + side * bias + noise * L`` with ``L`` standard logistic, cut at
 ``-CUTS[1] < -CUTS[0] < CUTS[0] < CUTS[1]`` into the five answers -2..+2.  Per observer: ``taste`` is
@@ -9,7 +9,7 @@ left side (``side`` is +1 when the test is on the left), ``noise`` is log-normal
 more consistently than others).
 
 Sessions are made as the server makes them: the pairs of the mode (``Design.pairs``; ``assign.incomplete_pairs``
-for incomplete designs; ``assign.adaptive_batches`` over the votes of the simulated observers before, for
+for incomplete designs; ``adaptive.adaptive_batches`` over the votes of the simulated observers before, for
 adaptive ones), ordered by ``design.trial_order``, each observer finishing before the next starts.
 """
 
@@ -23,9 +23,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from .adaptive import posterior
-from .assign import Belief, adaptive_batches, incomplete_pairs
-from .design import ComparisonIds, Design, trial_order
+from server.studies.assign import incomplete_pairs
+from server.studies.design import ComparisonIds, Design, trial_order
+
+from .adaptive import Belief, adaptive_batches, posterior
 from .ranking import GradedComparison, rank_conditions
 
 CUTS = (0.5, 2.0)  # logit units, as people use the 5-point answers in the thesis data (roughly)
@@ -70,7 +71,7 @@ def simulate(design: Design, truth: dict[str, float], participants: int, seed: i
              observers: Observers = Observers(), belief: Belief = posterior) -> SimulatedStudy:
     """``participants`` simulated observers through ``design``; ``truth``: condition -> true scale value (logit
     units; the same for every animation; the reference's value is subtracted); ``belief``: what an adaptive
-    design plans on (``assign.adaptive_batches``)."""
+    design plans on (``adaptive.adaptive_batches``)."""
     conditions = design.all_conditions()
     mu = {c: truth[c] - truth[design.reference] for c in conditions}
     votes: dict[str, list[GradedComparison]] = defaultdict(list)

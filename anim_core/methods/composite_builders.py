@@ -1,0 +1,111 @@
+"""Builders of composite animations (issue 39), registered by :mod:`anim_core.methods.conditions` with
+``applies_to``: what a sequence or a layered animation hands a builder, the transition methods' parameter models
+and builders, and the reference of every form (:func:`build_reference`).
+
+* ``keyframe`` (the reference): a take's own keys; a sequence's takes switched by a cut; a layered animation's
+  layers as described.
+* ``cut``: a sequence's takes switched without blending (the same clip as a sequence's reference).
+* ``crossfade`` (``duration_ms``, ``curve`` linear/smoothstep, ``interp`` nlerp/slerp) and ``inertialization``
+  (``duration_ms``; Bollo's quintic per quaternion component): :mod:`anim_core.methods.transitions`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field
+
+from ..math.clip import KeyframeClip
+from .base import Animation, Params
+from .transitions import Composite, RootMotion, TransitionSpec, compose_sequence, layered
+
+#: The longest transition a condition may ask for (a crossfade must also fit in the shortest segment).
+MAX_TRANSITION_MS = 5000
+
+
+@dataclass(frozen=True, eq=False)
+class SequenceAnimation:
+    """A sequence as a builder receives it: each take's :class:`Animation` with its seconds, the root-motion rule
+    (None: the takes agree), the frame rate."""
+
+    name: str
+    segments: tuple[tuple[Animation, float], ...]
+    root_motion: RootMotion | None
+    fps: int
+
+
+@dataclass(frozen=True, eq=False)
+class LayeredAnimation:
+    """A layered animation: the base take and its layers ``(take, joint mask (J,), mode, reference pose (J, 4) or
+    None)``."""
+
+    name: str
+    base: Animation
+    layers: tuple[tuple[Animation, NDArray[np.bool_], str, NDArray[np.float64] | None], ...] = field(repr=False)
+    fps: int = 30
+
+
+@dataclass(frozen=True, eq=False)
+class SequenceClip(KeyframeClip):
+    """A composed sequence: a looping keyframe clip with its switch times (s) and the seconds each switch takes to
+    settle (:class:`~anim_core.methods.transitions.Composite`), for the transition metrics."""
+
+    switch_times: tuple[float, ...] = ()
+    settle_s: tuple[float, ...] = ()
+    transition_s: float = 0.0
+
+
+class CutParams(Params):
+    """A cut has no parameters."""
+
+
+class CrossfadeParams(Params):
+    duration_ms: int = Field(ge=1, le=MAX_TRANSITION_MS, description="length of the blend, milliseconds")
+    curve: Literal["linear", "smoothstep"] = Field("linear", description="weight over the blend")
+    interp: Literal["nlerp", "slerp"] = Field("nlerp", description="per-joint rotation blend")
+
+
+class InertializationParams(Params):
+    duration_ms: int = Field(ge=1, le=MAX_TRANSITION_MS, description="time for the offsets to decay, milliseconds")
+
+
+def _compose(animation: SequenceAnimation, spec: TransitionSpec) -> SequenceClip:
+    segments = [(a.reference, seconds) for a, seconds in animation.segments]
+    comp: Composite = compose_sequence(segments, animation.fps, spec, animation.root_motion, animation.name)
+    c = comp.clip
+    return SequenceClip(c.skeleton, c.times, c.rotations, c.root_translation, c.mode, c.in_place, c.up_axis,
+                        c.name, tuple(f / animation.fps for f in comp.switch_frames), comp.settle_s, spec.duration_s)
+
+
+def build_cut(animation: SequenceAnimation, params: CutParams) -> SequenceClip:
+    return _compose(animation, TransitionSpec("cut"))
+
+
+def build_crossfade(animation: SequenceAnimation, params: CrossfadeParams) -> SequenceClip:
+    return _compose(animation, TransitionSpec("crossfade", params.duration_ms / 1000.0, params.curve, params.interp))
+
+
+def build_inertialization(animation: SequenceAnimation, params: InertializationParams) -> SequenceClip:
+    return _compose(animation, TransitionSpec("inertialization", params.duration_ms / 1000.0))
+
+
+def build_reference(animation: Any, params: Params) -> Any:
+    """The reference of every form: a take's keys, a sequence's cut, a layered animation's layers."""
+    if isinstance(animation, SequenceAnimation):
+        return build_cut(animation, CutParams())
+    if isinstance(animation, LayeredAnimation):
+        return layered(animation.base.reference, [(a.reference, mask, mode, ref) for a, mask, mode, ref
+                                                  in animation.layers], animation.fps, animation.name)
+    return animation.reference
+
+
+#: (name, parameter model, builder, forms it applies to), registered by :mod:`anim_core.methods.conditions`.
+COMPOSITE_METHODS: tuple[tuple[str, type[Params], Callable[[Any, Any], Any], tuple[str, ...]], ...] = (
+    ("cut", CutParams, build_cut, ("sequence",)),
+    ("crossfade", CrossfadeParams, build_crossfade, ("sequence",)),
+    ("inertialization", InertializationParams, build_inertialization, ("sequence",)),
+)

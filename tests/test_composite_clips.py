@@ -1,0 +1,85 @@
+"""Composite clips built from the sample takes (issue 39): server/clipset/transitions.toml's sequence with every
+transition, and an override and an additive layer on the walk (the data hold no wave: the idle's upper body
+stands in for it).  Expected values come from the take clips, never from the composite code."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from anim_core.methods.transitions import joint_mask
+from server.clipset.build import build_clip_set
+from server.clipset.config import load_config
+
+CONFIG = Path(__file__).resolve().parents[1] / "server" / "clipset" / "transitions.toml"
+LAYERS = """
+[animations.walk_arms]
+base = "walk"
+layers = [{ animation = "idle", joints = "upper_body", mode = "override" }]
+
+[animations.walk_still]
+base = "walk"
+layers = [{ animation = "walk", joints = "arms", mode = "additive", reference_pose = "first" }]
+"""
+
+
+@pytest.fixture(scope="module")
+def by_id(data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    text = CONFIG.read_text(encoding="utf-8").replace("[[conditions]]", LAYERS + "\n[[conditions]]", 1)
+    path = tmp_path_factory.mktemp("composites") / "set.toml"
+    path.write_text(text, encoding="utf-8")
+    return {c.id: c for c in build_clip_set(data, load_config(path))}
+
+
+def test_every_condition_that_applies_and_no_other(by_id: dict) -> None:
+    sequence = {"keyframe", "cut", "crossfade100", "crossfade250", "inertialization250"}
+    assert {i.split("-")[1] for i in by_id if i.startswith("idle_walk_run-")} == sequence
+    assert {i.split("-")[1] for i in by_id if i.startswith("walk-")} == {"keyframe"}
+    assert {i.split("-")[1] for i in by_id if i.startswith("walk_arms-")} == {"keyframe"}
+
+
+def test_transition_metrics(by_id: dict) -> None:
+    cut, fade = by_id["idle_walk_run-cut"].metrics, by_id["idle_walk_run-crossfade250"].metrics
+    inert = by_id["idle_walk_run-inertialization250"].metrics
+    for m in (cut, fade, inert):
+        assert {"transition_foot_skate_ratio", "switch_velocity_jump_rad_s", "switch_accel_jump_rad_s2",
+                "settle_s", "transition_foot_slide_mm"} <= set(m)
+    # A blend smooths the switch: the angular velocity jump is at most half the cut's (seen: 54.5 vs 21 rad/s).
+    assert fade["switch_velocity_jump_rad_s"] < 0.5 * cut["switch_velocity_jump_rad_s"]
+    assert inert["switch_velocity_jump_rad_s"] < 0.5 * cut["switch_velocity_jump_rad_s"]
+    assert cut["settle_s"] == 0.0 and 0.0 < fade["settle_s"] <= 0.25 + 1 / 30 + 1e-9
+
+
+def test_the_cut_plays_each_take_as_built(by_id: dict) -> None:
+    seq, run = by_id["idle_walk_run-cut"], by_id["run-keyframe"]
+    # The run starts 5 s in (idle 2 s, walk 3 s): its first second is the run clip's own rotations.
+    frames = np.arange(150, 180)
+    expected = run.clip.sample((frames - 150) / 30).rotations
+    got = seq.local_rotations[frames]
+    assert np.abs(np.abs(np.sum(got * expected, axis=-1)) - 1).max() < 1e-12
+
+
+def test_layers_leave_the_rest_of_the_base(by_id: dict) -> None:
+    walk, arms, still = by_id["walk-keyframe"], by_id["walk_arms-keyframe"], by_id["walk_still-keyframe"]
+    lower = joint_mask(walk.character.skeleton, "lower_body")
+    assert np.array_equal(np.abs(arms.local_rotations[:, lower]), np.abs(walk.local_rotations[:, lower]))
+    # the walk's own arms against its first frame, added onto the walk: the arms move, the rest is the walk's
+    upper = joint_mask(walk.character.skeleton, "arms")
+    assert np.array_equal(np.abs(still.local_rotations[:, ~upper]), np.abs(walk.local_rotations[:, ~upper]))
+    assert not np.allclose(np.abs(still.local_rotations[:, upper]), np.abs(walk.local_rotations[:, upper]))
+    assert arms.metrics["foot_skate_ratio"] == walk.metrics["foot_skate_ratio"]
+
+
+def test_a_travelling_sequence_is_stored_in_place_with_its_floor_travel(by_id: dict) -> None:
+    seq, walk, run = by_id["idle_walk_run-crossfade250"], by_id["walk-keyframe"], by_id["run-keyframe"]
+    # shown in place: the body stays within 0.75 m of its place (surge, sway, the smoothing lag at a change of pace;
+    # seen: 0.54 m)
+    assert np.ptp(seq.root_positions[:, 2]) < 0.75
+    travel = seq.floor_travel
+    assert travel is not None and np.diff(travel).min() > -0.002  # the ground moves backwards by < 2 mm a frame
+    # 3 s of walk and 3 s of run at their speeds, within the 2 x 0.25 s of blending (speeds from the take clips)
+    expected = 3 * walk.root_speed_mps + 3 * run.root_speed_mps
+    assert abs(travel[-1] - expected) < 0.5 * (walk.root_speed_mps + run.root_speed_mps) * 0.25 + 0.1
+    assert "floor_travel_m" in seq.arrays() and "floor_travel_m" not in walk.arrays()
