@@ -21,6 +21,7 @@ from .media.router import router as media_router
 from .pages import STATIC_DIR
 from .pages import router as pages_router
 from .participants.router import router as participants_router
+from .pipeline.router import router as builds_router
 from .research.router import router as studies_router
 from .researchers.router import router as researchers_router
 from .security import RETRY_AFTER_S, LoginLimiter, Protect, RateLimiter
@@ -83,7 +84,8 @@ def create_app(settings: Settings | None = None, engine: Engine | None = None, r
     def health() -> dict[str, str]:
         return {"status": "ok"}
 
-    for router in (uploads_router, studies_router, participants_router, researchers_router, media_router, pages_router):
+    for router in (uploads_router, builds_router, studies_router, participants_router, researchers_router,
+                   media_router, pages_router):
         app.include_router(router)
     app.mount("/static", ContentStaticFiles(directory=STATIC_DIR), name="static")
     return app

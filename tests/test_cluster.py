@@ -22,8 +22,9 @@ from server import cluster
 from server.clipset.build import build_clip_set
 from server.clipset.manifest import write_clip_set
 from server.errors import MediaError
-from server.media.build import read_clip_set, render_media
+from server.media.build import render_media
 from server.media.manifest import MANIFEST
+from server.media.plan import read_clip_set
 from server.media.scene import RenderSettings
 from server.studies.service import clip_set_index, required_pairs
 from server.studies.studyfile import thesis_study
@@ -105,7 +106,7 @@ def _files(directory: Path) -> dict[str, bytes]:
 def broken_clip_set(clips_dir: Path, out: Path) -> tuple[Path, Any]:
     """A copy of ``clips_dir`` in ``out`` whose first idle clip other than the keyframe one cannot be rendered (its
     rotations lack joints); returns the folder and that clip's manifest entry."""
-    from server.media.build import read_clip_set
+    from server.media.plan import read_clip_set
 
     out.mkdir()
     for f in clips_dir.iterdir():

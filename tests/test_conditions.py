@@ -26,7 +26,8 @@ from server.clipset.build import build_clip_set
 from server.clipset.config import DEFAULT_CONFIG, load_config
 from server.clipset.manifest import MANIFEST, VERSION, ClipManifest, ManifestError, read_clip_manifest, write_clip_set
 from server.errors import MediaError
-from server.media.build import read_clip_set, render_media
+from server.media.build import render_media
+from server.media.plan import read_clip_set
 from server.media.scene import RenderSettings
 
 WALK = """

@@ -215,7 +215,7 @@ def test_a_media_name_with_a_trailing_newline_is_refused_by_the_import(archived,
 def test_every_validating_pattern_refuses_a_trailing_newline(client):
     from server.clipset.config import ConfigError, _animation
     from server.errors import Unprocessable
-    from server.media.build import MEDIA_NAME
+    from server.media.plan import MEDIA_NAME
     from server.participants.schemas import _trial_key
     from server.uploads.service import animation_name, check_filename
 

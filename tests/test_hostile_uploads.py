@@ -121,12 +121,12 @@ def test_a_gltf_with_only_joints_0_and_weights_0_uploads(client, admin, data, se
 def test_the_build_job_runs_under_a_memory_ceiling(tmp_path, data, engine):
     """The job's process caps its address space at ``ANIMSTUDY_BUILD_MEMORY_MB`` (passed on by the server): an
     allocation beyond it is a MemoryError (which the job stores as its error), not the server's memory."""
-    from server.uploads.service import job_environment
+    from server.jobs.control import job_environment
 
     settings = Settings(var_dir=tmp_path / "var", data_dir=data, build_memory_mb=1024)
     env = job_environment(settings, engine)
     assert env["ANIMSTUDY_BUILD_MEMORY_MB"] == "1024"
-    code = ("import numpy as np\nfrom server.config import Settings\nfrom server.uploads.job import limit_memory\n"
+    code = ("import numpy as np\nfrom server.config import Settings\nfrom server.jobs.runner import limit_memory\n"
             "limit_memory(Settings().build_memory_mb)\nnp.ones(10**7)\nprint('small ok', flush=True)\n"
             "try:\n    np.ones(2 * 10**8)\nexcept MemoryError:\n    print('MemoryError')\n")
     run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)

@@ -20,9 +20,9 @@ from server.clipset.build import build_clip_set
 from server.clipset.manifest import write_clip_set
 from server.config import Settings
 from server.db import migrate
+from server.jobs.control import resume_lost_jobs
+from server.jobs.models import BuildJob, BuildState, JobKind
 from server.media.manifest import read_render_manifest
-from server.uploads.models import BuildJob, BuildState, JobKind
-from server.uploads.service import resume_lost_jobs
 from tests.conftest import DATABASES, _fresh_engine
 from tests.server_fixtures import small_clip_config
 from tests.test_cluster import broken_clip_set

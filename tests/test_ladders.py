@@ -13,7 +13,7 @@ from anim_core.methods.conditions import get_method
 from server.clipset.build import build_clip_set
 from server.clipset.config import load_config
 from server.clipset.manifest import read_clip_manifest, write_clip_set
-from server.media.build import identical_clips
+from server.media.plan import identical_clips
 
 HEAD = """
 fps = 30
@@ -217,7 +217,7 @@ def test_a_level_making_the_same_clip_as_another_is_refused(built, tmp_path, dat
 
 def test_the_renderer_skins_each_clip_with_its_render_settings(built):
     from anim_core.methods.lod import max_influences
-    from server.media.build import clip_mesh
+    from server.media.worker import clip_mesh
 
     out, clips = built
     by = {e.condition: e for e in read_clip_manifest(out).clips}
@@ -236,9 +236,10 @@ def test_a_skin_level_renders_other_pixels_only_where_weights_were_dropped(built
     from anim_core.bench.cost import skinned_mesh
     from anim_core.rig.character import bind_mesh
     from server.assets import character as load_character
-    from server.media.build import BODY_PADDING_M, clip_mesh
+    from server.media.plan import BODY_PADDING_M
     from server.media.renderer import ClipRenderer
     from server.media.scene import RenderSettings, frame_motion
+    from server.media.worker import clip_mesh
 
     out, _ = built
     by = {e.condition: e for e in read_clip_manifest(out).clips}

@@ -19,8 +19,9 @@ from server.assets import character as load_character
 from server.clipset.build import build_clip_set
 from server.clipset.manifest import write_clip_set
 from server.errors import MediaError
-from server.media.build import BODY_PADDING_M, MEDIA_NAME, grid_spacing, read_clip_set, render_media
+from server.media.build import render_media
 from server.media.manifest import MANIFEST
+from server.media.plan import BODY_PADDING_M, MEDIA_NAME, grid_spacing, read_clip_set
 from server.media.renderer import ClipRenderer
 from server.media.scene import RenderSettings, frame_motion
 from server.media.video import FILE_TIME, decode, probe
@@ -192,7 +193,7 @@ def test_second_run_renders_nothing_and_settings_change_names(media, data, clips
     # Another secret gives other names for the same content.
     other = out.parent / "other-secret"
     shutil.copytree(out, other)
-    from server.media.build import plan
+    from server.media.plan import plan
     p = plan(data, clips_dir, other, SMALL, b"another secret", pairs)
     assert {o.name for o in p.outputs}.isdisjoint({Path(c["video"]).stem for c in manifest["clips"].values()})
 
@@ -201,7 +202,7 @@ def test_without_every_clip_only_the_clips_of_the_pairs_get_a_video(media, data,
     """The thesis study shows no hybrid2: without every_clip (the commands' default) its clips get no video
     (none is missing afterwards), an existing up-to-date one is kept; a clip with the arrays of another shares its
     video and is not rendered."""
-    from server.media.build import plan
+    from server.media.plan import plan
 
     out, manifest, _ = media
     pairs = [("walk-keyframe", "walk-hybrid0"), ("walk-hybrid0", "walk-keyframe")]
@@ -308,7 +309,8 @@ def test_a_render_is_cut_per_video_only_where_the_workers_outnumber_what_per_ani
     """The thesis study (four animations, a reference and two conditions): on 2 workers one Dask task per animation
     (each clip rendered once); on 64 workers one per video (a clip rendered once per video that shows it, on
     workers that would otherwise wait)."""
-    from server.media.build import plan, render_tasks
+    from server.media.build import render_tasks
+    from server.media.plan import plan
 
     p = plan(data, clips_dir, tmp_path, SMALL, SECRET, pairs)
     videos = sum(len(j.outputs) for j in p.jobs)

@@ -10,8 +10,9 @@ import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
 from server.db import downgrade, migrate
+from server.jobs.models import BuildJob
 from server.studies.models import Study
-from server.uploads.models import BuildJob, StudyAsset
+from server.uploads.models import StudyAsset
 from tests.conftest import DATABASES, _fresh_engine
 from tests.test_migration_0004 import populate_0003
 from tests.test_migration_0005 import dump

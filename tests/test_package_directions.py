@@ -67,6 +67,19 @@ def test_the_study_definition_knows_nothing_of_participants_research_or_uploads(
         {"server.participants", "server.research", "server.uploads"})
 
 
+def test_the_job_system_knows_no_kind_of_job():
+    """The runner runs what a kind is registered with (server.pipeline.jobs.KINDS): `jobs` imports none of the
+    packages whose work its jobs do, so `uploads` can ask it whether a build runs without a circle."""
+    assert package_imports("server")["server.jobs"].isdisjoint(
+        {"server.pipeline", "server.uploads", "server.media", "server.clipset", "server.participants",
+         "server.research", "server.cli"})
+
+
+def test_uploads_only_store_files():
+    """The build of uploads is a kind of job (server.pipeline): `uploads` never imports the pipeline."""
+    assert package_imports("server")["server.uploads"].isdisjoint({"server.pipeline", "server.media"})
+
+
 def test_the_study_definition_knows_nothing_of_the_analysis():
     assert "server.analysis" not in package_imports("server")["server.studies"]
 

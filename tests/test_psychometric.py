@@ -251,7 +251,7 @@ def test_simulate_and_plan_of_a_threshold_design(capsys) -> None:
     import argparse
     from types import SimpleNamespace
 
-    from server import threshold_commands as tc
+    from server.cli import thresholds as tc
 
     design = SimpleNamespace(mode="constant-stimuli", repeats=2, trials=None, detectable_at="low",
                              levels=lambda: {f"pps{v}": v for v in PPS_LEVELS})

@@ -19,21 +19,23 @@ from sqlalchemy.orm import Session
 
 from server import cli
 from server.app import create_app
+from server.cli.study import _study_session
 from server.clipset.build import build_clip_set
 from server.clipset.config import load_config
 from server.clipset.manifest import write_clip_set
 from server.config import Settings
 from server.db import migrate
 from server.deps import get_session
-from server.media.build import MEDIA_NAME, render_media
+from server.media.build import render_media
 from server.media.manifest import read_render_manifest
+from server.media.plan import MEDIA_NAME
 from server.media.scene import RenderSettings
 from server.participants.service import update_study
+from server.pipeline.stimuli import render_manifest_dirs
 from server.researchers.service import create_researcher
 from server.stimuli import service as stimulus_sets
 from server.studies import service
 from server.studies.design import Design
-from server.studies.pipeline import render_manifest_dirs
 from server.studies.service import clip_set_index, required_pairs
 from server.studies.studyfile import parse_study_text
 from tests.conftest import DATABASES, _fresh_engine
@@ -209,7 +211,7 @@ def test_gc_command(tmp_path, monkeypatch, capsys):
     monkeypatch.delenv("DATABASE_URL", raising=False)
     settings = Settings.from_env()
     media = write_fake_media(settings.media_dir)
-    with cli._study_session(settings) as db:
+    with _study_session(settings) as db:
         study = service.create_study(db, media, study_file(slug="kept"), media_dir=settings.media_dir)
         service.open_study(db, study, settings.media_dir)
     (settings.media_dir / "manifest.json").unlink()  # nothing but the study keeps files now
@@ -242,7 +244,7 @@ def test_study_create_builds_and_renders_the_clip_set_a_study_file_names(tmp_pat
     assert "created study 'future-work' (open" in out
     settings = Settings.from_env()
     assert not (settings.clips_dir / "manifest.json").exists()  # the server's clip set was not needed
-    with cli._study_session(settings) as db:
+    with _study_session(settings) as db:
         study = service.get_study(db, "future-work")
         content = stimulus_sets.content_of(study.stimulus_set)
         assert {(c.animation, c.condition) for c in content.clips} == {
@@ -281,7 +283,7 @@ def test_study_create_builds_conditions_given_inline(tmp_path, monkeypatch, caps
     assert cli.main(["study", "create", str(study), "--width", "96", "--height", "72", "--no-shadows"]) == 0
     out = capsys.readouterr().out
     assert "clip set given in the study file" in out and "[1/1] walk: building 2 clips" in out
-    with cli._study_session(Settings.from_env()) as db:
+    with _study_session(Settings.from_env()) as db:
         content = stimulus_sets.content_of(service.get_study(db, "inline").stimulus_set)
     assert {(c.animation, c.condition, c.method) for c in content.clips} == {
         ("walk", "keyframe", "keyframe"), ("walk", "hybrid_c2_0", "hybrid_c2")}
@@ -485,7 +487,7 @@ def test_gc_collects_the_clip_files_a_killed_build_left_and_waits_for_running_jo
     import os
 
     from server.clipset.manifest import MANIFEST, read_clip_manifest
-    from server.uploads.models import BuildJob, BuildState, JobKind
+    from server.jobs.models import BuildJob, BuildState, JobKind
 
     monkeypatch.setenv("ANIMSTUDY_VAR_DIR", str(tmp_path / "var"))
     monkeypatch.setenv("ANIMSTUDY_SECRET_KEY", "gc-clips-secret-0123456789abcdef0123")
@@ -505,13 +507,13 @@ def test_gc_collects_the_clip_files_a_killed_build_left_and_waits_for_running_jo
         f.write_bytes(some.read_bytes())
         os.utime(f, (when, when))
 
-    with cli._study_session(settings) as db:
+    with _study_session(settings) as db:
         db.add(BuildJob(kind=JobKind.render, state=BuildState.running, stage="rendering", pid=os.getpid()))
         db.commit()
     assert cli.main(["gc"]) == 2
     assert "a job is running (render job" in capsys.readouterr().err
     assert left.is_file()
-    with cli._study_session(settings) as db:
+    with _study_session(settings) as db:
         db.query(BuildJob).delete()
         db.commit()
 

@@ -13,6 +13,7 @@ from itertools import pairwise
 import pytest
 
 from server import cli
+from server.cli.serve import ensure_researcher
 from server.research.export import export_rows
 from server.researchers.service import create_researcher
 from server.studies import service
@@ -361,7 +362,7 @@ def test_study_cli(tmp_path, monkeypatch, capsys):
     settings = Settings.from_env()
     engine = make_engine(settings.sqlalchemy_url)
     migrate(engine)
-    cli.ensure_researcher(settings, session_factory(engine))
+    ensure_researcher(settings, session_factory(engine))
     assert cli.main(["researcher", "create", "--email", "boss@example.org", "--password", "0123456789ab",
                      "--admin"]) == 0
     assert cli.main(["researcher", "create", "--email", "staff@example.org", "--password", "0123456789ab"]) == 0

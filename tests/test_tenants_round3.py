@@ -28,15 +28,16 @@ from server.clipset.manifest import write_clip_set
 from server.config import Settings
 from server.db import migrate, session_factory, utcnow
 from server.errors import Conflict
+from server.jobs.models import BuildJob, BuildState, JobKind
 from server.media.build import render_media
 from server.media.manifest import read_render_manifest
+from server.pipeline import jobs as build_job
 from server.researchers.models import Researcher
 from server.researchers.service import create_researcher
 from server.studies.design import Design
 from server.studies.models import Study, StudyState
 from server.studies.service import new_draft
-from server.uploads import job as build_job
-from server.uploads.models import BuildJob, BuildState, JobKind, StudyAsset
+from server.uploads.models import StudyAsset
 from tests.conftest import DATABASES, _fresh_engine
 from tests.server_fixtures import make_study, study_file, write_fake_media
 from tests.test_pilot import preview
@@ -169,7 +170,7 @@ def test_one_researchers_build_neither_blocks_nor_is_named_to_another(db, engine
     """A's long build (study 'long2') runs: B's build is not refused for it and never reads its name (it read
     "a build is running (study 'long2')", 17 of 17 times); A's second build is refused, naming A's own; with the
     server's cap reached B is refused, naming no study."""
-    from server.uploads.service import check_build_slot
+    from server.jobs.control import check_build_slot
 
     owner_a, owner_b = (create_researcher(db, email, PASSWORD) for email in (A, B))
     long2 = make_study(db, slug="long2", state=StudyState.draft, owner=owner_a)

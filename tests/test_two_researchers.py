@@ -13,12 +13,12 @@ from sqlalchemy.orm import Session
 from server.app import create_app
 from server.config import Settings
 from server.db import migrate, session_factory
+from server.jobs.models import BuildJob
 from server.media.manifest import read_render_manifest
+from server.pipeline import jobs as build_job
 from server.researchers.service import create_researcher
 from server.studies.design import Design
 from server.studies.models import Study
-from server.uploads import job as build_job
-from server.uploads.models import BuildJob
 from tests.conftest import DATABASES, _fresh_engine
 from tests.server_fixtures import answer_all, start, study_file
 from tests.test_stimulus_sets import PASSWORD, build_and_render

@@ -14,10 +14,11 @@ from sqlalchemy import func, select
 from server.app import create_app
 from server.config import Settings
 from server.deps import get_session
+from server.jobs.control import active_jobs
+from server.jobs.models import BuildJob, BuildState
 from server.researchers.service import create_researcher
 from server.studies.models import StudyState
-from server.uploads.models import BuildJob, BuildState, StudyAsset
-from server.uploads.service import active_jobs
+from server.uploads.models import StudyAsset
 from tests.server_fixtures import RESEARCHER, make_study
 
 SECRET = "test-secret-0123456789abcdef0123456789"
@@ -270,7 +271,7 @@ def test_the_clip_set_description_of_the_assets(tmp_path):
     frames, validated as a clip-set file is."""
     from anim_core.clips.build import ConfigError
     from server.clipset.config import CharacterConfig, load_config
-    from server.uploads.job import BaseClipSet, assets_config
+    from server.pipeline.assets import BaseClipSet, assets_config
 
     shipped = load_config(Path("server/clipset/conditions16.toml"))
     conditions = [(c.id, c.method, c.params_dict()) for c in shipped.conditions]
@@ -291,8 +292,8 @@ def test_the_clip_set_description_of_the_assets(tmp_path):
 
 
 def test_an_unreadable_clip_set_stops_the_build(tmp_path):
-    from server.uploads.job import current_clip_set, merge_clips
-    from server.uploads.progress import BuildError
+    from server.jobs.progress import BuildError
+    from server.pipeline.assets import current_clip_set, merge_clips
 
     assert current_clip_set(tmp_path) is None
     (tmp_path / "manifest.json").write_text('{"version": 1, "clips": []}')

@@ -64,7 +64,7 @@ def test_changing_how_a_file_is_read_inspects_it_again(uclient, admin, draft, da
 
 def test_the_clip_set_description_reads_the_file_as_the_researcher_said(tmp_path):
     from server.clipset.config import CharacterConfig
-    from server.uploads.job import BaseClipSet, assets_config
+    from server.pipeline.assets import BaseClipSet, assets_config
 
     options = {"units": "cm", "up_axis": "z", "mapping": {"LeftLeg": "StickLeg"}}
     asset = StudyAsset(id=1, name="stick", filename="stick.bvh", kind="idle", first_frame=0, last_frame=9,

@@ -9,7 +9,7 @@ from server.deps import SettingsDep
 from server.errors import NotFound
 from server.files import ContentFileResponse
 
-from .build import MEDIA_NAME
+from .plan import MEDIA_NAME
 
 router = APIRouter(tags=["media"])
 # A name is the hash of the content, so a URL never changes meaning: cache it for a year.

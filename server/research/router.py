@@ -12,19 +12,22 @@ from sqlalchemy.orm import Session
 
 from server.deps import SessionDep, SettingsDep
 from server.errors import Conflict, Unprocessable
+from server.jobs.control import job_json
+from server.jobs.progress import scrub
 from server.media.manifest import ManifestError, RenderManifest, read_render_manifest
 from server.participants import service as participants
+from server.pipeline import stimuli as pipeline
+from server.pipeline.jobs import create_building
 from server.researchers.deps import ResearcherDep
 from server.researchers.models import Researcher
-from server.studies import pilot, pipeline, service
+from server.studies import pilot, service
 from server.studies.columns import data_dictionary_markdown
 from server.studies.models import StudyState
 from server.studies.page import Page
 from server.studies.scale import public as public_scale
 from server.studies.schemas import ExportJson, StudyPublic, StudyStateRead, StudySummary
 from server.studies.studyfile import StudyFile, StudyFileError, parse_study_text
-from server.uploads.progress import scrub
-from server.uploads.service import create_building, job_json, study_clips, usable_animations
+from server.uploads.service import study_clips, usable_animations
 
 from . import export
 from .results import study_results

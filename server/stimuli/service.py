@@ -25,8 +25,8 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from server.clipset.manifest import ManifestError, read_clip_manifest
-from server.media.build import MEDIA_NAME
 from server.media.manifest import RenderManifest, read_render_manifest
+from server.media.plan import MEDIA_NAME
 
 from .models import StimulusSet
 

@@ -32,8 +32,8 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from server.errors import Conflict, Unprocessable
-from server.media.build import DIVIDER_PX, MEDIA_NAME
 from server.media.manifest import RenderedClip, RenderedPair, RenderManifest
+from server.media.plan import DIVIDER_PX, MEDIA_NAME
 from server.researchers.models import Researcher
 from server.stimuli.service import SetContent, content_digest, content_of, file_sha256, missing
 

@@ -14,8 +14,9 @@ from sqlalchemy.orm import Session, aliased, object_session
 from server.config import Settings
 from server.db import utcnow
 from server.errors import Conflict, NotFound, Unprocessable
-from server.media.build import identical_clips, read_clip_set, rendered_pairs
+from server.media.build import rendered_pairs
 from server.media.manifest import RenderManifest
+from server.media.plan import identical_clips, read_clip_set
 from server.researchers.models import Researcher
 from server.stimuli import service as stimulus_sets
 

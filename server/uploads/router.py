@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from server.deps import SessionDep, SettingsDep
 from server.errors import PayloadTooLarge, Unprocessable
+from server.jobs.control import job_json, latest_job
 from server.researchers.deps import ResearcherDep
 from server.security import StreamedRoute
 from server.studies.service import managed_study
@@ -115,7 +116,7 @@ def list_assets(slug: str, session: SessionDep, researcher: ResearcherDep) -> di
 
     study = managed_study(session, slug, researcher)
     return {"assets": [service.asset_json(a) for a in service.list_assets(session, study)],
-            "build": service.job_json(service.latest_job(session, study)), "kinds": list(KINDS)}
+            "build": job_json(latest_job(session, study)), "kinds": list(KINDS)}
 
 
 @router.patch("/studies/{slug}/assets/{name}")
@@ -181,19 +182,3 @@ def unshare(slug: str, name: str, email: str, session: SessionDep, settings: Set
     """Stop sharing it with that researcher (their studies keep what they pinned)."""
     study = managed_study(session, slug, researcher)
     return {"animation": name, "shared_with": service.unshare_animation(session, settings, study, name, email)}
-
-
-@router.post("/studies/{slug}/assets/build", status_code=status.HTTP_202_ACCEPTED)
-def start_build(slug: str, request: Request, session: SessionDep, settings: SettingsDep,
-                researcher: ResearcherDep) -> dict[str, Any]:
-    """Start building the clips of the study's assets, rendering their videos and adding their animations to
-    the study's design, in the background; poll ``GET .../assets/build`` for its progress."""
-    study = service.draft_study(session, slug, researcher)
-    return service.job_json(service.start_build(session, settings, request.app.state.engine, study)) or {}
-
-
-@router.get("/studies/{slug}/assets/build")
-def read_build(slug: str, session: SessionDep, researcher: ResearcherDep) -> dict[str, Any] | None:
-    """The latest build job of the study: ``state`` (queued, running, done, failed), ``stage``, ``done`` of
-    ``total`` steps of the stage, ``message``, ``error``; null if it never had one."""
-    return service.job_json(service.latest_job(session, managed_study(session, slug, researcher)))

@@ -1,6 +1,7 @@
 """A draft study's assets: motion files uploaded by its researcher, validated by inspecting them
-(:func:`anim_core.clips.sources.inspect_source`) before anything is stored, listed, changed and deleted; and starting
-and reading the build job (:mod:`server.uploads.job`) that turns them into clips and videos.
+(:func:`anim_core.clips.sources.inspect_source`) before anything is stored, listed, changed and deleted; who may use
+the animations built from them; and the ``[clips]`` a study was created with through the API, stored beside them.
+The build job that turns them into clips and videos is :func:`server.pipeline.jobs.build_job`.
 
 Files live in ``<assets dir>/<study id>/<filename>`` (``Settings.assets_dir``); an upload is streamed into its own
 folder under ``<assets dir>/.incoming/`` (the same file system), inspected there, and only then linked into place
@@ -13,28 +14,25 @@ import hashlib
 import os
 import re
 import shutil
-import subprocess
-import sys
-import threading
 import time
 import uuid
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import Engine, select, update
+from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from server.clipset.config import NAME
 from server.config import Settings
-from server.db import utcnow
 from server.errors import Conflict, NotFound, Unprocessable
+from server.jobs.control import check_not_building
 from server.researchers.models import Researcher
 from server.studies.models import Study, StudyState
 from server.studies.service import managed_study
-from server.studies.studyfile import Clips, StudyFile
+from server.studies.studyfile import Clips
 
-from .models import AnimationShare, BuildJob, BuildState, JobKind, StudyAsset
+from .models import AnimationShare, StudyAsset
 
 #: What an upload may be: a motion file :func:`~anim_core.clips.sources.inspect_source` reads.  No ``.bvh.gz``: a
 #: compressed file could unpack to far more than the size limit allows.
@@ -49,7 +47,6 @@ MEMORY_BASE = 200_000_000
 BYTES_PER_FRAME_JOINT = 300
 INCOMING = ".incoming"
 STALE_INCOMING_S = 24 * 3600
-ACTIVE = (BuildState.queued, BuildState.running)
 
 
 def check_filename(filename: str) -> str:
@@ -381,130 +378,6 @@ def shared_with(session: Session, study: Study, name: str) -> list[str]:
         AnimationShare.study_id == study.id, AnimationShare.animation == name).order_by(Researcher.email)))
 
 
-# --- the build job --------------------------------------------------------------------------------------------
-
-def _alive(pid: int | None) -> bool:
-    if pid is None:
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # exists, another user's
-        return True
-    return True
-
-
-LOST = "the build process ended unexpectedly (killed, or the server restarted)"
-
-
-def lost(job: BuildJob) -> bool:
-    """Does the job say it is queued or running while its process is gone?  The process runs on this machine
-    (the job's ``pid``)."""
-    return job.state in ACTIVE and job.pid is not None and not _alive(job.pid)
-
-
-def running_jobs(session: Session) -> list[BuildJob]:
-    """The jobs of every kind that are queued or running and whose process is alive (changes nothing)."""
-    return [j for j in session.scalars(select(BuildJob).where(BuildJob.state.in_(list(ACTIVE)))
-                                       .order_by(BuildJob.id)).all() if not lost(j)]
-
-
-def active_jobs(session: Session) -> list[BuildJob]:
-    """The upload jobs queued or running (of any study); lost ones are marked failed on the way (``animstudy
-    serve`` resumes the ones still marked active when it starts: :func:`resume_lost_jobs`)."""
-    active = []
-    for job in session.scalars(select(BuildJob).where(BuildJob.state.in_(list(ACTIVE)),
-                                                      BuildJob.kind == JobKind.upload)).all():
-        if lost(job):
-            job.state, job.error, job.finished_at = BuildState.failed, LOST, utcnow()
-            session.commit()
-        else:
-            active.append(job)
-    return active
-
-
-def check_not_building(session: Session, study: Study) -> None:
-    if any(j.study_id == study.id for j in active_jobs(session)):
-        raise Conflict(f"the assets of study {study.slug!r} are being built; wait until the build has finished")
-
-
-def latest_job(session: Session, study: Study) -> BuildJob | None:
-    """The study's latest upload job (what its dashboard shows)."""
-    return session.scalar(select(BuildJob).where(BuildJob.study_id == study.id, BuildJob.kind == JobKind.upload)
-                          .order_by(BuildJob.id.desc()).limit(1))
-
-
-def job_environment(settings: Settings, engine: Engine) -> dict[str, str]:
-    """The environment of the job's process: the server's settings and its database (the engine's URL, which
-    is the settings' unless the app was given another engine)."""
-    env = {**os.environ, "ANIMSTUDY_DATA_DIR": str(settings.data), "ANIMSTUDY_VAR_DIR": str(settings.var),
-           "DATABASE_URL": engine.url.render_as_string(hide_password=False)}
-    env.pop("ANIMSTUDY_DATABASE_URL", None)
-    env["ANIMSTUDY_BUILD_MEMORY_MB"] = str(settings.build_memory_mb)
-    if settings.secret_key:
-        env["ANIMSTUDY_SECRET_KEY"] = settings.secret_key
-    return env
-
-
-def check_build_slot(session: Session, settings: Settings, owner_id: int | None) -> None:
-    """409 while the researcher ``owner_id`` has a build running (one at a time each, naming their own study),
-    or while the server runs ``ANIMSTUDY_BUILDS_MAX`` builds (naming none: they may be other researchers').
-    Builds into one clip set take turns in the job (:func:`server.uploads.job.run`), so one researcher's long
-    build never refuses another's."""
-    running = active_jobs(session)
-    studies = {s.id: s for s in session.scalars(select(Study).where(Study.id.in_([j.study_id for j in running])))}
-    own = [studies[j.study_id] for j in running if j.study_id in studies and studies[j.study_id].owner_id == owner_id]
-    if own:
-        raise Conflict(f"your build of study {own[0].slug!r} is running; wait until it has finished")
-    if len(running) >= settings.builds_max:
-        raise Conflict(f"the server is running as many builds as it allows ({settings.builds_max}); try again in "
-                       "a few minutes")
-
-
-def start_build(session: Session, settings: Settings, engine: Engine, study: Study) -> BuildJob:
-    """Queue the build of the study's assets (or of the ``[clips]`` it was created with, :func:`study_clips`)
-    and start its process (``python -m server.uploads.job ID``); 409 if the study has nothing to build or a build
-    is running (:func:`check_build_slot`)."""
-    if not list_assets(session, study) and not study_clips_path(settings, study.id).is_file():
-        raise Conflict(f"study {study.slug!r} has no assets to build; upload a BVH or glTF file first")
-    check_build_slot(session, settings, study.owner_id)
-    return _launch(session, settings, engine, study)
-
-
-def _launch(session: Session, settings: Settings, engine: Engine, study: Study) -> BuildJob:
-    job = BuildJob(study_id=study.id, state=BuildState.queued, stage="queued", message="starting")
-    session.add(job)
-    session.commit()
-    return start_job(session, settings, engine, job, "w")
-
-
-def job_log(settings: Settings, job: BuildJob) -> Path:
-    """Where the job's process writes its output: beside the study's assets for an upload job."""
-    if job.kind == JobKind.upload and job.study_id is not None:
-        return settings.study_assets_dir(job.study_id) / "build.log"
-    return settings.var / "jobs" / f"{job.id}.log"
-
-
-def start_job(session: Session, settings: Settings, engine: Engine, job: BuildJob, mode: str = "a") -> BuildJob:
-    """Start the process of the queued ``job`` (``python -m server.uploads.job ID``) and record its pid."""
-    log_path = job_log(settings, job)
-    log_path.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        with log_path.open(mode, encoding="utf-8") as log:
-            proc = subprocess.Popen([sys.executable, "-m", "server.uploads.job", str(job.id)],
-                                    env=job_environment(settings, engine), stdout=log, stderr=subprocess.STDOUT,
-                                    stdin=subprocess.DEVNULL, start_new_session=True)
-    except OSError as exc:
-        job.state, job.error, job.finished_at = BuildState.failed, f"cannot start the build: {exc}", utcnow()
-        session.commit()
-        return job
-    threading.Thread(target=proc.wait, daemon=True).start()  # reap it when it ends (no zombie)
-    job.pid = proc.pid
-    session.commit()
-    return job
-
-
 # --- a study file's [clips], built by the job -----------------------------------------------------------------
 
 #: Beside a study's uploads: the ``[clips]`` of the study file it was created with through the API, its clip set
@@ -550,83 +423,6 @@ def check_data_file(settings: Settings, name: str | None, where: str) -> None:
         resolve(settings.data, name)
     except AssetError:
         raise Unprocessable(f"{where}: the server's data directory has no file {name!r}") from None
-
-
-def create_building(session: Session, settings: Settings, engine: Engine, study_file: StudyFile,
-                    owner: Researcher) -> tuple[Study, BuildJob]:
-    """A draft study from a study file with inline ``[clips]`` and the build job that builds and renders its
-    clips and then makes its comparisons (poll it as any build job).  What can be checked now is, as 422 naming
-    the field: the clip set given inline (the motions must be files of the data directory), the design against
-    it; 409 if a build is running or the slug is taken.  Nothing is created then."""
-    from anim_core.clips.build import ConfigError
-    from server.clipset.config import inline_config
-    from server.studies import pipeline
-    from server.studies.service import new_draft
-
-    clips = study_file.clips
-    if clips is None:
-        raise ValueError("create_building is for a study file with [clips]")
-    if clips.set is not None:
-        raise Unprocessable("clips.set: a clip-set file names files on the server; through the API give the "
-                            "clip set inline ([[clips.conditions]] and/or [clips.animations.<name>], motions from "
-                            "the server's data directory), or run `animstudy study create FILE` on the server")
-    check_build_slot(session, settings, owner.id)
-    try:
-        config = inline_config(clips.animations, clips.conditions, "the study file")
-    except ConfigError as exc:
-        raise Unprocessable(str(exc)) from None
-    for name, animation in (clips.animations or {}).items():
-        check_data_file(settings, animation.get("source"), f"clips.animations.{name}.source")
-        check_data_file(settings, animation.get("mapping"), f"clips.animations.{name}.mapping")
-    pipeline.check_design(config, study_file.design)
-    study = new_draft(session, study_file, owner)
-    session.add(study)
-    session.flush()  # its id names the folder of its [clips]
-    path = study_clips_path(settings, study.id)
-    try:  # the study and its [clips], both or neither
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp")
-        tmp.write_text(clips.model_dump_json(exclude_none=True), encoding="utf-8")
-        tmp.replace(path)
-        session.commit()
-    except BaseException:
-        session.rollback()
-        path.unlink(missing_ok=True)
-        raise
-    return study, _launch(session, settings, engine, study)
-
-
-def resume_lost_jobs(session: Session, settings: Settings, engine: Engine) -> list[BuildJob]:
-    """Start again every job that says it is queued or running while its process is gone (the server, the
-    command or the machine stopped mid-job); each runs from the start and renders only the videos still missing
-    (their names say what they show).  A job is claimed by an update on the pid it had, so two instances
-    starting together resume it once.  Called by ``animstudy serve`` at start-up."""
-    resumed = []
-    for job in session.scalars(select(BuildJob).where(BuildJob.state.in_(list(ACTIVE)))
-                               .order_by(BuildJob.id)).all():
-        if not lost(job):
-            continue
-        claimed = session.execute(
-            update(BuildJob).where(BuildJob.id == job.id, BuildJob.pid == job.pid,
-                                   BuildJob.state.in_(list(ACTIVE)))
-            .values(state=BuildState.queued, pid=None, message="resumed: its process had ended",
-                    updated_at=utcnow())).rowcount
-        session.commit()
-        if claimed:
-            session.refresh(job)
-            resumed.append(start_job(session, settings, engine, job))
-    return resumed
-
-
-def job_json(job: BuildJob | None) -> dict[str, Any] | None:
-    """The job as the API serves it (a lost job as failed: reads do not write)."""
-    if job is None:
-        return None
-    gone = lost(job)
-    return {"id": job.id, "state": BuildState.failed if gone else job.state, "stage": job.stage, "done": job.done,
-            "total": job.total, "message": job.message, "error": LOST if gone else job.error,
-            "created_at": job.created_at.isoformat(),
-            "finished_at": job.finished_at.isoformat() if job.finished_at else None}
 
 
 def asset_json(asset: StudyAsset) -> dict[str, Any]:

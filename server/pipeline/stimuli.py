@@ -1,4 +1,8 @@
-"""From a clip-set description to a study's stimuli, in one way: build → pairs → render → pin.
+"""From a clip-set description to a study's stimuli, in one way: build → size → pairs → render → pin.  Every entry
+point goes through :func:`make_stimuli` (``animstudy study create``, ``render`` and the default study of ``serve``
+in :mod:`server.pipeline.commands`; the build of uploads and of an API study's inline ``[clips]`` in
+:mod:`server.pipeline.jobs`), so the way from a study's settings to its videos crosses to Dask once
+(:func:`server.media.build.render_media`).
 
 - **build** (:func:`build`): the clips a design needs that the clip set lacks, from a typed
   :class:`~server.clipset.config.ClipSetConfig`; the character is loaded and verified once per build; the clips
@@ -25,7 +29,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,8 +41,9 @@ from server.clipset.config import DEFAULT_CONFIG, ClipSetConfig, inline_config, 
 from server.clipset.manifest import MANIFEST, ManifestError, merge_clip_set, read_clip_manifest
 from server.config import Settings
 from server.errors import Unprocessable
-from server.media.build import rendered_pairs, rendered_settings
+from server.media.build import rendered_pairs
 from server.media.manifest import RenderManifest, read_render_manifest
+from server.media.plan import rendered_settings
 from server.media.scene import RenderSettings
 from server.studies.design import Design
 from server.studies.studyfile import Clips, StudyFile
@@ -55,6 +60,13 @@ class Place:
     clips_dir: Path
     render_dir: Path
     config: ClipSetConfig | None = None  # None: the server's clip set (built from the default file if missing)
+    media_dir: Path | None = None  # where the videos go; None: the server's media directory
+    #: The pairs its render manifest lists already are kept (adding a study removes nothing); False for a
+    #: command's own output folder (``animstudy render --out``), whose manifest lists what was asked for.
+    keep_rendered: bool = True
+
+    def videos(self, settings: Settings) -> Path:
+        return self.media_dir or settings.media_dir
 
 
 def server_place(settings: Settings) -> Place:
@@ -167,14 +179,31 @@ def build(data_dir: Path, config: ClipSetConfig, clips_dir: Path, design: Design
 def pairs(session: Session, place: Place, design: Design, media_dir: Path) -> list[tuple[str, str]]:
     """The pair videos to have: the design's, and the ones this clip set's render manifest has already (so that
     adding a study removes nothing from it); for the server's clip set every study's too."""
-    from server.studies.service import clip_set_index, pairs_to_render, required_pairs
+    return study_pairs(session, place, {"": design}, media_dir)
 
-    if place.config is None:
-        return pairs_to_render(session, design, place.clips_dir, media_dir)
+
+def study_pairs(session: Session, place: Place, designs: Mapping[str, Design],
+                media_dir: Path) -> list[tuple[str, str]]:
+    """:func:`pairs` of several designs (``where`` -> design: a 422 of a design names its ``where``, if any)."""
+    from server.studies.service import clip_set_index, pairs_in_use, pairs_to_render, required_pairs
+
     index = clip_set_index(place.clips_dir)
+    needed = []
+    for where, design in designs.items():
+        try:
+            if place.config is None and place.keep_rendered:
+                needed += pairs_to_render(session, design, place.clips_dir, media_dir)
+            else:
+                needed += required_pairs(design, index)
+        except Unprocessable as exc:
+            raise Unprocessable(f"{where}: {exc.detail}" if where else exc.detail) from None
     ids = set(index.values())
+    if place.config is None and not place.keep_rendered:  # every study's pairs too, for new studies made over it
+        return list(dict.fromkeys([*needed, *pairs_in_use(session, ids)]))
+    if place.config is None:
+        return list(dict.fromkeys(needed))
     before = [p for p in rendered_pairs(place.render_dir) if set(p) <= ids]
-    return list(dict.fromkeys([*before, *required_pairs(design, index)]))
+    return list(dict.fromkeys([*before, *needed]))
 
 
 def render(settings: Settings, place: Place, wanted: list[tuple[str, str]], render_settings: RenderSettings,
@@ -185,39 +214,62 @@ def render(settings: Settings, place: Place, wanted: list[tuple[str, str]], rend
     :func:`server.media.build.render_media`."""
     from server.media.build import render_media
 
-    render_media(settings.data, place.clips_dir, settings.media_dir, settings.secret, render_settings,
+    render_media(settings.data, place.clips_dir, place.videos(settings), settings.secret, render_settings,
                  pairs=wanted, workers=workers, every_clip=every_clip, progress=progress,
                  manifest_dir=place.render_dir, scheduler=settings.dask_scheduler, videos_done=videos_done)
     return read_render_manifest(place.render_dir)
+
+
+def build_missing(settings: Settings, place: Place, designs: Mapping[str, Design],
+                  progress: Progress = lambda _m: None, workers: int = 1) -> int:
+    """Build what the clip set of ``place`` lacks: the server's whole (from the default clip-set file) when it has
+    no manifest; for a described clip set the clips ``designs`` need (:func:`build`).  Returns how many clips
+    were built."""
+    from server.clipset.build import build_clip_set
+    from server.clipset.manifest import write_clip_set
+
+    if place.config is None:
+        if (place.clips_dir / MANIFEST).is_file():
+            return 0
+        progress(f"building the server's clip set in {place.clips_dir}")
+        clips = build_clip_set(settings.data, progress=progress, scheduler=settings.dask_scheduler, workers=workers)
+        write_clip_set(clips, place.clips_dir)
+        return len(clips)
+    return sum(build(settings.data, place.config, place.clips_dir, design, progress, settings.dask_scheduler,
+                     workers) for design in designs.values())
+
+
+def make_stimuli(settings: Settings, session: Session, place: Place, designs: Mapping[str, Design],
+                 size: RenderSettings | None = None, progress: Progress = lambda _m: None, workers: int = 2,
+                 every_clip: bool = False, videos_done: Callable[[int, int], None] = lambda _d, _t: None,
+                 built: Callable[[int], None] = lambda _n: None) -> RenderManifest:
+    """The one way from a clip set to the videos of ``designs`` (``where`` -> design, :func:`study_pairs`):
+    build what is missing (:func:`build_missing`; ``built(n)`` after), pick the video size (``size``, else the
+    size and shadows of the videos there already, so that a study's videos look alike), compute the pairs
+    (:func:`study_pairs`) and render what is missing (:func:`render`); returns the render manifest of ``place``
+    to pin a study over (:func:`server.studies.service.create_study`, ``show_design``, ``update_study``)."""
+    built(build_missing(settings, place, designs, progress, workers))
+    before = place.render_dir if (place.render_dir / MANIFEST).is_file() else place.videos(settings)
+    chosen = size or rendered_settings(before)
+    wanted = study_pairs(session, place, designs, place.videos(settings))
+    session.commit()  # no transaction held while rendering: a job's progress is written meanwhile (SQLite locks)
+    return render(settings, place, wanted, chosen, progress, workers, every_clip, videos_done)
 
 
 def prepare(settings: Settings, session: Session, study_file: StudyFile, study_path: Path | None = None,
             render_settings: RenderSettings | None = None, progress: Progress = lambda _m: None,
             workers: int = 2, videos_done: Callable[[int, int], None] = lambda _d, _t: None,
             owner_id: int | None = None) -> tuple[RenderManifest, Place]:
-    """Build and render what ``study_file`` needs that is missing; returns the render manifest to create it over
-    and the place of its clip set (pass ``place.clips_dir`` to ``create_study``); ``owner_id``: the study's
-    owner (whose inline ``[clips]`` they are)."""
-    from server.clipset.build import build_clip_set
-    from server.clipset.manifest import write_clip_set
-
+    """Build and render what ``study_file`` needs that is missing (:func:`make_stimuli`); returns the render
+    manifest to create it over and the place of its clip set (pass ``place.clips_dir`` to ``create_study``);
+    ``owner_id``: the study's owner (whose inline ``[clips]`` they are)."""
     place = study_place(settings, study_file, study_path, owner_id)
-    if place.config is None:
-        if not (place.clips_dir / MANIFEST).is_file():
-            progress(f"building the server's clip set in {place.clips_dir}")
-            write_clip_set(build_clip_set(settings.data, progress=progress, scheduler=settings.dask_scheduler,
-                                          workers=workers), place.clips_dir)
-    else:
+    if place.config is not None:
         what = study_file.clips.set if study_file.clips and study_file.clips.set else "given in the study file"
         progress(f"clip set {what} -> {place.clips_dir}")
-        build(settings.data, place.config, place.clips_dir, study_file.design, progress, settings.dask_scheduler,
-              workers)
-    # The size and shadows of the videos there already, so that a study's videos look alike.
-    before = place.render_dir if (place.render_dir / MANIFEST).is_file() else settings.media_dir
-    chosen = render_settings or rendered_settings(before)
-    wanted = pairs(session, place, study_file.design, settings.media_dir)
-    session.commit()  # no transaction held while rendering: a job's progress is written meanwhile (SQLite locks)
-    return render(settings, place, wanted, chosen, progress, workers, videos_done=videos_done), place
+    media = make_stimuli(settings, session, place, {"": study_file.design}, render_settings, progress, workers,
+                         videos_done=videos_done)
+    return media, place
 
 
 def clip_set_dirs(settings: Settings) -> list[Path]:

@@ -1,5 +1,5 @@
-"""A job's progress and outcome as its row of ``build_jobs`` holds them, shared by every kind of job (an upload's
-build, :mod:`server.uploads.job`; the commands' jobs, :mod:`server.uploads.commands`)."""
+"""A job's progress and outcome as its row of ``build_jobs`` holds them, shared by every kind of job
+(:data:`server.pipeline.jobs.KINDS`)."""
 
 from __future__ import annotations
 
