@@ -169,7 +169,7 @@
     paragraphs($("instructions-text"), study.texts.instructions);
     paragraphs($("thanks-text"), study.texts.thanks);
     $("scale-question").textContent = study.scale.question;
-    document.querySelectorAll("#vote-form .choice-label").forEach((el, i) => { el.textContent = study.scale.labels[i]; });
+    buildAnswers(study.scale);
     buildQuestions(study.questions);
     checkGate();
     if (creds) { await resume(); return; }
@@ -177,6 +177,31 @@
       message(t("closed_title"), t("closed_text")); return;
     }
     show("info");
+  }
+
+  // The answers of the study's format, in the order of its ids (served by the API: the page spells none), each
+  // a radio button with its key (1..n) and the study's label.  Two-sided answers (2AFC) keep left on the left and
+  // side by side on every screen and in right-to-left languages: they name sides of the video.
+  function buildAnswers(scale) {
+    const set = $("vote-form").querySelector("fieldset");
+    set.querySelectorAll("label").forEach((el) => el.remove());
+    set.dataset.format = scale.format;
+    set.style.setProperty("--answers", String(scale.choices.length));
+    scale.choices.forEach((id, i) => {
+      const label = document.createElement("label");
+      const input = document.createElement("input");
+      input.type = "radio";
+      input.name = "choice";
+      input.value = id;
+      const key = document.createElement("kbd");
+      key.textContent = String(i + 1);
+      const text = document.createElement("span");
+      text.className = "choice-label";
+      text.dir = "auto";
+      text.textContent = scale.labels[i];
+      label.append(input, key, " ", text);
+      set.append(label);
+    });
   }
 
   // The study's questions, one fieldset each: radio buttons for a choice (valued by the choice id) or a Likert
@@ -507,8 +532,9 @@
 
   document.addEventListener("keydown", (e) => {
     if ($("page-trial").hidden || gated || e.altKey || e.ctrlKey || e.metaKey) return;
-    if (e.key >= "1" && e.key <= "5") {
-      const input = $("vote-form").querySelectorAll("input[name=choice]")[Number(e.key) - 1];
+    const inputs = $("vote-form").querySelectorAll("input[name=choice]");
+    if (e.key >= "1" && e.key <= "9" && Number(e.key) <= inputs.length) {
+      const input = inputs[Number(e.key) - 1];
       input.checked = true;
       input.focus({ preventScroll: true });
       updateSubmit();

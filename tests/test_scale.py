@@ -17,9 +17,16 @@ def test_the_results_give_the_scale(client, study, researcher_headers):
         "choice_scores": {"left_much": 2, "left_slightly": 1, "equal": 0, "right_slightly": -1, "right_much": -2}}
 
 
-def test_the_participant_form_sends_the_scale_ids_in_order():
-    html = (STATIC / "participant.html").read_text(encoding="utf-8")
-    assert tuple(re.findall(r'name="choice" value="([a-z_]+)"', html)) == scale.CHOICES
+def test_the_participant_page_spells_no_answer_id():
+    """The answers are built from the ids the API serves (``scale.choices``, issue 37), in their order."""
+    for name in ("participant.html", "participant.js"):
+        text = (STATIC / name).read_text(encoding="utf-8")
+        spelled = [c for c in scale.ALL_CHOICES if c not in ("left", "right")  # also plain words of the page
+                   and re.search(rf'["\'`]{c}["\'`]', text)]
+        assert not spelled, f"{name} spells the answer ids {spelled}"
+        assert 'value="left_much"' not in text
+    js = (STATIC / "participant.js").read_text(encoding="utf-8")
+    assert "scale.choices.forEach" in js
 
 
 def test_the_dashboard_takes_its_score_bounds_from_the_api():

@@ -382,8 +382,8 @@ def test_study_cli(tmp_path, monkeypatch, capsys):
     assert cli.main(["study", "export", "thesis", "--format", "csv", "--out", str(out)]) == 0
     assert out.read_text().splitlines()[0].startswith("session_id,trial_index,practice,catch,animation")
     assert cli.main(["study", "export", "thesis", "--format", "json"]) == 0
-    assert json.loads(capsys.readouterr().out)["columns"][-22:] == [
+    assert json.loads(capsys.readouterr().out)["columns"][-26:] == [
         "answered_at", "consent_version", "session_state", "outcome", "viewport_width", "viewport_height",
         "device_pixel_ratio", "video_scale", "video_scaled", "unfaithful", "left_video", "right_video", "pair_video",
-        "stimulus_set", "design_mode", "left_condition", "right_condition", "screened_by", "pilot", "PROLIFIC_PID",
-        "STUDY_ID", "SESSION_ID"]
+        "stimulus_set", "design_mode", "left_condition", "right_condition", "screened_by", "pilot", "answer_format",
+        "ladder", "level", "correct", "PROLIFIC_PID", "STUDY_ID", "SESSION_ID"]

@@ -186,7 +186,7 @@ def build_animation(source: Source, fps: int, conditions: Sequence[Condition],
                                pose.rotations, pose.root_translation,
                                *source.character.skeleton.forward_kinematics(*pose), ladder=condition.ladder,
                                level=condition.level, render=condition.render_settings()))
-    placed = _place_on_floor(built)
+    placed = place_on_floor(built)
     if cfg.playback == "loop" and not cfg.in_place:
         # A loop that travels is measured as an in-place one over ground moving under it, as in_place clips are:
         # one period's world positions wrap back by the period's travel, which playback (travel added each cycle)
@@ -372,7 +372,7 @@ def _mirrored_half(cfg: AnimationConfig, clip: BuiltClip) -> tuple[NDArray[np.in
     return frames[frames < half], half
 
 
-def _place_on_floor(clips: list[BuiltClip]) -> list[BuiltClip]:
+def place_on_floor(clips: list[BuiltClip]) -> list[BuiltClip]:
     """Shift every clip of an animation by the same amount so the keyframe clip's planted feet are at y = 0 and
     its root is centred horizontally."""
     keyframe = clips[0]

@@ -33,9 +33,11 @@ from ..methods.conditions import Condition
 from ..methods.transitions import CompositeError, joint_mask
 from ..rig.character import UP
 from . import metrics
-from .build import ConfigError, Source, _place_on_floor, _reference, _source_skate
+from .build import place_on_floor
+from .entry import ConfigError, Source
 from .measure import clip_feet, measure
 from .record import BuiltClip
+from .reference import reference_animation, source_skate
 
 Array = NDArray[np.float64]
 WINDOW_BEFORE_S = 0.25
@@ -144,7 +146,7 @@ def build_composite(spec: CompositeSpec, sources: Mapping[str, Source], fps: int
                     progress: Callable[[str], None] = lambda _msg: None) -> list[BuiltClip]:
     """One clip per condition that applies to the composite's form (the reference first), measured."""
     where = f"[animations.{spec.name}]"
-    refs = {name: _reference(sources[name], fps) for name in spec.takes}
+    refs = {name: reference_animation(sources[name], fps) for name in spec.takes}
     first = spec.segments[0][0] if spec.form == "sequence" else spec.base
     assert first is not None
     source = sources[first]
@@ -164,7 +166,7 @@ def build_composite(spec: CompositeSpec, sources: Mapping[str, Source], fps: int
         animation = LayeredAnimation(spec.name, refs[first][0], tuple(layers), fps)
     applying = [c for c in conditions if c.applies(spec.form)]
     ordered = [*(c for c in applying if c.is_reference), *(c for c in applying if not c.is_reference)]
-    source_skate = max(_source_skate(sources[n], sources[n].time_of(sources[n].config.frames[0]),
+    skate = max(source_skate(sources[n], sources[n].time_of(sources[n].config.frames[0]),
                                      sources[n].time_of(sources[n].config.frames[1]), fps) for n in spec.takes)
     built: list[BuiltClip] = []
     for condition in ordered:
@@ -184,11 +186,11 @@ def build_composite(spec: CompositeSpec, sources: Mapping[str, Source], fps: int
                                 **({"sequence": [[n, s] for n, s in spec.segments]} if spec.segments else {})},
                                source.character, pose.rotations, pose.root_translation,
                                *source.character.skeleton.forward_kinematics(*pose)))
-    placed = _place_on_floor(built)
+    placed = place_on_floor(built)
     if spec.form == "layered":  # plays as its base does (in place: a treadmill at the base's speed)
         base = placed[0].clip
         ground = np.asarray(base.velocity) if base.in_place else np.zeros(3)
-        return measure(placed, ground, "other", source_skate)
+        return measure(placed, ground, "other", skate)
     # A composite's speed changes along it: measured on its frames as they are, against a still ground.
     # The periodic metrics (seam, jerk, phase) on one period with the loop's travel spread over it, as a take's
     # travelling loop is measured; the feet then in world space on the frames as they are.
@@ -198,14 +200,14 @@ def build_composite(spec: CompositeSpec, sources: Mapping[str, Source], fps: int
         views.append(replace(c, root_positions=c.root_positions - shift,
                              world_positions=c.world_positions - shift[:, None]))
     measured = [replace(c, metrics=v.metrics) for c, v in
-                zip(placed, measure(views, np.zeros(3), "other", source_skate), strict=True)]
+                zip(placed, measure(views, np.zeros(3), "other", skate), strict=True)]
     out = []
     for c in measured:
         m = dict(c.metrics)
         feet, contact = clip_feet(c)
         m.update(metrics.foot_metrics(c.world_positions[:, feet], contact, fps, periodic=False))
         m["foot_skate_ratio"] = contacts.foot_skate_ratio(c.world_positions[:, feet], fps, UP, periodic=False)
-        m.update(transition_metrics(c, source_skate))
+        m.update(transition_metrics(c, skate))
         out.append(_shown_in_place(replace(c, metrics=m)))
     return out
 

@@ -26,7 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..math.clip import PLAYBACK_MODES, KeyframeClip
 from ..math.skeleton import Skeleton
 from .crowd import keyframe_root, numba, uniform
-from .kinds import _skeleton_arrays
+from .kinds import skeleton_arrays
 
 F32 = NDArray[np.float32]
 Array = NDArray[np.float64]
@@ -256,6 +256,6 @@ def local_to_model(skeleton: Skeleton, pose: LocalPose, out_rotations: F32, out_
         raise ValueError("local rotations must be an (N, J, 4) array")
     n = pose.rotations.shape[0]
     _local_to_model_kernel(_buffer("local rotations", pose.rotations, (n, j, 4)), _buffer("root", pose.root, (n, 3)),
-                           *_skeleton_arrays(skeleton),
+                           *skeleton_arrays(skeleton),
                            _output("output rotations", out_rotations, (n, j, 4)),
                            _output("output positions", out_positions, (n, j, 3)))

@@ -120,7 +120,7 @@ class _Runtime:
             raise RuntimeError("the keys runtime needs numba")
         t, out, active = check_inputs(self.skeleton, t, out, active, first, stride)
         kernel = self._kernels()[1 if parallel else 0]
-        kernel(*self.arrays().values(), t, *_skeleton_arrays(self.skeleton), active, first, stride, out.rotations,
+        kernel(*self.arrays().values(), t, *skeleton_arrays(self.skeleton), active, first, stride, out.rotations,
                out.positions)
         return out
 
@@ -129,7 +129,7 @@ class _Runtime:
 
 
 @lru_cache(maxsize=64)
-def _skeleton_arrays(skeleton: Skeleton) -> tuple[NDArray[np.int64], F32]:
+def skeleton_arrays(skeleton: Skeleton) -> tuple[NDArray[np.int64], F32]:
     """Parents and offsets as the kernels take them (per skeleton, shared by all its clips)."""
     return skeleton.parents.astype(np.int64), skeleton.offsets.astype(np.float32)
 

@@ -62,7 +62,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from server.studies.scale import CHOICE_SCORES
+from server.studies.scale import RAW_SCORES, catch_row_failed
 from server.studies.screening import RULES, Screening
 
 from .screening_design import MEANT_FOR, Calibration, calibrate, fast_limit, planned
@@ -293,7 +293,7 @@ def calibration(votes: Iterable[Mapping[str, Any]], rules: Screening,
     for v in tests:
         toward = 1.0 if v["reference_side"] == "right" else -1.0  # raw = score * toward
         key = (v["animation"], v["reference_condition"], v["test_condition"])
-        residual[v["session_id"]].append(CHOICE_SCORES[v["choice"]] - toward * panel_mean[key])
+        residual[v["session_id"]].append(RAW_SCORES[v["choice"]] - toward * panel_mean[key])
     leans = np.array([[np.mean(residual[s]), np.var(residual[s], ddof=1) / len(residual[s])]
                       if len(residual[s]) >= 2 else [np.nan, np.nan] for s in subjects]).reshape(-1, 2)
     return calibrate(x, content, chosen, rules.false_flag_rate, rules.min_power,
@@ -349,7 +349,7 @@ def screen(votes: Iterable[Mapping[str, Any]], rules: Screening, catch_failures_
         catch: dict[str, list[int]] = defaultdict(list)
         for v in completed:
             if v["catch"]:
-                catch[v["session_id"]].append(abs(v["score"]) == 2)
+                catch[v["session_id"]].append(catch_row_failed(v))  # by the study's answer format
         for s in sessions:
             failed = sum(catch[s]) if s in catch else None
             out[s]["catch"] = RuleResult(failed, catch_failures_allowed,
@@ -363,7 +363,7 @@ def screen(votes: Iterable[Mapping[str, Any]], rules: Screening, catch_failures_
 
     if "straight_lining" in chosen:
         for s in sessions:
-            raw = [CHOICE_SCORES[v["choice"]] for v in by_session[s]]
+            raw = [RAW_SCORES[v["choice"]] for v in by_session[s]]
             variance = float(np.var(raw)) if len(raw) >= 2 else None
             out[s]["straight_lining"] = verdict("straight_lining", variance, rules.min_variance,
                                                 variance is not None and variance < rules.min_variance)

@@ -22,7 +22,7 @@ from scipy import stats
 from statsmodels.stats.multitest import multipletests
 from statsmodels.stats.power import TTestPower
 
-from server.studies.scale import CHOICE_SCORES, MAX_SCORE, SCORES
+from server.studies.scale import MAX_SCORE, RAW_SCORES, SCORES
 
 from .ranking import GradedComparison, rank_conditions
 
@@ -207,7 +207,7 @@ def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
     # Side bias: each participant's mean raw answer, left = +2 ... right = -2, whatever is shown where.
     raw: dict[str, list[int]] = defaultdict(list)
     for v in analysed:
-        raw[v["session_id"]].append(CHOICE_SCORES[v["choice"]])
+        raw[v["session_id"]].append(RAW_SCORES[v["choice"]])
     side_means = [float(np.mean(r)) for r in raw.values()]
 
     # Swap consistency: first against second showing of each comparison, per participant.

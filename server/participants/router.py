@@ -18,7 +18,7 @@ from fastapi.exceptions import RequestValidationError
 
 from server.deps import ParticipantTokenDep, SessionDep, SettingsDep, limit_new_sessions
 from server.errors import PayloadTooLarge
-from server.participants import service
+from server.participants import service, staircase
 from server.studies import service as studies_service
 from server.studies.pilot import previewed_study
 from server.studies.service import public_study
@@ -94,6 +94,8 @@ def trial_read(ps: ParticipantSession, upcoming: list[Trial]) -> TrialRead | Non
     if not upcoming:
         return None
     trial, following = upcoming[0], (upcoming[1] if len(upcoming) > 1 else None)
+    if following is not None and staircase.undecided(ps, following):
+        following = None  # its level waits for this trial's answer: nothing to preload, nothing to give away
     return TrialRead(trial_id=public_trial_id(trial), index=trial.index, total=ps.trials_total,
                      practice=trial.practice, video_url=media_url(trial.comparison.video(trial.reference_side)),
                      preload_url=media_url(following.comparison.video(following.reference_side)) if following else None)
@@ -114,6 +116,8 @@ async def vote(session_id: str, trial_id: Annotated[TrialKey, Path()], body: Vot
     """Store the vote (exactly once, see ``cast_vote``) and answer with the next trial, which saves the page a
     request per trial."""
     ps, trial = service.authorize_answer(session, session_id, token, trial_id)
+    if (error := service.choice_error(ps.study, body.choice)) is not None:
+        raise RequestValidationError([{"loc": ("body", "choice"), "msg": error, "type": "value_error"}])
     result = service.cast_vote(session, ps, trial, body.choice, body.rt_ms, body.idempotency_key, body.extra())
     if not result.created:
         response.status_code = status.HTTP_200_OK

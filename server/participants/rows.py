@@ -12,8 +12,9 @@ from sqlalchemy.orm import Session
 
 from server.analysis.screening import ParticipantScreening, screen
 from server.stimuli import service as stimulus_sets
+from server.studies.ladder import level_of
 from server.studies.models import ComparisonKind, Study
-from server.studies.scale import other_side
+from server.studies.scale import correct, other_side
 from server.studies.service import recruitment, screening_rules
 
 from .service import vote_records
@@ -54,6 +55,8 @@ def vote_rows(session: Session, study: Study, include_pilot: bool = False, sessi
     # clips built in spite of the fidelity gate (accept_unfaithful) mark every vote on them
     unfaithful = {c.id for c in content.clips if c.metrics.get("unfaithful")} if content is not None else set()
     mode = study.design.get("mode", "reference")  # designs stored before issue 27 have no mode
+    answer_format = study.scale.get("format", "rating5")  # scales stored before issue 38 are five-point
+    ladder = study.design.get("ladder")
     rows: list[dict[str, Any]] = []
     playback: Playback = {}
     for (vote, trial, ps, kind, animation, ref_condition, test_condition, ref_clip, test_clip, ref_video, test_video,
@@ -67,6 +70,7 @@ def vote_rows(session: Session, study: Study, include_pilot: bool = False, sessi
                                            else (test_condition, ref_condition))
         pair = pair_ref_left if trial.reference_side == "left" else pair_ref_right
         answers, external, device = ps.answers or {}, ps.external or {}, ps.device or {}
+        right = correct(answer_format, vote.choice, trial.reference_side, ref_clip == test_clip)
         rows.append({
             "session_id": ps.id, "trial_index": trial.index, "practice": trial.practice,
             "catch": kind == ComparisonKind.catch, "animation": animation, "reference_condition": ref_condition,
@@ -83,7 +87,8 @@ def vote_rows(session: Session, study: Study, include_pilot: bool = False, sessi
             "stimulus_set": pinned.digest if pinned is not None else None,
             "design_mode": mode, "left_condition": left_condition,
             "right_condition": right_condition,
-            "screened_by": None, "pilot": ps.pilot,
+            "screened_by": None, "pilot": ps.pilot, "answer_format": answer_format, "ladder": ladder,
+            "level": level_of(test_condition, ladder) if ladder else None, "correct": right,
             **{p: external.get(p) for p in parameters},
         })
     return rows, playback

@@ -19,7 +19,7 @@ from pydantic import (
     model_validator,
 )
 
-from server.studies.scale import Choice
+from server.studies.scale import AnyChoice
 
 # Row ids are 32-bit integers in the schema; a larger id is refused as invalid input (422), not sent to the
 # database (SQLite cannot even bind integers over 64 bits).
@@ -124,7 +124,8 @@ class VoteCreate(BaseModel):
 
     model_config = ConfigDict(extra="allow", strict=True)
 
-    choice: Choice
+    choice: AnyChoice = Field(description="one of the answer ids of the study's format (GET /studies/{slug}: "
+                              "scale.choices)")
     rt_ms: int = Field(ge=0, le=24 * 3600 * 1000)
     idempotency_key: str = Field(min_length=1, max_length=200)
 

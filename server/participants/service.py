@@ -25,7 +25,7 @@ from server.errors import Conflict, Forbidden, NotFound, TooManyRequests, Unauth
 from server.media.manifest import RenderManifest
 from server.studies.design import Design, trial_order
 from server.studies.models import Comparison, ComparisonKind, Stimulus, Study, StudyState
-from server.studies.scale import MAX_SCORE, score
+from server.studies.scale import MAX_SCORE, format_choices, format_score
 from server.studies.service import (
     check_deletable,
     recruitment,
@@ -37,6 +37,7 @@ from server.studies.service import (
 )
 from server.studies.studyfile import Question
 
+from . import staircase
 from .assign import session_comparisons
 from .models import ParticipantSession, PlaybackEvent, SessionState, Trial, Vote
 
@@ -49,6 +50,18 @@ def _hash(token: str) -> str:
 class NewSession:
     session: ParticipantSession
     token: str
+
+
+def staircase_comparisons(study: Study) -> dict[tuple[str, str], int]:
+    """(animation, test condition) -> test comparison id (a staircase design's reference-against-level pairs)."""
+    return {(c.reference.animation, c.test.condition): c.id for c in study.comparisons
+            if c.kind == ComparisonKind.test}
+
+
+def choice_error(study: Study, choice: str) -> str | None:
+    """Why ``choice`` is not an answer of the study's format (``[scale] format``), or None."""
+    ids = format_choices((study.scale or {}).get("format", "rating5"))
+    return None if choice in ids else f"Input should be {', '.join(map(repr, ids))} (this study's answer format)"
 
 
 def start_session(session: Session, study: Study, external: dict[str, str] | None,
@@ -67,7 +80,12 @@ def start_session(session: Session, study: Study, external: dict[str, str] | Non
                             external=kept or None, device=device, pilot=pilot)
     design = Design.model_validate(study.design)
     chosen = session_comparisons(session, study, seed, now)  # by the design's mode
-    for index, planned in enumerate(trial_order(chosen, design.repeats, seed)):
+    if design.mode == "staircase":  # one QUEST+ staircase per animation, its levels chosen as answers come
+        planned_trials = staircase.plan(design, chosen, staircase_comparisons(study), study.scale.get("format", "2afc"),
+                                        seed)
+    else:
+        planned_trials = trial_order(chosen, design.repeats, seed)
+    for index, planned in enumerate(planned_trials):
         ps.trials.append(Trial(index=index, comparison_id=planned.comparison_id,
                                reference_side=planned.reference_side, practice=planned.practice))
     ps.trials_total = len(ps.trials)
@@ -231,12 +249,15 @@ def cast_vote(session: Session, ps: ParticipantSession, trial: Trial, choice: st
     now = utcnow()
     inserted = session.scalar(_VOTE_INSERT[session.get_bind().dialect.name], {
         "trial_id": trial.id, "session_id": ps.id, "index": trial.index, "choice": choice,
-        "score": score(choice, trial.reference_side), "rt_ms": rt_ms, "idempotency_key": idempotency_key,
+        "score": format_score(ps.study.scale.get("format", "rating5"), choice, trial.reference_side),
+        "rt_ms": rt_ms, "idempotency_key": idempotency_key,
         "request_hash": body_hash, "extra": extra or None, "answered_at": now})
     if inserted is not None:
         if trial.index == ps.trials_total - 1:
             ps.state = SessionState.completed
             ps.completed_at = now
+        else:
+            staircase.advance(session, ps, trial)  # a staircase's next level, from this answer on
         following = upcoming(session, ps)  # before the commit: one transaction (and one SQLite write turn)
         session.commit()
         return VoteResult(trial.id, choice, rt_ms, now, trial.index + 1, created=True, upcoming=following)
@@ -303,12 +324,19 @@ def record_event(session: Session, ps: ParticipantSession, kind: str, trial_key:
 
 
 def failed_catch_trials(session: Session, study: Study, session_id: str | None = None) -> dict[str, int]:
-    """Failed catch trials per participant session of ``study`` (or of the one session ``session_id``): a
-    'significantly better' answer when both sides show the same clip.  Sessions without a failure are absent."""
+    """Failed catch trials per participant session of ``study`` (or of the one session ``session_id``), by the
+    study's answer format (``scale.catch_row_failed``): a 'significantly better' answer (rating5) or "different"
+    (same_different) when both sides show the same clip; the wrong side (2afc) or "same" on a threshold design's
+    catch trial (its easiest level).  Sessions without a failure are absent."""
+    answer_format = (study.scale or {}).get("format", "rating5")
+    same_clip = Comparison.reference_id == Comparison.test_id
+    failed = {"rating5": func.abs(Vote.score) == MAX_SCORE,
+              "2afc": ~same_clip & (Vote.score == 1),  # the test side taken for the original
+              "same_different": (same_clip & (Vote.score == -1)) | (~same_clip & (Vote.score == 0))}[answer_format]
     query = (select(Trial.session_id, func.count(Vote.id)).join(Vote, Vote.trial_id == Trial.id)
              .join(Comparison, Trial.comparison_id == Comparison.id)
-             .where(Comparison.study_id == study.id, Comparison.kind == ComparisonKind.catch,
-                    func.abs(Vote.score) == MAX_SCORE).group_by(Trial.session_id))
+             .where(Comparison.study_id == study.id, Comparison.kind == ComparisonKind.catch, failed)
+             .group_by(Trial.session_id))
     if session_id is not None:
         query = query.where(Trial.session_id == session_id)
     return {sid: n for sid, n in session.execute(query).all()}

@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session
 
 from server.participants.rows import screened_rows
 from server.studies.models import Study
-from server.studies.scale import CHOICE_SCORES
+from server.studies.scale import RAW_SCORES
 from server.studies.service import export_columns
 
 # A text cell beginning with one of these is a formula (or becomes one) in Excel, LibreOffice and Google Sheets:
@@ -113,7 +113,7 @@ def export_pwcmp_csv(session: Session, study: Study, include_pilot: bool = False
     for r in _analysed_test_rows(session, study, include_pilot):
         left, right = ((r["reference_condition"], r["test_condition"]) if r["reference_side"] == "left"
                        else (r["test_condition"], r["reference_condition"]))
-        raw = CHOICE_SCORES[r["choice"]]
+        raw = RAW_SCORES[r["choice"]]
         if raw:
             writer.writerow([csv_cell(v) for v in (r["session_id"], 1, r["animation"], left, right,
                                                    1 if raw > 0 else 2)])

@@ -20,6 +20,7 @@ from server.studies import pilot, pipeline, service
 from server.studies.columns import data_dictionary_json, data_dictionary_markdown
 from server.studies.models import StudyState
 from server.studies.page import Page
+from server.studies.scale import public as public_scale
 from server.studies.schemas import ExportJson, StudyPublic, StudyStateRead, StudySummary
 from server.studies.studyfile import StudyFile, StudyFileError, parse_study_text
 from server.uploads.progress import scrub
@@ -150,7 +151,7 @@ def read_study(slug: str, session: SessionDep, settings: SettingsDep,
              else service.public_study(session, slug))
     return StudyPublic(slug=study.slug, title=study.title, state=study.state, texts=study.texts,
                        consent_version=study.consent_version, trials_total=service.trials_total(study),
-                       scale=study.scale, questions=study.questions,
+                       scale=public_scale(study.scale), questions=study.questions,
                        parameters=study.recruitment["parameters"],
                        page=Page.model_validate(study.page or {}).public())
 

@@ -35,8 +35,9 @@ COLUMNS: tuple[ExportColumn, ...] = (
     ExportColumn("reference_side", "`left`, `right`", "where the reference was shown"),
     ExportColumn("test_side", "`left`, `right`",
                  "where the test was shown (the other side; for a catch trial: `left`)"),
-    ExportColumn("choice", "`left_much`, `left_slightly`, `equal`, `right_slightly`, `right_much`",
-                 "the answer as given"),
+    ExportColumn("choice", "`left_much`, `left_slightly`, `equal`, `right_slightly`, `right_much` (rating5); "
+                 "`left`, `right` (2afc); `same`, `different` (same_different)",
+                 "the answer as given, one of the ids of the study's answer format (`answer_format`)"),
     ExportColumn("score", "−2 … +2", "the answer from the test condition's point of view: +2 test significantly "
                  "better, +1 slightly better, 0 equal, −1 reference slightly better, −2 reference significantly "
                  "better (`left_much` with the test on the left is +2)"),
@@ -69,7 +70,8 @@ COLUMNS: tuple[ExportColumn, ...] = (
     ExportColumn("stimulus_set", "string (64 hex) or empty", "digest of the study's stimulus set (sha256 of its "
                  "canonical JSON: clips, metrics, character, render settings, every file's sha256); the same for "
                  "every row of a study once it has opened"),
-    ExportColumn("design_mode", "`reference`, `all-pairs`, `incomplete`, `adaptive`", "the study's `[design] mode` "
+    ExportColumn("design_mode", "`reference`, `all-pairs`, `incomplete`, `adaptive`, `constant-stimuli`, "
+                 "`staircase`", "the study's `[design] mode` "
                  "(see the designs page); in the modes other than `reference`, `reference_condition` and "
                  "`test_condition` are the first and second condition of the pair (in `[design]` order, the "
                  "reference first), not necessarily the study's reference"),
@@ -82,6 +84,19 @@ COLUMNS: tuple[ExportColumn, ...] = (
                  "as participants are added"),
     ExportColumn("pilot", "`true`, `false`", "a researcher's pilot run (preview link); pilot sessions are in an "
                  "export only when asked for (`?pilot=true`)"),
+    ExportColumn("answer_format", "`rating5`, `2afc`, `same_different`", "the study's `[scale] format`: the "
+                 "five-point scale (`choice` one of its five answers), two-alternative forced choice (`choice` "
+                 "`left` or `right`: the side taken for the original) or same/different (`choice` `same` or "
+                 "`different`); `score` is then +1 test side chosen / −1 reference side chosen (2afc), 0 same / "
+                 "−1 different (same_different)"),
+    ExportColumn("ladder", "ladder id, e.g. `pps`, or empty", "threshold designs (`[design] mode = "
+                 "\"constant-stimuli\"` or `\"staircase\"`): the ladder whose levels the conditions are; empty "
+                 "otherwise"),
+    ExportColumn("level", "number or empty", "the test condition's level on `ladder` (e.g. 12 for `pps12`, poses "
+                 "per second); empty outside threshold designs"),
+    ExportColumn("correct", "`true`, `false`, or empty", "derived from `choice`, never stored: 2afc — the "
+                 "reference's side was chosen (empty when both sides show one clip); same_different — `same` "
+                 "exactly when both sides show one clip; empty for `rating5`"),
 )
 
 EXPORT_COLUMNS: tuple[str, ...] = tuple(c.name for c in COLUMNS)

@@ -8,6 +8,12 @@ Modes (``Design.mode``):
 - ``incomplete``: each participant sees ``pairs_per_session`` pairs per animation; consecutive participants take
   consecutive slices of one seeded cyclic order of the pairs, so every pair is shown equally often (±1) over
   participants (see ``server.studies.sessions``).
+- ``constant-stimuli`` (issue 38): the reference against every level of one ``ladder`` (the design's
+  ``conditions``, each ``<ladder><level>``), ``repeats`` times per side, as in ``reference`` mode.
+- ``staircase`` (issue 38): one QUEST+ staircase per animation over the ladder's levels, ``trials`` trials each,
+  interleaved; the level of each trial is chosen on the server from the participant's own answers when the trial
+  comes up (``server.participants.staircase``).  Catch trials of both ladder modes show the ladder's most
+  detectable level (``detectable_at``) against the reference.
 - ``adaptive``: each participant sees the N-1 pairs (N conditions) of a spanning tree chosen from the answers so
   far (ASAP-style batches; ``server.analysis.adaptive``): by default (``aim = "reference"``) the one expected to make
   the values against the reference most precise; with ``aim = "order"`` ASAP's own, the tree of the largest expected
@@ -38,6 +44,8 @@ from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_vali
 from anim_core.methods.conditions import REFERENCE  # the reference condition's id is its method's name
 from server.clipset.config import NAME_PATTERN
 
+from .ladder import from_name, off_ladder
+
 # Animation names and condition ids, as the clip set names them (a "-" never matches one of its clips).
 Ident = Annotated[str, StringConstraints(pattern=NAME_PATTERN)]
 # Shuffles tried before the order is repaired: about this many items shuffled in all, at least one shuffle.  The
@@ -47,7 +55,9 @@ SHUFFLE_BUDGET = 512
 # Longest session any design may have (the largest reference design, 16 x 16 comparisons x 2 sides x 5 repeats
 # plus catch and practice trials, is 2577).
 MAX_TRIALS = 2600
-Mode = Literal["reference", "all-pairs", "incomplete", "adaptive"]
+Mode = Literal["reference", "all-pairs", "incomplete", "adaptive", "constant-stimuli", "staircase"]
+#: The threshold designs: their conditions are the levels of one ladder.
+LADDER_MODES = ("constant-stimuli", "staircase")
 Aim = Literal["reference", "order"]
 # The thesis design, and the default of every design field.
 THESIS_ANIMATIONS = ("walk", "run", "crouch", "idle")
@@ -77,7 +87,15 @@ class Design(BaseModel):
     practice: Ident | None = Field(None, description="a condition shown once against the reference (first "
                                    "animation) as an unanalysed practice trial before the others")
     catch_trials: int = Field(0, ge=0, le=16, description="attention checks: one animation's reference clip on "
-                              "both sides, one per animation in order")
+                              "both sides, one per animation in order (ladder modes: the most detectable level "
+                              "against the reference)")
+    ladder: Ident | None = Field(None, description="constant-stimuli and staircase: the ladder (e.g. pps) whose "
+                                 "levels the conditions are")
+    trials: int | None = Field(None, ge=4, le=200, description="staircase: trials per staircase (one staircase "
+                               "per animation)")
+    detectable_at: Literal["low", "high"] = Field("low", description="ladder modes: the end of the ladder easiest "
+                                                  "to tell from the reference (low for update rates and bits, "
+                                                  "high for an error tolerance)")
 
     @model_validator(mode="after")
     def consistent(self) -> Self:
@@ -95,6 +113,7 @@ class Design(BaseModel):
             raise ValueError("the practice condition must differ from the reference")
         if self.aim is not None and self.mode != "adaptive":
             raise ValueError("aim is for mode = \"adaptive\" only")
+        self._check_ladder()
         if self.pairs_per_session is not None:
             if self.mode != "incomplete":
                 raise ValueError("pairs_per_session is for mode = \"incomplete\" only")
@@ -102,7 +121,7 @@ class Design(BaseModel):
                 raise ValueError(f"pairs_per_session ({self.pairs_per_session}) exceeds the "
                                  f"{len(self.pairs())} pairs of {len(self.all_conditions())} conditions")
         most = 2 * self.repeats  # showings of one comparison; the others must separate them
-        if most - 1 > self.session_items() - most:
+        if self.mode != "staircase" and most - 1 > self.session_items() - most:
             raise ValueError("this design cannot avoid showing a comparison twice in a row: add conditions, "
                              "animations or catch trials")
         if self.trials_total() > MAX_TRIALS:
@@ -111,6 +130,44 @@ class Design(BaseModel):
                              f"\"incomplete\" or \"adaptive\"")
         return self
 
+    def _check_ladder(self) -> None:
+        if self.mode not in LADDER_MODES:
+            for name in ("ladder", "trials"):
+                if getattr(self, name) is not None:
+                    raise ValueError(f"{name} is for mode = \"constant-stimuli\" or \"staircase\" only")
+            return
+        if self.ladder is None:
+            raise ValueError(f"ladder: mode = {self.mode!r} needs the ladder whose levels it shows (e.g. ladder = "
+                             f"\"pps\")")
+        if self.mode == "staircase" and self.trials is None:
+            raise ValueError("trials: mode = \"staircase\" needs the trials per staircase (e.g. trials = 30)")
+        if self.mode != "staircase" and self.trials is not None:
+            raise ValueError("trials is for mode = \"staircase\" only")
+        if "conditions" not in self.model_fields_set:
+            raise ValueError(f"conditions: list the levels of ladder {self.ladder!r} the design shows (e.g. "
+                             f"{self.ladder}4, {self.ladder}8, ...)")
+        outside = off_ladder(self.conditions, self.ladder)
+        if outside:
+            raise ValueError(f"conditions: {', '.join(outside)} not a level of ladder {self.ladder!r}: a "
+                             f"{self.mode} design runs over the levels of one ladder")
+        if len(self.conditions) < 3:
+            raise ValueError(f"conditions: a {self.mode} design needs at least 3 levels of ladder "
+                             f"{self.ladder!r}, got {len(self.conditions)}")
+        if self.practice is not None and from_name(self.practice, self.ladder) is None:
+            raise ValueError(f"practice: {self.practice} is not a level of ladder {self.ladder!r}")
+
+    def levels(self) -> dict[str, float]:
+        """Ladder modes: each condition's level, ordered from the hardest to tell from the reference to the
+        easiest."""
+        assert self.ladder is not None
+        levels = {c: from_name(c, self.ladder) for c in self.conditions}
+        ordered = sorted(levels, key=lambda c: levels[c] or 0.0, reverse=self.detectable_at == "low")
+        return {c: float(levels[c] or 0.0) for c in ordered}
+
+    def easiest(self) -> str:
+        """Ladder modes: the level easiest to tell from the reference (the catch trials')."""
+        return list(self.levels())[-1]
+
     def all_conditions(self) -> list[str]:
         """The reference first, then the other conditions."""
         return [self.reference, *self.conditions]
@@ -118,7 +175,7 @@ class Design(BaseModel):
     def pairs(self) -> list[tuple[str, str]]:
         """(first, second) conditions of every comparison the design can show, per animation; the first is the
         comparison's "reference" (scores are from the second's point of view)."""
-        if self.mode == "reference":
+        if self.mode in ("reference", *LADDER_MODES):
             return [(self.reference, c) for c in self.conditions]
         return list(combinations(self.all_conditions(), 2))
 
@@ -132,6 +189,8 @@ class Design(BaseModel):
 
     def session_items(self) -> int:
         """Trials of one session apart from the practice trial."""
+        if self.mode == "staircase":
+            return len(self.animations) * (self.trials or 0) + self.catch_trials
         return len(self.animations) * self.pairs_per_animation() * 2 * self.repeats + self.catch_trials
 
     def trials_total(self) -> int:

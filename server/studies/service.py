@@ -20,7 +20,7 @@ from server.researchers.models import Researcher
 from server.stimuli import service as stimulus_sets
 
 from .columns import EXPORT_COLUMNS, QUESTIONS_BEFORE
-from .design import ComparisonIds, Design
+from .design import LADDER_MODES, ComparisonIds, Design
 from .models import Comparison, ComparisonKind, Stimulus, Study, StudyState
 from .screening import Screening
 from .studyfile import Recruitment, StudyFile, Texts
@@ -37,7 +37,8 @@ def needed_stimuli(design: Design) -> list[tuple[ComparisonKind, StimulusKey, St
     """(kind, reference, test) of every comparison of the design, in the order they are created."""
     out = [(ComparisonKind.test, (a, first), (a, second))
            for a in design.animations for first, second in design.pairs()]
-    out += [(ComparisonKind.catch, (a, design.reference), (a, design.reference))
+    caught = design.easiest() if design.mode in LADDER_MODES else design.reference  # ladders: the easiest level
+    out += [(ComparisonKind.catch, (a, design.reference), (a, caught))
             for a in design.animations[: design.catch_trials]]
     if design.practice:
         a = design.animations[0]

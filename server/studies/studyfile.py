@@ -26,9 +26,9 @@ from pydantic import (
 )
 
 from .columns import EXPORT_COLUMNS
-from .design import Design
+from .design import LADDER_MODES, Design
 from .page import Page, Strict
-from .scale import DEFAULT_LABELS, DEFAULT_QUESTION
+from .scale import DEFAULT_LABELS, DEFAULT_QUESTION, FORMAT_DEFAULTS, AnswerFormat, format_choices
 from .screening import Screening
 
 # Package data (pyproject.toml), so an installed animstudy has its default study: in the checkout a link to
@@ -63,13 +63,43 @@ class Texts(Strict):
 
 
 class Scale(Strict):
-    """The five answers, from 'left much better' to 'right much better' (the scoring is fixed, see scale.py)."""
+    """The answer format and its wording.  ``rating5`` (the default): five answers, from 'left much better' to
+    'right much better' (the scoring is fixed, see scale.py); ``2afc``: two, "the left one" / "the right one"
+    (which is the original, or which moves more smoothly); ``same_different``: "same" / "different".  The answer
+    ids are the format's (``scale.FORMAT_CHOICES``); ``labels`` word them, one per answer, in their order."""
 
+    format: AnswerFormat = Field("rating5", description="rating5: the five-point scale; 2afc: two-alternative "
+                                 "forced choice (which side is the original); same_different: same or different")
     question: str = Field(DEFAULT_QUESTION, min_length=1, max_length=200)
     labels: list[Annotated[str, StringConstraints(min_length=1, max_length=120)]] = Field(
-        default_factory=lambda: list(DEFAULT_LABELS), min_length=5, max_length=5)
+        default_factory=lambda: list(DEFAULT_LABELS), min_length=2, max_length=5,
+        description="one per answer of the format (5 for rating5, 2 for 2afc and same_different)")
     left: str = Field("Left", min_length=1, max_length=40, description="what the left side is called")
     right: str = Field("Right", min_length=1, max_length=40, description="what the right side is called")
+
+    @model_validator(mode="before")
+    @classmethod
+    def format_defaults(cls, data: Any) -> Any:
+        """The question and labels a format gets when the file does not word them."""
+        if isinstance(data, dict) and data.get("format") in FORMAT_DEFAULTS:
+            question, labels = FORMAT_DEFAULTS[data["format"]]
+            data = {"question": question, "labels": list(labels), **data}
+        return data
+
+    @field_validator("labels")
+    @classmethod
+    def one_label_per_answer(cls, labels: list[str], info: ValidationInfo) -> list[str]:
+        answer_format = info.data.get("format")
+        if answer_format is None:  # the format itself was refused
+            return labels
+        ids = format_choices(answer_format)
+        if len(labels) != len(ids):
+            raise ValueError(f"format {answer_format!r} has {len(ids)} answers ({', '.join(ids)}), so it takes "
+                             f"{len(ids)} labels, not {len(labels)}")
+        return labels
+
+    def choices(self) -> list[str]:
+        return list(format_choices(self.format))
 
 
 class Choice(Strict):
@@ -304,6 +334,15 @@ class StudyFile(Strict):
         ids = [q.id for q in self.questions]
         if len(set(ids)) != len(ids):
             raise ValueError("two questions have the same id")
+        return self
+
+    @model_validator(mode="after")
+    def format_fits_design(self) -> Self:
+        """A threshold design asks who tells the test from the reference: 2AFC or same/different, never the
+        five-point scale; 2AFC needs a reference to be the original (the design always has one)."""
+        if self.design.mode in LADDER_MODES and self.scale.format == "rating5":
+            raise ValueError(f"scale.format: design.mode = {self.design.mode!r} needs an answer format that "
+                             f"detects (\"2afc\" or \"same_different\"), not \"rating5\"")
         return self
 
 

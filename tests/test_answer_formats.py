@@ -1,0 +1,317 @@
+"""Answer formats (2AFC, same/different) and threshold designs (constant stimuli, QUEST+ staircases) of issue 38,
+through the real session code and the API, over stand-in media of a `pps` ladder."""
+
+from __future__ import annotations
+
+import math
+import random
+import tomllib
+from collections import Counter
+from pathlib import Path
+
+import pytest
+from pydantic import ValidationError
+from sqlalchemy import func, select
+
+from server.media.manifest import RenderedClip, RenderedPair, RenderManifest
+from server.participants import service, staircase
+from server.participants.models import ParticipantSession, Trial
+from server.research.export import export_rows
+from server.studies import scale
+from server.studies.columns import EXPORT_COLUMNS
+from server.studies.design import Design
+from server.studies.ladder import from_name, level_of
+from server.studies.models import Study, StudyState
+from server.studies.service import create_study, set_state
+from server.studies.studyfile import StudyFile, StudyFileError, load_study_file, parse_study_text
+from tests.server_fixtures import fake_name, study_file, vote, write_fake_media
+
+REPO = Path(__file__).resolve().parents[1]
+UPDATE_RATE = REPO / "studies" / "update-rate.toml"
+LEVELS = (4, 6, 8, 12, 16, 24)
+PPS = [f"pps{n}" for n in LEVELS]
+
+
+def ladder_media(animations: tuple[str, ...] = ("walk", "run"), conditions: tuple[str, ...] = ("keyframe", *PPS)
+                 ) -> RenderManifest:
+    """A render manifest with opaque names for the reference and the pps levels of ``animations``."""
+    clips = {}
+    for a in animations:
+        for c in conditions:
+            cid = f"{a}-{c}"
+            clips[cid] = RenderedClip(clip=cid, animation=a, condition=c, video=f"{fake_name(cid)}.mp4",
+                                      poster=f"{fake_name(cid)}.jpg", frames=30, fps=30, width=160, height=120)
+    pairs = [RenderedPair(left=x, right=y, video=f"{fake_name(f'{x}|{y}')}.mp4",
+                          poster=f"{fake_name(f'{x}|{y}')}.jpg", frames=30, fps=30, width=324, height=120)
+             for x, cx in clips.items() for y, cy in clips.items() if cx.animation == cy.animation]
+    return RenderManifest(clips=clips, pairs=pairs)
+
+
+def threshold_file(mode: str = "staircase", answer_format: str = "2afc", slug: str = "update-rate",
+                   **design: object) -> StudyFile:
+    fields = {"mode": mode, "ladder": "pps", "conditions": PPS, "animations": ["walk", "run"],
+              **({"trials": 12} if mode == "staircase" else {}), "catch_trials": 1, **design}
+    return study_file(Design.model_validate(fields), slug=slug, scale={"format": answer_format})
+
+
+def make_threshold_study(db, file: StudyFile, media_dir: Path | None = None) -> Study:
+    media = ladder_media()
+    if media_dir is not None:
+        write_fake_media(media_dir, media)
+    return set_state(db, create_study(db, media, file, media_dir=media_dir), StudyState.open)
+
+
+def observer(threshold: float, rng: random.Random, answer_format: str = "2afc", lapse: float = 0.02):
+    """A planted observer: tells a level from the reference with a probability falling from 1 (far below
+    ``threshold`` poses per second) to the guess rate (far above), 75 % correct in 2AFC at the threshold."""
+    def answer(trial: Trial) -> str:
+        c = trial.comparison
+        if c.reference_id == c.test_id:
+            p_detect = 0.0
+        else:
+            level = from_name(c.test.condition, "pps") or 0.0
+            p_detect = 1 / (1 + math.exp(4 * (math.log(level) - math.log(threshold)) / 0.5))
+        p_detect = lapse / 2 + (1 - lapse) * p_detect
+        if answer_format == "2afc":
+            p_right = 0.5 + 0.5 * p_detect
+            side = trial.reference_side if rng.random() < p_right else scale.other_side(trial.reference_side)
+            return side
+        return "different" if rng.random() < p_detect else "same"
+    return answer
+
+
+def run_session(db, study: Study, answer) -> ParticipantSession:
+    ps = service.start_session(db, study, None).session
+    service.set_answers(db, ps, {"gamer": "no", "tech_savvy": "yes"})
+    for index in range(ps.trials_total):
+        trial = db.scalar(select(Trial).where(Trial.session_id == ps.id, Trial.index == index))
+        service.cast_vote(db, ps, trial, answer(trial), 900, f"k{ps.id}{index}", {})
+    return ps
+
+
+# --- the formats -------------------------------------------------------------------------------------------------
+
+
+def test_every_format_has_its_ids_once_and_defaults():
+    assert scale.FORMAT_CHOICES["rating5"] == scale.CHOICES
+    assert set(scale.ALL_CHOICES) == {*scale.CHOICES, "left", "right", "same", "different"}
+    two = StudyFile.model_validate({**study_file().model_dump(), "scale": {"format": "2afc"}})
+    assert two.scale.labels == ["The left one", "The right one"] and two.scale.question == "Which one is the original?"
+    assert two.scale.choices() == ["left", "right"]
+    assert StudyFile.model_validate(study_file().model_dump()).scale.format == "rating5"  # the default
+    # scores and correctness, from the test's point of view
+    assert scale.format_score("2afc", "left", "left") == -1 and scale.format_score("2afc", "right", "left") == 1
+    assert scale.correct("2afc", "left", "left", same_clip=False) is True
+    assert scale.correct("2afc", "right", "left", same_clip=False) is False
+    assert scale.correct("2afc", "right", "left", same_clip=True) is None
+    assert scale.correct("same_different", "same", "left", same_clip=True) is True
+    assert scale.correct("same_different", "same", "left", same_clip=False) is False
+    assert scale.correct("rating5", "equal", "left", same_clip=False) is None
+
+
+@pytest.mark.parametrize(("text", "field"), [
+    ('[scale]\nformat = "2afc"\nlabels = ["a", "b", "c"]', "labels"),
+    ('[scale]\nformat = "same_different"\nlabels = ["only one"]', "labels"),
+    ('[scale]\nformat = "3afc"', "scale.format"),
+    ('[design]\nmode = "staircase"\nladder = "pps"\nconditions = ["pps4", "pps8", "pps16"]\ntrials = 20',
+     "scale.format"),  # a rating scale cannot run a staircase
+    ('[scale]\nformat = "2afc"\n[design]\nmode = "staircase"\nladder = "pps"\nconditions = ["pps4", "eps2", '
+     '"pps16"]\ntrials = 20', "conditions: eps2 not a level of ladder 'pps'"),
+    ('[scale]\nformat = "2afc"\n[design]\nmode = "staircase"\nladder = "pps"\nconditions = ["pps4", "pps8"]\n'
+     'trials = 20', "at least 3 levels"),
+    ('[scale]\nformat = "2afc"\n[design]\nmode = "staircase"\nladder = "pps"\nconditions = ["pps4", "pps8", '
+     '"pps16"]', "trials"),
+    ('[scale]\nformat = "2afc"\n[design]\nmode = "constant-stimuli"\nconditions = ["pps4", "pps8", "pps16"]',
+     "ladder"),
+    ('[scale]\nformat = "2afc"\n[design]\nmode = "staircase"\nladder = "pps"\ntrials = 20', "conditions"),
+    ('[design]\nmode = "reference"\nconditions = ["hybrid0"]\nladder = "pps"', "ladder"),
+])
+def test_bad_formats_and_threshold_designs_name_the_field(text, field):
+    base = UPDATE_RATE.read_text(encoding="utf-8").split("[scale]")[0]
+    with pytest.raises(StudyFileError) as info:
+        parse_study_text(base + text)
+    assert any(field in e for e in info.value.errors), info.value.errors
+
+
+def test_the_update_rate_study_file():
+    study = load_study_file(UPDATE_RATE)
+    assert study.scale.format == "2afc" and study.design.mode == "staircase" and study.design.ladder == "pps"
+    assert study.design.trials_total() == 2 * 30 + 2
+    assert list(study.design.levels()) == PPS[::-1] and study.design.easiest() == "pps4"
+    assert tomllib.loads(UPDATE_RATE.read_text(encoding="utf-8"))["design"]["animations"] == ["walk", "run"]
+
+
+def test_the_ladder_adapter():
+    assert from_name("pps12", "pps") == 12 and from_name("eps0_5", "eps") == 0.5
+    assert from_name("pps", "pps") is None and from_name("ppsx", "pps") is None and from_name("hybrid1", "pps") is None
+    assert level_of("pps12", "pps", {"ladder": "pps", "level": 11}) == 11  # the clip's own fields win
+    assert level_of("pps12", "pps", {"ladder": "eps", "level": 11}) is None
+    assert level_of("pps12", "pps", {"ladder": None}) == 12
+
+
+# --- the API -----------------------------------------------------------------------------------------------------
+
+
+def test_the_page_gets_the_format_ids_and_a_vote_outside_them_is_refused(db, client, tmp_path):
+    make_threshold_study(db, threshold_file(), tmp_path / "var" / "media")
+    public = client.get("/api/v1/studies/update-rate").json()
+    assert public["scale"]["format"] == "2afc" and public["scale"]["choices"] == ["left", "right"]
+    assert public["trials_total"] == 2 * 12 + 1
+    r = client.post("/api/v1/studies/update-rate/sessions", json={"consent": True})
+    sid, headers = r.json()["session_id"], {"Authorization": f"Bearer {r.json()['token']}"}
+    trial = client.get(f"/api/v1/sessions/{sid}/next", headers=headers).json()
+    for bad in ("left_much", "same", "sideways"):
+        r = vote(client, sid, headers, trial["trial_id"], bad)
+        assert r.status_code == 422 and "choice" in r.text, r.text
+    assert db.scalar(select(func.count()).select_from(service.Vote).where(service.Vote.session_id == sid)) == 0
+    assert vote(client, sid, headers, trial["trial_id"], "left").status_code == 201
+    # the thesis study (five-point) keeps its ids, and refuses the new ones
+    thesis = client.get("/api/v1/studies/update-rate").json()["scale"]
+    assert "choices" in thesis
+
+
+def test_a_rating_study_refuses_2afc_answers(db, client, study):
+    public = client.get("/api/v1/studies/thesis").json()["scale"]
+    assert public["format"] == "rating5" and public["choices"] == list(scale.CHOICES)
+    r = client.post("/api/v1/studies/thesis/sessions", json={"consent": True})
+    sid, headers = r.json()["session_id"], {"Authorization": f"Bearer {r.json()['token']}"}
+    trial = client.get(f"/api/v1/sessions/{sid}/next", headers=headers).json()
+    assert vote(client, sid, headers, trial["trial_id"], "left").status_code == 422
+
+
+def test_a_threshold_study_with_a_rating_scale_creates_nothing(db, client, researcher_headers):
+    body = threshold_file().model_dump()
+    body["scale"] = {"format": "rating5"}
+    r = client.post("/api/v1/studies", json=body, headers=researcher_headers)
+    assert r.status_code == 422 and "scale.format" in r.text, r.text
+    assert db.scalar(select(func.count()).select_from(Study)) == 0
+
+
+def test_a_staircase_never_tells_the_page_an_undecided_level(db, client, tmp_path):
+    make_threshold_study(db, threshold_file(), tmp_path / "var" / "media")
+    r = client.post("/api/v1/studies/update-rate/sessions", json={"consent": True})
+    sid, headers = r.json()["session_id"], {"Authorization": f"Bearer {r.json()['token']}"}
+    ps = db.get(ParticipantSession, sid)
+    shown = []
+    r = client.get(f"/api/v1/sessions/{sid}/next", headers=headers)
+    while r.status_code == 200:
+        trial = r.json()
+        following = db.scalar(select(Trial).where(Trial.session_id == sid, Trial.index == trial["index"] + 1))
+        if following is not None and staircase.undecided(ps, following):
+            assert trial["preload_url"] is None
+        shown.append(trial["video_url"])
+        r = vote(client, sid, headers, trial["trial_id"], "left" if trial["index"] % 3 else "right")
+        assert r.status_code == 201, r.text
+        r = client.get(f"/api/v1/sessions/{sid}/next", headers=headers)
+    assert r.status_code == 204 and len(shown) == 2 * 12 + 1
+
+
+def _replayed(db, ps: ParticipantSession, design: Design) -> tuple[list[str | None], list[str | None]]:
+    """(stored, replayed) level of every trial of a finished session (None: not a staircase trial)."""
+    trials = sorted(ps.trials, key=lambda t: t.index)
+    rows = []
+    for t in trials:
+        votes = db.scalar(select(service.Vote).where(service.Vote.trial_id == t.id))
+        animation = t.comparison.reference.animation if staircase.undecided(ps, t) else None
+        rows.append((animation, t.comparison.test.condition, votes.choice if votes else None, t.reference_side))
+    stored = [row[1] if row[0] is not None else None for row in rows]
+    return stored, staircase.replay(design, "2afc", rows)
+
+
+def test_staircase_levels_follow_the_answers_and_replay_from_the_vote_log(db):
+    study = make_threshold_study(db, threshold_file(trials=20))
+    design = Design.model_validate(study.design)
+    rng = random.Random(38)
+    keen = run_session(db, study, observer(20, rng))  # tells even 16 poses per second from the original
+    blind = run_session(db, study, lambda t: scale.other_side(t.reference_side))  # always wrong: sees nothing
+    for ps in (keen, blind):
+        stored, replayed = _replayed(db, ps, design)
+        assert stored == replayed
+        assert sum(s is not None for s in stored) == 2 * 20
+        sides = Counter((t.comparison.reference.animation, t.reference_side) for t in ps.trials
+                        if staircase.undecided(ps, t))
+        assert set(sides.values()) == {10}  # balanced sides per staircase
+    level = {c: v for c, v in design.levels().items()}
+
+    def last_levels(ps):
+        return [level[t.comparison.test.condition] for t in sorted(ps.trials, key=lambda t: t.index)
+                if staircase.undecided(ps, t)][-10:]
+    # the keen observer is taken up the ladder (harder levels), the blind one down to the easiest
+    assert sum(last_levels(keen)) / 10 > 12 and sum(last_levels(blind)) / 10 < 6
+    # a catch trial (the easiest level) answered wrongly screens the blind participant out
+    assert service.outcome(db, blind) == "screened_out" and service.outcome(db, keen) == "completed"
+
+
+def test_staircase_export_has_format_ladder_level_and_correct(db):
+    study = make_threshold_study(db, threshold_file(trials=8))
+    ps = run_session(db, study, lambda t: t.reference_side)  # always the original: always correct
+    rows = [r for r in export_rows(db, study) if r["session_id"] == ps.id]
+    assert {"answer_format", "ladder", "level", "correct"} <= set(EXPORT_COLUMNS)
+    assert len(rows) == 2 * 8 + 1 and all(set(r) >= {"answer_format", "ladder", "level", "correct"} for r in rows)
+    assert {r["answer_format"] for r in rows} == {"2afc"} and {r["ladder"] for r in rows} == {"pps"}
+    assert all(r["correct"] is True and r["level"] == float(r["test_condition"][3:]) for r in rows)
+    assert all(r["score"] == -1 for r in rows)  # the reference's side: -1 from the test's point of view
+    catch = [r for r in rows if r["catch"]]
+    assert len(catch) == 1 and catch[0]["test_condition"] == "pps4"
+
+
+def test_constant_stimuli_shows_every_level_on_both_sides(db):
+    study = make_threshold_study(db, threshold_file("constant-stimuli", "same_different", repeats=2,
+                                                    slug="constant"))
+    ps = run_session(db, study, observer(10, random.Random(1), "same_different"))
+    shown = Counter((t.comparison.reference.animation, t.comparison.test.condition, t.reference_side)
+                    for t in ps.trials if t.comparison.kind == "test")
+    catch = [t for t in ps.trials if t.comparison.kind == "catch"]
+    assert len(catch) == 1 and catch[0].comparison.test.condition == "pps4"  # the easiest level
+    assert shown == Counter({(a, c, s): 2 for a in ("walk", "run") for c in PPS for s in ("left", "right")})
+    assert ps.trials_total == 2 * 6 * 2 * 2 + 1
+    rows = list(export_rows(db, study))
+    assert {r["answer_format"] for r in rows} == {"same_different"}
+    assert all(r["correct"] == (r["choice"] == "different") for r in rows)
+
+
+def test_the_data_dictionary_names_the_new_columns(client):
+    text = client.get("/api/v1/data-dictionary").text
+    for column in ("answer_format", "ladder", "level", "correct", "`same`, `different`"):
+        assert column in text
+
+
+def test_design_validation_of_threshold_modes():
+    with pytest.raises(ValidationError, match="not a level of ladder"):
+        Design(mode="constant-stimuli", ladder="pps", conditions=["pps4", "hybrid0", "pps8"])
+    d = Design(mode="staircase", ladder="eps", conditions=["eps0_5", "eps2", "eps1"], trials=10,
+               detectable_at="high", animations=["walk"])
+    assert list(d.levels()) == ["eps0_5", "eps1", "eps2"] and d.easiest() == "eps2"
+    assert d.trials_total() == 10 and d.pairs() == [("keyframe", c) for c in d.conditions]
+
+
+@pytest.mark.parametrize("answer_format", ["2afc", "same_different"])
+def test_results_and_exports_of_a_threshold_study_answer(db, client, researcher_headers, tmp_path, answer_format):
+    """The researcher's endpoints never fail on a threshold study's votes (no 5xx), whatever they make of them."""
+    study = make_threshold_study(db, threshold_file(answer_format=answer_format, trials=8), tmp_path / "var" / "media")
+    study.owner_id = None
+    db.commit()
+    for threshold in (6, 12, 20):
+        run_session(db, study, observer(threshold, random.Random(threshold), answer_format))
+    for path in ("results", "export.csv", "export.json", "export.sureal.json", "export.pwcmp.csv", "definition"):
+        r = client.get(f"/api/v1/studies/update-rate/{path}", headers=researcher_headers)
+        assert r.status_code == 200, (path, r.status_code, r.text[:300])
+    header = client.get("/api/v1/studies/update-rate/export.csv", headers=researcher_headers).text.splitlines()[0]
+    assert header.split(",")[-7:-3] == ["answer_format", "ladder", "level", "correct"]
+
+
+def test_planted_observers_staircases_find_their_threshold():
+    """QUEST+ over the update-rate ladder (40 trials) against planted observers of thresholds 7 and 14 poses per
+    second (detection 50 % there): the posterior threshold lands near the planted one, and the two apart."""
+    design = Design(mode="staircase", ladder="pps", conditions=PPS, trials=40, animations=["walk"])
+    found = {}
+    for planted in (7.0, 14.0):
+        def detect(level: float, planted: float = planted) -> float:
+            return 0.01 + 0.98 / (1 + (level / planted) ** 6)
+        estimates = [staircase.estimate(design, "2afc", staircase.simulate(design, "2afc", detect,
+                                                                           random.Random(seed)))["threshold_level"]
+                     for seed in range(8)]
+        found[planted] = sorted(estimates)[len(estimates) // 2]
+        near = sum(planted / 1.5 <= e <= planted * 1.5 for e in estimates)
+        assert near >= 7, (planted, estimates)
+    assert found[7.0] < found[14.0]

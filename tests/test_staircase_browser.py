@@ -1,0 +1,222 @@
+"""Issue 38 in Debian's Chromium: the update-rate study (studies/update-rate.toml: 2AFC, QUEST+ staircases over the
+`pps` ladder on walk and run) with simulated participants voting through the HTTP API and one real participant by
+keyboard on the page.  Its trial budget is cut to 6 per staircase to keep the test short.
+
+The clips stand in for the ladder's renders (the `update_rate` method is another part of issue 38): every video is
+one small real H.264 file (a bar crossing the frame), under the opaque names of a render manifest of the study's
+pairs, so the page loads, plays and loops real video and the server does everything it does for a rendered set.
+"""
+
+from __future__ import annotations
+
+import random
+from pathlib import Path
+
+import av
+import httpx
+import numpy as np
+import pytest
+from playwright.sync_api import sync_playwright
+from sqlalchemy import select
+
+from server.app import create_app
+from server.config import Settings
+from server.db import migrate, session_factory
+from server.participants import staircase
+from server.participants.models import ParticipantSession, Trial, Vote
+from server.research.export import export_rows
+from server.studies.design import Design
+from server.studies.models import Study, StudyState
+from server.studies.service import create_study, set_state
+from server.studies.studyfile import StudyFile, load_study_file
+from tests.conftest import _fresh_engine
+from tests.server_fixtures import live_server
+from tests.test_answer_formats import UPDATE_RATE, ladder_media, observer
+from tests.test_participant_page import ARGS, ARTIFACTS, CHROMIUM, wait_until
+
+TRIALS = 6  # per staircase (the file's 30, cut for time)
+SIMULATED = 3
+LEAKS = ("pps", "keyframe", "level", "ladder", "update_rate")
+
+
+def tiny_video(path: Path, width: int = 324, height: int = 120, frames: int = 20) -> bytes:
+    """A real H.264 video: a bar crossing the frame, 2/3 s at 30 fps."""
+    container = av.open(str(path), "w")
+    stream = container.add_stream("libx264", rate=30)
+    stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
+    for i in range(frames):
+        image = np.full((height, width, 3), 40, np.uint8)
+        x = i * width // frames
+        image[:, x:x + 12] = 230
+        for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")):
+            container.mux(packet)
+    for packet in stream.encode():
+        container.mux(packet)
+    container.close()
+    return path.read_bytes()
+
+
+def study_file(**changes: object) -> StudyFile:
+    raw = load_study_file(UPDATE_RATE).model_dump()
+    raw["design"]["trials"] = TRIALS
+    return StudyFile.model_validate({**raw, **changes})
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    if not Path(CHROMIUM).exists():
+        pytest.fail(f"{CHROMIUM} is missing: `make test` installs Debian's chromium")
+    var = tmp_path_factory.mktemp("var")
+    settings = Settings(var_dir=var, secret_key="staircase-test-secret-0123456789abcdef")
+    media = ladder_media()
+    settings.media_dir.mkdir(parents=True, exist_ok=True)
+    video = tiny_video(var / "pair.mp4")
+    for v in [*media.clips.values(), *media.pairs]:
+        (settings.media_dir / v.video).write_bytes(video)
+        (settings.media_dir / v.poster).write_bytes(b"poster")
+    (settings.media_dir / "manifest.json").write_text(media.model_dump_json())
+    engine = _fresh_engine("sqlite", tmp_path_factory)
+    migrate(engine)
+    factory = session_factory(engine)
+    with factory() as db:
+        set_state(db, create_study(db, media, study_file(), media_dir=settings.media_dir), StudyState.open)
+        phone = study_file(slug="update-rate-phone", page={"device_gate": {"min_scale": 0.25}})  # a phone's width
+        set_state(db, create_study(db, media, phone, media_dir=settings.media_dir), StudyState.open)
+    with live_server(create_app(settings, engine, run_migrations=False)) as base:
+        yield base, factory
+    engine.dispose()
+
+
+def simulate(base: str, factory, rng: random.Random, threshold: float) -> str:
+    """A planted observer through the HTTP API (the truth of each trial read from the database, as the page
+    never has it); returns the session id."""
+    with httpx.Client(base_url=base) as http:
+        r = http.post("/api/v1/studies/update-rate/sessions", json={"consent": True})
+        assert r.status_code == 201, r.text
+        sid, headers = r.json()["session_id"], {"Authorization": f"Bearer {r.json()['token']}"}
+        answer = observer(threshold, rng)
+        assert http.put(f"/api/v1/sessions/{sid}/demographics", json={"gamer": "no", "tech_savvy": "yes"},
+                        headers=headers).status_code == 200
+        trial = http.get(f"/api/v1/sessions/{sid}/next", headers=headers).json()
+        while trial is not None:
+            with factory() as db:
+                stored = db.scalar(select(Trial).where(Trial.public_id == trial["trial_id"]))
+                choice = answer(stored)
+            r = http.post(f"/api/v1/sessions/{sid}/trials/{trial['trial_id']}/vote", headers=headers,
+                          json={"choice": choice, "rt_ms": 800, "idempotency_key": trial["trial_id"]})
+            assert r.status_code == 201, r.text
+            trial = r.json()["next"]
+    return sid
+
+
+def stored_and_replayed(db, sid: str) -> tuple[list, list]:
+    ps = db.get(ParticipantSession, sid)
+    design = Design.model_validate(ps.study.design)
+    rows, stored = [], []
+    for t in sorted(ps.trials, key=lambda t: t.index):
+        v = db.scalar(select(Vote).where(Vote.trial_id == t.id))
+        decided = staircase.undecided(ps, t)
+        rows.append((t.comparison.reference.animation if decided else None, t.comparison.test.condition,
+                     v.choice if v else None, t.reference_side))
+        stored.append(t.comparison.test.condition if decided else None)
+    return stored, staircase.replay(design, "2afc", rows)
+
+
+@pytest.mark.slow  # about a minute: every trial's video is watched to its end
+def test_update_rate_staircase_with_simulated_and_real_participants(site):
+    base, factory = site
+    rng = random.Random(38)
+    simulated = [simulate(base, factory, rng, threshold) for threshold in (6.0, 12.0, 20.0)[:SIMULATED]]
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        context = browser.new_context(viewport={"width": 1280, "height": 720})
+        page = context.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(f"{base}/s/update-rate?PROLIFIC_PID=p1&STUDY_ID=s&SESSION_ID=x")
+        page.wait_for_selector("#page-info:not([hidden])")
+        page.focus("#info-next")
+        page.keyboard.press("Enter")
+        page.wait_for_selector("#page-consent:not([hidden])")
+        page.focus("#consent-box")
+        page.keyboard.press("Space")
+        page.focus("#consent-next")
+        page.keyboard.press("Enter")
+        page.wait_for_selector("#page-demographics:not([hidden])")
+        for selector in ("input[name=gamer][value=yes]", "input[name=tech_savvy][value=no]"):
+            page.focus(selector)
+            page.keyboard.press("Space")
+        page.focus("#demographics-form button")
+        page.keyboard.press("Enter")
+        page.wait_for_selector("#page-instructions:not([hidden])")
+        page.focus("#instructions-next")
+        page.keyboard.press("Enter")
+        wait_until(page, "document.getElementById('trial-progress').textContent.startsWith('Trial 1 of')")
+        # the two answers of the format, as the API serves them, worded by the study, keys 1 and 2
+        answers = page.eval_on_selector_all("#vote-form input[name=choice]", "xs => xs.map(x => x.value)")
+        labels = page.eval_on_selector_all("#vote-form .choice-label", "xs => xs.map(x => x.textContent)")
+        assert answers == ["left", "right"] and labels == ["The left one", "The right one"]
+        total = int(page.inner_text("#trial-progress").split(" of ")[1].split()[0])
+        assert total == 2 * TRIALS + 2
+        pressed = []
+        for number in range(1, total + 1):
+            wait_until(page, f"document.getElementById('trial-progress').textContent.startsWith('Trial {number} of')")
+            page.wait_for_selector("#loading", state="hidden")
+            wait_until(page, "document.getElementById('video').currentTime > 0.05")
+            html = page.content().lower()
+            assert not any(word in html for word in LEAKS)
+            if number == 1:
+                page.screenshot(path=str(ARTIFACTS / "update-rate-trial.png"))
+            key = "1" if number % 3 else "2"
+            page.keyboard.press(key)
+            pressed.append(key)
+            page.wait_for_selector("#vote-submit:not([disabled])", timeout=15000)  # after one full loop
+            page.keyboard.press("Enter")
+        page.wait_for_selector("#page-thanks:not([hidden])")
+        context.close()
+        browser.close()
+        assert not errors, errors
+    with factory() as db:
+        study = db.scalar(select(Study).where(Study.slug == "update-rate"))
+        real = db.scalars(select(ParticipantSession).where(ParticipantSession.study_id == study.id,
+                                                           ParticipantSession.id.not_in(simulated))).one()
+        assert real.state == "completed" and real.answers == {"gamer": "yes", "tech_savvy": "no"}
+        votes = db.scalars(select(Vote).join(Trial).where(Vote.session_id == real.id).order_by(Trial.index)).all()
+        assert [v.choice for v in votes] == [{"1": "left", "2": "right"}[k] for k in pressed]
+        for sid in [*simulated, real.id]:
+            stored, replayed = stored_and_replayed(db, sid)
+            assert stored == replayed and sum(s is not None for s in stored) == 2 * TRIALS
+        rows = list(export_rows(db, study))
+        assert len(rows) == (SIMULATED + 1) * (2 * TRIALS + 2)
+        assert {r["answer_format"] for r in rows} == {"2afc"} and {r["ladder"] for r in rows} == {"pps"}
+        assert all(r["correct"] == (r["choice"] == r["reference_side"]) for r in rows)
+
+
+def test_2afc_answers_stay_side_by_side_on_a_phone(site):
+    """On a phone-sized screen the five-point answers stack; the two 2AFC answers stay in one row, left first."""
+    base, _ = site
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        context = browser.new_context(viewport={"width": 390, "height": 844}, is_mobile=True, has_touch=True)
+        page = context.new_page()
+        page.goto(f"{base}/s/update-rate-phone")
+        page.wait_for_selector("#page-info:not([hidden])")
+        page.tap("#info-next")
+        page.wait_for_selector("#page-consent:not([hidden])")
+        page.tap("#consent-box")
+        page.tap("#consent-next")
+        page.wait_for_selector("#page-demographics:not([hidden])")
+        page.tap("input[name=gamer][value=no]")
+        page.tap("input[name=tech_savvy][value=no]")
+        page.tap("#demographics-form button")
+        page.wait_for_selector("#page-instructions:not([hidden])")
+        page.tap("#instructions-next")
+        wait_until(page, "document.getElementById('trial-progress').textContent.startsWith('Trial 1 of')")
+        boxes = [page.locator("#vote-form label").nth(i).bounding_box() for i in range(2)]
+        assert page.locator("#vote-form label").count() == 2
+        assert boxes[0] and boxes[1] and abs(boxes[0]["y"] - boxes[1]["y"]) < 2 and boxes[0]["x"] < boxes[1]["x"]
+        assert boxes[1]["x"] + boxes[1]["width"] <= 390
+        page.screenshot(path=str(ARTIFACTS / "update-rate-phone.png"))
+        context.close()
+        browser.close()
