@@ -335,12 +335,22 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
     from server.uploads.models import BuildState, JobKind
 
     command = args.study_command
+    if command in ("threshold-plan", "frontier"):  # issue 38: server/threshold_commands.py
+        from server import threshold_commands
+
+        return (threshold_commands.threshold_plan if command == "threshold-plan"
+                else threshold_commands.frontier_command)(args)
     if command == "schema":
         print(json.dumps(StudyFile.model_json_schema(), indent=2))
         return 0
     try:
         if command in ("simulate", "plan"):
-            return _simulate_or_plan(args, load_study_file(args.file).design)
+            from server import threshold_commands  # issue 38: threshold designs
+
+            design = load_study_file(args.file).design
+            if getattr(design, "mode", None) in threshold_commands.THRESHOLD_MODES:
+                return threshold_commands.simulate_or_plan(args, design)
+            return _simulate_or_plan(args, design)
         if command == "validate":
             study_file = load_study_file(args.file)
             if study_file.clips is not None:
@@ -521,7 +531,7 @@ def _simulate_or_plan(args: argparse.Namespace, design: Any) -> int:
               f"{summary.kendall_tau:.3f} (>= 0.9 in {100 * summary.tau_at_least_09:.0f} % of studies)"
               + (f"; {summary.failed} condition values infinite (one-sided answers)" if summary.failed else ""))
         return 0
-    if not 0 < args.power < 1 or not math.isfinite(args.effect) or args.effect == 0:
+    if args.effect is None or not 0 < args.power < 1 or not math.isfinite(args.effect) or args.effect == 0:
         return _fail("--power must be between 0 and 1 and --effect a non-zero number")
     print(f"{design.mode} design: simulating {args.seeds} studies per participant count "
           f"(effect {args.effect:g} logit units, power {args.power:g}) ...", flush=True)
@@ -927,10 +937,14 @@ def build_parser() -> argparse.ArgumentParser:
     sp = st_sub.add_parser("plan", help="participants needed to detect a difference from the reference, by "
                            "simulation (docs/designs.md)")
     sp.add_argument("file", type=Path)
-    sp.add_argument("--effect", type=float, required=True, help="the difference to detect, logit units of the "
-                    "scale (every condition that far above the reference)")
+    sp.add_argument("--effect", type=float, default=None, help="the difference to detect, logit units of the "
+                    "scale (every condition that far above the reference); required but for threshold designs")
     sp.add_argument("--power", type=float, default=0.8)
     sp.add_argument("--seeds", type=_positive, default=100, help="simulated studies per participant count")
+    from server import threshold_commands  # issue 38: threshold designs' options and commands
+
+    threshold_commands.extend_simulate_plan(sm, sp)
+    threshold_commands.add_parsers(st_sub, _positive)
     se = st_sub.add_parser("export", help="a study's votes, one row per vote (see the data dictionary)")
     se.add_argument("slug")
     se.add_argument("--format", choices=("csv", "json", "sureal", "pwcmp"), default="csv",

@@ -167,7 +167,7 @@ def build_composite(spec: CompositeSpec, sources: Mapping[str, Source], fps: int
     applying = [c for c in conditions if c.applies(spec.form)]
     ordered = [*(c for c in applying if c.is_reference), *(c for c in applying if not c.is_reference)]
     skate = max(source_skate(sources[n], sources[n].time_of(sources[n].config.frames[0]),
-                                     sources[n].time_of(sources[n].config.frames[1]), fps) for n in spec.takes)
+                             sources[n].time_of(sources[n].config.frames[1]), fps) for n in spec.takes)
     built: list[BuiltClip] = []
     for condition in ordered:
         clip_id = f"{spec.name}-{condition.id}"
