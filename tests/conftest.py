@@ -200,3 +200,38 @@ def cmu_walk(data: Path):
 
     bvh = read_bvh(data / "mocap" / "cmu" / "02_01_walk.bvh.gz")
     return dataclasses.replace(bvh, motion=bvh.motion[1:241])
+
+
+# The browser tests' Chromium, in one place: Debian's (never a downloaded browser), headless, no network chatter of
+# its own so a test's requests are the page's only.
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+
+
+@pytest.fixture(scope="module")
+def playwright():
+    from playwright.sync_api import sync_playwright  # only the browser tests need it
+
+    with sync_playwright() as p:
+        yield p
+
+
+@pytest.fixture(scope="module")
+def browser(playwright):
+    # Module scope: one launch per file (a launch costs about a second), a fresh context per test below.
+    b = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+    yield b
+    b.close()
+
+
+@pytest.fixture
+def page(browser):
+    """A 1280x720 page in a context of its own; a JavaScript error on it fails the test."""
+    context = browser.new_context(viewport={"width": 1280, "height": 720})
+    pg = context.new_page()
+    errors: list[str] = []
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    yield pg
+    context.close()
+    assert not errors, errors

@@ -82,6 +82,16 @@ def test_data_dictionary_documents_every_column(client):
         assert f"| `{column}` |" in r.text
 
 
+def test_data_dictionary_as_json_has_the_same_columns(client):
+    r = client.get("/api/v1/data-dictionary.json")
+    assert r.status_code == 200
+    names = [c["name"] for c in r.json()["columns"]]
+    # Every export column, in export order, and each row says what its values are.
+    assert [n for n in names if not n.startswith("*")] == list(EXPORT_COLUMNS)
+    assert all(c["type"] and c["meaning"] for c in r.json()["columns"])
+    assert r.json()["old_columns"]
+
+
 def test_media_serving(db, engine, tmp_path):
     clients = make_client(db, engine, tmp_path)
     client: TestClient = next(clients)

@@ -6,7 +6,6 @@ import time
 from pathlib import Path
 
 import pytest
-from playwright.sync_api import sync_playwright
 from sqlalchemy import func, select
 
 from server.app import create_app
@@ -23,14 +22,12 @@ from server.studies.models import StudyState
 from server.studies.page import Chrome
 from server.studies.service import clip_set_index, create_study, required_pairs, set_state
 from server.studies.studyfile import load_study_file, thesis_study
-from tests.conftest import _fresh_engine
+from tests.conftest import CHROMIUM, CHROMIUM_ARGS, _fresh_engine
 from tests.server_fixtures import live_server
 
 REPO_STUDIES = Path(__file__).resolve().parents[1] / "studies"
 
-CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+ARGS = CHROMIUM_ARGS  # the name the other browser test files import
 ARTIFACTS = Path(__file__).resolve().parents[1] / "var" / "test-artifacts" / "browser"
 VIDEO = RenderSettings(width=320, height=240)  # real renders, smaller than the default to keep the suite quick
 LEAKS = ("hybrid", "keyframe", "increment", "mocap")
@@ -59,30 +56,6 @@ def site(data, tmp_path_factory):
     with live_server(app) as base:
         yield base, factory
     engine.dispose()
-
-
-@pytest.fixture(scope="module")
-def playwright():
-    with sync_playwright() as p:
-        yield p
-
-
-@pytest.fixture(scope="module")
-def browser(playwright):
-    b = playwright.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-    yield b
-    b.close()
-
-
-@pytest.fixture
-def page(browser, tmp_path):
-    context = browser.new_context(viewport={"width": 1280, "height": 720})
-    pg = context.new_page()
-    errors = []
-    pg.on("pageerror", lambda e: errors.append(str(e)))
-    yield pg
-    context.close()
-    assert not errors, errors
 
 
 def shot(pg, name):

@@ -8,7 +8,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from playwright.sync_api import sync_playwright
 
 from server.app import create_app
 from server.config import Settings
@@ -18,7 +17,7 @@ from server.studies.models import StudyState
 from server.studies.pilot import preview_link
 from tests.conftest import _fresh_engine
 from tests.server_fixtures import live_server, make_study
-from tests.test_participant_page import ARGS, CHROMIUM, press_on, visible
+from tests.test_participant_page import CHROMIUM, press_on, visible
 from tests.test_question_types import QUESTIONS
 
 SECRET = "browser-test-secret-0123456789abcdef"
@@ -39,25 +38,6 @@ def site(tmp_path_factory):
     with live_server(create_app(settings, engine, run_migrations=False)) as base:
         yield base, factory, token
     engine.dispose()
-
-
-@pytest.fixture(scope="module")
-def browser():
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-        yield b
-        b.close()
-
-
-@pytest.fixture
-def page(browser):
-    context = browser.new_context(viewport={"width": 1280, "height": 720})
-    pg = context.new_page()
-    errors = []
-    pg.on("pageerror", lambda e: errors.append(str(e)))
-    yield pg
-    context.close()
-    assert not errors, errors
 
 
 def to_demographics(pg, url):

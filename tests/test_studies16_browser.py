@@ -16,7 +16,6 @@ import tomllib
 from pathlib import Path
 
 import pytest
-from playwright.sync_api import sync_playwright
 from sqlalchemy import select
 
 from server import cli
@@ -28,7 +27,7 @@ from server.participants.models import ParticipantSession, Vote
 from server.researchers.service import create_researcher
 from server.studies.models import Study
 from tests.server_fixtures import live_server
-from tests.test_participant_page import ARGS, ARTIFACTS, CHROMIUM, wait_until
+from tests.test_participant_page import ARTIFACTS, CHROMIUM, wait_until
 
 REPO = Path(__file__).resolve().parents[1]
 CLIP_SET = REPO / "server" / "clipset" / "conditions16.toml"
@@ -78,25 +77,6 @@ def site(data, tmp_path_factory):
     with live_server(create_app(settings, engine, run_migrations=False)) as base:
         yield base, factory, settings, logs
     engine.dispose()
-
-
-@pytest.fixture(scope="module")
-def browser():
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-        yield b
-        b.close()
-
-
-@pytest.fixture
-def page(browser):
-    context = browser.new_context(viewport={"width": 1280, "height": 720})
-    pg = context.new_page()
-    errors = []
-    pg.on("pageerror", lambda e: errors.append(str(e)))
-    yield pg
-    context.close()
-    assert not errors, errors
 
 
 @pytest.mark.slow  # tens of seconds (the serial run's slowest; still run by `make test`)

@@ -21,7 +21,7 @@ from server.pipeline.jobs import create_building
 from server.researchers.deps import ResearcherDep
 from server.researchers.models import Researcher
 from server.studies import pilot, service
-from server.studies.columns import data_dictionary_markdown
+from server.studies.columns import data_dictionary_json, data_dictionary_markdown
 from server.studies.models import StudyState
 from server.studies.page import Page
 from server.studies.scale import public as public_scale
@@ -224,6 +224,12 @@ def delete_pilot_sessions(slug: str, session: SessionDep, researcher: Researcher
 def data_dictionary() -> str:
     """The columns of the exports, documented (Markdown)."""
     return data_dictionary_markdown()
+
+
+@router.get("/data-dictionary.json")
+def data_dictionary_as_json() -> dict[str, list[dict[str, str]]]:
+    """The same columns as data (name, type, meaning), for scripts that read exports."""
+    return data_dictionary_json()
 
 
 @router.get("/studies/{slug}/results")

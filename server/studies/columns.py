@@ -169,6 +169,20 @@ def data_dictionary_markdown() -> str:
             f"{_OLD_INTRO}\n{_table(('old column', 'meaning', 'now'), OLD_COLUMNS)}\n")
 
 
+def data_dictionary_json() -> dict[str, list[dict[str, str]]]:
+    """The same dictionary as data, for programs (``GET /api/v1/data-dictionary.json``): the columns in export order,
+    the question and URL-parameter placeholders where the Markdown puts them (``name`` in italics there, here
+    ``"*question id*"``/``"*URL parameter*"`` too: both show the same rows); then the old columns."""
+    columns = []
+    for column in COLUMNS:
+        if column.name == QUESTIONS_BEFORE:
+            columns.append(dict(zip(("name", "type", "meaning"), _QUESTION_ROW, strict=True)))
+        columns.append({"name": column.name, "type": column.type, "meaning": column.meaning})
+    columns.append(dict(zip(("name", "type", "meaning"), _PARAMETER_ROW, strict=True)))
+    old = [dict(zip(("name", "meaning", "now"), row, strict=True)) for row in OLD_COLUMNS]
+    return {"columns": columns, "old_columns": old}
+
+
 def _table(header: tuple[str, str, str], rows: list[tuple[str, str, str]] | tuple[tuple[str, str, str], ...]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|---|---|---|"]
     lines += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in rows]
