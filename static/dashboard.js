@@ -104,6 +104,7 @@
             r.animation, c.condition, c.value == null ? (c.bound ? `${c.bound} all others` : "–") : fmt(c.value, 2),
             c.ci95 ? `${fmt(c.ci95[0], 2)} … ${fmt(c.ci95[1], 2)}` : "–", c.votes, r.fit.status])));
     renderScale(res);
+    renderThresholds(res.thresholds);
     renderQuestions(res, comps);
     // The clips of the study's stimulus set, with the metrics they had when it was made (pinned when it opened).
     $("stimulus-set").textContent = res.stimulus_set
@@ -152,6 +153,30 @@
                               ...animations.map((a) => `${a}: pairs`)],
           rounds.map((r) => [r.round, r.votes_before, ...animations.map((a) => fmt(r.information[a], 3)),
                              ...animations.map((a) => r.pairs[a].map((p) => p.join("–")).join(", "))]));
+  }
+
+  // Threshold designs (issue 38): each animation's threshold, its cheapest indistinguishable level and the frontier
+  // plot the server draws (an SVG document parsed as such, never as HTML).
+  function renderThresholds(t) {
+    $("thresholds-panel").hidden = !t;
+    if (!t) return;
+    const animations = t.animations || [];
+    const interval = (i) => (i ? `${fmt(i.estimate, 1)} (${fmt(i.low, 1)} … ${fmt(i.high, 1)})` : "–");
+    $("thresholds-summary").textContent = t.note || animations.map((a) => {
+      if (a.error) return `${a.animation}: ${a.error}.`;
+      const c = a.cheapest_indistinguishable;
+      const fit = a.fit ? `threshold ${interval(a.fit.threshold_profile || a.fit.threshold)} ${t.ladder}` : "no fit";
+      return `${a.animation}: ${fit}; cheapest indistinguishable: ` +
+        (c ? `${c.condition} (${fmt(c.cost, 3)} ${t.cost_metric})` : "none yet");
+    }).join(" ");
+    const doc = new DOMParser().parseFromString(t.svg || "<svg xmlns='http://www.w3.org/2000/svg'/>", "image/svg+xml");
+    $("chart-frontier").replaceChildren(document.importNode(doc.documentElement, true));
+    Researcher.fillTable($("table-thresholds"), ["animation", "condition", "level", "cost", "answers", "correct",
+                             "95 % CI", "Pareto", "indistinguishable"],
+          animations.filter((a) => !a.error).flatMap((a) => a.points.map((q) => [
+            a.animation, q.condition, fmt(q.level, 1), fmt(q.cost, 3), q.detection.trials,
+            fmt(q.detection.p, 2), `${fmt(q.detection.low, 2)} … ${fmt(q.detection.high, 2)}`,
+            q.pareto ? "yes" : "", q.indistinguishable ? "yes" : ""])));
   }
 
   // One panel per question of the study: the mean score of each comparison for each answer.

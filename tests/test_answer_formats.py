@@ -296,6 +296,9 @@ def test_results_and_exports_of_a_threshold_study_answer(db, client, researcher_
     for path in ("results", "export.csv", "export.json", "export.sureal.json", "export.pwcmp.csv", "definition"):
         r = client.get(f"/api/v1/studies/update-rate/{path}", headers=researcher_headers)
         assert r.status_code == 200, (path, r.status_code, r.text[:300])
+    thresholds = client.get("/api/v1/studies/update-rate/results", headers=researcher_headers).json()["thresholds"]
+    assert thresholds["ladder"] == "pps"
+    assert thresholds["animations"] if answer_format == "2afc" else thresholds["note"]
     header = client.get("/api/v1/studies/update-rate/export.csv", headers=researcher_headers).text.splitlines()[0]
     assert header.split(",")[-7:-3] == ["answer_format", "ladder", "level", "correct"]
 
@@ -315,3 +318,33 @@ def test_planted_observers_staircases_find_their_threshold():
         near = sum(planted / 1.5 <= e <= planted * 1.5 for e in estimates)
         assert near >= 7, (planted, estimates)
     assert found[7.0] < found[14.0]
+
+
+def _rows(animation: str, level: int, trials: int, correct: int) -> list[dict]:
+    return [{"practice": False, "catch": False, "outcome": "completed", "animation": animation,
+             "test_condition": f"pps{level}", "level": level, "correct": k < correct} for k in range(trials)]
+
+
+def test_threshold_results_name_the_cheapest_level_nobody_tells_from_the_reference():
+    """Levels 4-8 always told apart, 12-24 at chance over 200 answers each (upper bounds near 57 %), the cost
+    rising with the level: the cheapest indistinguishable level is pps12, every level is on the Pareto set but
+    the dominated ones, and practice, catch and screened-out answers are left out."""
+    from server.research.thresholds import threshold_results
+
+    rows = [r for level in (4, 6, 8) for r in _rows("walk", level, 60, 60)]
+    rows += [r for level in (12, 16, 24) for r in _rows("walk", level, 200, 100)]
+    rows += [{**r, "catch": True} for r in _rows("walk", 12, 50, 0)]
+    rows += [{**r, "outcome": "screened_out"} for r in _rows("walk", 16, 50, 0)]
+    clips = [{"animation": "walk", "condition": f"pps{n}", "metrics": {"cost_ms_per_1000": n / 10}} for n in LEVELS]
+    design = {"mode": "constant-stimuli", "ladder": "pps"}
+    out = threshold_results(design, "2afc", rows, clips)
+    (walk,) = out["animations"]
+    assert walk["cheapest_indistinguishable"]["condition"] == "pps12"
+    by = {p["condition"]: p for p in walk["points"]}
+    assert by["pps12"]["detection"]["trials"] == 200 and by["pps16"]["detection"]["trials"] == 200
+    assert by["pps4"]["detection"]["p"] == 1.0 and not by["pps4"]["indistinguishable"]
+    assert [p["condition"] for p in walk["points"] if p["indistinguishable"]] == ["pps12", "pps16", "pps24"]
+    assert [p["condition"] for p in walk["points"] if p["pareto"]] == ["pps4", "pps12"]
+    assert walk["fit"] is not None and out["svg"].startswith("<svg")
+    assert threshold_results({"mode": "reference"}, "rating5", rows, clips) is None
+    assert threshold_results(design, "same_different", rows, clips)["note"].startswith("thresholds are fitted")

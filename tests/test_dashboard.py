@@ -59,6 +59,7 @@ def test_dashboard_logs_in_and_draws_every_chart(dashboard_site):
         # every clip's gate figures (issue 35), a hybrid's mirrored half among them
         assert "mirrored half" in page.inner_text("#table-metrics thead")
         assert page.inner_text("#stimulus-set").startswith("The study's stimulus set ")
+        assert page.eval_on_selector("#thresholds-panel", "e => e.hidden")  # a rating study: no thresholds
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(ARTIFACTS / "dashboard.png"), full_page=True)
         with page.expect_download() as download:

@@ -220,3 +220,32 @@ def test_2afc_answers_stay_side_by_side_on_a_phone(site):
         page.screenshot(path=str(ARTIFACTS / "update-rate-phone.png"))
         context.close()
         browser.close()
+
+
+def test_the_dashboard_shows_each_animations_threshold_panel(site):
+    """The researcher's dashboard of a staircase study draws the thresholds panel from the results (issue 38): one
+    summary per animation (here without costs: the stand-in clip set has none, and the panel says so) and no
+    script error; a rating study's dashboard keeps the panel hidden (tests/test_dashboard.py's site)."""
+    from server.researchers.service import create_researcher
+
+    base, factory = site
+    rng = random.Random(7)
+    simulate(base, factory, rng, 12.0)
+    with factory() as db:
+        create_researcher(db, "thresholds@example.org", "correct horse battery", admin=True)
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        page = browser.new_page(viewport={"width": 1280, "height": 720})
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(f"{base}/dashboard?study=update-rate")
+        page.wait_for_selector("#login:not([hidden])")
+        page.fill("#email", "thresholds@example.org")
+        page.fill("#password", "correct horse battery")
+        page.click("#login-form button")
+        page.wait_for_selector("#thresholds-panel:not([hidden])")
+        summary = page.inner_text("#thresholds-summary")
+        assert "walk:" in summary and "run:" in summary and "cost_ms_per_1000" in summary, summary
+        assert page.eval_on_selector("#chart-frontier", "e => e.querySelectorAll('svg').length") == 1
+        browser.close()
+    assert not errors, errors

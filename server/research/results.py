@@ -20,6 +20,7 @@ from server.analysis.subject_model import fit
 from server.participants.assign import session_batches
 from server.participants.rows import screened_rows
 from server.participants.service import completion_times
+from server.research.thresholds import threshold_results
 from server.stimuli import service as stimulus_sets
 from server.studies import scale
 from server.studies.design import Design
@@ -186,6 +187,8 @@ def study_results(session: Session, study: Study, benchmark_path: Path,
     results["clips"] = [{"id": c.id, "animation": c.animation, "condition": c.condition, "method": c.method,
                          "params": c.params, "key_count": c.key_count, "metrics": c.metrics, "shown": True,
                          "identical_to": c.identical_to} for c in (content.clips if content else [])]
+    results["thresholds"] = threshold_results(study.design, study.scale.get("format", "rating5"), rows,
+                                              results["clips"])
     results["benchmark"] = _read_json(benchmark_path)
     mode = study.design.get("mode", "reference")
     results["overview"]["design_mode"] = mode
