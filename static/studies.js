@@ -33,6 +33,12 @@
     return b;
   }
 
+  // The name rule of animations and conditions, as the server defines it (GET /api/v1/constants).
+  async function namePattern() {
+    const r = await fetch("/api/v1/constants", { cache: "no-store" });
+    if (r.ok) $("asset-name").pattern = (await r.json()).name_pattern;
+  }
+
   async function refresh() {
     $("login").hidden = true;
     const r = await api("/studies");
@@ -295,5 +301,6 @@
     if (building) await showAssets(building);
   });
 
+  namePattern();
   Researcher.start(refresh, () => { $("studies").hidden = true; });
 })();

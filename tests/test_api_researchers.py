@@ -92,6 +92,25 @@ def test_data_dictionary_as_json_has_the_same_columns(client):
     assert r.json()["old_columns"]
 
 
+def test_the_name_rule_is_served_and_the_pages_do_not_spell_it(client):
+    """Issue 37: the rule for animation and condition names is defined once (the clip-set reader's); the studies
+    page takes it from the API, and no page copies it."""
+    import re
+    from pathlib import Path
+
+    from server.clipset.config import NAME, NAME_PATTERN
+
+    r = client.get("/api/v1/constants")
+    assert r.status_code == 200
+    pattern = r.json()["name_pattern"]
+    assert f"^{pattern}$" == NAME_PATTERN
+    for name in ("walk", "hybrid_ik0", "a" * 32, "Walk", "walk-1", "a" * 33, "_x"):
+        assert bool(re.fullmatch(pattern, name)) == bool(NAME.fullmatch(name)), name
+    static = Path(__file__).resolve().parents[1] / "static"
+    for page in static.glob("*.html"):
+        assert "a-z0-9_]{0,31}" not in page.read_text(), page.name
+
+
 def test_media_serving(db, engine, tmp_path):
     clients = make_client(db, engine, tmp_path)
     client: TestClient = next(clients)

@@ -10,6 +10,7 @@ import pytest
 from playwright.sync_api import sync_playwright
 
 from server.app import create_app
+from server.clipset.config import NAME_PATTERN
 from server.config import Settings
 from server.db import migrate
 from tests.conftest import _fresh_engine
@@ -56,6 +57,8 @@ def test_upload_inspect_and_build_from_the_studies_page(site, tmp_path, data):
         wait_until(page, "document.activeElement.id === 'assets-title'")  # focus moves once the list is loaded
         assert "No motion files yet." in page.inner_text("#table-assets")
         assert page.is_disabled("#build-button")
+        # the name rule comes from the server (issue 37: defined once), not from the page
+        assert page.get_attribute("#asset-name", "pattern") == NAME_PATTERN[1:-1]
 
         # a broken file: refused with the reader's message, nothing listed
         page.set_input_files("#asset-file", str(bad))

@@ -10,6 +10,7 @@ from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
+from server.clipset.config import NAME_PATTERN
 from server.deps import SessionDep, SettingsDep
 from server.errors import Conflict, Unprocessable
 from server.jobs.control import job_json
@@ -224,6 +225,13 @@ def delete_pilot_sessions(slug: str, session: SessionDep, researcher: Researcher
 def data_dictionary() -> str:
     """The columns of the exports, documented (Markdown)."""
     return data_dictionary_markdown()
+
+
+@router.get("/constants")
+def constants() -> dict[str, str]:
+    """What the researcher pages check before sending (defined once, in the server): ``name_pattern``, the rule for
+    animation names and condition ids, as an HTML ``pattern`` (anchored by the browser)."""
+    return {"name_pattern": NAME_PATTERN.removeprefix("^").removesuffix("$")}
 
 
 @router.get("/data-dictionary.json")
