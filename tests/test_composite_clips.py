@@ -54,9 +54,12 @@ def test_transition_metrics(by_id: dict) -> None:
 
 def test_the_cut_plays_each_take_as_built(by_id: dict) -> None:
     seq, run = by_id["idle_walk_run-cut"], by_id["run-keyframe"]
-    # The run starts 5 s in (idle 2 s, walk 3 s): its first second is the run clip's own rotations.
+    # The run starts 5 s in (idle 2 s, walk 3 s), entered at the frame of its cycle in the walk's leg phase
+    # (entry = "matched", the default): its first second is the run clip's own rotations from that frame on.
+    cycle = run.clip.sample(np.arange(round(run.clip.duration * 30)) / 30).rotations
+    k = int(np.argmin(np.abs(np.abs(np.sum(cycle * seq.local_rotations[150], axis=-1)) - 1).max(axis=1)))
     frames = np.arange(150, 180)
-    expected = run.clip.sample((frames - 150) / 30).rotations
+    expected = run.clip.sample((k + frames - 150) / 30).rotations
     got = seq.local_rotations[frames]
     assert np.abs(np.abs(np.sum(got * expected, axis=-1)) - 1).max() < 1e-12
 

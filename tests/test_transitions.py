@@ -208,3 +208,17 @@ def test_crossfade_foot_skate_no_worse_than_the_sources() -> None:
     during = slide(comp.clip, 1.0 + np.arange(30) / 120)
     sources = max(slide(walk, np.arange(240) / 120), slide(run, np.arange(240) / 120))
     assert during <= sources * 1.05 + 0.05
+
+
+def test_a_take_entered_matched_after_itself_goes_on_where_it_was() -> None:
+    """``entry = "matched"``: a loop entered after itself starts at the frame of its cycle where the outgoing copy
+    is at the switch, so a cut between them is seamless (every frame the take's own, as if it had played on); from
+    its time 0 ("start") the cut jumps back to the cycle's first pose."""
+    walk = _swing(0.5, 1.0, 1.4)  # a 1.0 s cycle
+    matched = compose_sequence([(walk, 0.6), (walk, 0.6)], FPS, TransitionSpec("cut"), entry="matched")
+    t = np.arange(36) / FPS
+    assert np.abs(np.abs(np.sum(matched.rotations * walk.sample(t).rotations, axis=-1)) - 1).max() < 1e-12
+    start = compose_sequence([(walk, 0.6), (walk, 0.6)], FPS, TransitionSpec("cut"), entry="start")
+    assert np.array_equal(start.rotations[18:], walk.sample(t[:18]).rotations)
+    with pytest.raises(CompositeError, match="entry"):
+        compose_sequence([(walk, 0.6), (walk, 0.6)], FPS, TransitionSpec("cut"), entry="middle")  # type: ignore[arg-type]

@@ -61,7 +61,8 @@ class LayerSpec:
 
 @dataclass(frozen=True)
 class CompositeSpec:
-    """A composite of a clip-set file: ``segments`` ``((take, seconds), ...)`` and ``root_motion`` for a sequence,
+    """A composite of a clip-set file: ``segments`` ``((take, seconds), ...)``, ``root_motion`` and ``entry`` for a
+    sequence,
     ``base`` and ``layers`` for a layered animation."""
 
     name: str
@@ -70,6 +71,7 @@ class CompositeSpec:
     root_motion: str | None = None
     base: str | None = None
     layers: tuple[LayerSpec, ...] = ()
+    entry: str = "matched"
 
     @property
     def takes(self) -> tuple[str, ...]:
@@ -153,7 +155,7 @@ def build_composite(spec: CompositeSpec, sources: Mapping[str, Source], fps: int
     skeleton = refs[first][0].reference.skeleton
     if spec.form == "sequence":
         animation: Any = SequenceAnimation(spec.name, tuple((refs[n][0], s) for n, s in spec.segments),
-                                           spec.root_motion, fps)  # type: ignore[arg-type]
+                                           spec.root_motion, fps, spec.entry)  # type: ignore[arg-type]
     else:
         layers = []
         for k, layer in enumerate(spec.layers):

@@ -21,7 +21,7 @@ from pydantic import Field
 
 from ..math.clip import KeyframeClip
 from .base import Animation, Params
-from .transitions import Composite, RootMotion, TransitionSpec, compose_sequence, layered
+from .transitions import Composite, Entry, RootMotion, TransitionSpec, compose_sequence, layered
 
 #: The longest transition a condition may ask for (a crossfade must also fit in the shortest segment).
 MAX_TRANSITION_MS = 5000
@@ -30,12 +30,13 @@ MAX_TRANSITION_MS = 5000
 @dataclass(frozen=True, eq=False)
 class SequenceAnimation:
     """A sequence as a builder receives it: each take's :class:`Animation` with its seconds, the root-motion rule
-    (None: the takes agree), the frame rate."""
+    (None: the takes agree), the frame rate, where each take is entered (:func:`compose_sequence`'s ``entry``)."""
 
     name: str
     segments: tuple[tuple[Animation, float], ...]
     root_motion: RootMotion | None
     fps: int
+    entry: Entry = "matched"
 
 
 @dataclass(frozen=True, eq=False)
@@ -75,7 +76,8 @@ class InertializationParams(Params):
 
 def _compose(animation: SequenceAnimation, spec: TransitionSpec) -> SequenceClip:
     segments = [(a.reference, seconds) for a, seconds in animation.segments]
-    comp: Composite = compose_sequence(segments, animation.fps, spec, animation.root_motion, animation.name)
+    comp: Composite = compose_sequence(segments, animation.fps, spec, animation.root_motion, animation.name,
+                                       animation.entry)
     c = comp.clip
     return SequenceClip(c.skeleton, c.times, c.rotations, c.root_translation, c.mode, c.in_place, c.up_axis,
                         c.name, tuple(f / animation.fps for f in comp.switch_frames), comp.settle_s, spec.duration_s)

@@ -5,7 +5,8 @@ Pure functions over pose arrays on a frame grid (local rotations ``(T, J, 4)`` (
 :class:`~anim_core.math.clip.KeyframeClip`.  The formulas are in docs/methods/transitions.md.
 
 Transitions (at a switch from the *outgoing* clip ``A`` to the *incoming* clip ``B``, ``u`` seconds after the switch;
-``A`` keeps playing its own time past its segment's end, ``B`` starts at its time 0):
+``A`` keeps playing its own time past its segment's end, ``B`` starts at its entry time, 0 unless the sequence's
+``entry`` is ``"matched"``: see :func:`compose_sequence`):
 
 * ``cut``: ``B(u)`` from the switch on.
 * ``crossfade``: ``blend(A(s_A + u), B(u), w(u))`` with ``w = clip(u / d, 0, 1)`` (``linear``) or
@@ -43,7 +44,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..math.clip import KeyframeClip
+from ..math.clip import KeyframeClip, Pose
 from ..math.quat import (
     align_hemisphere,
     identity,
@@ -262,10 +263,32 @@ def _velocity(clip: KeyframeClip, t: Array, forward: bool = False) -> tuple[Arra
     return (q1 - q0) / span, (after.root_translation - before.root_translation) / span
 
 
+Entry = Literal["start", "matched"]
+ENTRIES: tuple[str, ...] = ("start", "matched")
+
+
+def entry_time(outgoing: Pose, clip: KeyframeClip, fps: int) -> float:
+    """The time of ``clip`` (a loop) whose pose is nearest ``outgoing`` (one pose, ``(1, J, 4)`` local rotations):
+    the frame of its cycle (on the ``fps`` grid) with the least sum over the non-root joints of the angle between
+    the local rotations.  A walk entered there is in the outgoing take's leg phase (the same foot forward, the
+    stance leg the same), so that a blend does not cross two strides (issue 39: walk into run from their time 0
+    skated more than the sources)."""
+    n = max(1, round(clip.duration * fps))
+    t = np.arange(n) / fps
+    candidates = clip.sample(t).rotations[:, 1:]
+    cost = quat_angle(candidates, np.asarray(outgoing.rotations)[:, 1:]).sum(axis=1)
+    return float(t[int(np.argmin(cost))])
+
+
 def compose_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, transition: TransitionSpec,
-                     root_motion: RootMotion | None = None, name: str = "") -> Composite:
-    """One loop from ``segments`` ``[(clip, seconds), ...]`` (each clip played from its time 0 for its seconds),
-    switching by ``transition`` from each to the next and from the last back to the first.
+                     root_motion: RootMotion | None = None, name: str = "", entry: Entry = "start") -> Composite:
+    """One loop from ``segments`` ``[(clip, seconds), ...]`` (each clip played for its seconds), switching by
+    ``transition`` from each to the next and from the last back to the first.
+
+    ``entry``: where each clip starts playing: ``"start"``, at its time 0; ``"matched"``, every looping clip after
+    the first at the frame of its cycle nearest the pose the previous clip has at the switch (:func:`entry_time`),
+    the first clip (where the loop starts) at 0.  The entry times depend on the takes only, never on the transition,
+    so a sequence's conditions differ by how they switch alone.
 
     Root: the horizontal root velocity (blended as the rotations are) is integrated from frame to frame, so no
     switch moves the character; the height is blended.  Clips that travel and clips played in place mix only with
@@ -289,7 +312,13 @@ def compose_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, t
                                  "say root_motion = \"travel\" or \"in_place\"")
         root_motion = "travel" if travelling.pop() else "in_place"
     clips = [_travelling(c, root_motion) for c in clips]
+    if entry not in ENTRIES:
+        raise CompositeError(f"entry: one of {', '.join(map(repr, ENTRIES))}, got {entry!r}")
     up = clips[0].up_axis
+    begin = np.zeros(len(clips))
+    for s in range(1, len(clips)):
+        if entry == "matched" and clips[s].mode == "loop":
+            begin[s] = entry_time(clips[s - 1].sample(np.array([begin[s - 1] + seconds[s - 1]])), clips[s], fps)
     frames = np.round(seconds * fps).astype(int)
     starts = np.concatenate([[0], np.cumsum(frames)])
     n = int(starts[-1])
@@ -304,10 +333,10 @@ def compose_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, t
     for s, clip in enumerate(clips):
         here = k == s
         uu = u[here]
-        cur = clip.sample(uu)
+        cur = clip.sample(begin[s] + uu)
         out = clips[prev[here][0]]
-        s_out = seconds[prev[here][0]]
-        _, v_cur = _velocity(clip, uu, forward=True)
+        s_out = begin[prev[here][0]] + seconds[prev[here][0]]  # the outgoing clip's own time at the switch
+        _, v_cur = _velocity(clip, begin[s] + uu, forward=True)
         rot_in[here] = cur.rotations
         if transition.method == "cut":
             rot[here], vel[here], height[here] = cur.rotations, v_cur, cur.root_translation[:, up]
@@ -323,8 +352,8 @@ def compose_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, t
         elif transition.method == "inertialization":
             a0 = out.sample(np.array([s_out]))
             qa_dot, va = _velocity(out, np.array([s_out]))
-            b0 = clip.sample(np.array([0.0]))
-            qb_dot, vb = _velocity(clip, np.array([0.0]), forward=True)
+            b0 = clip.sample(np.array([begin[s]]))
+            qb_dot, vb = _velocity(clip, np.array([begin[s]]), forward=True)
             qa = align_hemisphere(a0.rotations[0], b0.rotations[0])
             sign = np.where(np.sum(a0.rotations[0] * b0.rotations[0], axis=-1) < 0, -1.0, 1.0)[:, None]
             x_rot = quintic_offset(qa - b0.rotations[0], sign * qa_dot[0] - qb_dot[0], uu, d)

@@ -15,7 +15,7 @@ from anim_core.clips.build import AnimationConfig, ConfigError
 from anim_core.clips.composite import CompositeSpec, LayerSpec, build_composite
 from anim_core.clips.record import BuiltClip
 from anim_core.methods.conditions import Condition
-from anim_core.methods.transitions import JOINT_SETS
+from anim_core.methods.transitions import ENTRIES, JOINT_SETS
 
 #: The longest segment of a sequence, seconds (a stimulus is seconds long; minutes are a mistake).
 MAX_SEGMENT_S = 120.0
@@ -53,8 +53,9 @@ def parse_composite(name: str, entry: dict[str, Any], takes: Mapping[str, Animat
                     where: str) -> CompositeSpec:
     """One composite entry, validated against the file's takes."""
     if "sequence" in entry:
-        if unknown := sorted(set(entry) - {"sequence", "root_motion"}):
-            raise ConfigError(f"{where}: unknown field {unknown[0]!r} of a sequence; allowed: root_motion, sequence")
+        if unknown := sorted(set(entry) - {"sequence", "root_motion", "entry"}):
+            raise ConfigError(f"{where}: unknown field {unknown[0]!r} of a sequence; allowed: entry, root_motion, "
+                              f"sequence")
         raw = entry["sequence"]
         if not isinstance(raw, list) or len(raw) < 2:
             raise ConfigError(f"{where} sequence: a list of at least 2 {{ animation = ..., seconds = ... }}")
@@ -70,7 +71,11 @@ def parse_composite(name: str, entry: dict[str, Any], takes: Mapping[str, Animat
         if root_motion is None and len({_travels(takes[n]) for n, _ in segments}) > 1:
             raise ConfigError(f"{where} root_motion: the sequence mixes takes played in place with travelling ones; "
                               f"say root_motion = \"travel\" (each take with its travel) or \"in_place\"")
-        return CompositeSpec(name, "sequence", tuple(segments), root_motion)
+        enter = entry.get("entry", "matched")
+        if enter not in ENTRIES:
+            raise ConfigError(f"{where} entry: where each take after the first is entered, one of "
+                              f"{', '.join(map(repr, ENTRIES))}, got {enter!r}")
+        return CompositeSpec(name, "sequence", tuple(segments), root_motion, entry=enter)
     if unknown := sorted(set(entry) - {"base", "layers"}):
         raise ConfigError(f"{where}: unknown field {unknown[0]!r} of a layered animation; allowed: base, layers")
     base = _take(entry.get("base"), takes, f"{where} base")
