@@ -70,7 +70,7 @@ def vote_rows(session: Session, study: Study, include_pilot: bool = False, sessi
                                            else (test_condition, ref_condition))
         pair = pair_ref_left if trial.reference_side == "left" else pair_ref_right
         answers, external, device = ps.answers or {}, ps.external or {}, ps.device or {}
-        right = correct(answer_format, vote.choice, trial.reference_side, ref_clip == test_clip)
+        is_correct = correct(answer_format, vote.choice, trial.reference_side, ref_clip == test_clip)
         rows.append({
             "session_id": ps.id, "trial_index": trial.index, "practice": trial.practice,
             "catch": kind == ComparisonKind.catch, "animation": animation, "reference_condition": ref_condition,
@@ -88,7 +88,7 @@ def vote_rows(session: Session, study: Study, include_pilot: bool = False, sessi
             "design_mode": mode, "left_condition": left_condition,
             "right_condition": right_condition,
             "screened_by": None, "pilot": ps.pilot, "answer_format": answer_format, "ladder": ladder,
-            "level": level_of(test_condition, ladder) if ladder else None, "correct": right,
+            "level": level_of(test_condition, ladder) if ladder else None, "correct": is_correct,
             **{p: external.get(p) for p in parameters},
         })
     return rows, playback
