@@ -109,16 +109,23 @@ def _wxyz(q: Array) -> Array:
     return np.concatenate([q[..., 3:], q[..., :3]], axis=-1)
 
 
-def _node_trs(node: pygltflib.Node) -> tuple[Array, Array, Array]:
+def _node_trs(r: GltfReader, node: pygltflib.Node) -> tuple[Array, Array, Array]:
+    """Translation ``(3,)``, unit rotation ``(4,)`` (w, x, y, z) and scale ``(3,)`` of ``node``; a rotation that is
+    no quaternion (not 4 numbers, or all 0) or a matrix with a zero column fails naming the node."""
     if node.matrix is not None:
         m = np.array(node.matrix, dtype=np.float64).reshape(4, 4).T  # glTF matrices are column-major
         t = m[:3, 3]
         s = np.linalg.norm(m[:3, :3], axis=0)
+        if not np.all(s > 0):
+            raise r.fail(f"node {node.name!r} has a matrix with a zero column (no rotation has one)")
         return t, quat_from_matrix(m[:3, :3] / s), s
     t = np.array(node.translation if node.translation is not None else [0, 0, 0], np.float64)
-    r = _wxyz(np.array(node.rotation if node.rotation is not None else [0, 0, 0, 1], np.float64))
+    q = np.array(node.rotation if node.rotation is not None else [0, 0, 0, 1], np.float64)
     s = np.array(node.scale if node.scale is not None else [1, 1, 1], np.float64)
-    return t, r / np.linalg.norm(r), s
+    if q.shape != (4,) or not np.linalg.norm(q) > 0:
+        raise r.fail(f"node {node.name!r} has rotation {node.rotation}, not a quaternion (4 numbers, not all 0)")
+    rotation = _wxyz(q)
+    return t, rotation / np.linalg.norm(rotation), s
 
 
 def read_gltf(path: str | os.PathLike[str], fps: float = 30.0, max_frame_joints: int = MAX_FRAME_JOINTS,
@@ -151,7 +158,7 @@ def _read_gltf(path: Path, fps: float, max_frame_joints: int, with_animations: b
     names = [nodes[n].name or f"joint{k}" for k, n in enumerate(order)]
     if len(set(names)) != len(names):
         raise r.fail("joint names are not unique")
-    trs = [_node_trs(nodes[n]) for n in order]
+    trs = [_node_trs(r, nodes[n]) for n in order]
     for k, (_, _, s) in enumerate(trs):
         if np.abs(s - 1.0).max() > 1e-4:
             raise r.fail(f"joint {names[k]!r} has scale {s.tolist()}; only unscaled joints are supported: "
@@ -254,7 +261,7 @@ def _above_root(r: GltfReader, nodes: list[pygltflib.Node], parent: NDArray[np.i
     above_rot, above_pos, above_scale = identity(), np.zeros(3), 1.0
     j = int(parent[root])
     while j >= 0:
-        t, q, s = _node_trs(nodes[j])
+        t, q, s = _node_trs(r, nodes[j])
         if not (s.min() > 0 and np.ptp(s) <= 1e-4 * s.max()):
             # A non-uniform scale stretches each bone by how it is turned, which changes as it moves: no skeleton of
             # rigid bones (this one, the character's) can play that.
