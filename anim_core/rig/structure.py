@@ -199,15 +199,16 @@ def _facing_left(parents: NDArray[np.intp], below: list[list[int]], pos: Array, 
     up = pos[head] - pos[hips]
     up /= max(float(np.linalg.norm(up)), 1e-12)
 
+    # Each the chain's first joint if none qualifies (only on geometry far from a body, as heavy noise makes).
     def socket(branch: int) -> int:  # the last joint of the leg at the hips' level (a quarter of its drop)
         chain = _main_chain(parents, below[branch], pos, hips)
         height = (pos[chain] - pos[hips]) @ up
-        return chain[int(np.flatnonzero(height >= 0.25 * height.min()).max())]
+        return chain[int(np.flatnonzero(height >= 0.25 * height.min()).max(initial=0))]
 
     def shoulder(branch: int) -> int:  # the last joint of the arm within a third of its reach across the trunk
         chain = _main_chain(parents, below[branch], pos, chest)
         far = np.linalg.norm(_across(pos[chain] - pos[chest], up), axis=1)
-        return chain[int(np.flatnonzero(far <= far.max() / 3).max())]
+        return chain[int(np.flatnonzero(far <= far.max() / 3).max(initial=0))]
     sockets = [socket(c) for c in legs]
     shoulders = [shoulder(c) for c in arms]
     spine = joint_chain(parents, chest, hips)
