@@ -20,7 +20,9 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from ..math.clip import KeyframeClip
+from ..rig.character import FEET, LEGS
 from .base import Animation, Params
+from .transition_feet import FeetLock
 from .transitions import Composite, Entry, RootMotion, TransitionSpec, compose_sequence, layered
 
 #: The longest transition a condition may ask for (a crossfade must also fit in the shortest segment).
@@ -68,16 +70,25 @@ class CrossfadeParams(Params):
     duration_ms: int = Field(ge=1, le=MAX_TRANSITION_MS, description="length of the blend, milliseconds")
     curve: Literal["linear", "smoothstep"] = Field("linear", description="weight over the blend")
     interp: Literal["nlerp", "slerp"] = Field("nlerp", description="per-joint rotation blend")
+    foot_lock: bool = Field(True, description="hold the feet in contact through the blend (two-bone IK)")
 
 
 class InertializationParams(Params):
     duration_ms: int = Field(ge=1, le=MAX_TRANSITION_MS, description="time for the offsets to decay, milliseconds")
+    foot_lock: bool = Field(True, description="hold the feet in contact through the transition (two-bone IK)")
 
 
-def _compose(animation: SequenceAnimation, spec: TransitionSpec) -> SequenceClip:
+def feet_lock(skeleton: Any) -> FeetLock:
+    """The character's legs and feet (:data:`anim_core.rig.character.LEGS`, ``FEET``) as joint indices."""
+    return FeetLock(tuple(tuple(int(j) for j in skeleton.indices(leg)) for leg in LEGS),  # type: ignore[misc]
+                    tuple(tuple(int(j) for j in skeleton.indices(foot)) for foot in FEET))
+
+
+def _compose(animation: SequenceAnimation, spec: TransitionSpec, foot_lock: bool = False) -> SequenceClip:
     segments = [(a.reference, seconds) for a, seconds in animation.segments]
+    lock = feet_lock(segments[0][0].skeleton) if foot_lock else None
     comp: Composite = compose_sequence(segments, animation.fps, spec, animation.root_motion, animation.name,
-                                       animation.entry)
+                                       animation.entry, lock)
     c = comp.clip
     return SequenceClip(c.skeleton, c.times, c.rotations, c.root_translation, c.mode, c.in_place, c.up_axis,
                         c.name, tuple(f / animation.fps for f in comp.switch_frames), comp.settle_s, spec.duration_s)
@@ -88,11 +99,12 @@ def build_cut(animation: SequenceAnimation, params: CutParams) -> SequenceClip:
 
 
 def build_crossfade(animation: SequenceAnimation, params: CrossfadeParams) -> SequenceClip:
-    return _compose(animation, TransitionSpec("crossfade", params.duration_ms / 1000.0, params.curve, params.interp))
+    return _compose(animation, TransitionSpec("crossfade", params.duration_ms / 1000.0, params.curve, params.interp),
+                    params.foot_lock)
 
 
 def build_inertialization(animation: SequenceAnimation, params: InertializationParams) -> SequenceClip:
-    return _compose(animation, TransitionSpec("inertialization", params.duration_ms / 1000.0))
+    return _compose(animation, TransitionSpec("inertialization", params.duration_ms / 1000.0), params.foot_lock)
 
 
 def build_reference(animation: Any, params: Params) -> Any:

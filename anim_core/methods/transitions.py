@@ -56,6 +56,7 @@ from ..math.quat import (
     slerp,
 )
 from ..math.skeleton import Skeleton
+from .transition_feet import FeetLock, lock_transition_feet
 
 Array = NDArray[np.float64]
 Curve = Literal["linear", "smoothstep"]
@@ -281,7 +282,8 @@ def entry_time(outgoing: Pose, clip: KeyframeClip, fps: int) -> float:
 
 
 def compose_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, transition: TransitionSpec,
-                     root_motion: RootMotion | None = None, name: str = "", entry: Entry = "start") -> Composite:
+                     root_motion: RootMotion | None = None, name: str = "", entry: Entry = "start",
+                     lock: FeetLock | None = None) -> Composite:
     """One loop from ``segments`` ``[(clip, seconds), ...]`` (each clip played for its seconds), switching by
     ``transition`` from each to the next and from the last back to the first.
 
@@ -291,7 +293,9 @@ def compose_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, t
     so a sequence's conditions differ by how they switch alone.
 
     Root: the horizontal root velocity (blended as the rotations are) is integrated from frame to frame, so no
-    switch moves the character; the height is blended.  Clips that travel and clips played in place mix only with
+    switch moves the character; the height is blended.  ``lock``: the feet in contact during a blended transition
+    are held there (:mod:`anim_core.methods.transition_feet`; a cut is left as it is), before the settling is
+    measured.  Clips that travel and clips played in place mix only with
     a ``root_motion`` rule (``"travel"``: every clip with its travel, ``"in_place"``: every clip on the spot).
     """
     if len(segments) < 2:
@@ -373,6 +377,10 @@ def compose_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, t
     steps = 0.5 * (v_h + np.roll(v_h, -1, axis=0)) / fps
     root = np.concatenate([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
     root[:, up] = np.append(height, height[0])
+    if lock is not None and transition.method != "cut":
+        span = max(1, round(d * fps))
+        rot = lock_transition_feet(clips[0].skeleton, rot, root, [(int(f), int(f) + span) for f in starts[:-1]],
+                                   fps, lock, up)
     rotations = np.concatenate([rot, rot[:1]])
     clip = KeyframeClip(clips[0].skeleton, np.arange(n + 1) / fps, rotations, root, "loop",
                         root_motion == "in_place", up, name)
