@@ -23,18 +23,26 @@ layers = [{ animation = "idle", joints = "upper_body", mode = "override" }]
 base = "walk"
 layers = [{ animation = "walk", joints = "arms", mode = "additive", reference_pose = "first" }]
 """
+# The 250 ms crossfade without its feet held, to see what the lock changes.
+FREE = """
+[[conditions]]
+id = "crossfade250free"
+method = "crossfade"
+params = { duration_ms = 250, curve = "smoothstep", foot_lock = false }
+"""
+LEGS = ("LeftUpLeg", "LeftLeg", "LeftFoot", "RightUpLeg", "RightLeg", "RightFoot")
 
 
 @pytest.fixture(scope="module")
 def by_id(data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
-    text = CONFIG.read_text(encoding="utf-8").replace("[[conditions]]", LAYERS + "\n[[conditions]]", 1)
+    text = CONFIG.read_text(encoding="utf-8").replace("[[conditions]]", LAYERS + "\n[[conditions]]", 1) + FREE
     path = tmp_path_factory.mktemp("composites") / "set.toml"
     path.write_text(text, encoding="utf-8")
     return {c.id: c for c in build_clip_set(data, load_config(path))}
 
 
 def test_every_condition_that_applies_and_no_other(by_id: dict) -> None:
-    sequence = {"keyframe", "cut", "crossfade100", "crossfade250", "inertialization250"}
+    sequence = {"keyframe", "cut", "crossfade100", "crossfade250", "inertialization250", "crossfade250free"}
     assert {i.split("-")[1] for i in by_id if i.startswith("idle_walk_run-")} == sequence
     assert {i.split("-")[1] for i in by_id if i.startswith("walk-")} == {"keyframe"}
     assert {i.split("-")[1] for i in by_id if i.startswith("walk_arms-")} == {"keyframe"}
@@ -42,14 +50,39 @@ def test_every_condition_that_applies_and_no_other(by_id: dict) -> None:
 
 def test_transition_metrics(by_id: dict) -> None:
     cut, fade = by_id["idle_walk_run-cut"].metrics, by_id["idle_walk_run-crossfade250"].metrics
-    inert = by_id["idle_walk_run-inertialization250"].metrics
+    inert, free = by_id["idle_walk_run-inertialization250"].metrics, by_id["idle_walk_run-crossfade250free"].metrics
     for m in (cut, fade, inert):
         assert {"transition_foot_skate_ratio", "switch_velocity_jump_rad_s", "switch_accel_jump_rad_s2",
                 "settle_s", "transition_foot_slide_mm"} <= set(m)
     # A blend smooths the switch: the angular velocity jump is at most half the cut's (seen: 54.5 vs 21 rad/s).
     assert fade["switch_velocity_jump_rad_s"] < 0.5 * cut["switch_velocity_jump_rad_s"]
     assert inert["switch_velocity_jump_rad_s"] < 0.5 * cut["switch_velocity_jump_rad_s"]
-    assert cut["settle_s"] == 0.0 and 0.0 < fade["settle_s"] <= 0.25 + 1 / 30 + 1e-9
+    # Without held feet a crossfade settles within its 250 ms (and a frame); held, the legs settle once the held
+    # foot has lifted and been let go over its swing (seen: 1.10 s, the walk's left foot down 0.8 s after the switch).
+    assert cut["settle_s"] == 0.0 and 0.0 < free["settle_s"] <= 0.25 + 1 / 30 + 1e-9
+    assert free["settle_s"] < fade["settle_s"] < 1.5
+
+
+def test_blends_skate_no_more_than_their_sources(by_id: dict) -> None:
+    # issue 39: "no more foot skate during a blend than the sources have"; the window of every switch, the worst
+    # (walk -> run among them).  Without the lock the 250 ms crossfade skates more (seen: 0.304 against 0.146).
+    for condition in ("crossfade100", "crossfade250", "inertialization250"):
+        m = by_id[f"idle_walk_run-{condition}"].metrics
+        assert m["transition_foot_skate_ratio"] <= m["source_foot_skate_ratio"], condition
+    free = by_id["idle_walk_run-crossfade250free"].metrics
+    assert free["transition_foot_skate_ratio"] > free["source_foot_skate_ratio"]
+
+
+def test_the_lock_moves_the_legs_only_and_nothing_before_a_switch(by_id: dict) -> None:
+    held, free = by_id["idle_walk_run-crossfade250"], by_id["idle_walk_run-crossfade250free"]
+    legs = np.isin(held.character.skeleton.names, LEGS)
+    same = np.abs(np.abs(np.sum(held.local_rotations * free.local_rotations, axis=-1)) - 1) < 1e-12  # (T, J)
+    assert same[:, ~legs].all()
+    assert not same[:, legs].all()
+    for s in held.clip.switch_times:  # the 8 frames before each switch (the first is the loop's seam)
+        f = round(s * held.fps)
+        assert same[np.arange(f - 8, f) % held.n_frames].all()
+    assert np.array_equal(held.floor_travel, free.floor_travel)  # the root is the blend's
 
 
 def test_the_cut_plays_each_take_as_built(by_id: dict) -> None:
