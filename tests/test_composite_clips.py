@@ -30,12 +30,24 @@ id = "crossfade250free"
 method = "crossfade"
 params = { duration_ms = 250, curve = "smoothstep", foot_lock = false }
 """
+# A parametric blend of the walk and the run, at 0, 0.5 and 1.
+BLEND = """
+[animations.walk_run]
+blend = ["walk", "run"]
+"""
+PARAMETRIC = "".join(f"""
+[[conditions]]
+id = "parametric{round(100 * w)}"
+method = "parametric"
+params = {{ weight = {w} }}
+""" for w in (0.0, 0.5, 1.0))
 LEGS = ("LeftUpLeg", "LeftLeg", "LeftFoot", "RightUpLeg", "RightLeg", "RightFoot")
 
 
 @pytest.fixture(scope="module")
 def by_id(data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
-    text = CONFIG.read_text(encoding="utf-8").replace("[[conditions]]", LAYERS + "\n[[conditions]]", 1) + FREE
+    text = CONFIG.read_text(encoding="utf-8").replace("[[conditions]]", LAYERS + BLEND + "\n[[conditions]]", 1)
+    text += FREE + PARAMETRIC
     path = tmp_path_factory.mktemp("composites") / "set.toml"
     path.write_text(text, encoding="utf-8")
     return {c.id: c for c in build_clip_set(data, load_config(path))}
@@ -46,6 +58,8 @@ def test_every_condition_that_applies_and_no_other(by_id: dict) -> None:
     assert {i.split("-")[1] for i in by_id if i.startswith("idle_walk_run-")} == sequence
     assert {i.split("-")[1] for i in by_id if i.startswith("walk-")} == {"keyframe"}
     assert {i.split("-")[1] for i in by_id if i.startswith("walk_arms-")} == {"keyframe"}
+    assert {i.split("-")[1] for i in by_id if i.startswith("walk_run-")} == {
+        "keyframe", "parametric0", "parametric50", "parametric100"}
 
 
 def test_transition_metrics(by_id: dict) -> None:
@@ -119,3 +133,21 @@ def test_a_travelling_sequence_is_stored_in_place_with_its_floor_travel(by_id: d
     expected = 3 * walk.root_speed_mps + 3 * run.root_speed_mps
     assert abs(travel[-1] - expected) < 0.5 * (walk.root_speed_mps + run.root_speed_mps) * 0.25 + 0.1
     assert "floor_travel_m" in seq.arrays() and "floor_travel_m" not in walk.arrays()
+
+
+def test_parametric_mixes_the_two_takes_after_aligning_their_cycles(by_id: dict) -> None:
+    walk, run = by_id["walk-keyframe"], by_id["run-keyframe"]
+    ref, p0, p50, p100 = (by_id[f"walk_run-{c}"] for c in ("keyframe", "parametric0", "parametric50", "parametric100"))
+    # the blend's reference and weight 0 are the walk
+    assert np.array_equal(ref.local_rotations, walk.local_rotations)
+    assert np.abs(np.abs(np.sum(p0.local_rotations * walk.local_rotations, axis=-1)) - 1).max() < 1e-9
+    # weight 1 is the run's cycle entered elsewhere: every frame is the run's frame a fixed shift later
+    shift = int(np.argmin(np.abs(np.abs(np.sum(run.local_rotations * p100.local_rotations[0], axis=-1)) - 1)
+                          .max(axis=1)))
+    expected = run.local_rotations[(np.arange(run.n_frames) + shift) % run.n_frames]
+    assert p100.n_frames == run.n_frames
+    assert np.abs(np.abs(np.sum(p100.local_rotations * expected, axis=-1)) - 1).max() < 1e-9
+    # halfway: half way in length and speed (from the take clips: 40 and 24 frames, 1.1 and 3.3 m/s or so)
+    assert p50.n_frames == round((walk.n_frames + run.n_frames) / 2)
+    speed = 0.5 * (walk.clip.velocity * walk.clip.duration + run.clip.velocity * run.clip.duration) / p50.clip.duration
+    np.testing.assert_allclose(p50.clip.velocity, speed, atol=1e-9)

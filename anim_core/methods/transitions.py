@@ -198,21 +198,37 @@ def additive(base: ArrayLike, delta: ArrayLike, mask: NDArray[np.bool_], weight:
 
 def parametric(a: KeyframeClip, b: KeyframeClip, weight: float, fps: int, interp: Interp = "slerp"
                ) -> KeyframeClip:
-    """Two cycles mixed by ``weight`` (0: ``a``, 1: ``b``) after time alignment: both played over a normalized
-    phase, the result lasting ``(1 - w) T_a + w T_b`` on the ``fps`` grid, rotations blended per joint, the root's
-    position blended (the travel per cycle with it)."""
+    """Two cycles (loops) mixed by ``weight`` (0: ``a``, 1: ``b``) after time alignment: both played over a
+    normalized phase, the result lasting ``(1 - w) T_a + w T_b`` on the ``fps`` grid, rotations blended per joint,
+    the root's position blended (the travel per cycle with it); played in place if ``a`` is.  Where each cycle
+    starts is the caller's (:func:`cycle_from` aligns ``b``'s start with ``a``'s)."""
     if not 0.0 <= weight <= 1.0:
         raise CompositeError(f"weight: between 0 and 1, got {weight!r}")
+    if a.mode != "loop" or b.mode != "loop":
+        raise CompositeError(f"blend: both takes loop (their cycles are mapped onto one phase), got {a.mode!r} "
+                             f"and {b.mode!r}")
     duration = (1.0 - weight) * a.duration + weight * b.duration
     n = max(2, round(duration * fps))
     phase = np.arange(n + 1) / n
-    pa, pb = a.sample(phase * a.duration), b.sample(phase * b.duration)
+    # Sampled with their travel (a clip played in place keeps its keys' root and takes its speed from them).
+    pa = _travelling(a, "travel").sample(phase * a.duration)
+    pb = _travelling(b, "travel").sample(phase * b.duration)
     if a is b or weight == 0.0:
         rot, root = pa.rotations, pa.root_translation
     else:
         rot = blend_rotations(pa.rotations, pb.rotations, np.full(n + 1, weight), interp)
         root = (1.0 - weight) * pa.root_translation + weight * pb.root_translation
     return KeyframeClip(a.skeleton, phase * duration, rot, root, a.mode, a.in_place, a.up_axis, a.name)
+
+
+def cycle_from(clip: KeyframeClip, start: float) -> KeyframeClip:
+    """The loop ``clip`` with its cycle starting ``start`` seconds in (its keys' times, the poses ``start`` later,
+    the travel carried across the wrap): the same motion, entered elsewhere."""
+    if clip.mode != "loop":
+        raise CompositeError(f"blend: a take that loops, got {clip.mode!r}")
+    pose = _travelling(clip, "travel").sample(clip.times + start)
+    return KeyframeClip(clip.skeleton, clip.times, pose.rotations, pose.root_translation, clip.mode, clip.in_place,
+                        clip.up_axis, clip.name)
 
 
 # --- sequences ----------------------------------------------------------------------------------------------------
