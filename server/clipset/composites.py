@@ -143,16 +143,17 @@ def check_transitions(composites: Mapping[str, CompositeSpec], conditions: Seque
                                   f"shortest segment of [animations.{spec.name}] ({shortest:g} s)")
 
 
-def split_composites(table: dict[str, Any], fps: int, path: Path,
-                     parse_take: Callable[[str, Any, str], AnimationConfig]
+def split_composites(table: dict[str, Any], fps: int, path: Path | str,
+                     parse_take: Callable[[str, Any, str], AnimationConfig], prefix: str = "animations"
                      ) -> tuple[dict[str, AnimationConfig], dict[str, CompositeSpec]]:
-    """The ``[animations]`` table as takes (parsed by ``parse_take``) and composites (validated against them)."""
-    takes = {name: parse_take(name, entry, f"{path} [animations.{name}]") for name, entry in table.items()
+    """The ``[animations]`` table as takes (parsed by ``parse_take``) and composites (validated against them);
+    errors name ``path`` and ``[PREFIX.NAME]`` (a study file's inline tables: ``prefix = "clips.animations"``)."""
+    takes = {name: parse_take(name, entry, f"{path} [{prefix}.{name}]") for name, entry in table.items()
              if not is_composite(entry)}
     composites = {}
     for name, entry in table.items():
         if is_composite(entry):
-            where = f"{path} [animations.{name}]"
+            where = f"{path} [{prefix}.{name}]"
             parse_take_name_only(name, where)
             composites[name] = parse_composite(name, entry, takes, fps, where)
     return takes, composites
