@@ -10,14 +10,19 @@ while each take's own foot moves at 0.02 m/s.  No entry time or time warp of the
 (a run's stride is longer than a walk's, an idle's feet stand under the hips), so the foot is held instead.
 
 How (:func:`lock_transition_feet`): on the composed loop (frames at ``fps``, the root with the loop's travel), the
-contact phases (:func:`anim_core.math.contacts.foot_down`, standing heights of the whole loop) that overlap a
-transition window are held as :func:`anim_core.methods.footplant.plant_feet` holds a take's: the foot on the ground
-from its slowest frame on, its slowest joint (heel or toe) moving at most ``max_speed`` m/s, the leg solved by the
-analytic two-bone IK of :mod:`anim_core.methods.ik` (knee about its hinge, foot keeping its world orientation),
-eased in and out over ``blend_frames`` frames beside the phase.  Every other frame, and every joint but the held
-legs' hip, knee and ankle, keeps the composed rotations bit for bit.  The loop is held as one period in place (the
-ground moving under it at the loop's mean velocity), so a phase may run across the loop's seam.  Offline, as the
-transition itself is (the clip stores the result); a runtime would run the same IK after its blend job.
+contact phases (:func:`anim_core.math.contacts.foot_down`, standing heights of the whole loop) in which the foot
+slows to ``rest_speed`` (:func:`anim_core.methods.footlock.steps`) and that overlap a transition (its switch to its
+end) are held from the switch on, or from the landing if the foot lands during the transition, to one frame after
+the phase (:func:`held_phases`).  The foot is on the ground with its slowest joint (heel or toe) moving at most
+``max_speed`` m/s (:func:`anim_core.methods.footplant.foot_targets`): a foot down at the switch stays where the
+outgoing take put it, one that lands rests at its slowest frame, eased in (smoothstep) over the swing since the
+switch; after the hold its offset eases out over the swing to the foot's next step, at most ``release_s``
+(:func:`eased_offsets`).  The leg is solved by the analytic two-bone IK of :mod:`anim_core.methods.ik` (knee
+about its hinge, soft reach, the foot keeping its world orientation).  Every other frame, every frame before a
+switch, and every joint but the legs' hip, knee and ankle keep the composed rotations bit for bit, and the root is
+the blend's.  The loop is held as one period in place (the ground moving under it at the loop's mean velocity), so
+a phase may run across the loop's seam.  Offline, as the transition itself is (the clip stores the result); a
+runtime would run the same IK after its blend job.
 """
 
 from __future__ import annotations
@@ -41,7 +46,10 @@ Array = NDArray[np.float64]
 class FeetLock:
     """What :func:`lock_transition_feet` holds: per foot the leg chain ``(hip, knee, ankle)`` and the joints that
     touch the ground (e.g. ankle and toe) as joint indices; ``release_s``: the longest a held foot's offset takes
-    to ease in or out over a swing beside its hold (:func:`eased_offsets`);
+    to ease in or out over a swing beside its hold (:func:`eased_offsets`); ``rest_speed`` m/s: a contact phase
+    is held only if its foot's slowest joint gets this slow in it (a swing skimming the floor at 2-3 m/s is not a
+    step; a foot landing during an inertialization's decay may not get under the 0.5 m/s skate threshold before
+    the blend moves it again: 0.67 m/s at the least on a walk into a run, which 0.5 left to skate);
     ``max_speed`` m/s the fastest a held foot's slowest joint moves (under the 0.5 m/s skate threshold of
     :mod:`anim_core.math.contacts`)."""
 
@@ -49,6 +57,7 @@ class FeetLock:
     feet: tuple[tuple[int, ...], ...]
     release_s: float = 0.3
     max_speed: float = 0.4
+    rest_speed: float = 1.0
 
 
 def held_phases(down: ArrayLike, windows: Sequence[tuple[int, int]]) -> NDArray[np.bool_]:
@@ -137,9 +146,10 @@ def lock_transition_feet(skeleton: Skeleton, local_rotations: ArrayLike, root_tr
     feet = np.array([list(f) for f in lock.feet])
     chains = [tuple(int(j) for j in c) for c in lock.legs]
     points = pos[:, feet]
-    # Steps: contact phases in which the foot comes to rest (a swing skimming the floor is not held).
+    # Steps: contact phases in which the foot slows to rest_speed (a swing skimming the floor is not held).
     down = steps(contacts.foot_down(points, up_axis),
-                 contacts.foot_speed(points, fps, up_axis, periodic=True, ground_velocity=velocity), periodic=True)
+                 contacts.foot_speed(points, fps, up_axis, periodic=True, ground_velocity=velocity), periodic=True,
+                 rest_speed=lock.rest_speed)
     held = held_phases(down, windows)
     if not held.any():
         return rot
