@@ -118,11 +118,10 @@ def _validate(settings: Settings, args: argparse.Namespace) -> int:
     if study_file.clips is not None:
         config = pipeline.study_place(settings, study_file, args.file).config
         assert config is not None
-        ids = {c.id for c in config.conditions}
-        lacking = [c for c in pipeline.needed_conditions(study_file.design) if c not in ids] + [
-            a for a in study_file.design.animations if a not in config.animations]
-        if lacking:
-            return fail(f"{args.file}: {', '.join(lacking)} not in its clip set")
+        try:  # its conditions and animations (takes and composites), each condition building a clip of each
+            pipeline.check_design(config, study_file.design)
+        except ServiceError as exc:
+            return fail(f"{args.file}: {exc.detail}")
         checked = "; its animations and conditions are in its own clip set ([clips])"
     elif (settings.clips_dir / MANIFEST).is_file():
         service.check_known(study_file.design, service.clip_set_index(settings.clips_dir))

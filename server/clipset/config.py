@@ -307,13 +307,19 @@ def clip_set_config(animations: dict[str, dict[str, Any]], conditions: list[dict
 def inline_config(animations: dict[str, dict[str, Any]] | None, conditions: list[dict[str, Any]] | None,
                   where: str) -> ClipSetConfig:
     """The default clip-set file with its animations and/or conditions replaced by inline tables (a study file's
-    ``[clips]``), validated as a clip-set file's are."""
+    ``[clips]``), validated as a clip-set file's are: the animations are takes and composites (sequences, layers,
+    blends: :mod:`server.clipset.composites`)."""
+    from .composites import check_transitions, split_composites
+
     default = load_config()
-    return dataclasses.replace(
-        default,
-        animations=default.animations if animations is None else {
-            name: _animation(name, entry, f"{where} [clips.animations.{name}]") for name, entry in animations.items()},
-        conditions=default.conditions if conditions is None else _conditions(conditions, Path(where)))
+    takes, composites = default.animations, default.composites
+    if animations is not None:  # takes and composites, as a clip-set file's [animations]
+        takes, composites = split_composites(animations, default.fps, where, _animation, "clips.animations")
+        if not takes:
+            raise ConfigError(f"{where} [clips.animations.<name>]: at least one take (composites name takes)")
+    chosen = default.conditions if conditions is None else _conditions(conditions, Path(where))
+    check_transitions(composites, chosen, Path(where))
+    return dataclasses.replace(default, animations=takes, conditions=chosen, composites=composites)
 
 
 def load_config(path: Path = DEFAULT_CONFIG) -> ClipSetConfig:

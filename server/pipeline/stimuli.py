@@ -132,6 +132,24 @@ def build_animations(data_dir: Path, config: ClipSetConfig, wanted: dict[str, tu
     return [dataclasses.replace(c, source={**c.source, "character": record}) for c in built]
 
 
+def build_composite_animations(data_dir: Path, config: ClipSetConfig, wanted: dict[str, tuple[Condition, ...]],
+                               progress: Progress = lambda _m: None) -> list[BuiltClip]:
+    """The clips of each composite of ``wanted`` (sequences, layers, blends of ``config``'s takes) in its conditions
+    that apply to it (the reference among them), in this process (:func:`server.clipset.composites.build_composites`).
+    Nothing is written."""
+    if not wanted:
+        return []
+    from server.clipset.build import load_character
+    from server.clipset.composites import build_composites
+
+    character, record = load_character(data_dir, config.character, progress)
+    built = []
+    for name, conditions in wanted.items():
+        built += build_composites(data_dir, character, {name: config.composites[name]}, config.animations,
+                                  config.fps, conditions, config.relocate, progress)
+    return [dataclasses.replace(c, source={**c.source, "character": record}) for c in built]
+
+
 def check_design(config: ClipSetConfig, design: Design) -> list[str]:
     """The conditions ``design`` needs (:func:`needed_conditions`), or 422 naming what ``config`` does not have."""
     conditions = needed_conditions(design)
@@ -139,9 +157,15 @@ def check_design(config: ClipSetConfig, design: Design) -> list[str]:
     if unknown := [c for c in conditions if c not in by_id]:
         raise Unprocessable(f"design: condition(s) {', '.join(unknown)} are not in the study's clip set (it has "
                             f"{', '.join(by_id)})")
-    if unknown := [a for a in design.animations if a not in config.animations]:
+    names = [*config.animations, *config.composites]
+    if unknown := [a for a in design.animations if a not in names]:
         raise Unprocessable(f"design.animations: {', '.join(unknown)} are not in the study's clip set (it has "
-                            f"{', '.join(config.animations)})")
+                            f"{', '.join(names)})")
+    for name in design.animations:  # a take has no crossfade clip, a sequence no hybrid one
+        form = config.composites[name].form if name in config.composites else "take"
+        if wrong := [c for c in conditions if not by_id[c].applies(form)]:
+            raise Unprocessable(f"design.conditions: {', '.join(wrong)} build no clip of {name!r} (a {form}); its "
+                                f"clip set builds {', '.join(c.id for c in config.conditions if c.applies(form))}")
     return conditions
 
 
@@ -166,8 +190,11 @@ def build(data_dir: Path, config: ClipSetConfig, clips_dir: Path, design: Design
     for name in todo:
         keep = have.get(name, set()) | set(conditions)
         wanted[name] = tuple(c for c in config.conditions if c.id in keep or c.method == REFERENCE)
-    built = build_animations(data_dir, config, wanted, progress, lambda k, name: progress(
-        f"[{k + 1}/{len(todo)}] {name}: building {len(wanted[name])} clips"), scheduler, workers)
+    takes = {name: c for name, c in wanted.items() if name in config.animations}
+    built = build_animations(data_dir, config, takes, progress, lambda k, name: progress(
+        f"[{k + 1}/{len(todo)}] {name}: building {len(wanted[name])} clips"), scheduler, workers) if takes else []
+    built += build_composite_animations(data_dir, config, {name: c for name, c in wanted.items()
+                                                           if name in config.composites}, progress)
     try:
         merge_clip_set(clips_dir, built)
     except ManifestError as exc:
