@@ -219,7 +219,7 @@ def create_building(session: Session, settings: Settings, engine: Engine, study_
                             "the server's data directory), or run `animstudy study create FILE` on the server")
     check_build_slot(session, settings, owner.id)
     try:
-        config = inline_config(clips.animations, clips.conditions, "the study file")
+        config = inline_config(clips.animations, clips.conditions, "the study file", clips.ladders)
     except ConfigError as exc:
         raise Unprocessable(str(exc)) from None
     for name, animation in (clips.animations or {}).items():

@@ -18,7 +18,7 @@ in :mod:`server.pipeline.commands`; the build of uploads and of an API study's i
 A study file without ``[clips]`` uses the server's clip set (``<var>/clips``, its render manifest in
 ``<var>/media``); one with ``[clips] set = "file.toml"`` gets the clip set of that file, kept in
 ``<var>/clipsets/<key>/`` (``key``: a hash of the file's path and content, so an edited file is another clip set);
-one with inline ``[clips]`` conditions and/or animations gets the default clip-set file with those replaced
+one with inline ``[clips]`` conditions, ladders and/or animations gets the default clip-set file with those replaced
 (``key``: a hash of the study's owner, the tables and the default file: one researcher's inline clips are never
 another's).  A build or render of one clip set asks only for the pairs of studies whose clips it has
 (:func:`server.studies.service.pairs_in_use`).
@@ -87,8 +87,11 @@ def inline_place(settings: Settings, clips: Clips, where: str, owner_id: int | N
     one per owner: a researcher's inline clips are built, rendered and listed apart from every other
     researcher's, whatever they are named (``owner_id`` None: a study without owner, made on the server's
     command line)."""
-    config = inline_config(clips.animations, clips.conditions, where)
-    tables = json.dumps({"animations": clips.animations, "conditions": clips.conditions}, sort_keys=True)
+    config = inline_config(clips.animations, clips.conditions, where, clips.ladders)
+    given = {"animations": clips.animations, "conditions": clips.conditions}
+    if clips.ladders is not None:  # only then: the key of inline clips without ladders is as it was
+        given["ladders"] = clips.ladders
+    tables = json.dumps(given, sort_keys=True)
     owner = b"" if owner_id is None else f"owner {owner_id}\0".encode()
     key = hashlib.sha256(b"inline\0" + owner + tables.encode() + b"\0" + DEFAULT_CONFIG.read_bytes()
                          ).hexdigest()[:16]
