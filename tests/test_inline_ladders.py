@@ -59,7 +59,7 @@ def test_bad_inline_ladders_are_refused_as_in_a_clip_set_file(levels, message):
 
 def test_inline_ladders_and_a_clip_set_file_are_not_both_given():
     text = study_text().replace("[clips]\n", '[clips]\nset = "../server/clipset/update-rate.toml"\n')
-    with pytest.raises(StudyFileError, match="either set .* or conditions/ladders/animations inline"):
+    with pytest.raises(StudyFileError, match=r"either set .* or conditions/ladders/animations inline"):
         parse_study_text(text, "x.toml")
 
 

@@ -292,8 +292,9 @@ class Clips(Strict):
     relative to the study file; or inline ``conditions`` (``[[clips.conditions]]``, as a clip-set file's
     ``[[conditions]]``), ``ladders`` (``[[clips.ladders]]``, as its ``[[ladders]]``, checked alike:
     :func:`server.clipset.config.inline_config`) and/or ``animations`` (``[clips.animations.<name>]``, sources
-    under the data directory), the rest from the default clip-set file.  `animstudy study create` builds the clips of it the study needs and
-    renders their videos; without ``[clips]`` the study uses the server's clip set."""
+    under the data directory), the rest from the default clip-set file.  `animstudy study create` builds the
+    clips of it the study needs and renders their videos; without ``[clips]`` the study uses the server's clip
+    set."""
 
     set: str | None = Field(None, min_length=1, max_length=500, pattern=r"\.toml$",
                             description="clip-set file (TOML), relative to the study file")
