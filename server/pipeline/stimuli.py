@@ -117,6 +117,21 @@ def needed_conditions(design: Design) -> list[str]:
                                                                         else [])]))
 
 
+def settled(place: Place, design: Design, where: str = "") -> Design:
+    """``design`` settled against the clip set of ``place`` (:func:`server.studies.ladder.resolve`): a threshold
+    design's levels (and a ladder named for all its levels) from a described clip set's conditions, or from the
+    manifest of the server's; 422 (naming ``where``, if any) when they disagree."""
+    from server.studies import ladder
+    from server.studies.service import settled as settled_by_manifest
+
+    try:
+        if place.config is not None:
+            return ladder.resolve(design, ladder.ladder_fields(place.config.conditions))
+        return settled_by_manifest(design, place.clips_dir)
+    except Unprocessable as exc:
+        raise Unprocessable(f"{where}: {exc.detail}" if where else exc.detail) from None
+
+
 def build_animations(data_dir: Path, config: ClipSetConfig, wanted: dict[str, tuple[Condition, ...]],
                      progress: Progress = lambda _m: None,
                      each: Callable[[int, str], None] = lambda _k, _name: None, scheduler: str | None = None,
@@ -251,7 +266,11 @@ def make_stimuli(settings: Settings, session: Session, place: Place, designs: Ma
     size and shadows of the videos there already, so that a study's videos look alike), compute the pairs
     (:func:`study_pairs`) and render what is missing (:func:`render`); returns the render manifest of ``place``
     to pin a study over (:func:`server.studies.service.create_study`, ``show_design``, ``update_study``)."""
-    built(build_missing(settings, place, designs, progress, workers))
+    if place.config is None:  # the server's clip set: built whole first, its manifest then says the levels
+        built(build_missing(settings, place, designs, progress, workers))
+    designs = {where: settled(place, design, where) for where, design in designs.items()}
+    if place.config is not None:
+        built(build_missing(settings, place, designs, progress, workers))
     before = place.render_dir if (place.render_dir / MANIFEST).is_file() else place.videos(settings)
     chosen = size or rendered_settings(before)
     wanted = study_pairs(session, place, designs, place.videos(settings))
