@@ -445,3 +445,32 @@ def test_a_study_is_created_over_its_clip_sets_levels_and_refused_when_they_disa
         create_study(db, media, threshold_file("constant-stimuli", slug="refused"), clips_dir=wrong)
     db.rollback()
     assert db.scalar(select(Study.id).where(Study.slug == "refused")) is None
+
+
+def test_a_drafts_changed_design_is_settled_again_against_its_clip_set(db, client, researcher_headers, tmp_path):
+    """Through the API: a draft created with ``conditions = ["pps"]`` over the server's clip set stores every
+    level with the manifest's values; a new design is settled again (its levels from the manifest, a condition the
+    clip set lacks refused naming it), and a change elsewhere keeps the levels."""
+    var = tmp_path / "var"
+    write_fake_media(var / "media", ladder_media())
+    ladder_clip_manifest(var / "clips", levels={**LEVEL_OF, "pps12": 11.5})
+    body = threshold_file("constant-stimuli", conditions=["pps"], slug="draft").model_dump(mode="json")
+    r = client.post("/api/v1/studies", json=body, headers=researcher_headers)
+    assert r.status_code == 201, r.text
+
+    def design() -> dict:
+        return client.get("/api/v1/studies/draft/definition", headers=researcher_headers).json()["design"]
+
+    assert design()["conditions"] == PPS and design()["levels"] == {**LEVEL_OF, "pps12": 11.5}
+    r = client.patch("/api/v1/studies/draft", json={"design": {"conditions": ["pps4", "pps8", "pps12"]}},
+                     headers=researcher_headers)
+    assert r.status_code == 200, r.text
+    assert design()["levels"] == {"pps4": 4, "pps8": 8, "pps12": 11.5}
+    r = client.patch("/api/v1/studies/draft", json={"title": "Renamed", "design": {"repeats": 1}},
+                     headers=researcher_headers)
+    assert r.status_code == 200, r.text
+    assert design()["levels"] == {"pps4": 4, "pps8": 8, "pps12": 11.5}
+    r = client.patch("/api/v1/studies/draft", json={"design": {"conditions": ["pps4", "pps8", "pps10"]}},
+                     headers=researcher_headers)
+    assert r.status_code == 422 and "pps10 (not in the clip set) not a level of ladder 'pps'" in r.text, r.text
+    assert design()["conditions"] == ["pps4", "pps8", "pps12"]
