@@ -76,3 +76,78 @@ def test_the_api_refuses_a_bad_inline_ladder_and_creates_nothing(client, researc
         assert r.status_code == 422, r.text
         assert message in r.json()["detail"], r.text
     assert client.get("/api/v1/studies", headers=researcher_headers).json() == []
+
+
+@pytest.mark.slow  # about half a minute: builds 4 clips and renders their small videos
+def test_study_create_builds_a_ladder_given_inline(tmp_path, monkeypatch, capsys, data):
+    """`animstudy study create` of a staircase study whose ladder is given inline and named by its id in the
+    design: the levels are built from [[clips.ladders]], rendered, and the study stores them with their values
+    from the built manifest."""
+    from server import cli
+    from server.cli.study import _study_session
+    from server.config import Settings
+    from server.stimuli import service as stimulus_sets
+    from server.studies import service
+
+    monkeypatch.setenv("ANIMSTUDY_VAR_DIR", str(tmp_path / "var"))
+    monkeypatch.setenv("ANIMSTUDY_DATA_DIR", str(data))
+    monkeypatch.setenv("ANIMSTUDY_SECRET_KEY", "inline-ladder-secret-0123456789abcdef01")
+    monkeypatch.delenv("ANIMSTUDY_DATABASE_URL", raising=False)
+    monkeypatch.delenv("DATABASE_URL", raising=False)
+    text = study_text("[4, 8, 12]").replace('animations = ["walk", "run"]', 'animations = ["walk"]').replace(
+        "trials = 30 ", "trials = 6 ").replace("catch_trials = 2", "catch_trials = 1")
+    study = tmp_path / "inline-ladder.toml"
+    study.write_text(text)
+    assert cli.main(["study", "validate", str(study)]) == 0
+    assert cli.main(["study", "create", str(study), "--width", "96", "--height", "72", "--no-shadows"]) == 0
+    out = capsys.readouterr().out
+    assert "[1/1] walk: building 4 clips" in out, out
+    with _study_session(Settings.from_env()) as db:
+        created = service.get_study(db, "inline-ladder")
+        content = stimulus_sets.content_of(created.stimulus_set)
+        design = created.design
+    assert design["conditions"] == ["pps4", "pps8", "pps12"]
+    assert design["levels"] == {"pps4": 4, "pps8": 8, "pps12": 12}
+    assert {(c.condition, c.method) for c in content.clips} == {
+        ("keyframe", "keyframe"), ("pps4", "update_rate"), ("pps8", "update_rate"), ("pps12", "update_rate")}
+
+
+def test_study_create_refuses_an_inline_level_that_builds_the_same_clip_as_another(tmp_path, monkeypatch, capsys,
+                                                                                   data):
+    """A bone-LOD depth holding exactly the joints another inline condition holds (depth 7: the fingers) is found
+    when the clips the design shows are built: `study create` fails naming the ladder and the level, and no study
+    is created."""
+    from server import cli
+    from server.cli.study import _study_session
+    from server.config import Settings
+    from server.studies.models import Study
+
+    monkeypatch.setenv("ANIMSTUDY_VAR_DIR", str(tmp_path / "var"))
+    monkeypatch.setenv("ANIMSTUDY_DATA_DIR", str(data))
+    monkeypatch.setenv("ANIMSTUDY_SECRET_KEY", "inline-ladder-secret-0123456789abcdef01")
+    monkeypatch.delenv("ANIMSTUDY_DATABASE_URL", raising=False)
+    monkeypatch.delenv("DATABASE_URL", raising=False)
+    head, design = study_text().split("[design]")
+    text = head.split("[scale]")[0] + '''
+[design]
+conditions = ["fingers", "depth5", "depth6", "depth7"]
+animations = ["walk"]
+''' + "[recruitment]" + design.split("[recruitment]")[1]
+    text = text.replace(INLINE.replace("LEVELS", "[4, 6, 8, 12, 16, 24]"), '''
+[clips]
+conditions = [{ id = "keyframe", method = "keyframe" },
+              { id = "fingers", method = "bone_lod", params = { joints = "fingers" } }]
+
+[[clips.ladders]]
+id = "depth"
+method = "bone_lod"
+levels = [5, 6, 7]
+''')
+    study = tmp_path / "same.toml"
+    study.write_text(text)
+    assert cli.main(["study", "create", str(study), "--width", "96", "--height", "72", "--no-shadows"]) == 2
+    err = capsys.readouterr().err
+    assert ("[[ladders]] id = 'depth' level 7 (bone_lod): on animation 'walk' it makes the same clip as condition "
+            "'fingers'") in err, err
+    with _study_session(Settings.from_env()) as db:
+        assert db.query(Study).count() == 0
