@@ -34,7 +34,7 @@ if numba is not None:
         return min(max(t, 0.0), duration), 0.0
 
     @_njit
-    def _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos):
+    def fk_joint(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos):
         """Write joint ``j`` of character ``c`` from its local rotation (and, for the root, its translation)."""
         p = parents[j]
         ox, oy, oz = offsets[j, 0], offsets[j, 1], offsets[j, 2]
@@ -100,7 +100,7 @@ if numba is not None:
                 w, x, y, z = w * inv, x * inv, y * inv, z * inv
             else:
                 w, x, y, z = keys[0, j, 0], keys[0, j, 1], keys[0, j, 2], keys[0, j, 3]
-            _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
+            fk_joint(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
 
     @_njit
     def _root_spline(ct, root_times, root_coef):
@@ -154,7 +154,7 @@ if numba is not None:
                                   mm[3, 0] * w + mm[3, 1] * x + mm[3, 2] * y + mm[3, 3] * z)
             else:
                 w, x, y, z = ctrl[0, j, 0], ctrl[0, j, 1], ctrl[0, j, 2], ctrl[0, j, 3]
-            _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
+            fk_joint(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
 
     @_njit
     def crouch_path_parameter(ct, params):
@@ -193,7 +193,7 @@ if numba is not None:
                 z = wa * keys[s, j, 3] + wb * keys[s + 1, j, 3]
             else:
                 w, x, y, z = keys[0, j, 0], keys[0, j, 1], keys[0, j, 2], keys[0, j, 3]
-            _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
+            fk_joint(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
 
     @_njit
     def _dequantize(codes, low, step, k, j):
@@ -226,7 +226,7 @@ if numba is not None:
                 w, x, y, z = w * inv, x * inv, y * inv, z * inv
             else:
                 w, x, y, z = _dequantize(codes, low, step, 0, j)
-            _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
+            fk_joint(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
 
     @_njit
     def _c2_one(c, knots, control, steps, root_times, root_coef, velocity, params, times, parents, offsets,
@@ -265,7 +265,7 @@ if numba is not None:
                 w, x, y, z = _times_exp(w, x, y, z, b3, steps, i3, j)
             else:
                 w, x, y, z = control[0, j, 0], control[0, j, 1], control[0, j, 2], control[0, j, 3]
-            _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
+            fk_joint(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
 
     @_njit
     def _times_exp(w, x, y, z, weight, steps, i, j):

@@ -65,6 +65,7 @@ from scipy import stats
 from server.studies.scale import RAW_SCORES, catch_row_failed
 from server.studies.screening import RULES, Screening
 
+from .json_numbers import finite_or_none
 from .screening_design import MEANT_FOR, Calibration, calibrate, fast_limit, planned
 
 MIN_COMMON_COMPARISONS = 3  # a correlation over fewer points says nothing
@@ -107,10 +108,6 @@ class ParticipantScreening:
                 "rules": {r: {"value": v.value, "threshold": v.threshold, "flagged": v.flagged,
                               "judged": v.judged, **({"note": v.note} if v.note else {})}
                           for r, v in self.results.items()}}
-
-
-def _finite(value: float) -> float | None:
-    return float(value) if math.isfinite(value) else None
 
 
 def opinion_array(votes: Iterable[Mapping[str, Any]]) -> tuple[np.ndarray, list[tuple[str, str, str]], list[str]]:
@@ -389,7 +386,7 @@ def screen(votes: Iterable[Mapping[str, Any]], rules: Screening, catch_failures_
         if "z_outlier" in chosen:
             shares = _z_shares(x, rules.z_limit) if subjects else np.array([])
             for s in sessions:
-                value = _finite(shares[index[s]]) if s in index else None
+                value = finite_or_none(shares[index[s]]) if s in index else None
                 out[s]["z_outlier"] = verdict("z_outlier", value, rules.max_rejected_share,
                                               value is not None and value > rules.max_rejected_share)
         if "bt500" in chosen:
@@ -402,7 +399,7 @@ def screen(votes: Iterable[Mapping[str, Any]], rules: Screening, catch_failures_
                 rejected, first, _ = bt500(x, rules.bt500_ratio, rules.bt500_balance) if subjects else ([], [], [])
             for s in sessions:
                 i = index.get(s)
-                value = None if i is None else _finite(first[i])
+                value = None if i is None else finite_or_none(first[i])
                 result = verdict("bt500", value, rules.bt500_ratio, i is not None and bool(rejected[i]))
                 # bt500 flags on two measures and spares everyone when it would flag everyone: its own verdict
                 out[s]["bt500"] = RuleResult(value, result.threshold, i is not None and bool(rejected[i]),
@@ -410,14 +407,14 @@ def screen(votes: Iterable[Mapping[str, Any]], rules: Screening, catch_failures_
         if "disagreement" in chosen:
             spread = _disagreements(x) if subjects else np.array([])
             for s in sessions:
-                value = _finite(spread[index[s]]) if s in index else None
+                value = finite_or_none(spread[index[s]]) if s in index else None
                 out[s]["disagreement"] = verdict("disagreement", value, rules.max_disagreement,
                                                  value is not None and value > rules.max_disagreement)
         if "correlation" in chosen:
             r = _correlations(x, rules.correlation_method) if subjects else np.array([])
             threshold = correlation_threshold(r, rules.max_correlation_threshold)
             for s in sessions:
-                value = _finite(r[index[s]]) if s in index else None
+                value = finite_or_none(r[index[s]]) if s in index else None
                 out[s]["correlation"] = verdict("correlation", value, threshold,
                                                 value is not None and threshold is not None and value <= threshold)
 

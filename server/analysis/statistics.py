@@ -24,13 +24,10 @@ from statsmodels.stats.power import TTestPower
 
 from server.studies.scale import MAX_SCORE, RAW_SCORES, SCORES
 
+from .json_numbers import finite_or_none
 from .ranking import GradedComparison, rank_conditions
 
 WILCOXON_ARE = 3 / math.pi  # asymptotic relative efficiency of Wilcoxon against t for a normal parent
-
-
-def _finite(value: float | None) -> float | None:
-    return None if value is None or not math.isfinite(value) else float(value)
 
 
 def wilcoxon_p(x: Sequence[float]) -> float | None:
@@ -39,7 +36,7 @@ def wilcoxon_p(x: Sequence[float]) -> float | None:
     if x.size == 0 or not np.any(x != 0):
         return None
     try:
-        return _finite(stats.wilcoxon(x, zero_method="pratt").pvalue)
+        return finite_or_none(stats.wilcoxon(x, zero_method="pratt").pvalue)
     except ValueError:
         return None
 

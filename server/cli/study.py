@@ -45,11 +45,19 @@ from .common import fail
 def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies: list[Path],
            width: int, height: int, shadows: bool, every_clip: bool = False) -> int:
     """Render the clip set's videos into ``out`` (building the clip set first if it is missing): the pairs the
-    ``studies`` files (default: the thesis study file) show, the pairs of every study in the database, and the
-    clips of those pairs (``every_clip``: every clip).  A job of the database (kind ``render``,
-    :mod:`server.pipeline.commands`): resumed by ``animstudy serve`` if this process dies mid-job."""
+    ``studies`` files show (default: the thesis study file for the server's clip set, none for another), the pairs
+    of every study in the database, and the clips of those pairs (``every_clip``: every clip).  A job of the
+    database (kind ``render``, :mod:`server.pipeline.commands`): resumed by ``animstudy serve`` if this process
+    dies mid-job."""
 
-    files = studies or [THESIS_FILE]
+    # The thesis study's pairs are the server's clip set's; another set (say `clips build --config`) has its own
+    # animations, so without a study file over it only --every-clip says what to render.
+    own_set = Path(clips_dir).resolve() == settings.clips_dir
+    if not studies and not own_set and not every_clip:
+        return fail(f"{clips_dir} is not the server's clip set ({settings.clips_dir}), so the default study "
+                    f"(studies/thesis.toml) does not apply to it: give --study FILE (a study over that clip set), "
+                    f"--every-clip (a video of each of its clips), or both")
+    files = studies or ([THESIS_FILE] if own_set else [])
     try:
         for f in files:
             load_study_file(f)
