@@ -34,6 +34,7 @@ from server.researchers.service import normalize_email
 from server.stimuli.service import collect
 from server.studies import service
 from server.studies.archive import ArchiveLimits, export_archive
+from server.studies.design import Design
 from server.studies.models import Study, StudyState
 from server.studies.studyfile import THESIS_FILE, StudyFile, StudyFileError, load_study_file
 
@@ -88,9 +89,12 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
         return 0
     try:
         if command in ("simulate", "plan"):
-            design = load_study_file(args.file).design
+            study_file = load_study_file(args.file)
+            design = study_file.design
             if getattr(design, "mode", None) in threshold_commands.THRESHOLD_MODES:
-                return threshold_commands.simulate_or_plan(args, design)
+                # the levels are the clip set's: its [clips] file's conditions, or the server's clip manifest
+                place = pipeline.study_place(settings, study_file, args.file)
+                return threshold_commands.simulate_or_plan(args, pipeline.settled(place, design, str(args.file)))
             return _simulate_or_plan(args, design)
         if command == "validate":
             return _validate(settings, args)
@@ -115,20 +119,24 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
 def _validate(settings: Settings, args: argparse.Namespace) -> int:
     """``study validate``: the file, and its animations and conditions against its clip set."""
     study_file = load_study_file(args.file)
+    design = study_file.design
     if study_file.clips is not None:
-        config = pipeline.study_place(settings, study_file, args.file).config
+        place = pipeline.study_place(settings, study_file, args.file)
+        config = place.config
         assert config is not None
-        try:  # its conditions and animations (takes and composites), each condition building a clip of each
-            pipeline.check_design(config, study_file.design)
+        try:  # its levels, conditions and animations (takes and composites), each condition building a clip of each
+            design = pipeline.settled(place, design, str(args.file))
+            pipeline.check_design(config, design)
         except ServiceError as exc:
             return fail(f"{args.file}: {exc.detail}")
         checked = "; its animations and conditions are in its own clip set ([clips])"
     elif (settings.clips_dir / MANIFEST).is_file():
-        service.check_known(study_file.design, service.clip_set_index(settings.clips_dir))
+        design = service.settled(study_file.design, settings.clips_dir)
+        service.check_known(design, service.clip_set_index(settings.clips_dir))
         checked = f"; its animations and conditions are in the clip set {settings.clips_dir}"
     else:
         checked = f" (no clip set in {settings.clips_dir}: animations and conditions not checked)"
-    print(f"{args.file}: study {study_file.slug!r} is valid, {study_file.design.trials_total()} trials per "
+    print(f"{args.file}: study {study_file.slug!r} is valid, {design.trials_total()} trials per "
           f"participant{checked}")
     return 0
 
@@ -160,7 +168,7 @@ def _create(settings: Settings, session: Session, args: argparse.Namespace) -> i
     place = pipeline.study_place(settings, study_file, args.file, owner_id)
     print(f"created study {study.slug!r} ({study.state}, {service.trials_total(study)} trials per "
           f"participant); participant link: /s/{study.slug}")
-    for test, ref in service.identical_comparisons(study_file.design, place.clips_dir):
+    for test, ref in service.identical_comparisons(Design.model_validate(study.design), place.clips_dir):
         print(f"note: {test} is identical to {ref} (same arrays): that comparison shows one clip on "
               "both sides, like a catch trial")
     return 0
