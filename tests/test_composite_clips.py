@@ -168,3 +168,27 @@ def test_parametric_mixes_the_two_takes_after_aligning_their_cycles(by_id: dict)
     assert p50.n_frames == round((walk.n_frames + run.n_frames) / 2)
     speed = 0.5 * (walk.clip.velocity * walk.clip.duration + run.clip.velocity * run.clip.duration) / p50.clip.duration
     np.testing.assert_allclose(p50.clip.velocity, speed, atol=1e-9)
+
+
+def test_worst_window_of_a_loop() -> None:
+    from anim_core.clips.reference import worst_window
+
+    flags = np.array([1, 0, 0, 0, 1, 1, 0, 0], bool)
+    assert worst_window(flags, 3) == pytest.approx(2 / 3)
+    assert worst_window(flags, 8) == worst_window(flags, 20) == pytest.approx(3 / 8)
+    assert worst_window(np.array([1, 0, 0, 0, 0, 1], bool), 2) == 1.0  # across the loop's seam
+
+
+def test_the_like_for_like_source_yardstick(by_id: dict) -> None:
+    # Per switch, the worst window of the switch's length in its two takes' own frames: never below the takes'
+    # whole-span skate (a window's worst is at least its mean).  Against it the 250 ms blends skate no more than
+    # their sources on both sequences (seen on walk -> run -> walk: 0.261 each against 0.261; the cut 0.348 and
+    # the 100 ms crossfade 0.304 are above it).
+    for name in ("idle_walk_run", "walk_run_walk"):
+        for condition in ("cut", "crossfade100", "crossfade250", "inertialization250"):
+            m = by_id[f"{name}-{condition}"].metrics
+            assert m["source_window_foot_skate_ratio"] >= m["source_foot_skate_ratio"] - 1e-12
+            if condition in ("crossfade250", "inertialization250"):
+                assert m["transition_foot_skate_ratio"] <= m["source_window_foot_skate_ratio"], (name, condition)
+    cut = by_id["walk_run_walk-cut"].metrics
+    assert cut["transition_foot_skate_ratio"] > cut["source_window_foot_skate_ratio"]

@@ -4,7 +4,10 @@ clips, plus the transition metrics of a sequence (docs/methods/transitions.md):
 
 * ``transition_foot_skate_ratio`` and ``transition_foot_slide_mm``: the feet over the transition window of every
   switch (from :data:`WINDOW_BEFORE_S` before it to the transition's end plus :data:`WINDOW_AFTER_S`), in world
-  space, the worst switch; ``source_foot_skate_ratio`` is the worst of the takes' own;
+  space, the worst switch; ``source_foot_skate_ratio`` is the worst of the takes' own over their whole spans, and
+  ``source_window_foot_skate_ratio`` the like-for-like yardstick: per switch, the worst window of the same length
+  in either of its two takes' own frames (a take's skate is uneven over its cycle: a window's worst is higher
+  than its whole), the worst switch;
 * ``switch_velocity_jump_rad_s`` / ``switch_accel_jump_rad_s2``: the largest jump of any joint's angular velocity
   (frame-to-frame rotation ``2 log(q_(f+1) q_f^-1) fps``) and of its angular acceleration from one frame to the next
   within those windows;
@@ -37,7 +40,7 @@ from .build import place_on_floor
 from .entry import ConfigError, Source
 from .measure import clip_feet, measure
 from .record import BuiltClip
-from .reference import reference_animation, source_skate
+from .reference import reference_animation, source_skate, source_skating_frames, worst_window
 
 Array = NDArray[np.float64]
 WINDOW_BEFORE_S = 0.25
@@ -93,11 +96,14 @@ def _angular_jumps(local: Array, fps: int, frames: Array) -> tuple[float, float]
     return float(d_omega[f].max()), float(d_alpha[f].max())
 
 
-def transition_metrics(c: BuiltClip, source_skate: float) -> dict[str, float | None]:
-    """The transition metrics of a sequence's clip (module docstring); empty for any other clip."""
+def transition_metrics(c: BuiltClip, source_skate: float,
+                       skating: Sequence[NDArray[np.bool_]] = ()) -> dict[str, float | None]:
+    """The transition metrics of a sequence's clip (module docstring); empty for any other clip.  ``skating``:
+    per segment of the sequence, its take's frames where a foot skates (:func:`source_skating_frames`)."""
     clip = c.clip
     if not isinstance(clip, SequenceClip):
         return {}
+    yardstick = []
     feet, contact = clip_feet(c)
     window = max(clip.transition_s, MIN_WINDOW_S)
     skate, slide, v_jump, a_jump = [], [], [], []
@@ -107,12 +113,17 @@ def transition_metrics(c: BuiltClip, source_skate: float) -> dict[str, float | N
         travel = np.floor(frames / c.n_frames)[:, None, None] * (clip.velocity * clip.duration)
         pos = c.world_positions[frames % c.n_frames] + travel
         skate.append(contacts.foot_skate_ratio(pos[:, feet], c.fps, UP, periodic=False))
+        if skating:  # switch k enters segment k from segment k - 1 (the first from the last: the loop's)
+            k = clip.switch_times.index(s)
+            yardstick.append(max(worst_window(skating[i], len(frames)) for i in (k - 1, k)))
         slide.append(metrics.foot_metrics(pos[:, feet], contact, c.fps, periodic=False)["foot_slide_mm"])
         jv, ja = _angular_jumps(c.local_rotations, c.fps, frames)
         v_jump.append(jv)
         a_jump.append(ja)
     return {"transition_foot_skate_ratio": max(skate), "transition_foot_slide_mm": max(slide),
-            "source_foot_skate_ratio": source_skate, "switch_velocity_jump_rad_s": max(v_jump),
+            "source_foot_skate_ratio": source_skate,
+            "source_window_foot_skate_ratio": max(yardstick) if yardstick else None,
+            "switch_velocity_jump_rad_s": max(v_jump),
             "switch_accel_jump_rad_s2": max(a_jump), "settle_s": max(clip.settle_s)}
 
 
@@ -122,11 +133,13 @@ def format_transitions(clips: Sequence[BuiltClip]) -> str:
     if not rows:
         return ""
     width = max(16, *(len(c.id) for c in rows))
-    lines = [f"\n{'transition':{width}} {'skate':>6} {'source':>6} {'slide mm':>8} {'dw rad/s':>9} "
+    lines = [f"\n{'transition':{width}} {'skate':>6} {'source':>6} {'src win':>7} {'slide mm':>8} {'dw rad/s':>9} "
              f"{'da rad/s2':>10} {'settle s':>8}"]
     for c in rows:
         m = c.metrics
+        window = m.get("source_window_foot_skate_ratio")
         lines.append(f"{c.id:{width}} {m['transition_foot_skate_ratio']:6.3f} {m['source_foot_skate_ratio']:6.3f} "
+                     f"{'-' if window is None else format(window, '7.3f'):>7} "
                      f"{m['transition_foot_slide_mm']:8.1f} {m['switch_velocity_jump_rad_s']:9.1f} "
                      f"{m['switch_accel_jump_rad_s2']:10.0f} {m['settle_s']:8.2f}")
     return "\n".join(lines) + "\n"
@@ -171,6 +184,9 @@ def build_composite(spec: CompositeSpec, sources: Mapping[str, Source], fps: int
     ordered = [*(c for c in applying if c.is_reference), *(c for c in applying if not c.is_reference)]
     skate = max(source_skate(sources[n], sources[n].time_of(sources[n].config.frames[0]),
                              sources[n].time_of(sources[n].config.frames[1]), fps) for n in spec.takes)
+    skating = [source_skating_frames(sources[n], sources[n].time_of(sources[n].config.frames[0]),
+                                     sources[n].time_of(sources[n].config.frames[1]), fps)
+               for n, _ in spec.segments] if spec.form == "sequence" else []
     built: list[BuiltClip] = []
     for condition in ordered:
         clip_id = f"{spec.name}-{condition.id}"
@@ -213,7 +229,7 @@ def build_composite(spec: CompositeSpec, sources: Mapping[str, Source], fps: int
         feet, contact = clip_feet(c)
         m.update(metrics.foot_metrics(c.world_positions[:, feet], contact, fps, periodic=False))
         m["foot_skate_ratio"] = contacts.foot_skate_ratio(c.world_positions[:, feet], fps, UP, periodic=False)
-        m.update(transition_metrics(c, skate))
+        m.update(transition_metrics(c, skate, skating))
         out.append(_shown_in_place(replace(c, metrics=m)))
     return out
 

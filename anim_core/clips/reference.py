@@ -217,11 +217,26 @@ def source_skate(source: Source, start: float, stop: float, fps: int) -> float:
     """Foot skate ratio (:mod:`anim_core.math.contacts`) of the mocap on its own skeleton from ``start`` to ``stop``
     seconds (the configured frames) at ``fps``, velocities by central differences with one frame beyond each end
     (held at the file's ends)."""
+    return float(np.mean(source_skating_frames(source, start, stop, fps)))
+
+
+def source_skating_frames(source: Source, start: float, stop: float, fps: int) -> NDArray[np.bool_]:
+    """Per frame of :func:`source_skate`'s span, whether a foot is down and sliding: ``(n,)``."""
     n = int(np.floor((stop - start) * fps + 1e-9))
     feet = source.mocap_feet(start + np.arange(-1, n + 2) / fps)
     down = contacts.foot_down(feet[1:-1], UP)
     fast = contacts.foot_speed(feet, fps, UP)[1:-1] > contacts.SKATE_SPEED_MPS
-    return float(np.mean(np.any(down & fast, axis=1)))
+    return np.any(down & fast, axis=1)
+
+
+def worst_window(flags: NDArray[np.bool_], length: int) -> float:
+    """The largest share of ``flags`` over ``length`` consecutive frames, the span read as a loop (a take in a
+    sequence loops): the yardstick for a measure taken over a window of that length."""
+    n = flags.size
+    if length >= n:
+        return float(flags.mean())
+    wrapped = np.concatenate([flags, flags[:length - 1]]).astype(np.float64)
+    return float(np.convolve(wrapped, np.ones(length), "valid").max() / length)
 
 
 def _on_grid(t: float, start: float, stop: float, clip: KeyframeClip) -> float:
