@@ -7,6 +7,9 @@ and builders, and the reference of every form (:func:`build_reference`).
 * ``cut``: a sequence's takes switched without blending (the same clip as a sequence's reference).
 * ``crossfade`` (``duration_ms``, ``curve`` linear/smoothstep, ``interp`` nlerp/slerp) and ``inertialization``
   (``duration_ms``; Bollo's quintic per quaternion component): :mod:`anim_core.methods.transitions`.
+* ``override`` (``space`` local/model) and ``additive`` (``reference_pose`` first/rest/a frame, ``weight``): a
+  layered animation with every layer applied in that mode, whatever mode the clip-set file gives it, so two ways
+  of layering one take are conditions of one animation (``studies/layers.toml``).
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from pydantic import Field
 
 from ..math.clip import KeyframeClip
 from .base import Animation, Params
-from .transitions import Composite, Entry, RootMotion, TransitionSpec, compose_sequence, layered
+from .transitions import Composite, CompositeError, Entry, RootMotion, TransitionSpec, compose_sequence, layered
 
 #: The longest transition a condition may ask for (a crossfade must also fit in the shortest segment).
 MAX_TRANSITION_MS = 5000
@@ -74,6 +77,18 @@ class InertializationParams(Params):
     duration_ms: int = Field(ge=1, le=MAX_TRANSITION_MS, description="time for the offsets to decay, milliseconds")
 
 
+class OverrideParams(Params):
+    space: Literal["local", "model"] = Field("local", description="local rotations, or the set's top joints kept in "
+                                                                   "the layer's model space")
+
+
+class AdditiveParams(Params):
+    reference_pose: Literal["first", "rest"] | int = Field(
+        "first", description="the pose the delta is taken against: the layer's first frame, the rest pose or a frame "
+                             "number of the layer")
+    weight: float = Field(1.0, ge=0.0, le=2.0, description="how much of the delta is added (1: all of it)")
+
+
 def _compose(animation: SequenceAnimation, spec: TransitionSpec) -> SequenceClip:
     segments = [(a.reference, seconds) for a, seconds in animation.segments]
     comp: Composite = compose_sequence(segments, animation.fps, spec, animation.root_motion, animation.name,
@@ -95,6 +110,35 @@ def build_inertialization(animation: SequenceAnimation, params: InertializationP
     return _compose(animation, TransitionSpec("inertialization", params.duration_ms / 1000.0))
 
 
+def _relayer(animation: LayeredAnimation, mode: str, reference: NDArray[np.float64] | None = None,
+             space: Literal["local", "model"] = "local", weight: float = 1.0) -> KeyframeClip:
+    return layered(animation.base.reference, [(a.reference, mask, mode, reference if mode == "additive" else None)
+                                              for a, mask, _, _ in animation.layers],
+                   animation.fps, animation.name, space, weight)
+
+
+def build_override(animation: LayeredAnimation, params: OverrideParams) -> KeyframeClip:
+    return _relayer(animation, "override", space=params.space)
+
+
+def build_additive(animation: LayeredAnimation, params: AdditiveParams) -> KeyframeClip:
+    """Every layer additive against ``params.reference_pose``: ``"first"`` (each layer's first frame), ``"rest"``
+    (the base skeleton's rest pose) or a frame of each layer's clip (out of range: :class:`CompositeError`)."""
+    ref = params.reference_pose
+    if ref == "first":
+        return _relayer(animation, "additive", None, weight=params.weight)
+    if ref == "rest":
+        return _relayer(animation, "additive", np.asarray(animation.base.reference.skeleton.rest_rotations),
+                        weight=params.weight)
+    clips = [a.reference for a, _, _, _ in animation.layers]
+    short = min(c.rotations.shape[0] for c in clips)
+    if not 0 <= ref < short:
+        raise CompositeError(f"reference_pose: a frame 0..{short - 1} of every layer, got {ref}")
+    return layered(animation.base.reference, [(c, mask, "additive", c.rotations[ref]) for c, (_, mask, _, _)
+                                              in zip(clips, animation.layers, strict=True)],
+                   animation.fps, animation.name, weight=params.weight)
+
+
 def build_reference(animation: Any, params: Params) -> Any:
     """The reference of every form: a take's keys, a sequence's cut, a layered animation's layers."""
     if isinstance(animation, SequenceAnimation):
@@ -110,4 +154,6 @@ COMPOSITE_METHODS: tuple[tuple[str, type[Params], Callable[[Any, Any], Any], tup
     ("cut", CutParams, build_cut, ("sequence",)),
     ("crossfade", CrossfadeParams, build_crossfade, ("sequence",)),
     ("inertialization", InertializationParams, build_inertialization, ("sequence",)),
+    ("override", OverrideParams, build_override, ("layered",)),
+    ("additive", AdditiveParams, build_additive, ("layered",)),
 )
