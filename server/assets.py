@@ -30,6 +30,7 @@ CHECKSUMS: dict[str, str] = {
     "mocap/cmu/09_11_run.bvh.gz": "fb948896c3791cc8b3f6004b272becde137a0dbf5ac4ab2c62a0dc8fb9417811",
     "mocap/cmu/115_06_crouch_first164.bvh.gz": "bdc38a38c8268c232a2a4fb470fa70d2b1ddd98bd96670a118c2da33bb8e7f5d",
     "mocap/cmu/113_21_idle_30fps.bvh.gz": "62b94d6b882fa8a7954c06ddc74f99b088d69ea977bc433c7b9525402d067384",
+    "mocap/cmu/113_27_wave_30fps.bvh.gz": "ce783519ae5b8400abe813b2ba7be4cbe5386942409b4aed438f287708098cf4",
     "character/makehuman_cmu_mb/base.obj.gz": "8e761e6624b8f54536409135d1636da63b32486a90d4897f84e121d144f6fb4c",
     "character/makehuman_cmu_mb/rig.cmu_mb.json": "a751d730091304de2a7f7407a57976e86f71f75125e21fa2626ca5c661a6ad68",
     "character/makehuman_cmu_mb/weights.cmu_mb.json.gz":

@@ -10,6 +10,9 @@ and builders, and the reference of every form (:func:`build_reference`).
   feet through the transition unless ``foot_lock = false`` (:mod:`anim_core.methods.transition_feet`).
 * ``parametric`` (``weight`` 0..1, ``interp``): a blend's two takes mixed after time alignment; its reference is
   the first take.
+* ``override`` (``space`` local/model) and ``additive`` (``reference_pose`` first/rest/a frame, ``weight``): a
+  layered animation with every layer applied in that mode, whatever mode the clip-set file gives it, so two ways
+  of layering one take are conditions of one animation (``studies/layers.toml``).
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from .base import Animation, Params
 from .transition_feet import FeetLock
 from .transitions import (
     Composite,
+    CompositeError,
     Entry,
     RootMotion,
     TransitionSpec,
@@ -102,6 +106,18 @@ class InertializationParams(Params):
     foot_lock: bool = Field(True, description="hold the feet in contact through the transition (two-bone IK)")
 
 
+class OverrideParams(Params):
+    space: Literal["local", "model"] = Field("local", description="local rotations, or the set's top joints kept in "
+                                                                   "the layer's model space")
+
+
+class AdditiveParams(Params):
+    reference_pose: Literal["first", "rest"] | int = Field(
+        "first", description="the pose the delta is taken against: the layer's first frame, the rest pose or a frame "
+                             "number of the layer")
+    weight: float = Field(1.0, ge=0.0, le=2.0, description="how much of the delta is added (1: all of it)")
+
+
 class ParametricParams(Params):
     weight: float = Field(ge=0, le=1, description="share of the second take: 0 is the first, 1 the second")
     interp: Literal["nlerp", "slerp"] = Field("slerp", description="per-joint rotation blend")
@@ -145,6 +161,35 @@ def build_parametric(animation: BlendAnimation, params: ParametricParams) -> Key
     return parametric(a, b, params.weight, animation.fps, params.interp)
 
 
+def _relayer(animation: LayeredAnimation, mode: str, reference: NDArray[np.float64] | None = None,
+             space: Literal["local", "model"] = "local", weight: float = 1.0) -> KeyframeClip:
+    return layered(animation.base.reference, [(a.reference, mask, mode, reference if mode == "additive" else None)
+                                              for a, mask, _, _ in animation.layers],
+                   animation.fps, animation.name, space, weight)
+
+
+def build_override(animation: LayeredAnimation, params: OverrideParams) -> KeyframeClip:
+    return _relayer(animation, "override", space=params.space)
+
+
+def build_additive(animation: LayeredAnimation, params: AdditiveParams) -> KeyframeClip:
+    """Every layer additive against ``params.reference_pose``: ``"first"`` (each layer's first frame), ``"rest"``
+    (the base skeleton's rest pose) or a frame of each layer's clip (out of range: :class:`CompositeError`)."""
+    ref = params.reference_pose
+    if ref == "first":
+        return _relayer(animation, "additive", None, weight=params.weight)
+    if ref == "rest":
+        return _relayer(animation, "additive", np.asarray(animation.base.reference.skeleton.rest_rotations),
+                        weight=params.weight)
+    clips = [a.reference for a, _, _, _ in animation.layers]
+    short = min(c.rotations.shape[0] for c in clips)
+    if not 0 <= ref < short:
+        raise CompositeError(f"reference_pose: a frame 0..{short - 1} of every layer, got {ref}")
+    return layered(animation.base.reference, [(c, mask, "additive", c.rotations[ref]) for c, (_, mask, _, _)
+                                              in zip(clips, animation.layers, strict=True)],
+                   animation.fps, animation.name, weight=params.weight)
+
+
 def build_reference(animation: Any, params: Params) -> Any:
     """The reference of every form: a take's keys, a sequence's cut, a layered animation's layers, a blend's first
     take."""
@@ -164,4 +209,6 @@ COMPOSITE_METHODS: tuple[tuple[str, type[Params], Callable[[Any, Any], Any], tup
     ("crossfade", CrossfadeParams, build_crossfade, ("sequence",)),
     ("inertialization", InertializationParams, build_inertialization, ("sequence",)),
     ("parametric", ParametricParams, build_parametric, ("blend",)),
+    ("override", OverrideParams, build_override, ("layered",)),
+    ("additive", AdditiveParams, build_additive, ("layered",)),
 )

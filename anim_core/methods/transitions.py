@@ -413,11 +413,13 @@ def compose_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, t
 
 
 def layered(base: KeyframeClip, layers: Sequence[tuple[KeyframeClip, NDArray[np.bool_], str, Array | None]],
-            fps: int, name: str = "") -> KeyframeClip:
+            fps: int, name: str = "", space: Literal["local", "model"] = "local", weight: float = 1.0
+            ) -> KeyframeClip:
     """``base`` with ``layers`` ``[(clip, joint mask, mode, reference pose (J, 4) or None), ...]`` applied in
     order at the base's own keys (the layer sampled there by its own playback; a loop's last key takes the layer
-    at time 0, so the loop stays closed): ``override`` (local) or ``additive`` (delta against the reference pose;
-    None: the layer's first frame).  Joints outside every layer keep the base's keys bit for bit."""
+    at time 0, so the loop stays closed): ``override`` (in ``space``, :func:`override`) or ``additive`` (delta
+    against the reference pose, None: the layer's first frame, taken to ``weight``).  Joints outside every layer
+    keep the base's keys bit for bit."""
     times = base.times
     layer_times = times.copy()
     if base.mode == "loop":
@@ -426,10 +428,10 @@ def layered(base: KeyframeClip, layers: Sequence[tuple[KeyframeClip, NDArray[np.
     for clip, mask, mode, reference in layers:
         layer = clip.sample(layer_times).rotations
         if mode == "override":
-            rot = override(rot, layer, mask)
+            rot = override(rot, layer, mask, base.skeleton, space)
         elif mode == "additive":
             ref = clip.sample(np.array([0.0])).rotations[0] if reference is None else reference
-            rot = additive(rot, additive_delta(layer, ref), mask)
+            rot = additive(rot, additive_delta(layer, ref), mask, weight)
         else:
             raise CompositeError(f"mode: 'override' or 'additive', got {mode!r}")
     return KeyframeClip(base.skeleton, times, rot, base.root_translation, base.mode, base.in_place, base.up_axis,
