@@ -1,6 +1,7 @@
 """Composite clips built from the sample takes (issue 39): server/clipset/transitions.toml's sequence with every
-transition, and an override and an additive layer on the walk (the idle's upper body stands in for a
-layer here; the captured wave's layers are tests/test_layers_study.py's).  Expected values come from the take clips, never from the composite code."""
+transition, and an override and an additive layer on the walk (the idle's upper body stands in for a layer here;
+the captured wave's layers are tests/test_layers_study.py's).  Expected values come from the take clips, never
+from the composite code."""
 
 from __future__ import annotations
 
