@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -209,6 +210,9 @@ CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic"
                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 
 
+# Module scope, not session: while a sync Playwright is open its event loop counts as running in this thread
+# (playwright/_impl/_greenlets.py sets it after every call), so asyncio.run() in a later non-browser test of the
+# worker would fail.
 @pytest.fixture(scope="module")
 def playwright():
     from playwright.sync_api import sync_playwright  # only the browser tests need it
@@ -219,10 +223,24 @@ def playwright():
 
 @pytest.fixture(scope="module")
 def browser(playwright):
-    # Module scope: one launch per file (a launch costs about a second), a fresh context per test below.
+    # One launch per file (a launch costs one to three seconds), a fresh context per test; tests never close it
+    # (:func:`own_contexts` closes what they opened).
     b = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
     yield b
     b.close()
+
+
+@contextmanager
+def own_contexts(browser):
+    """Close, on leaving, every browser context opened inside (``browser.new_page`` opens one too): a test's pages,
+    cookies and storage are its own, as with a browser of its own, on the shared :func:`browser`."""
+    before = set(browser.contexts)
+    try:
+        yield browser
+    finally:
+        for context in browser.contexts:
+            if context not in before:
+                context.close()
 
 
 @pytest.fixture
