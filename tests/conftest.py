@@ -203,6 +203,43 @@ def cmu_walk(data: Path):
     return dataclasses.replace(bvh, motion=bvh.motion[1:241])
 
 
+CONDITIONS16 = REPO / "server" / "clipset" / "conditions16.toml"
+
+
+@pytest.fixture(scope="session")
+def built_clip_set(data: Path, tmp_path_factory: pytest.TempPathFactory):
+    """``build(config=None)``: a copy of ``build_clip_set(data, load_config(config))`` (``config`` a clip-set
+    file of the repository: the default set, or :data:`CONDITIONS16`), built once per run and shared.
+
+    The first worker to ask builds it (under a file lock, so the other waits instead of building it too) and
+    pickles it into the run's temporary directory, which all workers share; every call unpickles a copy of its
+    own, so a test that changes its clips changes no other test's.  Keyed by the data directory and the file's
+    bytes; a run never changes either."""
+    import fcntl
+    import hashlib
+    import pickle
+
+    shared = tmp_path_factory.getbasetemp().parent if WORKER else tmp_path_factory.getbasetemp()
+
+    def build(config: Path | None = None) -> list:
+        from server.clipset.build import build_clip_set
+        from server.clipset.config import load_config
+
+        text = config.read_bytes() if config is not None else b"<the default clip set>"
+        key = hashlib.sha256(str(data).encode() + b"\0" + text).hexdigest()[:16]
+        path = shared / f"clip-set-{key}.pickle"
+        with open(shared / f"clip-set-{key}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if not path.exists():
+                clips = build_clip_set(data, load_config(config) if config is not None else None)
+                partial = path.with_suffix(".partial")
+                partial.write_bytes(pickle.dumps(clips, protocol=pickle.HIGHEST_PROTOCOL))
+                partial.replace(path)
+        return pickle.loads(path.read_bytes())
+
+    return build
+
+
 # The browser tests' Chromium, in one place: Debian's (never a downloaded browser), headless, no network chatter of
 # its own so a test's requests are the page's only.
 CHROMIUM = "/usr/bin/chromium"

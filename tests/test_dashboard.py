@@ -3,7 +3,6 @@
 import pytest
 
 from server.app import create_app
-from server.clipset.build import build_clip_set
 from server.clipset.manifest import write_clip_set
 from server.config import Settings
 from server.db import migrate, session_factory
@@ -18,10 +17,10 @@ CHARTS = ("chart-distribution", "chart-thesis", "chart-split", "chart-means", "c
 
 
 @pytest.fixture(scope="module")
-def dashboard_site(data, tmp_path_factory):
+def dashboard_site(data, built_clip_set, tmp_path_factory):
     settings = Settings(var_dir=tmp_path_factory.mktemp("var"), data_dir=data,
                         secret_key="dashboard-test-secret-0123456789abcdef")
-    write_clip_set(build_clip_set(data), settings.clips_dir)  # the clips' objective metrics
+    write_clip_set(built_clip_set(), settings.clips_dir)  # the clips' objective metrics
     engine = _fresh_engine("sqlite", tmp_path_factory)
     migrate(engine)
     with session_factory(engine)() as db:
