@@ -93,6 +93,20 @@ def pytest_sessionfinish(session, exitstatus):
         admin.dispose()
 
 
+def pytest_collection_modifyitems(session, config, items):
+    """Whole files, those with the most tests marked ``slow`` first, then those with the most tests (the order
+    within a file kept): `make test` hands files to its workers in this order (``--no-loadscope-reorder``), so the
+    long files start first and the run ends on short ones, with both workers busy to the end."""
+    files: dict[Path, list] = {}
+    for item in items:
+        files.setdefault(item.path, []).append(item)
+
+    def weight(path: Path) -> tuple[int, int]:
+        return -sum(1 for item in files[path] if item.get_closest_marker("slow")), -len(files[path])
+
+    items[:] = [item for path in sorted(files, key=weight) for item in files[path]]
+
+
 def data_dir() -> Path:
     """``ANIMSTUDY_DATA_DIR`` or the sample data shipped in the repository (``data/``)."""
     path = Path(os.environ.get("ANIMSTUDY_DATA_DIR", REPO / "data"))

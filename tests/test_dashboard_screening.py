@@ -41,6 +41,7 @@ def rows(page, selector):
     return page.eval_on_selector(selector, "e => [...e.querySelectorAll('tbody tr')].map(r => r.innerText)")
 
 
+@pytest.mark.slow  # tens of seconds (the parallel run's slowest; still run by `make test`)
 def test_screening_panel(browser, site):
     base, (straight, _pilot) = site
     with own_contexts(browser):

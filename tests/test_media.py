@@ -56,6 +56,7 @@ def media(data, clips_dir, pairs, tmp_path_factory):
     return out, manifest, messages
 
 
+@pytest.mark.slow  # tens of seconds (the parallel run's slowest; still run by `make test`)
 def test_every_video_decodes_with_the_expected_frames(media, clips_dir):
     out, manifest, _ = media
     clips = {c.id: c for c in read_clip_set(clips_dir)}
