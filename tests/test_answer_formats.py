@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import random
+import tempfile
 import tomllib
 from collections import Counter
 from pathlib import Path
@@ -13,6 +14,7 @@ import pytest
 from pydantic import ValidationError
 from sqlalchemy import func, select
 
+from server.errors import Unprocessable
 from server.media.manifest import RenderedClip, RenderedPair, RenderManifest
 from server.participants import service, staircase
 from server.participants.models import ParticipantSession, Trial
@@ -20,7 +22,7 @@ from server.research.export import export_rows
 from server.studies import scale
 from server.studies.columns import EXPORT_COLUMNS
 from server.studies.design import Design
-from server.studies.ladder import from_name, level_of
+from server.studies.ladder import ladder_fields, resolve
 from server.studies.models import Study, StudyState
 from server.studies.service import create_study, set_state
 from server.studies.studyfile import StudyFile, StudyFileError, load_study_file, parse_study_text
@@ -30,6 +32,7 @@ REPO = Path(__file__).resolve().parents[1]
 UPDATE_RATE = REPO / "studies" / "update-rate.toml"
 LEVELS = (4, 6, 8, 12, 16, 24)
 PPS = [f"pps{n}" for n in LEVELS]
+LEVEL_OF = dict(zip(PPS, LEVELS, strict=True))  # the stand-in clip set's levels (its manifest says them)
 
 
 def ladder_media(animations: tuple[str, ...] = ("walk", "run"), conditions: tuple[str, ...] = ("keyframe", *PPS)
@@ -47,6 +50,26 @@ def ladder_media(animations: tuple[str, ...] = ("walk", "run"), conditions: tupl
     return RenderManifest(clips=clips, pairs=pairs)
 
 
+def ladder_clip_manifest(folder: Path, animations: tuple[str, ...] = ("walk", "run"),
+                         levels: dict[str, float] | None = None) -> Path:
+    """A stand-in clip manifest (``manifest.json`` only, no arrays) of the reference and the pps levels of
+    ``animations``, each level with its ``ladder`` and ``level`` fields (default :data:`LEVEL_OF`), as a built
+    clip set's manifest has them; the clip ids are :func:`ladder_media`'s."""
+    from server.clipset.manifest import ClipEntry, ClipManifest, write_json
+
+    clips = []
+    for a in animations:
+        for c, level in [("keyframe", None), *(levels or LEVEL_OF).items()]:
+            clips.append(ClipEntry(
+                id=f"{a}-{c}", animation=a, kind="gait", condition=c, method="keyframe" if level is None
+                else "update_rate", params={} if level is None else {"rate": level}, key_count=30, duration_s=1.0,
+                fps=30, frames=30, playback="loop", in_place=True, root_speed_mps=1.0, metrics={}, source={},
+                file=f"{a}-{c}.npz", ladder=None if level is None else "pps", level=level))
+    folder.mkdir(parents=True, exist_ok=True)
+    write_json(folder / "manifest.json", ClipManifest(clips=clips))
+    return folder
+
+
 def threshold_file(mode: str = "staircase", answer_format: str = "2afc", slug: str = "update-rate",
                    **design: object) -> StudyFile:
     fields = {"mode": mode, "ladder": "pps", "conditions": PPS, "animations": ["walk", "run"],
@@ -58,7 +81,10 @@ def make_threshold_study(db, file: StudyFile, media_dir: Path | None = None) -> 
     media = ladder_media()
     if media_dir is not None:
         write_fake_media(media_dir, media)
-    return set_state(db, create_study(db, media, file, media_dir=media_dir), StudyState.open)
+    with tempfile.TemporaryDirectory() as folder:  # read when the study is created (its levels, its set's metrics)
+        clips_dir = ladder_clip_manifest(Path(folder))
+        return set_state(db, create_study(db, media, file, media_dir=media_dir, clips_dir=clips_dir),
+                         StudyState.open)
 
 
 def observer(threshold: float, rng: random.Random, answer_format: str = "2afc", lapse: float = 0.02):
@@ -69,7 +95,7 @@ def observer(threshold: float, rng: random.Random, answer_format: str = "2afc", 
         if c.reference_id == c.test_id:
             p_detect = 0.0
         else:
-            level = from_name(c.test.condition, "pps") or 0.0
+            level = LEVEL_OF[c.test.condition]
             p_detect = 1 / (1 + math.exp(4 * (math.log(level) - math.log(threshold)) / 0.5))
         p_detect = lapse / 2 + (1 - lapse) * p_detect
         if answer_format == "2afc":
@@ -115,8 +141,11 @@ def test_every_format_has_its_ids_once_and_defaults():
     ('[scale]\nformat = "3afc"', "scale.format"),
     ('[design]\nmode = "staircase"\nladder = "pps"\nconditions = ["pps4", "pps8", "pps16"]\ntrials = 20',
      "scale.format"),  # a rating scale cannot run a staircase
-    ('[scale]\nformat = "2afc"\n[design]\nmode = "staircase"\nladder = "pps"\nconditions = ["pps4", "eps2", '
-     '"pps16"]\ntrials = 20', "conditions: eps2 not a level of ladder 'pps'"),
+    ('[scale]\nformat = "2afc"\n[design]\nmode = "staircase"\nladder = "pps"\nconditions = ["pps", "pps4"]\n'
+     'trials = 20', "conditions: the ladder's id 'pps' stands for all its levels"),
+    ('[scale]\nformat = "2afc"\n[design]\nmode = "staircase"\nladder = "pps"\nconditions = ["pps4", "pps8", '
+     '"pps16"]\ntrials = 20\nlevels = { pps4 = 4, pps8 = 8 }', "levels: one level for each condition"),
+    ('[design]\nmode = "reference"\nconditions = ["hybrid0"]\nlevels = { hybrid0 = 1 }', "levels is for mode"),
     ('[scale]\nformat = "2afc"\n[design]\nmode = "staircase"\nladder = "pps"\nconditions = ["pps4", "pps8"]\n'
      'trials = 20', "at least 3 levels"),
     ('[scale]\nformat = "2afc"\n[design]\nmode = "staircase"\nladder = "pps"\nconditions = ["pps4", "pps8", '
@@ -134,19 +163,55 @@ def test_bad_formats_and_threshold_designs_name_the_field(text, field):
 
 
 def test_the_update_rate_study_file():
+    from server.clipset.config import load_config
+
     study = load_study_file(UPDATE_RATE)
     assert study.scale.format == "2afc" and study.design.mode == "staircase" and study.design.ladder == "pps"
     assert study.design.trials_total() == 2 * 30 + 2
-    assert list(study.design.levels()) == PPS[::-1] and study.design.easiest() == "pps4"
+    with pytest.raises(ValueError, match="not known yet"):  # the levels are the clip set's
+        study.design.level_order()
+    clip_set = load_config(REPO / "server" / "clipset" / "update-rate.toml")
+    design = resolve(study.design, ladder_fields(clip_set.conditions))
+    assert list(design.level_order()) == PPS[::-1] and design.easiest() == "pps4"
+    assert design.levels == LEVEL_OF
     assert tomllib.loads(UPDATE_RATE.read_text(encoding="utf-8"))["design"]["animations"] == ["walk", "run"]
 
 
-def test_the_ladder_adapter():
-    assert from_name("pps12", "pps") == 12 and from_name("eps0_5", "eps") == 0.5
-    assert from_name("pps", "pps") is None and from_name("ppsx", "pps") is None and from_name("hybrid1", "pps") is None
-    assert level_of("pps12", "pps", {"ladder": "pps", "level": 11}) == 11  # the clip's own fields win
-    assert level_of("pps12", "pps", {"ladder": "eps", "level": 11}) is None
-    assert level_of("pps12", "pps", {"ladder": None}) == 12
+def test_levels_come_from_the_clip_sets_ladder_fields_never_from_names(tmp_path):
+    """The design's levels are the manifest's ``ladder``/``level`` fields: a condition named like a level is
+    read at the level its clip says; one on another ladder (or on none) is refused naming the field and the
+    condition; the ladder's id stands for all its levels; given levels must agree."""
+    from server.media.plan import read_clip_set
+
+    odd = {"pps4": 4, "pps6": 6, "pps12": 11.5, "fast": 30}  # pps12's clip says 11.5; "fast" is named otherwise
+    fields = ladder_fields(read_clip_set(ladder_clip_manifest(tmp_path / "clips", levels=odd), read_arrays=False))
+    assert fields["pps12"] == ("pps", 11.5) and fields["keyframe"] == (None, None)
+    base = {"mode": "constant-stimuli", "ladder": "pps", "animations": ["walk"]}
+    design = resolve(Design(**base, conditions=["pps4", "pps12", "fast"]), fields)
+    assert design.levels == {"pps4": 4, "pps12": 11.5, "fast": 30}
+    assert list(design.level_order()) == ["fast", "pps12", "pps4"] and design.easiest() == "pps4"
+    whole = resolve(Design(**base, conditions=["pps"]), fields)
+    assert whole.conditions == ["pps4", "pps6", "pps12", "fast"] and whole.trials_total() == 4 * 2 + 0
+    refused = [
+        (["pps4", "pps6", "keyframe2"], {}, "design.conditions: keyframe2 (not in the clip set) not a level of "
+                                            "ladder 'pps'"),
+        (["eps"], {"ladder": "eps"}, "design.conditions: 'eps' names ladder 'eps', which the clip set does not "
+                                     "have (its ladders: pps)"),
+        (["pps4", "pps6", "pps12"], {"practice": "hybrid1"}, "design.practice: hybrid1 (not in the clip set) is not "
+                                                              "a level of ladder 'pps'"),
+        (["pps4", "pps6", "keyframe"], {"reference": "hybrid0"}, "design.conditions: keyframe (on no ladder) not a "
+                                                                  "level of ladder 'pps'"),
+        (["pps4", "pps6", "pps12"], {"levels": {"pps4": 4, "pps6": 6, "pps12": 12}},
+         "design.levels: pps12 is 12.0 in the design, 11.5 in the clip set"),
+    ]
+    for conditions, changes, message in refused:
+        with pytest.raises(Unprocessable) as info:
+            resolve(Design(**{**base, "conditions": conditions, **changes}), fields)
+        assert message in info.value.detail, info.value.detail
+    built = ladder_clip_manifest(tmp_path / "fewer", levels={"pps4": 4, "pps8": 8})
+    other = ladder_fields(read_clip_set(built, read_arrays=False))
+    with pytest.raises(Unprocessable, match=r"pps16 \(not in the clip set\)"):
+        resolve(Design(**base, conditions=["pps4", "pps8", "pps16"]), other)
 
 
 # --- the API -----------------------------------------------------------------------------------------------------
@@ -231,7 +296,7 @@ def test_staircase_levels_follow_the_answers_and_replay_from_the_vote_log(db):
         sides = Counter((t.comparison.reference.animation, t.reference_side) for t in ps.trials
                         if staircase.undecided(ps, t))
         assert set(sides.values()) == {10}  # balanced sides per staircase
-    level = {c: v for c, v in design.levels().items()}
+    level = {c: v for c, v in design.level_order().items()}
 
     def last_levels(ps):
         return [level[t.comparison.test.condition] for t in sorted(ps.trials, key=lambda t: t.index)
@@ -249,7 +314,7 @@ def test_staircase_export_has_format_ladder_level_and_correct(db):
     assert {"answer_format", "ladder", "level", "correct"} <= set(EXPORT_COLUMNS)
     assert len(rows) == 2 * 8 + 1 and all(set(r) >= {"answer_format", "ladder", "level", "correct"} for r in rows)
     assert {r["answer_format"] for r in rows} == {"2afc"} and {r["ladder"] for r in rows} == {"pps"}
-    assert all(r["correct"] is True and r["level"] == float(r["test_condition"][3:]) for r in rows)
+    assert all(r["correct"] is True and r["level"] == LEVEL_OF[r["test_condition"]] for r in rows)
     assert all(r["score"] == -1 for r in rows)  # the reference's side: -1 from the test's point of view
     catch = [r for r in rows if r["catch"]]
     assert len(catch) == 1 and catch[0]["test_condition"] == "pps4"
@@ -277,11 +342,13 @@ def test_the_data_dictionary_names_the_new_columns(client):
 
 
 def test_design_validation_of_threshold_modes():
-    with pytest.raises(ValidationError, match="not a level of ladder"):
-        Design(mode="constant-stimuli", ladder="pps", conditions=["pps4", "hybrid0", "pps8"])
+    with pytest.raises(ValidationError, match="stands for all its levels"):
+        Design(mode="constant-stimuli", ladder="pps", conditions=["pps4", "pps", "pps8"])
+    with pytest.raises(ValidationError, match="drop levels"):
+        Design(mode="constant-stimuli", ladder="pps", conditions=["pps"], levels={"pps4": 4})
     d = Design(mode="staircase", ladder="eps", conditions=["eps0_5", "eps2", "eps1"], trials=10,
-               detectable_at="high", animations=["walk"])
-    assert list(d.levels()) == ["eps0_5", "eps1", "eps2"] and d.easiest() == "eps2"
+               detectable_at="high", animations=["walk"], levels={"eps0_5": 0.5, "eps2": 2, "eps1": 1})
+    assert list(d.level_order()) == ["eps0_5", "eps1", "eps2"] and d.easiest() == "eps2"
     assert d.trials_total() == 10 and d.pairs() == [("keyframe", c) for c in d.conditions]
 
 
@@ -306,7 +373,7 @@ def test_results_and_exports_of_a_threshold_study_answer(db, client, researcher_
 def test_planted_observers_staircases_find_their_threshold():
     """QUEST+ over the update-rate ladder (40 trials) against planted observers of thresholds 7 and 14 poses per
     second (detection 50 % there): the posterior threshold lands near the planted one, and the two apart."""
-    design = Design(mode="staircase", ladder="pps", conditions=PPS, trials=40, animations=["walk"])
+    design = Design(mode="staircase", ladder="pps", conditions=PPS, trials=40, animations=["walk"], levels=LEVEL_OF)
     found = {}
     for planted in (7.0, 14.0):
         def detect(level: float, planted: float = planted) -> float:
@@ -348,3 +415,62 @@ def test_threshold_results_name_the_cheapest_level_nobody_tells_from_the_referen
     assert walk["fit"] is not None and out["svg"].startswith("<svg")
     assert threshold_results({"mode": "reference"}, "rating5", rows, clips) is None
     assert threshold_results(design, "same_different", rows, clips)["note"].startswith("thresholds are fitted")
+
+
+def test_a_study_is_created_over_its_clip_sets_levels_and_refused_when_they_disagree(db, tmp_path):
+    """``conditions = ["pps"]`` is every level of the clip set's ladder; the study stores the levels its clips
+    carry (pps12 at 11.5 here, whatever its name says) and exports them; a design whose conditions are not levels
+    of its ladder by the manifest is refused naming the condition, and nothing is created."""
+    import json
+
+    media = ladder_media()
+    clips = ladder_clip_manifest(tmp_path / "clips", levels={**LEVEL_OF, "pps12": 11.5})
+    study = create_study(db, media, threshold_file("constant-stimuli", conditions=["pps"], slug="whole"),
+                         clips_dir=clips)
+    design = Design.model_validate(study.design)
+    assert design.conditions == PPS and design.levels == {**LEVEL_OF, "pps12": 11.5}
+    assert {c.test.condition for c in study.comparisons if c.kind == "test"} == set(PPS)
+    set_state(db, study, StudyState.open)
+    run_session(db, study, lambda t: t.reference_side)
+    assert {r["level"] for r in export_rows(db, study) if r["test_condition"] == "pps12"} == {11.5}
+
+    wrong = ladder_clip_manifest(tmp_path / "wrong")
+    manifest = json.loads((wrong / "manifest.json").read_text())
+    for c in manifest["clips"]:
+        if c["condition"] == "pps8":
+            c["ladder"] = "eps"
+    (wrong / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(Unprocessable, match=r"design.conditions: pps8 \(level 8 of ladder 'eps'\) not a level of "
+                                             r"ladder 'pps' by the clip set's manifest"):
+        create_study(db, media, threshold_file("constant-stimuli", slug="refused"), clips_dir=wrong)
+    db.rollback()
+    assert db.scalar(select(Study.id).where(Study.slug == "refused")) is None
+
+
+def test_a_drafts_changed_design_is_settled_again_against_its_clip_set(db, client, researcher_headers, tmp_path):
+    """Through the API: a draft created with ``conditions = ["pps"]`` over the server's clip set stores every
+    level with the manifest's values; a new design is settled again (its levels from the manifest, a condition the
+    clip set lacks refused naming it), and a change elsewhere keeps the levels."""
+    var = tmp_path / "var"
+    write_fake_media(var / "media", ladder_media())
+    ladder_clip_manifest(var / "clips", levels={**LEVEL_OF, "pps12": 11.5})
+    body = threshold_file("constant-stimuli", conditions=["pps"], slug="draft").model_dump(mode="json")
+    r = client.post("/api/v1/studies", json=body, headers=researcher_headers)
+    assert r.status_code == 201, r.text
+
+    def design() -> dict:
+        return client.get("/api/v1/studies/draft/definition", headers=researcher_headers).json()["design"]
+
+    assert design()["conditions"] == PPS and design()["levels"] == {**LEVEL_OF, "pps12": 11.5}
+    r = client.patch("/api/v1/studies/draft", json={"design": {"conditions": ["pps4", "pps8", "pps12"]}},
+                     headers=researcher_headers)
+    assert r.status_code == 200, r.text
+    assert design()["levels"] == {"pps4": 4, "pps8": 8, "pps12": 11.5}
+    r = client.patch("/api/v1/studies/draft", json={"title": "Renamed", "design": {"repeats": 1}},
+                     headers=researcher_headers)
+    assert r.status_code == 200, r.text
+    assert design()["levels"] == {"pps4": 4, "pps8": 8, "pps12": 11.5}
+    r = client.patch("/api/v1/studies/draft", json={"design": {"conditions": ["pps4", "pps8", "pps10"]}},
+                     headers=researcher_headers)
+    assert r.status_code == 422 and "pps10 (not in the clip set) not a level of ladder 'pps'" in r.text, r.text
+    assert design()["conditions"] == ["pps4", "pps8", "pps12"]

@@ -93,3 +93,51 @@ def test_crossfade_longer_than_the_shorter_segment(tmp_path: Path) -> None:
         _load(tmp_path, "", CONDITIONS.replace("duration_ms = 250", "duration_ms = -5"))
     with pytest.raises(ConfigError, match="duration_ms"):
         _load(tmp_path, "", CONDITIONS.replace("duration_ms = 250", "duration_ms = 100000"))
+
+
+PARAMETRIC = CONDITIONS + """
+[[conditions]]
+id = "parametric50"
+method = "parametric"
+params = { weight = 0.5 }
+"""
+
+
+def test_a_blend_reads_and_parametric_applies_to_it_only(tmp_path: Path) -> None:
+    config = _load(tmp_path, """
+[animations.walk_run]
+blend = ["walk", "run"]
+[animations.run]
+kind = "gait"
+source = "mocap/cmu/09_11_run.bvh.gz"
+frames = [1, 165]
+""", PARAMETRIC)
+    spec = config.composites["walk_run"]
+    assert spec.form == "blend" and spec.blend == ("walk", "run") and spec.takes == ("walk", "run")
+    by_id = {c.id: c for c in config.conditions}
+    assert by_id["parametric50"].applies("blend")
+    assert not any(by_id["parametric50"].applies(f) for f in ("take", "sequence", "layered"))
+    assert by_id["keyframe"].applies("blend") and not by_id["crossfade250"].applies("blend")
+
+
+@pytest.mark.parametrize(("composite", "field"), [
+    ('blend = ["walk", "jump"]', "blend #2 animation"),
+    ('blend = ["walk"]', "blend"),
+    ('blend = ["walk", "travelling", "idle"]', "blend"),
+    ('blend = "walk"', "blend"),
+    ('blend = ["walk", "walk"]', "blend"),
+    ('blend = ["walk", "idle"]', "blend"),  # the idle plays ping-pong: no cycle
+    ('blend = ["walk", "travelling"]', "blend"),  # one in place, one travelling
+    ('blend = ["walk", "travelling"]\nweight = 0.5', ": unknown field 'weight'"),  # the weight is the condition's
+])
+def test_bad_blends_name_the_field(tmp_path: Path, composite: str, field: str) -> None:
+    with pytest.raises(ConfigError, match=f"\\[animations.combo\\]{'' if field[0] == ':' else ' '}{field}"):
+        _load(tmp_path, f"[animations.combo]\n{composite}\n", PARAMETRIC)
+
+
+@pytest.mark.parametrize("params", ["{ weight = 1.5 }", "{ weight = -0.1 }", "{ weight = true }", "{ }",
+                                    '{ weight = 0.5, interp = "cubic" }'])
+def test_bad_parametric_params_name_the_field(tmp_path: Path, params: str) -> None:
+    field = "interp" if "interp" in params else "weight"
+    with pytest.raises(ConfigError, match=f"id = 'parametric50': params of method 'parametric': {field}"):
+        _load(tmp_path, "", PARAMETRIC.replace("{ weight = 0.5 }", params))

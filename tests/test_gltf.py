@@ -126,6 +126,12 @@ def _bad(paths, tmp_path, name, edit):
     ("count.gltf", lambda d: d["accessors"][0].update(count=10**7), "past the end"),
     ("parents.gltf", lambda d: d["nodes"][5].update(children=[*d["nodes"][5].get("children", []), 1]),
      "two parents"),
+    # found by test_fuzz_readers: a rotation of one number divided 0 by 0 (a RuntimeWarning, NaN joints)
+    ("rotation1.gltf", lambda d: d["nodes"][0].update(rotation=[0]), r"node 'Hips' has rotation \[0.0\], not a"),
+    ("rotation0.gltf", lambda d: d["nodes"][2].update(rotation=[0, 0, 0, 0]), "not a quaternion"),
+    ("matrix.gltf", lambda d: (d["nodes"][1].pop("rotation"), d["nodes"][1].pop("translation"),
+                               d["nodes"][1].update(matrix=[0.0] * 4 + [0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1])),
+     "has a matrix with a zero column"),
 ])
 def test_bad_gltf_files_fail_clearly(exported, tmp_path, name, edit, message):
     _, _, _, _, paths, _ = exported

@@ -284,3 +284,55 @@ def test_a_skin_level_renders_other_pixels_only_where_weights_were_dropped(built
             allowed[max(int(r0), 0):max(int(r1), 0) + 1, max(int(c0), 0):max(int(c1), 0) + 1] = True
     assert allowed.mean() < 0.5  # the boxes leave most of the picture out
     assert not (changed & ~allowed).any()
+
+
+def test_the_bench_times_a_bone_lod_level_by_the_runtime_path_sampling_only_its_animated_joints(built):
+    """``animstudy bench`` and the manifest's cost pose a bone-LOD level as the crowd runtime plays it: the frozen
+    joints copied from their first (bind-pose) key, never sampled.  Shown by a level whose frozen joints were given
+    moving keys: the timed step still holds them at the first key, while every other joint is the keys runtime's."""
+    from anim_core.bench import suite
+    from anim_core.bench.cost import pose_step
+    from anim_core.runtime import animated_joints, runtime_for
+
+    _, clips = built
+    by = {c.condition: c for c in clips}
+    ref, lod = by["keyframe"], by["depth6"]
+    names = list(ref.character.skeleton.names)
+    held_joints = {"LeftHand", "RightHand", "LeftFingerBase", "RightFingerBase", "LThumb", "RThumb",
+                   "LeftHandIndex1", "RightHandIndex1"}
+    assert [n for n, on in zip(names, animated_joints(lod.clip), strict=True) if not on] == [
+        n for n in names if n in held_joints]
+    assert animated_joints(ref.clip).all()
+    # The level with moving keys on its frozen joints after the first (the first is still their bind pose): a path
+    # that sampled them would move them; the runtime's holds them at the first key, i.e. the level's own pose.
+    frozen = animated_joints(lod.clip) == 0
+    rotations = np.array(ref.clip.rotations)
+    rotations[0, frozen] = lod.clip.rotations[0, frozen]
+    moving = dataclasses.replace(lod.clip, rotations=rotations)
+    t = np.linspace(0.1, 1.1, 10)
+    expected = runtime_for(lod.clip).pose(t).rotations.copy()  # every joint sampled: the level's keys are constant
+    sampled = runtime_for(moving).pose(t).rotations.copy()
+    assert not np.allclose(sampled[:, frozen], expected[:, frozen], atol=1e-3)
+    runtime = runtime_for(moving)
+    for step in (lambda x: suite._runtime_step(runtime, 10, clip=moving)(x, 0), pose_step(moving, 10)):
+        got = step(t).rotations
+        np.testing.assert_allclose(got, expected, atol=1e-5)
+        assert np.array_equal(got[:, ~frozen], sampled[:, ~frozen])
+
+
+def test_bone_lod_levels_are_timed_beside_keyframe_playback_and_printed_as_ratios(built, capsys):
+    """One bench run at 1,000 characters: every level of the depth ladder has a median in the same rounds as the
+    keyframe clip and its ratio to it in the printed table."""
+    from anim_core.bench import suite
+    from server.cli.bench import _print_bench
+
+    _, clips = built
+    group = [c for c in clips if c.condition in ("keyframe", "depth5", "depth6", "depth7")]
+    doc = suite.run(group, characters=[1000], stages=["pose"], frames=12, warmup=3, variants=["keys"])
+    ratios = {r["condition"]: r["ratio"] for r in suite._ratios(doc["results"], "keys")}
+    assert set(ratios) == {"depth5", "depth6", "depth7"} and all(r > 0 for r in ratios.values())
+    _print_bench(doc)
+    out = capsys.readouterr().out
+    for level in ("depth5", "depth6", "depth7"):
+        line = next(x for x in out.splitlines() if x.startswith(f"walk-{level} "))
+        assert f"({ratios[level]:.2f})" in line

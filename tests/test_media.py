@@ -291,6 +291,21 @@ def test_render_takes_its_pairs_from_a_study_file(clips_dir, pairs, tmp_path, mo
     assert not out.exists() or not any(out.iterdir())
 
 
+def test_render_of_another_clip_set_needs_a_study_or_every_clip(clips_dir, tmp_path, monkeypatch, capsys):
+    """The default study (the thesis's) names the server's clip set's animations: `render --clips OTHER` alone is
+    one error line saying what to give, not the thesis study's "unknown animation(s)" (issue 37), and renders
+    nothing."""
+    from server.cli import main
+
+    monkeypatch.setenv("ANIMSTUDY_VAR_DIR", str(tmp_path / "var"))
+    out = tmp_path / "media"
+    assert main(["render", "--clips", str(clips_dir), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "is not the server's clip set" in err and "--study FILE" in err and "--every-clip" in err
+    assert "unknown animation" not in err
+    assert not out.exists()
+
+
 def test_the_clip_index_is_read_from_the_manifest_not_from_the_clip_files(clips_dir, tmp_path):
     """Knowing what a clip set has reads its manifest only; rendering it reads (and checks) every clip file."""
     copy = tmp_path / "clips"

@@ -247,14 +247,14 @@ def test_threshold_plan_command(capsys) -> None:
 
 def test_simulate_and_plan_of_a_threshold_design(capsys) -> None:
     """The hook `study simulate`/`plan` take for a design whose mode is a threshold mode (the design as the
-    study-file parser makes it: levels(), detectable_at, trials, repeats)."""
+    study-file parser makes it, settled against its clip set: level_order(), detectable_at, trials, repeats)."""
     import argparse
     from types import SimpleNamespace
 
     from server.cli import thresholds as tc
 
     design = SimpleNamespace(mode="constant-stimuli", repeats=2, trials=None, detectable_at="low",
-                             levels=lambda: {f"pps{v}": v for v in PPS_LEVELS})
+                             level_order=lambda: {f"pps{v}": v for v in PPS_LEVELS})
     args = argparse.Namespace(study_command="simulate", seeds=3, threshold=None, slope_width=0.5, width=0.8)
     assert tc.simulate_or_plan(args, design) == 0
     out = capsys.readouterr().out
@@ -264,13 +264,22 @@ def test_simulate_and_plan_of_a_threshold_design(capsys) -> None:
     assert "14 trials per participant and animation" in capsys.readouterr().out
 
 
-def test_simulate_the_update_rate_study(capsys) -> None:
-    """`study simulate` of the issue's study file (2AFC staircase over pps) goes through the threshold hook."""
+def test_simulate_the_update_rate_study(capsys, tmp_path, monkeypatch) -> None:
+    """`study simulate` of the issue's study file (2AFC staircase over pps) goes through the threshold hook, with
+    the levels of its clip set: named by [clips] set (read, not built), or the server's built clip set; with
+    neither it says where the levels come from."""
     from pathlib import Path
 
     from server import cli
 
-    study = Path(__file__).resolve().parent.parent / "studies" / "update-rate.toml"
-    assert cli.main(["study", "simulate", str(study), "--participants", "1", "--seeds", "2"]) == 0
+    repo = Path(__file__).resolve().parent.parent
+    monkeypatch.setenv("ANIMSTUDY_VAR_DIR", str(tmp_path / "var"))  # no clip set built there
+    study = repo / "studies" / "update-rate.toml"
+    assert cli.main(["study", "simulate", str(study), "--participants", "1", "--seeds", "2"]) == 2
+    assert "the levels of ladder 'pps' come from the clip set's manifest" in capsys.readouterr().err
+    named = tmp_path / "update-rate.toml"
+    named.write_text(study.read_text(encoding="utf-8") + f'\n[clips]\nset = "{repo}/server/clipset/update-rate.toml"\n',
+                     encoding="utf-8")
+    assert cli.main(["study", "simulate", str(named), "--participants", "1", "--seeds", "2"]) == 0
     out = capsys.readouterr().out
     assert "staircase design over 6 levels" in out and "threshold interval median" in out

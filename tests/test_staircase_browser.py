@@ -2,9 +2,10 @@
 `pps` ladder on walk and run) with simulated participants voting through the HTTP API and one real participant by
 keyboard on the page.  Its trial budget is cut to 6 per staircase to keep the test short.
 
-The clips stand in for the ladder's renders (the `update_rate` method is another part of issue 38): every video is
-one small real H.264 file (a bar crossing the frame), under the opaque names of a render manifest of the study's
-pairs, so the page loads, plays and loops real video and the server does everything it does for a rendered set.
+The clip set is the real `pps` ladder of server/clipset/update-rate.toml on walk and run, built here (its manifest
+gives every level and its measured run-time cost); only the videos stand in for its renders: every video is one
+small real H.264 file (a bar crossing the frame), under the opaque names of a render manifest of the study's pairs,
+so the page loads, plays and loops real video and the server does everything it does for a rendered set.
 """
 
 from __future__ import annotations
@@ -19,6 +20,9 @@ import pytest
 from sqlalchemy import select
 
 from server.app import create_app
+from server.clipset.build import build_clip_set
+from server.clipset.config import load_config
+from server.clipset.manifest import read_clip_manifest, write_clip_set
 from server.config import Settings
 from server.db import migrate, session_factory
 from server.participants import staircase
@@ -30,8 +34,9 @@ from server.studies.service import create_study, set_state
 from server.studies.studyfile import StudyFile, load_study_file
 from tests.conftest import _fresh_engine, own_contexts
 from tests.server_fixtures import live_server
-from tests.test_answer_formats import UPDATE_RATE, ladder_media, observer
+from tests.test_answer_formats import UPDATE_RATE, ladder_media, observer, run_session
 from tests.test_participant_page import ARTIFACTS, CHROMIUM, wait_until
+from tests.test_update_rate_study import pps_clip_set
 
 TRIALS = 6  # per staircase (the file's 30, cut for time)
 SIMULATED = 3
@@ -62,11 +67,14 @@ def study_file(**changes: object) -> StudyFile:
 
 
 @pytest.fixture(scope="module")
-def site(tmp_path_factory):
+def site(tmp_path_factory, data):
     if not Path(CHROMIUM).exists():
         pytest.fail(f"{CHROMIUM} is missing: `make test` installs Debian's chromium")
     var = tmp_path_factory.mktemp("var")
     settings = Settings(var_dir=var, secret_key="staircase-test-secret-0123456789abcdef")
+    # the pps ladder of the clip-set file, built (about 15 s): levels and costs as a server has them
+    clip_set = load_config(pps_clip_set(tmp_path_factory.mktemp("clipset")))
+    write_clip_set(build_clip_set(data, clip_set), settings.clips_dir)
     media = ladder_media()
     settings.media_dir.mkdir(parents=True, exist_ok=True)
     video = tiny_video(var / "pair.mp4")
@@ -78,11 +86,19 @@ def site(tmp_path_factory):
     migrate(engine)
     factory = session_factory(engine)
     with factory() as db:
-        set_state(db, create_study(db, media, study_file(), media_dir=settings.media_dir), StudyState.open)
+        set_state(db, create_study(db, media, study_file(), media_dir=settings.media_dir,
+                                   clips_dir=settings.clips_dir), StudyState.open)
         phone = study_file(slug="update-rate-phone", page={"device_gate": {"min_scale": 0.25}})  # a phone's width
-        set_state(db, create_study(db, media, phone, media_dir=settings.media_dir), StudyState.open)
+        set_state(db, create_study(db, media, phone, media_dir=settings.media_dir, clips_dir=settings.clips_dir),
+                  StudyState.open)
+        # constant stimuli over the whole ladder (conditions = ["pps"]), for the thresholds panel
+        constant = study_file(slug="update-rate-cs", design={
+            **load_study_file(UPDATE_RATE).design.model_dump(), "mode": "constant-stimuli", "conditions": ["pps"],
+            "trials": None, "repeats": 5, "catch_trials": 1})
+        set_state(db, create_study(db, media, constant, media_dir=settings.media_dir, clips_dir=settings.clips_dir),
+                  StudyState.open)
     with live_server(create_app(settings, engine, run_migrations=False)) as base:
-        yield base, factory
+        yield base, factory, settings.clips_dir
     engine.dispose()
 
 
@@ -123,7 +139,7 @@ def stored_and_replayed(db, sid: str) -> tuple[list, list]:
 
 @pytest.mark.slow  # about a minute: every trial's video is watched to its end
 def test_update_rate_staircase_with_simulated_and_real_participants(browser, site):
-    base, factory = site
+    base, factory, _ = site
     rng = random.Random(38)
     simulated = [simulate(base, factory, rng, threshold) for threshold in (6.0, 12.0, 20.0)[:SIMULATED]]
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
@@ -192,7 +208,7 @@ def test_update_rate_staircase_with_simulated_and_real_participants(browser, sit
 
 def test_2afc_answers_stay_side_by_side_on_a_phone(browser, site):
     """On a phone-sized screen the five-point answers stack; the two 2AFC answers stay in one row, left first."""
-    base, _ = site
+    base, _, _ = site
     with own_contexts(browser):
         context = browser.new_context(viewport={"width": 390, "height": 844}, is_mobile=True, has_touch=True)
         page = context.new_page()
@@ -218,27 +234,62 @@ def test_2afc_answers_stay_side_by_side_on_a_phone(browser, site):
 
 
 def test_the_dashboard_shows_each_animations_threshold_panel(browser, site):
-    """The researcher's dashboard of a staircase study draws the thresholds panel from the results (issue 38): one
-    summary per animation (here without costs: the stand-in clip set has none, and the panel says so) and no
-    script error; a rating study's dashboard keeps the panel hidden (tests/test_dashboard.py's site)."""
+    """The researcher's dashboard of a threshold study draws the thresholds panel from the results (issue 38), with
+    the costs the built clip set measured: per animation the cheapest level nobody tells from the original, with
+    its cost, and the frontier plot with one point per level at its cost.  Four participants of the
+    constant-stimuli study answer by a fixed rule (levels below 10 poses per second always told apart, the others
+    right every second time: 50 %, 40 answers per level), so which levels are indistinguishable is known; the
+    cheapest of them is found here from the manifest's costs.  A rating study's dashboard keeps the panel hidden
+    (tests/test_dashboard.py's site)."""
     from server.researchers.service import create_researcher
 
-    base, factory = site
-    rng = random.Random(7)
-    simulate(base, factory, rng, 12.0)
+    base, factory, clips_dir = site
     with factory() as db:
+        study = db.scalar(select(Study).where(Study.slug == "update-rate-cs"))
+        levels = Design.model_validate(study.design).levels
+        assert levels == {f"pps{n}": n for n in (4, 6, 8, 12, 16, 24)}  # the clip set's ladder, expanded
+        seen: dict[tuple[str, str], int] = {}
+
+        def rule(trial: Trial) -> str:
+            c = trial.comparison
+            key = (c.reference.animation, c.test.condition)
+            seen[key] = seen.get(key, 0) + 1
+            right = c.test.condition == c.reference.condition or levels[c.test.condition] < 10 or seen[key] % 2
+            return trial.reference_side if right else ("left" if trial.reference_side == "right" else "right")
+
+        for _ in range(4):
+            run_session(db, study, rule)
         create_researcher(db, "thresholds@example.org", "correct horse battery", admin=True)
+    costs = {(c.animation, c.condition): c.metrics["cost_ms_per_1000"] for c in read_clip_manifest(clips_dir).clips}
+    cheapest = {a: min(("pps12", "pps16", "pps24"), key=lambda c, a=a: costs[(a, c)]) for a in ("walk", "run")}
     with own_contexts(browser):
         page = browser.new_page(viewport={"width": 1280, "height": 720})
         errors: list[str] = []
         page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(f"{base}/dashboard?study=update-rate")
+        page.goto(f"{base}/dashboard?study=update-rate-cs")
         page.wait_for_selector("#login:not([hidden])")
         page.fill("#email", "thresholds@example.org")
         page.fill("#password", "correct horse battery")
         page.click("#login-form button")
         page.wait_for_selector("#thresholds-panel:not([hidden])")
         summary = page.inner_text("#thresholds-summary")
-        assert "walk:" in summary and "run:" in summary and "cost_ms_per_1000" in summary, summary
+        for a in ("walk", "run"):
+            c = cheapest[a]
+            assert f"cheapest indistinguishable: {c} ({costs[(a, c)]:.3f} cost_ms_per_1000)" in summary, summary
+        assert "no cost" not in summary and "none yet" not in summary, summary
         assert page.eval_on_selector("#chart-frontier", "e => e.querySelectorAll('svg').length") == 1
+        points = page.eval_on_selector_all(
+            "#chart-frontier g.panel circle[data-condition]",
+            "cs => cs.map(c => [c.closest('g.panel').dataset.animation, c.dataset.condition, Number(c.dataset.cost),"
+            " c.dataset.cheapest === 'true', Number(c.getAttribute('cx'))])")
+        assert sorted((a, c) for a, c, *_ in points) == sorted(
+            (a, f"pps{n}") for a in ("walk", "run") for n in (4, 6, 8, 12, 16, 24))
+        for a, c, cost, ringed, _x in points:
+            assert cost == pytest.approx(costs[(a, c)], rel=1e-3), (a, c)
+            assert ringed == (c == cheapest[a]), (a, c)
+        for a in ("walk", "run"):  # the x axis is the cost: points left to right in the order of their costs
+            mine = sorted((cost, x) for b, _c, cost, _r, x in points if b == a)
+            assert [x for _, x in mine] == sorted(x for _, x in mine)
+        table = page.inner_text("#table-thresholds")
+        assert f"{costs[('walk', cheapest['walk'])]:.3f}" in table
     assert not errors, errors

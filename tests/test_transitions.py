@@ -171,6 +171,17 @@ def test_parametric_of_a_take_with_itself_is_the_take() -> None:
     assert parametric(walk, run, 0.5, 120).duration == pytest.approx(0.85, abs=1 / 120)
 
 
+def test_parametric_of_takes_played_in_place_keeps_their_speed() -> None:
+    walk = _swing(0.5, 1.0, 1.4, seconds=1.0, in_place=True)
+    run = _swing(0.9, 0.7, 3.0, seconds=0.7, in_place=True)
+    mixed = parametric(walk, run, 0.5, 120)
+    # travel per cycle 1.4 m and 2.1 m, halfway 1.75 m, over (1.0 + 0.7) / 2 s; played in place as the walk is
+    assert mixed.in_place and mixed.velocity[2] == pytest.approx(1.75 / 0.85, rel=1e-9)
+    with pytest.raises(CompositeError, match="blend"):
+        parametric(walk, KeyframeClip(run.skeleton, run.times, run.rotations, run.root_translation, "pingpong"),
+                   0.5, 120)
+
+
 @pytest.mark.parametrize(("spec", "message"), [
     (TransitionSpec("crossfade", 1.5), "duration"),
     (TransitionSpec("crossfade", -0.1), "duration"),

@@ -29,8 +29,8 @@ from ..clips.build import skin_level
 from ..clips.record import BuiltClip
 from ..math.skinning import SkinnedMesh
 from ..methods.base import REFERENCE
-from ..methods.lod import BoneLodClip, strongest_influences
-from ..runtime import HeldRuntime, runtime_for
+from ..methods.lod import strongest_influences
+from ..runtime import HeldRuntime, animated_joints, runtime_for
 from ..runtime.crowd import CrowdBuffers
 from .suite import FPS
 
@@ -66,7 +66,7 @@ def pose_step(clip: Any, n: int) -> Callable[[np.ndarray], Any]:
     if isinstance(runtime, HeldRuntime):
         return runtime.crowd(n).pose
     buffers = CrowdBuffers.for_crowd(n, runtime.skeleton.n_joints)
-    active = (~clip.frozen).astype(np.uint8) if isinstance(clip, BoneLodClip) else None
+    active = animated_joints(clip)  # a bone-LOD clip's frozen joints copied from their bind-pose key, not sampled
     return lambda t: runtime.pose(t, buffers, False, active)
 
 

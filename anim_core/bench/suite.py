@@ -52,6 +52,7 @@ from ..runtime import (
     HeldRuntime,
     TableRuntime,
     angle_error_deg,
+    animated_joints,
     bone_lod_mask,
     exact_global,
     lod_pose,
@@ -105,12 +106,15 @@ def _naive_step(clip: SquadClip) -> Callable[[np.ndarray, int], Any]:
 
 
 def _runtime_step(runtime: AnyRuntime | HeldRuntime, n: int, parallel: bool = False, bone_lod: int = 0,
-                  update_every: int = 1, fk_only: bool = False) -> Callable[[np.ndarray, int], Any]:
+                  update_every: int = 1, fk_only: bool = False, clip: Any = None) -> Callable[[np.ndarray, int], Any]:
+    """Pose ``n`` characters with ``runtime`` as the crowd plays its clip: a held clip by the held-update path, a
+    bone-LOD ``clip`` (``bone_lod`` method) sampling only its animated joints (:func:`animated_joints`: the
+    frozen ones are copied from their bind-pose key), and the LOD variants' joints held as they say."""
     if isinstance(runtime, HeldRuntime) and bone_lod == 0 and update_every == 1 and not fk_only:
         crowd = runtime.crowd(n)  # the held-update path: a character posed only when its held pose changes
         return lambda t, _f: crowd.pose(t, parallel)
     buffers = CrowdBuffers.for_crowd(n, runtime.skeleton.n_joints)
-    active = bone_lod_mask(runtime.skeleton, bone_lod)
+    active = bone_lod_mask(runtime.skeleton, bone_lod) if clip is None else animated_joints(clip, bone_lod)
     if fk_only:
         active = np.zeros_like(active)
     if update_every > 1:  # character c is re-posed in the frames where (frame + c) is a multiple of k
@@ -260,15 +264,17 @@ def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTE
                 keyed = runtimes["keys"]
                 for v in ("keys", "baked"):
                     if v in variants and (stage == "pose" or v == "keys"):
-                        rounds.append((1, [_case(c, v, _runtime_step(runtimes[v][c.id], n)) for c in group], *full))
+                        cases = [_case(c, v, _runtime_step(runtimes[v][c.id], n, clip=c.clip)) for c in group]
+                        rounds.append((1, cases, *full))
                 if stage == "pose" and "keys" in variants:
                     if n >= PARALLEL_MIN_CHARACTERS:
-                        rounds.append((cores, [_case(c, "keys", _runtime_step(keyed[c.id], n, parallel=True))
+                        rounds.append((cores, [_case(c, "keys", _runtime_step(keyed[c.id], n, parallel=True,
+                                                                              clip=c.clip))
                                                for c in group], *full))
                     if n >= LOD_MIN_CHARACTERS:
                         lod_cases = [_case(c, "keys-fk-only", _runtime_step(keyed[c.id], n, fk_only=True))
                                      for c in group]
-                        lod_cases += [_case(c, name, _runtime_step(keyed[c.id], n, **lod))
+                        lod_cases += [_case(c, name, _runtime_step(keyed[c.id], n, **lod, clip=c.clip))
                                       for name, lod in lod_variants() for c in group]
                         rounds.append((1, lod_cases, min(frames, LOD_FRAMES), min(warmup, SHORT_WARMUP)))
                 if stage == "pose" and n <= REFERENCE_MAX_CHARACTERS:

@@ -28,7 +28,7 @@ from scipy.ndimage import gaussian_filter1d
 
 from ..math import contacts
 from ..math.quat import canonicalize, quat_conj, quat_log, quat_mul
-from ..methods.composite_builders import LayeredAnimation, SequenceAnimation, SequenceClip
+from ..methods.composite_builders import BlendAnimation, LayeredAnimation, SequenceAnimation, SequenceClip
 from ..methods.conditions import Condition
 from ..methods.transitions import CompositeError, joint_mask
 from ..rig.character import UP
@@ -62,20 +62,20 @@ class LayerSpec:
 @dataclass(frozen=True)
 class CompositeSpec:
     """A composite of a clip-set file: ``segments`` ``((take, seconds), ...)``, ``root_motion`` and ``entry`` for a
-    sequence,
-    ``base`` and ``layers`` for a layered animation."""
+    sequence, ``base`` and ``layers`` for a layered animation, the two takes of a ``blend``."""
 
     name: str
-    form: str  # "sequence" | "layered"
+    form: str  # "sequence" | "layered" | "blend"
     segments: tuple[tuple[str, float], ...] = ()
     root_motion: str | None = None
     base: str | None = None
     layers: tuple[LayerSpec, ...] = ()
     entry: str = "matched"
+    blend: tuple[str, ...] = ()
 
     @property
     def takes(self) -> tuple[str, ...]:
-        names = [n for n, _ in self.segments] + ([self.base] if self.base else [])
+        names = [n for n, _ in self.segments] + ([self.base] if self.base else []) + list(self.blend)
         names += [la.animation for la in self.layers]
         return tuple(dict.fromkeys(names))
 
@@ -149,12 +149,13 @@ def build_composite(spec: CompositeSpec, sources: Mapping[str, Source], fps: int
     """One clip per condition that applies to the composite's form (the reference first), measured."""
     where = f"[animations.{spec.name}]"
     refs = {name: reference_animation(sources[name], fps) for name in spec.takes}
-    first = spec.segments[0][0] if spec.form == "sequence" else spec.base
-    assert first is not None
+    first = spec.takes[0]
     source = sources[first]
     skeleton = refs[first][0].reference.skeleton
-    if spec.form == "sequence":
-        animation: Any = SequenceAnimation(spec.name, tuple((refs[n][0], s) for n, s in spec.segments),
+    if spec.form == "blend":
+        animation: Any = BlendAnimation(spec.name, refs[spec.blend[0]][0], refs[spec.blend[1]][0], fps)
+    elif spec.form == "sequence":
+        animation = SequenceAnimation(spec.name, tuple((refs[n][0], s) for n, s in spec.segments),
                                            spec.root_motion, fps, spec.entry)  # type: ignore[arg-type]
     else:
         layers = []
@@ -189,6 +190,9 @@ def build_composite(spec: CompositeSpec, sources: Mapping[str, Source], fps: int
                                source.character, pose.rotations, pose.root_translation,
                                *source.character.skeleton.forward_kinematics(*pose)))
     placed = place_on_floor(built)
+    if spec.form == "blend":  # each its own speed and length: measured on its own (no frame-by-frame reference)
+        return [measure([c], np.asarray(c.clip.velocity) if c.in_place else np.zeros(3), "other", skate)[0]
+                for c in placed]
     if spec.form == "layered":  # plays as its base does (in place: a treadmill at the base's speed)
         base = placed[0].clip
         ground = np.asarray(base.velocity) if base.in_place else np.zeros(3)

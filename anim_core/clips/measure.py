@@ -116,7 +116,7 @@ def clip_warnings(clips: list[BuiltClip]) -> list[str]:
             allowed = MAX_LAG_FRAMES[c.kind]
             for part in ("hips", "knee"):
                 lag = m[f"phase_{part}_lag"]
-                if abs(lag) > allowed:
+                if lag is not None and abs(lag) > allowed:  # None: no frame-by-frame reference (a blend)
                     ref = reference.get(c.animation, "its reference")
                     out.append(f"{c.id}: out of phase with {ref}: {part} best lag {lag:+d} "
                                f"frames (allowed ±{allowed}), r = {m[f'phase_{part}_r']:.2f} at lag 0")

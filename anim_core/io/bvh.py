@@ -276,13 +276,10 @@ def _expect(lines: _Lines, token: str, what: str) -> None:
         raise lines.error(number, f"{token!r} {what}", line)
 
 
-def parse_bvh(text: str, source: str = "<string>", max_frame_joints: int = MAX_FRAME_JOINTS) -> Bvh:
-    """Parse BVH text; ``source`` names it in :class:`BvhError` messages.
-
-    One frame per line; messages count frames from 0 and the values of a frame from 1.  A file declaring more
-    than ``max_frame_joints`` frames × joints fails at its ``Frames:`` line, before any frame is read.
-    """
-    lines = _Lines(text, source)
+def _parse_hierarchy(lines: _Lines) -> tuple[list[str], list[int], list[Array], list[tuple[str, ...]],
+                                             dict[int, Array]]:
+    """The ``HIERARCHY`` section: joint names, parents, offsets ``(3,)``, channel names and End Site offsets."""
+    source = lines.source
     _expect(lines, "HIERARCHY", "at the start")
     names: list[str] = []
     parents: list[int] = []
@@ -326,7 +323,13 @@ def parse_bvh(text: str, source: str = "<string>", max_frame_joints: int = MAX_F
             stack.pop()
         else:
             raise lines.error(number, f"'JOINT', 'End Site' or '}}' in joint {joint!r}", line)
+    return names, parents, offsets, channels, end_sites
 
+
+def _parse_motion_header(lines: _Lines, n_joints: int, max_frame_joints: int) -> tuple[int, float, str]:
+    """``(frames, seconds per frame, 'declared on line N')`` from the ``MOTION``, ``Frames:`` and ``Frame Time:``
+    lines; the size limits are checked here, before any frame is read."""
+    source = lines.source
     number, line, tokens = lines.next("'MOTION' after the hierarchy")
     if tokens != ["MOTION"]:
         raise lines.error(number, "'MOTION' after the hierarchy", line)
@@ -336,15 +339,19 @@ def parse_bvh(text: str, source: str = "<string>", max_frame_joints: int = MAX_F
     n_frames, declared = int(tokens[1]), f"declared on line {number}"
     if n_frames > MAX_FRAMES:
         raise _fail(source, number, f"{n_frames} frames declared; at most {MAX_FRAMES} are supported")
-    if n_frames * len(names) > max_frame_joints:
-        raise _fail(source, number, f"{n_frames} frames of {len(names)} joints ({n_frames * len(names)} frame-joints) "
+    if n_frames * n_joints > max_frame_joints:
+        raise _fail(source, number, f"{n_frames} frames of {n_joints} joints ({n_frames * n_joints} frame-joints) "
                                     f"are more than the {max_frame_joints} allowed here")
     number, line, tokens = lines.next("'Frame Time: <seconds>'")
     frame_time = _to_float(tokens[2]) if tokens[:2] == ["Frame", "Time:"] and len(tokens) == 3 else None
     if frame_time is None or frame_time <= 0:
         raise lines.error(number, "'Frame Time: <seconds>' with seconds > 0", line)
+    return n_frames, frame_time, declared
 
-    n_channels = sum(len(c) for c in channels)
+
+def _parse_frames(lines: _Lines, n_frames: int, n_channels: int, declared: str) -> Array:
+    """The remaining lines as ``(n_frames, n_channels)`` channel values; ``declared`` says where the count was."""
+    source = lines.source
     rows: list[list[float]] = []
     for number, line in lines.items[lines.pos:]:
         if len(rows) == n_frames:
@@ -360,7 +367,19 @@ def parse_bvh(text: str, source: str = "<string>", max_frame_joints: int = MAX_F
         lines.last = number
     if len(rows) < n_frames and n_channels:
         raise _fail_eof(source, lines.last, f"expected {n_frames} frames as {declared}, found {len(rows)}")
-    motion = np.array(rows, dtype=np.float64).reshape(n_frames, n_channels)
+    return np.array(rows, dtype=np.float64).reshape(n_frames, n_channels)
+
+
+def parse_bvh(text: str, source: str = "<string>", max_frame_joints: int = MAX_FRAME_JOINTS) -> Bvh:
+    """Parse BVH text; ``source`` names it in :class:`BvhError` messages.
+
+    One frame per line; messages count frames from 0 and the values of a frame from 1.  A file declaring more
+    than ``max_frame_joints`` frames × joints fails at its ``Frames:`` line, before any frame is read.
+    """
+    lines = _Lines(text, source)
+    names, parents, offsets, channels, end_sites = _parse_hierarchy(lines)
+    n_frames, frame_time, declared = _parse_motion_header(lines, len(names), max_frame_joints)
+    motion = _parse_frames(lines, n_frames, sum(len(c) for c in channels), declared)
     skeleton = Skeleton(names, parents, np.array(offsets))
     return Bvh(skeleton, tuple(channels), end_sites, frame_time, motion, source)
 

@@ -38,7 +38,6 @@ from __future__ import annotations
 import base64
 import dataclasses
 import os
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -50,6 +49,7 @@ from ..math.quat import identity, quat_from_matrix, quat_mul, rotate, slerp
 from ..math.skeleton import Skeleton
 from ..math.skinning import vertex_normals
 from .bvh import STILL_SHARE, still_translation
+from .gltf_buffers import GltfError, GltfReader
 
 Array = NDArray[np.float64]
 
@@ -61,12 +61,6 @@ MAX_KEYS = 500_000
 MAX_FRAME_JOINTS = 20_000_000
 VALUES_PER_FRAME_JOINT = 8
 MAX_INFLUENCES = 8
-_COMPONENTS = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
-_WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
-
-
-class GltfError(ValueError):
-    """A glTF file that cannot be read as a skinned character or written."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,101 +109,23 @@ def _wxyz(q: Array) -> Array:
     return np.concatenate([q[..., 3:], q[..., :3]], axis=-1)
 
 
-class _Reader:
-    def __init__(self, path: Path, max_values: int) -> None:
-        self.path = path
-        self.name = path.name
-        self.max_values = max_values  # numbers all accessors together may decode to
-        self.values = 0
-        try:
-            with warnings.catch_warnings():  # pygltflib warns (and then fails) on bad headers; the error says it
-                warnings.simplefilter("ignore")
-                self.gltf = pygltflib.GLTF2().load(str(path))
-        except Exception as exc:  # pygltflib raises bare exceptions of many kinds on malformed files
-            raise GltfError(f"{self.name}: not a readable glTF 2.0 file ({type(exc).__name__}: {exc})") from None
-        if self.gltf is None:
-            raise GltfError(f"{self.name}: not a readable glTF 2.0 file")
-        self._buffers: dict[int, bytes] = {}
-
-    def fail(self, message: str) -> GltfError:
-        return GltfError(f"{self.name}: {message}")
-
-    def buffer(self, index: int) -> bytes:
-        if index in self._buffers:
-            return self._buffers[index]
-        try:
-            buf = self.gltf.buffers[index]
-        except (IndexError, TypeError):
-            raise self.fail(f"buffer {index} does not exist") from None
-        if buf.uri is None:
-            data = self.gltf.binary_blob()
-            if data is None:
-                raise self.fail(f"buffer {index} has no uri and the file has no binary chunk")
-        elif buf.uri.startswith("data:"):
-            try:
-                data = base64.b64decode(buf.uri.split(",", 1)[1], validate=True)
-            except (IndexError, ValueError):
-                raise self.fail(f"buffer {index} has a malformed data uri") from None
-        else:
-            target = (self.path.parent / buf.uri).resolve()
-            if self.path.parent.resolve() not in target.parents:
-                raise self.fail(f"buffer {index} points outside the file's folder ({buf.uri!r})")
-            try:
-                data = target.read_bytes()
-            except OSError:
-                raise self.fail(f"external buffer {buf.uri!r} does not exist or cannot be read") from None
-        if len(data) < (buf.byteLength or 0):
-            raise self.fail(f"buffer {index} holds {len(data)} bytes, fewer than its byteLength {buf.byteLength}")
-        self._buffers[index] = data
-        return data
-
-    def accessor(self, index: int | None, what: str) -> Array:
-        """The accessor's elements as float64 ``(count, width)`` (normalized integers scaled to 0..1)."""
-        try:
-            acc = self.gltf.accessors[index]  # type: ignore[index]
-            view = self.gltf.bufferViews[acc.bufferView]
-        except (IndexError, TypeError):
-            raise self.fail(f"{what}: accessor {index} or its buffer view does not exist") from None
-        dtype = _COMPONENTS.get(acc.componentType)
-        width = _WIDTH.get(acc.type)
-        if dtype is None or width is None:
-            raise self.fail(f"{what}: unsupported accessor type {acc.type} / component {acc.componentType}")
-        item = np.dtype(dtype).itemsize
-        if view.byteStride is not None and view.byteStride < item * width:
-            # Elements may not overlap (glTF 2.0: byteStride >= element size); overlapping ones would let a few
-            # bytes of buffer stand for millions of elements.
-            raise self.fail(f"{what}: buffer view {acc.bufferView} has byteStride {view.byteStride}, less than the "
-                            f"{item * width} bytes of one {acc.type} element")
-        if acc.count is None or acc.count < 0:
-            raise self.fail(f"{what}: accessor {index} has no valid count")
-        self.values += acc.count * width
-        if self.values > self.max_values:
-            raise self.fail(f"{what}: the accessors hold more than the {self.max_values} numbers allowed here")
-        stride = view.byteStride or item * width
-        start = (view.byteOffset or 0) + (acc.byteOffset or 0)
-        need = start + stride * (acc.count - 1) + item * width if acc.count else start
-        data = self.buffer(view.buffer)
-        if need > len(data) or need > (view.byteOffset or 0) + view.byteLength:
-            raise self.fail(f"{what}: accessor {index} reads past the end of its buffer (truncated file?)")
-        raw = np.ndarray((acc.count, width), dtype=dtype, buffer=data, offset=start, strides=(stride, item))
-        out = raw.astype(np.float64)
-        if acc.normalized and dtype is not np.float32:
-            out /= np.iinfo(dtype).max
-        if not np.all(np.isfinite(out)):
-            raise self.fail(f"{what}: accessor {index} holds NaN or infinite values")
-        return out
-
-
-def _node_trs(node: pygltflib.Node) -> tuple[Array, Array, Array]:
+def _node_trs(r: GltfReader, node: pygltflib.Node) -> tuple[Array, Array, Array]:
+    """Translation ``(3,)``, unit rotation ``(4,)`` (w, x, y, z) and scale ``(3,)`` of ``node``; a rotation that is
+    no quaternion (not 4 numbers, or all 0) or a matrix with a zero column fails naming the node."""
     if node.matrix is not None:
         m = np.array(node.matrix, dtype=np.float64).reshape(4, 4).T  # glTF matrices are column-major
         t = m[:3, 3]
         s = np.linalg.norm(m[:3, :3], axis=0)
+        if not np.all(s > 0):
+            raise r.fail(f"node {node.name!r} has a matrix with a zero column (no rotation has one)")
         return t, quat_from_matrix(m[:3, :3] / s), s
     t = np.array(node.translation if node.translation is not None else [0, 0, 0], np.float64)
-    r = _wxyz(np.array(node.rotation if node.rotation is not None else [0, 0, 0, 1], np.float64))
+    q = np.array(node.rotation if node.rotation is not None else [0, 0, 0, 1], np.float64)
     s = np.array(node.scale if node.scale is not None else [1, 1, 1], np.float64)
-    return t, r / np.linalg.norm(r), s
+    if q.shape != (4,) or not np.linalg.norm(q) > 0:
+        raise r.fail(f"node {node.name!r} has rotation {node.rotation}, not a quaternion (4 numbers, not all 0)")
+    rotation = _wxyz(q)
+    return t, rotation / np.linalg.norm(rotation), s
 
 
 def read_gltf(path: str | os.PathLike[str], fps: float = 30.0, max_frame_joints: int = MAX_FRAME_JOINTS,
@@ -229,54 +145,20 @@ def read_gltf(path: str | os.PathLike[str], fps: float = 30.0, max_frame_joints:
 
 
 def _read_gltf(path: Path, fps: float, max_frame_joints: int, with_animations: bool = True) -> GltfAsset:
-    r = _Reader(path, VALUES_PER_FRAME_JOINT * max_frame_joints)
+    r = GltfReader(path, VALUES_PER_FRAME_JOINT * max_frame_joints)
     g = r.gltf
     nodes = g.nodes or []
-    # Parents of every node, with cycle and shared-child detection.
-    parent = np.full(len(nodes), -1, dtype=np.intp)
-    for i, node in enumerate(nodes):
-        for c in node.children or []:
-            if not 0 <= c < len(nodes):
-                raise r.fail(f"node {i} has a child {c} that does not exist")
-            if parent[c] >= 0 or c == i:
-                raise r.fail(f"node {c} has two parents or is its own child (the node tree has a cycle)")
-            parent[c] = i
-    for i in range(len(nodes)):
-        seen, j = set(), i
-        while j >= 0:
-            if j in seen:
-                raise r.fail(f"the node tree has a cycle through node {j} ({nodes[j].name!r})")
-            seen.add(j)
-            j = int(parent[j])
+    parent = _node_parents(r, nodes)
     if not g.skins:
         raise r.fail("has no skin: a character needs a skinned mesh (mesh, skin, joints, inverse bind matrices)")
     skin = g.skins[0]
     skin_joints = list(skin.joints or [])
-    if not skin_joints:
-        raise r.fail("its skin has no joints")
-    if len(skin_joints) > MAX_JOINTS:
-        raise r.fail(f"its skin has {len(skin_joints)} joints; at most {MAX_JOINTS} are supported")
-    if len(set(skin_joints)) != len(skin_joints) or any(not 0 <= j < len(nodes) for j in skin_joints):
-        raise r.fail("its skin lists a joint twice or a joint node that does not exist")
-    in_skin = set(skin_joints)
-    roots = [j for j in skin_joints if parent[j] not in in_skin]
-    if len(roots) != 1:
-        raise r.fail(f"its skin's joints form {len(roots)} trees ({[nodes[j].name for j in roots]}); one root "
-                     f"joint is needed")
-    # Topological order: depth-first from the root, children in file order.
-    order: list[int] = []
-    stack = [roots[0]]
-    while stack:
-        j = stack.pop()
-        order.append(j)
-        stack.extend(reversed([c for c in nodes[j].children or [] if c in in_skin]))
-    if len(order) != len(skin_joints):
-        raise r.fail("some skin joints are not below the root joint through other joints")
+    order = _skin_joint_order(r, nodes, parent, skin_joints)
     node_to_joint = {n: k for k, n in enumerate(order)}
     names = [nodes[n].name or f"joint{k}" for k, n in enumerate(order)]
     if len(set(names)) != len(names):
         raise r.fail("joint names are not unique")
-    trs = [_node_trs(nodes[n]) for n in order]
+    trs = [_node_trs(r, nodes[n]) for n in order]
     for k, (_, _, s) in enumerate(trs):
         if np.abs(s - 1.0).max() > 1e-4:
             raise r.fail(f"joint {names[k]!r} has scale {s.tolist()}; only unscaled joints are supported: "
@@ -284,27 +166,10 @@ def _read_gltf(path: Path, fps: float, max_frame_joints: int, with_animations: b
                          f"rest pose)")
     offsets = np.array([t for t, _, _ in trs])
     rest = np.array([q for _, q, _ in trs])
-    # The root takes the transform of the nodes above it.  A uniform scale there (Blender's "Armature" at 0.01 over
-    # a rig in centimetres, as Mixamo characters come) scales the whole skeleton: every offset, the root's motion,
-    # and the inverse bind matrices, which then carry the inverse scale.
-    above_rot, above_pos, above_scale = identity(), np.zeros(3), 1.0
-    j = int(parent[order[0]])
-    while j >= 0:
-        t, q, s = _node_trs(nodes[j])
-        if not (s.min() > 0 and np.ptp(s) <= 1e-4 * s.max()):
-            # A non-uniform scale stretches each bone by how it is turned, which changes as it moves: no skeleton of
-            # rigid bones (this one, the character's) can play that.
-            raise r.fail(f"node {nodes[j].name!r} above the skeleton has scale {s.tolist()}; only a uniform "
-                         f"positive scale is supported there (a non-uniform or mirroring scale stretches the bones "
-                         f"as they turn). Apply the scale to the rig before exporting (Blender: select the "
-                         f"armature, Object > Apply > Scale) and export again")
-        above_pos, above_rot = t + s[0] * rotate(q, above_pos), quat_mul(q, above_rot)
-        above_scale *= float(s[0])
-        j = int(parent[j])
+    above_pos, above_rot, above_scale = above = _above_root(r, nodes, parent, order[0])
     offsets *= above_scale
     offsets[0] = above_pos + rotate(above_rot, offsets[0])
     rest[0] = quat_mul(above_rot, rest[0])
-    above = (above_pos, above_rot, above_scale)
     skeleton = Skeleton(names, [node_to_joint.get(int(parent[n]), -1) for n in order], offsets, rest)
     skin_order = np.array([node_to_joint[n] for n in skin_joints], dtype=np.intp)
 
@@ -327,51 +192,128 @@ def _read_gltf(path: Path, fps: float, max_frame_joints: int, with_animations: b
     base = 0
     primitives = [prim for m in mesh_indices for prim in g.meshes[m].primitives]
     for p, prim in enumerate(primitives):
-        mode = 4 if prim.mode is None else prim.mode
-        if mode != 4:
-            raise r.fail(f"mesh primitive {p} has mode {mode}; only triangles (mode 4) are supported")
-        a = prim.attributes
-        if a.POSITION is None or a.JOINTS_0 is None or a.WEIGHTS_0 is None:
-            raise r.fail(f"mesh primitive {p} lacks POSITION, JOINTS_0 or WEIGHTS_0")
-        extra = sorted(k for k, v in vars(a).items() if v is not None and k.startswith(("JOINTS_", "WEIGHTS_"))
-                       and k.split("_")[-1].isdigit() and int(k.split("_")[-1]) >= 2)
-        if extra:
-            raise r.fail(f"mesh primitive {p} has more than {MAX_INFLUENCES} influences per vertex ({extra[0]}); "
-                         f"at most {MAX_INFLUENCES} (JOINTS_0/1, WEIGHTS_0/1) are supported")
-        v = r.accessor(a.POSITION, f"primitive {p} positions")
-        n_v = len(v)
-        idx = r.accessor(prim.indices, f"primitive {p} indices").astype(np.intp).reshape(-1) \
-            if prim.indices is not None else np.arange(n_v)
-        if len(idx) % 3 or (len(idx) and (idx.min() < 0 or idx.max() >= n_v)):
-            raise r.fail(f"mesh primitive {p}: indices are not whole triangles of existing vertices")
-        jw = [(r.accessor(a.JOINTS_0, "joints"), r.accessor(a.WEIGHTS_0, "weights"))]
-        # pygltflib only has the attributes a file names: exporters writing <= 4 influences have no JOINTS_1.
-        joints_1, weights_1 = getattr(a, "JOINTS_1", None), getattr(a, "WEIGHTS_1", None)
-        if joints_1 is not None and weights_1 is not None:
-            jw.append((r.accessor(joints_1, "joints"), r.accessor(weights_1, "weights")))
-        jj = np.concatenate([x for x, _ in jw], axis=1)
-        ww = np.concatenate([w for _, w in jw], axis=1)
-        if jj.shape[0] != n_v or ww.shape != jj.shape or (jj.size and jj.max() >= len(skin_joints)):
-            raise r.fail(f"mesh primitive {p}: influences do not match the vertices or name missing joints")
-        if np.any(ww < 0) or np.any(ww.sum(axis=1) <= 0):
-            raise r.fail(f"mesh primitive {p}: some vertices have no positive skin weight")
-        nn = r.accessor(a.NORMAL, "normals") if a.NORMAL is not None else None
-        if nn is None:
-            nn = vertex_normals(v, idx.reshape(-1, 3))
-        pad = MAX_INFLUENCES - jj.shape[1]
-        jj = np.pad(skin_order[jj.astype(np.intp)], ((0, 0), (0, pad)))
-        ww = np.pad(ww / ww.sum(axis=1, keepdims=True), ((0, 0), (0, pad)))
+        v, nn, tri, jj, ww = _read_primitive(r, p, prim, skin_order)
         vertices.append(v)
         normals.append(nn)
-        faces.append(idx.reshape(-1, 3) + base)
+        faces.append(tri + base)
         joints.append(jj)
         weights.append(ww)
-        base += n_v
+        base += len(v)
     animations = _read_animations(r, node_to_joint, skeleton, above, fps, max_frame_joints) \
         if with_animations else ()
     return GltfAsset(r.name, skeleton, np.concatenate(vertices), np.concatenate(normals),
                      np.concatenate(faces), np.concatenate(joints), np.concatenate(weights), inverse_bind,
                      animations, skin_order)
+
+
+def _node_parents(r: GltfReader, nodes: list[pygltflib.Node]) -> NDArray[np.intp]:
+    """Parent of every node (-1: none); a shared child or a cycle fails here, so walks up the tree end."""
+    parent = np.full(len(nodes), -1, dtype=np.intp)
+    for i, node in enumerate(nodes):
+        for c in node.children or []:
+            if not 0 <= c < len(nodes):
+                raise r.fail(f"node {i} has a child {c} that does not exist")
+            if parent[c] >= 0 or c == i:
+                raise r.fail(f"node {c} has two parents or is its own child (the node tree has a cycle)")
+            parent[c] = i
+    for i in range(len(nodes)):
+        seen, j = set(), i
+        while j >= 0:
+            if j in seen:
+                raise r.fail(f"the node tree has a cycle through node {j} ({nodes[j].name!r})")
+            seen.add(j)
+            j = int(parent[j])
+    return parent
+
+
+def _skin_joint_order(r: GltfReader, nodes: list[pygltflib.Node], parent: NDArray[np.intp],
+                      skin_joints: list[int]) -> list[int]:
+    """The skin's joint nodes in topological order: depth-first from its one root joint, children in file order."""
+    if not skin_joints:
+        raise r.fail("its skin has no joints")
+    if len(skin_joints) > MAX_JOINTS:
+        raise r.fail(f"its skin has {len(skin_joints)} joints; at most {MAX_JOINTS} are supported")
+    if len(set(skin_joints)) != len(skin_joints) or any(not 0 <= j < len(nodes) for j in skin_joints):
+        raise r.fail("its skin lists a joint twice or a joint node that does not exist")
+    in_skin = set(skin_joints)
+    roots = [j for j in skin_joints if parent[j] not in in_skin]
+    if len(roots) != 1:
+        raise r.fail(f"its skin's joints form {len(roots)} trees ({[nodes[j].name for j in roots]}); one root "
+                     f"joint is needed")
+    order: list[int] = []
+    stack = [roots[0]]
+    while stack:
+        j = stack.pop()
+        order.append(j)
+        stack.extend(reversed([c for c in nodes[j].children or [] if c in in_skin]))
+    if len(order) != len(skin_joints):
+        raise r.fail("some skin joints are not below the root joint through other joints")
+    return order
+
+
+def _above_root(r: GltfReader, nodes: list[pygltflib.Node], parent: NDArray[np.intp],
+                root: int) -> tuple[Array, Array, float]:
+    """(translation ``(3,)``, rotation ``(4,)``, uniform scale) of the nodes above the ``root`` joint node.
+
+    The root takes this transform.  A uniform scale there (Blender's "Armature" at 0.01 over a rig in centimetres,
+    as Mixamo characters come) scales the whole skeleton: every offset, the root's motion, and the inverse bind
+    matrices, which then carry the inverse scale."""
+    above_rot, above_pos, above_scale = identity(), np.zeros(3), 1.0
+    j = int(parent[root])
+    while j >= 0:
+        t, q, s = _node_trs(r, nodes[j])
+        if not (s.min() > 0 and np.ptp(s) <= 1e-4 * s.max()):
+            # A non-uniform scale stretches each bone by how it is turned, which changes as it moves: no skeleton of
+            # rigid bones (this one, the character's) can play that.
+            raise r.fail(f"node {nodes[j].name!r} above the skeleton has scale {s.tolist()}; only a uniform "
+                         f"positive scale is supported there (a non-uniform or mirroring scale stretches the bones "
+                         f"as they turn). Apply the scale to the rig before exporting (Blender: select the "
+                         f"armature, Object > Apply > Scale) and export again")
+        above_pos, above_rot = t + s[0] * rotate(q, above_pos), quat_mul(q, above_rot)
+        above_scale *= float(s[0])
+        j = int(parent[j])
+    return above_pos, above_rot, above_scale
+
+
+def _read_primitive(r: GltfReader, p: int, prim: pygltflib.Primitive,
+                    skin_order: NDArray[np.intp]) -> tuple[Array, Array, NDArray[np.intp], NDArray[np.intp], Array]:
+    """Mesh primitive ``p``: vertices and normals ``(V, 3)``, faces ``(T, 3)`` indexing its own vertices, and
+    influences ``(V, 8)`` (skeleton indices, weights renormalised)."""
+    mode = 4 if prim.mode is None else prim.mode
+    if mode != 4:
+        raise r.fail(f"mesh primitive {p} has mode {mode}; only triangles (mode 4) are supported")
+    a = prim.attributes
+    if a.POSITION is None or a.JOINTS_0 is None or a.WEIGHTS_0 is None:
+        raise r.fail(f"mesh primitive {p} lacks POSITION, JOINTS_0 or WEIGHTS_0")
+    extra = sorted(k for k, v in vars(a).items() if v is not None and k.startswith(("JOINTS_", "WEIGHTS_"))
+                   and k.split("_")[-1].isdigit() and int(k.split("_")[-1]) >= 2)
+    if extra:
+        raise r.fail(f"mesh primitive {p} has more than {MAX_INFLUENCES} influences per vertex ({extra[0]}); "
+                     f"at most {MAX_INFLUENCES} (JOINTS_0/1, WEIGHTS_0/1) are supported")
+    v = r.accessor(a.POSITION, f"primitive {p} positions")
+    n_v = len(v)
+    idx = r.accessor(prim.indices, f"primitive {p} indices").astype(np.intp).reshape(-1) \
+        if prim.indices is not None else np.arange(n_v)
+    if len(idx) % 3 or (len(idx) and (idx.min() < 0 or idx.max() >= n_v)):
+        raise r.fail(f"mesh primitive {p}: indices are not whole triangles of existing vertices")
+    jw = [(r.accessor(a.JOINTS_0, "joints"), r.accessor(a.WEIGHTS_0, "weights"))]
+    # pygltflib only has the attributes a file names: exporters writing <= 4 influences have no JOINTS_1.
+    joints_1, weights_1 = getattr(a, "JOINTS_1", None), getattr(a, "WEIGHTS_1", None)
+    if joints_1 is not None and weights_1 is not None:
+        jw.append((r.accessor(joints_1, "joints"), r.accessor(weights_1, "weights")))
+    jj = np.concatenate([x for x, _ in jw], axis=1)
+    ww = np.concatenate([w for _, w in jw], axis=1)
+    if jj.shape[0] != n_v or ww.shape != jj.shape or (jj.size and jj.max() >= len(skin_order)):
+        raise r.fail(f"mesh primitive {p}: influences do not match the vertices or name missing joints")
+    if np.any(ww < 0) or np.any(ww.sum(axis=1) <= 0):
+        raise r.fail(f"mesh primitive {p}: some vertices have no positive skin weight")
+    nn = r.accessor(a.NORMAL, "normals") if a.NORMAL is not None else None
+    if nn is None:
+        nn = vertex_normals(v, idx.reshape(-1, 3))
+    pad = MAX_INFLUENCES - jj.shape[1]
+    jj = np.pad(skin_order[jj.astype(np.intp)], ((0, 0), (0, pad)))
+    ww = np.pad(ww / ww.sum(axis=1, keepdims=True), ((0, 0), (0, pad)))
+    return v, nn, idx.reshape(-1, 3), jj, ww
 
 
 def _sample(times: Array, values: Array, t: Array, interpolation: str, rotation: bool) -> Array:
@@ -391,7 +333,7 @@ def _sample(times: Array, values: Array, t: Array, interpolation: str, rotation:
 _Channel = tuple[int, str, Array, Array, str, str]  # joint, path, key times, key values, interpolation, animation
 
 
-def _channels(r: _Reader, anim: pygltflib.Animation, name: str, node_to_joint: dict[int, int]) -> list[_Channel]:
+def _channels(r: GltfReader, anim: pygltflib.Animation, name: str, node_to_joint: dict[int, int]) -> list[_Channel]:
     """The channels of ``anim`` that key a joint of the skin (rotation, translation, scale), keys checked."""
     channels = []
     for c in anim.channels:
@@ -411,7 +353,7 @@ def _channels(r: _Reader, anim: pygltflib.Animation, name: str, node_to_joint: d
     return channels
 
 
-def _read_animations(r: _Reader, node_to_joint: dict[int, int], skeleton: Skeleton,
+def _read_animations(r: GltfReader, node_to_joint: dict[int, int], skeleton: Skeleton,
                      above: tuple[Array, Array, float], fps: float,
                      max_frame_joints: int) -> tuple[GltfAnimation, ...]:
     """Every animation of the file, or its one-joint animations as one (see the module docstring)."""
@@ -437,7 +379,7 @@ def _read_animations(r: _Reader, node_to_joint: dict[int, int], skeleton: Skelet
     return tuple(out)
 
 
-def _build_animation(r: _Reader, name: str, channels: list[_Channel], skeleton: Skeleton,
+def _build_animation(r: GltfReader, name: str, channels: list[_Channel], skeleton: Skeleton,
                      above: tuple[Array, Array, float], fps: float,
                      max_frame_joints: int = MAX_FRAME_JOINTS) -> GltfAnimation:
     """One animation on ``skeleton`` from its ``channels``; ``above``: (translation, rotation, uniform scale) of

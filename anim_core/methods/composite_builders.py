@@ -6,7 +6,10 @@ and builders, and the reference of every form (:func:`build_reference`).
   layers as described.
 * ``cut``: a sequence's takes switched without blending (the same clip as a sequence's reference).
 * ``crossfade`` (``duration_ms``, ``curve`` linear/smoothstep, ``interp`` nlerp/slerp) and ``inertialization``
-  (``duration_ms``; Bollo's quintic per quaternion component): :mod:`anim_core.methods.transitions`.
+  (``duration_ms``; Bollo's quintic per quaternion component): :mod:`anim_core.methods.transitions`; both hold the
+  feet through the transition unless ``foot_lock = false`` (:mod:`anim_core.methods.transition_feet`).
+* ``parametric`` (``weight`` 0..1, ``interp``): a blend's two takes mixed after time alignment; its reference is
+  the first take.
 """
 
 from __future__ import annotations
@@ -20,8 +23,20 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from ..math.clip import KeyframeClip
+from ..rig.character import FEET, LEGS
 from .base import Animation, Params
-from .transitions import Composite, Entry, RootMotion, TransitionSpec, compose_sequence, layered
+from .transition_feet import FeetLock
+from .transitions import (
+    Composite,
+    Entry,
+    RootMotion,
+    TransitionSpec,
+    compose_sequence,
+    cycle_from,
+    entry_time,
+    layered,
+    parametric,
+)
 
 #: The longest transition a condition may ask for (a crossfade must also fit in the shortest segment).
 MAX_TRANSITION_MS = 5000
@@ -51,6 +66,17 @@ class LayeredAnimation:
 
 
 @dataclass(frozen=True, eq=False)
+class BlendAnimation:
+    """Two looping takes that ``parametric`` mixes (a clip-set file's ``blend = ["A", "B"]``): ``a`` (weight 0,
+    the reference) and ``b``, at ``fps`` frames per second."""
+
+    name: str
+    a: Animation
+    b: Animation
+    fps: int = 30
+
+
+@dataclass(frozen=True, eq=False)
 class SequenceClip(KeyframeClip):
     """A composed sequence: a looping keyframe clip with its switch times (s) and the seconds each switch takes to
     settle (:class:`~anim_core.methods.transitions.Composite`), for the transition metrics."""
@@ -68,16 +94,30 @@ class CrossfadeParams(Params):
     duration_ms: int = Field(ge=1, le=MAX_TRANSITION_MS, description="length of the blend, milliseconds")
     curve: Literal["linear", "smoothstep"] = Field("linear", description="weight over the blend")
     interp: Literal["nlerp", "slerp"] = Field("nlerp", description="per-joint rotation blend")
+    foot_lock: bool = Field(True, description="hold the feet in contact through the blend (two-bone IK)")
 
 
 class InertializationParams(Params):
     duration_ms: int = Field(ge=1, le=MAX_TRANSITION_MS, description="time for the offsets to decay, milliseconds")
+    foot_lock: bool = Field(True, description="hold the feet in contact through the transition (two-bone IK)")
 
 
-def _compose(animation: SequenceAnimation, spec: TransitionSpec) -> SequenceClip:
+class ParametricParams(Params):
+    weight: float = Field(ge=0, le=1, description="share of the second take: 0 is the first, 1 the second")
+    interp: Literal["nlerp", "slerp"] = Field("slerp", description="per-joint rotation blend")
+
+
+def feet_lock(skeleton: Any) -> FeetLock:
+    """The character's legs and feet (:data:`anim_core.rig.character.LEGS`, ``FEET``) as joint indices."""
+    return FeetLock(tuple(tuple(int(j) for j in skeleton.indices(leg)) for leg in LEGS),  # type: ignore[misc]
+                    tuple(tuple(int(j) for j in skeleton.indices(foot)) for foot in FEET))
+
+
+def _compose(animation: SequenceAnimation, spec: TransitionSpec, foot_lock: bool = False) -> SequenceClip:
     segments = [(a.reference, seconds) for a, seconds in animation.segments]
+    lock = feet_lock(segments[0][0].skeleton) if foot_lock else None
     comp: Composite = compose_sequence(segments, animation.fps, spec, animation.root_motion, animation.name,
-                                       animation.entry)
+                                       animation.entry, lock)
     c = comp.clip
     return SequenceClip(c.skeleton, c.times, c.rotations, c.root_translation, c.mode, c.in_place, c.up_axis,
                         c.name, tuple(f / animation.fps for f in comp.switch_frames), comp.settle_s, spec.duration_s)
@@ -88,20 +128,33 @@ def build_cut(animation: SequenceAnimation, params: CutParams) -> SequenceClip:
 
 
 def build_crossfade(animation: SequenceAnimation, params: CrossfadeParams) -> SequenceClip:
-    return _compose(animation, TransitionSpec("crossfade", params.duration_ms / 1000.0, params.curve, params.interp))
+    return _compose(animation, TransitionSpec("crossfade", params.duration_ms / 1000.0, params.curve, params.interp),
+                    params.foot_lock)
 
 
 def build_inertialization(animation: SequenceAnimation, params: InertializationParams) -> SequenceClip:
-    return _compose(animation, TransitionSpec("inertialization", params.duration_ms / 1000.0))
+    return _compose(animation, TransitionSpec("inertialization", params.duration_ms / 1000.0), params.foot_lock)
+
+
+def build_parametric(animation: BlendAnimation, params: ParametricParams) -> KeyframeClip:
+    """The two takes mixed by ``weight`` (:func:`~anim_core.methods.transitions.parametric`) after time alignment:
+    the second take's cycle entered at its frame nearest the first take's first pose
+    (:func:`~anim_core.methods.transitions.entry_time`: the same foot forward), both mapped onto one phase."""
+    a, b = animation.a.reference, animation.b.reference
+    b = cycle_from(b, entry_time(a.sample(np.array([0.0])), b, animation.fps))
+    return parametric(a, b, params.weight, animation.fps, params.interp)
 
 
 def build_reference(animation: Any, params: Params) -> Any:
-    """The reference of every form: a take's keys, a sequence's cut, a layered animation's layers."""
+    """The reference of every form: a take's keys, a sequence's cut, a layered animation's layers, a blend's first
+    take."""
     if isinstance(animation, SequenceAnimation):
         return build_cut(animation, CutParams())
     if isinstance(animation, LayeredAnimation):
         return layered(animation.base.reference, [(a.reference, mask, mode, ref) for a, mask, mode, ref
                                                   in animation.layers], animation.fps, animation.name)
+    if isinstance(animation, BlendAnimation):
+        return animation.a.reference
     return animation.reference
 
 
@@ -110,4 +163,5 @@ COMPOSITE_METHODS: tuple[tuple[str, type[Params], Callable[[Any, Any], Any], tup
     ("cut", CutParams, build_cut, ("sequence",)),
     ("crossfade", CrossfadeParams, build_crossfade, ("sequence",)),
     ("inertialization", InertializationParams, build_inertialization, ("sequence",)),
+    ("parametric", ParametricParams, build_parametric, ("blend",)),
 )

@@ -84,7 +84,7 @@ __all__ = [
 
 P = TypeVar("P", bound=Params)
 #: What an animation of a clip set is: a source take, or a composite (issue 39) of takes in sequence or in layers.
-ANIMATION_FORMS = ("take", "sequence", "layered")
+ANIMATION_FORMS = ("take", "sequence", "layered", "blend")
 
 
 @dataclass(frozen=True)
@@ -105,7 +105,8 @@ class Method(Generic[P]):
     #: ``render(params)``: the per-clip render settings of a render-time condition (the clip is the reference's
     #: motion; the renderer skins it otherwise), or None: the clip's motion is the condition
     render: Callable[[Any], dict[str, Any]] | None = None
-    #: the animations it builds clips of: ``"take"`` (a source take), ``"sequence"``, ``"layered"`` (composites)
+    #: the animations it builds clips of: ``"take"`` (a source take), ``"sequence"``, ``"layered"``, ``"blend"``
+    #: (composites)
     applies_to: tuple[str, ...] = ("take",)
 
 

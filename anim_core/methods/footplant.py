@@ -134,7 +134,7 @@ def plant_feet(skeleton: Skeleton, local_rotations: ArrayLike, root_translation:
     for f, chain in enumerate(legs):  # one solve per leg over all frames
         active = frames[weights[:, f] > 0]
         if active.size:
-            pole, hinge = pos[active, chain[1]], _hinge(skeleton, local_rotations, root, chain)
+            pole, hinge = pos[active, chain[1]], leg_hinge(skeleton, local_rotations, root, chain)
             target = targets[active, f]
             if max_leg_change_deg is not None:
                 target = leg_limited_targets(skeleton, rot[active], root[active], chain, target, weights[active, f],
@@ -199,7 +199,8 @@ def leg_limited_targets(skeleton: Skeleton, rot: Array, root: Array, chain: tupl
     return ankle + share[:, None] * way
 
 
-def _hinge(skeleton: Skeleton, local_rotations: ArrayLike, root: Array, chain: tuple[int, int, int]) -> Array | None:
+def leg_hinge(skeleton: Skeleton, local_rotations: ArrayLike, root: Array,
+              chain: tuple[int, int, int]) -> Array | None:
     """The knee's hinge (:func:`anim_core.methods.ik.hinge_axis`) on the animated poses, or ``None`` for a leg
     straight in
     every pose: its plane is nowhere defined, and the plain solve (knee towards its animated position) is all

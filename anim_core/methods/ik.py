@@ -100,12 +100,8 @@ def two_bone_ik(skeleton: Skeleton, local_rotations: ArrayLike, root_translation
     ``sqrt(L - d)`` there: its angular velocity jumps or is unbounded).
     Raises ``ValueError`` for a chain that is not parent-linked or for mismatched shapes.
     """
-    s, m, e = (int(j) for j in chain)
+    s, m, e = _chain_joints(skeleton, chain)
     parents = skeleton.parents
-    if not (0 <= s < skeleton.n_joints and 0 <= m < skeleton.n_joints and 0 <= e < skeleton.n_joints):
-        raise ValueError(f"chain {chain} has joints outside the skeleton's {skeleton.n_joints}")
-    if parents[m] != s or parents[e] != m:
-        raise ValueError(f"chain {chain} is not start -> mid -> end: parents are {parents[m]}, {parents[e]}")
     local = np.array(local_rotations, dtype=np.float64)
     g_rot, g_pos = skeleton.forward_kinematics(local, root_translation)
     batch = local.shape[:-2]
@@ -114,90 +110,136 @@ def two_bone_ik(skeleton: Skeleton, local_rotations: ArrayLike, root_translation
     if weight is not None:
         w = np.clip(np.broadcast_to(np.asarray(weight, dtype=np.float64), batch), 0.0, 1.0)[..., None]
         target = E + w * (target - E)
-    a = float(np.linalg.norm(skeleton.offsets[m]))
-    b = float(np.linalg.norm(skeleton.offsets[e]))
-    if a <= 0 or b <= 0:
-        raise ValueError(f"chain {chain} has a zero-length bone")
-    if not 0.0 <= soft < a + b:
-        raise ValueError(f"soft must be in [0, {a + b:g}) (the chain's reach), got {soft}")
-
-    # 1. Clamped (and softened) distance and direction to the target.
-    to_target = target - S
-    d_hat = _unit(to_target, _unit(E - S, _perpendicular(M - S)))
-    d = np.linalg.norm(to_target, axis=-1)
-    if soft > 0.0:
-        d_soft = a + b - soft
-        d = np.where(d > d_soft, d_soft - soft * np.expm1(-(d - d_soft) / soft), d)
-    d = np.clip(d, abs(a - b) + _SHRINK * (a + b), (a + b) * (1.0 - _SHRINK))
-
-    # 2. Bend the mid joint in the chain's plane (normal ``side``) until the law of cosines gives ``d``: the shin
-    #    is put at the solved angle from the thigh in that plane, so the distance is exact for any ``side``.
+    a, b = _bone_lengths(skeleton, chain, soft)
+    d_hat, d = _target_distance(target - S, S, M, E, a, b, soft)
     thigh, shin = M - S, E - M
-    t_hat = thigh / a
-    normal = np.cross(thigh, shin)
-    if hinge is None:
-        side = _unit(normal, _perpendicular(thigh))
-    else:
-        # The animated plane turned to the hinge's side (a hyper-extended pose bends forwards through straight,
-        # not further back), easing into the hinge's own plane as the animated chain straightens and its plane
-        # is lost in noise.
-        h = rotate(g_rot[..., m, :], np.broadcast_to(np.asarray(hinge, dtype=np.float64), (*batch, 3)))
-        h_thigh = _unit(h - np.sum(h * t_hat, axis=-1, keepdims=True) * t_hat, _perpendicular(thigh))
-        flip = np.where(np.sum(normal * h, axis=-1, keepdims=True) < 0.0, -1.0, 1.0)
-        ease = smoothstep(np.linalg.norm(normal, axis=-1, keepdims=True) / (STRAIGHT * a * b))
-        side = _unit(ease * flip * _unit(normal, h_thigh) + (1.0 - ease) * h_thigh, h_thigh)
-    cos_inner = np.clip((a * a + b * b - d * d) / (2.0 * a * b), -1.0, 1.0)
-    bend = (np.pi - np.arccos(cos_inner))[..., None]  # 0 = straight
-    shin_1 = b * (np.cos(bend) * t_hat + np.sin(bend) * np.cross(side, t_hat))
+    side, h, h_thigh = _bend_plane(thigh, shin, a, b, g_rot[..., m, :], hinge, batch)
+    shin_1 = _bent_shin(thigh / a, side, a, b, d)
     r_mid = quat_between(shin, shin_1)
     end_1 = M + shin_1
-
-    # 3. Swing the end onto the target, then twist about start -> target to put the chain's plane (normal ``side``,
-    #    carried along by the swing) where it is wanted: through start, target and pole; with the hinge and no
-    #    pole, as close as it gets to the animated plane (``side``, which is the hinge's where the chain is
-    #    straight and a pole on the leg's line would point nowhere in particular).
-    r_swing = quat_between(end_1 - S, d_hat)
-    plane = rotate(r_swing, side)
-    if hinge is not None:
-        kept = side - np.sum(side * d_hat, axis=-1, keepdims=True) * d_hat  # the animated plane's normal, kept
-    if hinge is not None and pole is None:
-        wanted = kept
-    else:
-        p = (M if pole is None else np.broadcast_to(np.asarray(pole, dtype=np.float64), (*batch, 3))) - S
-        wanted = np.cross(p, d_hat)
-    if hinge is not None and pole is not None:
-        # The pole's plane while the pole is well off the line and that plane within _TRUSTED of the animated one,
-        # easing into the animated plane (the no-pole solve) otherwise: near a straight leg a pole at the
-        # animated knee lies almost on the line, and a target moved off the animated ankle turns its plane
-        # anywhere (a one-frame twist of the thigh by up to 180 degrees).
-        wanted = _unit(wanted * np.where(np.sum(wanted * h, axis=-1, keepdims=True) < 0.0, -1.0, 1.0), kept)
-        kept = _unit(kept, h_thigh)
-        reach = np.maximum(STRAIGHT * np.linalg.norm(p, axis=-1, keepdims=True), 1e-300)
-        off_line = smoothstep(np.linalg.norm(np.cross(p, d_hat), axis=-1, keepdims=True) / reach)
-        cos_lo, cos_hi = np.cos(2.0 * _TRUSTED), np.cos(_TRUSTED)
-        agrees = smoothstep((np.sum(wanted * kept, axis=-1, keepdims=True) - cos_lo) / (cos_hi - cos_lo))
-        trust = off_line * agrees
-        wanted = trust * wanted + (1.0 - trust) * kept
-    ok = np.linalg.norm(wanted, axis=-1) > 1e-9 * a  # a pole on the line (no hinge given): no twist
-    angle = np.where(ok, np.arctan2(np.sum(d_hat * np.cross(plane, wanted), axis=-1),
-                                    np.sum(plane * wanted, axis=-1)), 0.0)
-    r_start = quat_mul(quat_from_axis_angle(d_hat, angle), r_swing)
+    r_start = _swing_and_twist(S, M, end_1, d_hat, side, pole, h, h_thigh, a, batch)
 
     g_start = quat_mul(r_start, g_rot[..., s, :])
     g_mid = quat_mul(r_start, quat_mul(r_mid, g_rot[..., m, :]))
     g_end = g_rot[..., e, :]  # 4. the end keeps its world orientation
     if aim is not None:
-        child, position = aim
-        child = int(child)
-        if parents[child] != e:
-            raise ValueError(f"aim joint {child} is not a child of the chain's end {e}")
-        end_pos = S + rotate(r_start, end_1 - S)
-        current = rotate(g_end, skeleton.offsets[child])
-        wanted = np.broadcast_to(np.asarray(position, dtype=np.float64), (*batch, 3)) - end_pos
-        g_end = quat_mul(quat_between(current, wanted), g_end)
+        g_end = _aimed_end(skeleton, e, g_end, S + rotate(r_start, end_1 - S), aim, batch)
 
     ps = parents[s]
     local[..., s, :] = g_start if ps < 0 else quat_mul(quat_conj(g_rot[..., ps, :]), g_start)
     local[..., m, :] = quat_mul(quat_conj(g_start), g_mid)
     local[..., e, :] = quat_mul(quat_conj(g_mid), g_end)
     return local
+
+
+def _chain_joints(skeleton: Skeleton, chain: tuple[int, int, int]) -> tuple[int, int, int]:
+    """``(start, mid, end)`` joint indices of ``chain``, checked to be parent-linked joints of ``skeleton``."""
+    s, m, e = (int(j) for j in chain)
+    parents = skeleton.parents
+    if not (0 <= s < skeleton.n_joints and 0 <= m < skeleton.n_joints and 0 <= e < skeleton.n_joints):
+        raise ValueError(f"chain {chain} has joints outside the skeleton's {skeleton.n_joints}")
+    if parents[m] != s or parents[e] != m:
+        raise ValueError(f"chain {chain} is not start -> mid -> end: parents are {parents[m]}, {parents[e]}")
+    return s, m, e
+
+
+def _bone_lengths(skeleton: Skeleton, chain: tuple[int, int, int], soft: float) -> tuple[float, float]:
+    """Lengths ``a`` (start-mid) and ``b`` (mid-end) of the chain's bones; ``soft`` checked against the reach."""
+    a = float(np.linalg.norm(skeleton.offsets[int(chain[1])]))
+    b = float(np.linalg.norm(skeleton.offsets[int(chain[2])]))
+    if a <= 0 or b <= 0:
+        raise ValueError(f"chain {chain} has a zero-length bone")
+    if not 0.0 <= soft < a + b:
+        raise ValueError(f"soft must be in [0, {a + b:g}) (the chain's reach), got {soft}")
+    return a, b
+
+
+def _target_distance(to_target: Array, S: Array, M: Array, E: Array, a: float, b: float,
+                     soft: float) -> tuple[Array, Array]:
+    """Step 1: unit direction ``(..., 3)`` and clamped (and softened) distance ``(...)`` from start to target."""
+    # A target on the start joint has no direction: the animated end's stands in, then any perpendicular.
+    d_hat = _unit(to_target, _unit(E - S, _perpendicular(M - S)))
+    d = np.linalg.norm(to_target, axis=-1)
+    if soft > 0.0:
+        d_soft = a + b - soft
+        d = np.where(d > d_soft, d_soft - soft * np.expm1(-(d - d_soft) / soft), d)
+    return d_hat, np.clip(d, abs(a - b) + _SHRINK * (a + b), (a + b) * (1.0 - _SHRINK))
+
+
+def _bend_plane(thigh: Array, shin: Array, a: float, b: float, g_mid: Array, hinge: ArrayLike | None,
+                batch: tuple[int, ...]) -> tuple[Array, Array | None, Array | None]:
+    """Step 2's plane: its unit normal ``side (..., 3)``; with a ``hinge``, also the hinge in world space ``h`` and
+    made perpendicular to the thigh ``h_thigh`` (``(..., 3)``, else ``None``), which step 3 turns towards."""
+    normal = np.cross(thigh, shin)
+    if hinge is None:
+        return _unit(normal, _perpendicular(thigh)), None, None
+    # The animated plane turned to the hinge's side (a hyper-extended pose bends forwards through straight,
+    # not further back), easing into the hinge's own plane as the animated chain straightens and its plane
+    # is lost in noise.
+    t_hat = thigh / a
+    h = rotate(g_mid, np.broadcast_to(np.asarray(hinge, dtype=np.float64), (*batch, 3)))
+    h_thigh = _unit(h - np.sum(h * t_hat, axis=-1, keepdims=True) * t_hat, _perpendicular(thigh))
+    flip = np.where(np.sum(normal * h, axis=-1, keepdims=True) < 0.0, -1.0, 1.0)
+    ease = smoothstep(np.linalg.norm(normal, axis=-1, keepdims=True) / (STRAIGHT * a * b))
+    return _unit(ease * flip * _unit(normal, h_thigh) + (1.0 - ease) * h_thigh, h_thigh), h, h_thigh
+
+
+def _bent_shin(t_hat: Array, side: Array, a: float, b: float, d: Array) -> Array:
+    """Step 2: the shin ``(..., 3)`` at the angle from the thigh (unit ``t_hat``) in the plane of normal ``side``
+    at which the law of cosines gives the distance ``d``: exact for any ``side``."""
+    cos_inner = np.clip((a * a + b * b - d * d) / (2.0 * a * b), -1.0, 1.0)
+    bend = (np.pi - np.arccos(cos_inner))[..., None]  # 0 = straight
+    return b * (np.cos(bend) * t_hat + np.sin(bend) * np.cross(side, t_hat))
+
+
+def _swing_and_twist(S: Array, M: Array, end_1: Array, d_hat: Array, side: Array, pole: ArrayLike | None,
+                     h: Array | None, h_thigh: Array | None, a: float, batch: tuple[int, ...]) -> Array:
+    """Step 3: the start joint's turn ``(..., 4)`` that swings the bent chain's end ``end_1`` onto the target
+    direction ``d_hat``, then twists about it to put the chain's plane (normal ``side``, carried along by the
+    swing) where it is wanted: through start, target and pole; with the hinge (``h``) and no pole, as close as it
+    gets to the animated plane (``side``, which is the hinge's where the chain is straight and a pole on the leg's
+    line would point nowhere in particular)."""
+    r_swing = quat_between(end_1 - S, d_hat)
+    plane = rotate(r_swing, side)
+    if h is not None:
+        kept = side - np.sum(side * d_hat, axis=-1, keepdims=True) * d_hat  # the animated plane's normal, kept
+    if h is not None and pole is None:
+        wanted = kept
+    else:
+        p = (M if pole is None else np.broadcast_to(np.asarray(pole, dtype=np.float64), (*batch, 3))) - S
+        wanted = np.cross(p, d_hat)
+    if h is not None and pole is not None:
+        wanted = _trusted_pole_plane(wanted, kept, p, d_hat, h, h_thigh)
+    ok = np.linalg.norm(wanted, axis=-1) > 1e-9 * a  # a pole on the line (no hinge given): no twist
+    angle = np.where(ok, np.arctan2(np.sum(d_hat * np.cross(plane, wanted), axis=-1),
+                                    np.sum(plane * wanted, axis=-1)), 0.0)
+    return quat_mul(quat_from_axis_angle(d_hat, angle), r_swing)
+
+
+def _trusted_pole_plane(wanted: Array, kept: Array, p: Array, d_hat: Array, h: Array, h_thigh: Array) -> Array:
+    """The normal ``(..., 3)`` wanted of the chain's plane given a pole (at ``p`` from the start) and the hinge:
+    the pole's plane ``wanted`` while the pole is well off the line and that plane within _TRUSTED of the animated
+    one ``kept``, easing into the animated plane (the no-pole solve) otherwise."""
+    # Near a straight leg a pole at the animated knee lies almost on the line, and a target moved off the animated
+    # ankle turns its plane anywhere (a one-frame twist of the thigh by up to 180 degrees).
+    wanted = _unit(wanted * np.where(np.sum(wanted * h, axis=-1, keepdims=True) < 0.0, -1.0, 1.0), kept)
+    kept = _unit(kept, h_thigh)
+    reach = np.maximum(STRAIGHT * np.linalg.norm(p, axis=-1, keepdims=True), 1e-300)
+    off_line = smoothstep(np.linalg.norm(np.cross(p, d_hat), axis=-1, keepdims=True) / reach)
+    cos_lo, cos_hi = np.cos(2.0 * _TRUSTED), np.cos(_TRUSTED)
+    agrees = smoothstep((np.sum(wanted * kept, axis=-1, keepdims=True) - cos_lo) / (cos_hi - cos_lo))
+    trust = off_line * agrees
+    return trust * wanted + (1.0 - trust) * kept
+
+
+def _aimed_end(skeleton: Skeleton, e: int, g_end: Array, end_pos: Array, aim: tuple[int, ArrayLike],
+               batch: tuple[int, ...]) -> Array:
+    """Step 4: the end joint's world rotation ``g_end (..., 4)`` turned (minimally) so that its child ``aim[0]``
+    points from the end's solved position ``end_pos`` at ``aim[1] (..., 3)``."""
+    child, position = aim
+    child = int(child)
+    if skeleton.parents[child] != e:
+        raise ValueError(f"aim joint {child} is not a child of the chain's end {e}")
+    current = rotate(g_end, skeleton.offsets[child])
+    wanted = np.broadcast_to(np.asarray(position, dtype=np.float64), (*batch, 3)) - end_pos
+    return quat_mul(quat_between(current, wanted), g_end)

@@ -56,6 +56,7 @@ from ..math.quat import (
     slerp,
 )
 from ..math.skeleton import Skeleton
+from .transition_feet import FeetLock, lock_transition_feet
 
 Array = NDArray[np.float64]
 Curve = Literal["linear", "smoothstep"]
@@ -197,21 +198,37 @@ def additive(base: ArrayLike, delta: ArrayLike, mask: NDArray[np.bool_], weight:
 
 def parametric(a: KeyframeClip, b: KeyframeClip, weight: float, fps: int, interp: Interp = "slerp"
                ) -> KeyframeClip:
-    """Two cycles mixed by ``weight`` (0: ``a``, 1: ``b``) after time alignment: both played over a normalized
-    phase, the result lasting ``(1 - w) T_a + w T_b`` on the ``fps`` grid, rotations blended per joint, the root's
-    position blended (the travel per cycle with it)."""
+    """Two cycles (loops) mixed by ``weight`` (0: ``a``, 1: ``b``) after time alignment: both played over a
+    normalized phase, the result lasting ``(1 - w) T_a + w T_b`` on the ``fps`` grid, rotations blended per joint,
+    the root's position blended (the travel per cycle with it); played in place if ``a`` is.  Where each cycle
+    starts is the caller's (:func:`cycle_from` aligns ``b``'s start with ``a``'s)."""
     if not 0.0 <= weight <= 1.0:
         raise CompositeError(f"weight: between 0 and 1, got {weight!r}")
+    if a.mode != "loop" or b.mode != "loop":
+        raise CompositeError(f"blend: both takes loop (their cycles are mapped onto one phase), got {a.mode!r} "
+                             f"and {b.mode!r}")
     duration = (1.0 - weight) * a.duration + weight * b.duration
     n = max(2, round(duration * fps))
     phase = np.arange(n + 1) / n
-    pa, pb = a.sample(phase * a.duration), b.sample(phase * b.duration)
+    # Sampled with their travel (a clip played in place keeps its keys' root and takes its speed from them).
+    pa = _travelling(a, "travel").sample(phase * a.duration)
+    pb = _travelling(b, "travel").sample(phase * b.duration)
     if a is b or weight == 0.0:
         rot, root = pa.rotations, pa.root_translation
     else:
         rot = blend_rotations(pa.rotations, pb.rotations, np.full(n + 1, weight), interp)
         root = (1.0 - weight) * pa.root_translation + weight * pb.root_translation
     return KeyframeClip(a.skeleton, phase * duration, rot, root, a.mode, a.in_place, a.up_axis, a.name)
+
+
+def cycle_from(clip: KeyframeClip, start: float) -> KeyframeClip:
+    """The loop ``clip`` with its cycle starting ``start`` seconds in (its keys' times, the poses ``start`` later,
+    the travel carried across the wrap): the same motion, entered elsewhere."""
+    if clip.mode != "loop":
+        raise CompositeError(f"blend: a take that loops, got {clip.mode!r}")
+    pose = _travelling(clip, "travel").sample(clip.times + start)
+    return KeyframeClip(clip.skeleton, clip.times, pose.rotations, pose.root_translation, clip.mode, clip.in_place,
+                        clip.up_axis, clip.name)
 
 
 # --- sequences ----------------------------------------------------------------------------------------------------
@@ -281,7 +298,8 @@ def entry_time(outgoing: Pose, clip: KeyframeClip, fps: int) -> float:
 
 
 def compose_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, transition: TransitionSpec,
-                     root_motion: RootMotion | None = None, name: str = "", entry: Entry = "start") -> Composite:
+                     root_motion: RootMotion | None = None, name: str = "", entry: Entry = "start",
+                     lock: FeetLock | None = None) -> Composite:
     """One loop from ``segments`` ``[(clip, seconds), ...]`` (each clip played for its seconds), switching by
     ``transition`` from each to the next and from the last back to the first.
 
@@ -291,7 +309,9 @@ def compose_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, t
     so a sequence's conditions differ by how they switch alone.
 
     Root: the horizontal root velocity (blended as the rotations are) is integrated from frame to frame, so no
-    switch moves the character; the height is blended.  Clips that travel and clips played in place mix only with
+    switch moves the character; the height is blended.  ``lock``: the feet in contact during a blended transition
+    are held there (:mod:`anim_core.methods.transition_feet`; a cut is left as it is), before the settling is
+    measured.  Clips that travel and clips played in place mix only with
     a ``root_motion`` rule (``"travel"``: every clip with its travel, ``"in_place"``: every clip on the spot).
     """
     if len(segments) < 2:
@@ -373,6 +393,10 @@ def compose_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, t
     steps = 0.5 * (v_h + np.roll(v_h, -1, axis=0)) / fps
     root = np.concatenate([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
     root[:, up] = np.append(height, height[0])
+    if lock is not None and transition.method != "cut":
+        span = max(1, round(d * fps))
+        rot = lock_transition_feet(clips[0].skeleton, rot, root, [(int(f), int(f) + span) for f in starts[:-1]],
+                                   fps, lock, up)
     rotations = np.concatenate([rot, rot[:1]])
     clip = KeyframeClip(clips[0].skeleton, np.arange(n + 1) / fps, rotations, root, "loop",
                         root_motion == "in_place", up, name)

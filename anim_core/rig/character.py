@@ -50,6 +50,9 @@ CMU_TO_RIG = {"LeftHandIndex1": "LeftHandFinger1", "RightHandIndex1": "RightHand
 #: Pelvis "bones" from the hip centre to each hip socket: the mocap and the rig disagree on where these point
 #: (by about 45 degrees), and the pelvis is rigid, so these joints are moved rather than their mesh rotated.
 DEFAULT_RELOCATE = ("LHipJoint", "RHipJoint")
+#: Joints that carry a face: bound level over the take when they have no bone of their own (an End Site at the
+#: joint, as the Bandai Namco rigs' heads).  Only these: a bone-less hand has no "level" to be bound at.
+DEFAULT_LEVEL = ("Head",)
 
 
 @dataclass(frozen=True, eq=False)
@@ -256,7 +259,8 @@ def bind_mesh(character: Character, joint_names: Sequence[str], bind_rotations: 
 
 def retarget(character: Character, mocap: Skeleton, end_sites: Mapping[int, Array],
              name_map: Mapping[str, str] | None = None,
-             relocate: Sequence[str] = DEFAULT_RELOCATE, motion: ArrayLike | None = None) -> RetargetedCharacter:
+             relocate: Sequence[str] = DEFAULT_RELOCATE, motion: ArrayLike | None = None,
+             level: Sequence[str] = DEFAULT_LEVEL) -> RetargetedCharacter:
     """Bind ``character`` to the mocap skeleton ``mocap`` (identity rest rotations, e.g. from a BVH file).
 
     ``end_sites``: mocap End Site offsets per leaf joint (they give the direction of the last bones);
@@ -268,11 +272,37 @@ def retarget(character: Character, mocap: Skeleton, end_sites: Mapping[int, Arra
     the rig's rest pose happens to: the root by its mean hip line and up direction (:func:`_symmetric_root`), the
     hip joints of ``relocate`` at their mean turn against it; so the same world motion on rigs with other rest
     poses binds the same pelvis, and the joints the character places from it (CMU's zero-length hip joints and
-    lower back) land in the same places (issue 35).
+    lower back) land in the same places (issue 35); the joints of ``level`` without a bone of their own are bound
+    level over the take (their mean up direction onto the mesh's).
     """
     name_map = dict(CMU_TO_RIG if name_map is None else name_map)
     if not np.allclose(mocap.rest_rotations, identity((mocap.n_joints,))):
         raise ValueError("retargeting expects a mocap skeleton with identity rest rotations (as read from BVH)")
+    rig_index = _rig_index(character, mocap, name_map)
+    heads = character.heads[rig_index]
+    zero = np.linalg.norm(mocap.offsets, axis=1) < 1e-9
+    q_bind = identity((mocap.n_joints,))  # mocap rest frame -> A-pose frame, per joint
+    frames = world = None
+    if motion is not None:
+        frames = _frames(motion)
+        world, positions = mocap.forward_kinematics(frames)
+        # The pelvis as the take holds it, facing along its own sagittal plane, not as the rig's rest pose happens
+        # to (with it, the zero-length CMU hip joints and lower back are placed; :func:`mirror_bind`).
+        q_bind[0] = _symmetric_root(mocap, world, positions)
+    p_bind, bones = _bind_joints(mocap, end_sites, heads, character.tails[rig_index], zero, q_bind, relocate, level,
+                                 frames, world)
+    offsets = _bound_offsets(mocap, heads, zero, q_bind, p_bind)
+    skeleton = Skeleton(mocap.names, mocap.parents, offsets)
+
+    mesh = bind_mesh(character, mocap.names, q_bind, p_bind, name_map)
+
+    root_scale = _leg_ratio(mocap, offsets)
+    contact = p_bind[:, 1] - character.sole_height
+    return RetargetedCharacter(skeleton, mesh, character.faces, q_bind, p_bind, root_scale, contact, bones)
+
+
+def _rig_index(character: Character, mocap: Skeleton, name_map: Mapping[str, str]) -> NDArray[np.intp]:
+    """The character's joint ``(J,)`` for each mocap joint, checked to form the same hierarchy."""
     try:
         rig_index = np.array([character.index(name_map.get(n, n)) for n in mocap.names])
     except ValueError:
@@ -282,23 +312,21 @@ def retarget(character: Character, mocap: Skeleton, end_sites: Mapping[int, Arra
     expected = np.where(mocap.parents >= 0, rig_index[np.maximum(mocap.parents, 0)], -1)
     if not np.array_equal(rig_parents, expected):
         raise CharacterError("the character's joint hierarchy differs from the mocap skeleton's")
+    return rig_index
 
-    n = mocap.n_joints
-    heads = character.heads[rig_index]
-    tails = character.tails[rig_index]
-    children = [mocap.children(j) for j in range(n)]
-    zero = np.linalg.norm(mocap.offsets, axis=1) < 1e-9
-    q_bind = identity((n,))  # mocap rest frame -> A-pose frame, per joint
-    if motion is not None:
-        # The pelvis as the take holds it, facing along its own sagittal plane, not as the rig's rest pose happens
-        # to (with it, the zero-length CMU hip joints and lower back are placed; :func:`mirror_bind`).
-        q_bind[0] = _symmetric_root(mocap, *mocap.forward_kinematics(_frames(motion)))
+
+def _bind_joints(mocap: Skeleton, end_sites: Mapping[int, Array], heads: Array, tails: Array, zero: NDArray[np.bool_],
+                 q_bind: Array, relocate: Sequence[str], level: Sequence[str], frames: Array | None,
+                 world: Array | None) -> tuple[Array, dict[int, Array]]:
+    """Bind every joint down the tree: ``q_bind`` ``(J, 4)`` filled in place (its root already, given the take
+    ``frames``, with ``world`` its forward kinematics); returns the bind positions ``(J, 3)`` and the joints bound
+    by a bone with its mocap rest direction (see :func:`retarget`)."""
+    children = [mocap.children(j) for j in range(mocap.n_joints)]
     p_bind = heads.copy()
-    offsets = np.zeros((n, 3))
     bones: dict[int, Array] = {}  # joints bound by a bone: its mocap rest direction
-    for j in range(n):  # once per skeleton
+    for j in range(mocap.n_joints):  # once per skeleton
         p = mocap.parents[j]
-        if p < 0 and motion is not None:
+        if p < 0 and frames is not None:
             continue  # bound above
         q_parent = q_bind[p] if p >= 0 else identity()
         # The bone that orients this joint's segment: its (single) child with a mocap direction, or its End Site.
@@ -316,33 +344,40 @@ def retarget(character: Character, mocap: Skeleton, end_sites: Mapping[int, Arra
         if mocap.names[j] in relocate and zero[j] and defining and p >= 0:
             # As the take holds it on average, not as the rig's rest pose happens to (CMU hip joints turn against
             # the pelvis: a rest pose taken from a frame of the take would make the pelvis lopsided).
-            q_bind[j] = q_parent if motion is None else quat_mul(q_parent, _chordal_mean(_frames(motion)[:, j]))
+            q_bind[j] = q_parent if frames is None else quat_mul(q_parent, _chordal_mean(frames[:, j]))
             direction = rotate(q_bind[j], mocap_dir / np.linalg.norm(mocap_dir))
             p_bind[j] = heads[c] - np.linalg.norm(rig_vec) * direction
         elif mocap_dir is not None:
             q_bind[j] = quat_mul(_arc(rotate(q_parent, mocap_dir), rig_vec), q_parent)
             bones[j] = np.asarray(mocap_dir, np.float64)
-        elif mocap.names[j] == "Head" and motion is not None:
+        elif mocap.names[j] in level and world is not None:
             # A head without a bone of its own (an End Site at the joint: the Bandai Namco rigs) says nothing of
             # where the face points.  Bound as the rest pose holds it on its neck, it tilts with whatever the rest
             # pose's neck does against the character's (the Bandai walk: the face turned up to the sky); so it is
             # bound level instead: the world's up, averaged over the take in its frame, onto the mesh's up.
-            world = mocap.forward_kinematics(_frames(motion))[0][:, j]
-            up = rotate(quat_conj(world), np.array([0.0, 1.0, 0.0])).mean(axis=0)
+            up = rotate(quat_conj(world[:, j]), np.array([0.0, 1.0, 0.0])).mean(axis=0)
             q_bind[j] = quat_mul(_arc(rotate(q_parent, up), np.array([0.0, 1.0, 0.0])), q_parent)
         else:
             q_bind[j] = q_parent
-    for j in range(1, n):
+    return p_bind, bones
+
+
+def _bound_offsets(mocap: Skeleton, heads: Array, zero: NDArray[np.bool_], q_bind: Array, p_bind: Array) -> Array:
+    """Offsets ``(J, 3)`` of the bound skeleton: the mocap's bone directions at the character's bone lengths; a
+    zero-length mocap bone where the bind put the joint (in its parent's bind frame)."""
+    offsets = np.zeros((mocap.n_joints, 3))
+    for j in range(1, mocap.n_joints):
         p = mocap.parents[j]
         if zero[j]:
             offsets[j] = rotate(quat_conj(q_bind[p]), p_bind[j] - p_bind[p])
         else:
             length = np.linalg.norm(heads[j] - heads[p])
             offsets[j] = mocap.offsets[j] / np.linalg.norm(mocap.offsets[j]) * length
-    skeleton = Skeleton(mocap.names, mocap.parents, offsets)
+    return offsets
 
-    mesh = bind_mesh(character, mocap.names, q_bind, p_bind, name_map)
 
+def _leg_ratio(mocap: Skeleton, offsets: Array) -> float:
+    """The character's leg length (thigh + shin, both sides) over the mocap's: the scale of the root's motion."""
     leg = ("LeftUpLeg", "LeftLeg", "LeftFoot", "RightUpLeg", "RightLeg", "RightFoot")
     try:
         chain = [mocap.index(name) for name in leg]
@@ -350,9 +385,7 @@ def retarget(character: Character, mocap: Skeleton, end_sites: Mapping[int, Arra
         raise CharacterError(f"cannot scale the root: {exc}") from None
     mocap_leg = sum(np.linalg.norm(mocap.offsets[j]) for k, j in enumerate(chain) if k % 3)
     character_leg = sum(np.linalg.norm(offsets[j]) for k, j in enumerate(chain) if k % 3)
-    contact = p_bind[:, 1] - character.sole_height
-    return RetargetedCharacter(skeleton, mesh, character.faces, q_bind, p_bind, character_leg / mocap_leg, contact,
-                               bones)
+    return character_leg / mocap_leg
 
 
 def _symmetric_root(skeleton: Skeleton, world: Array, positions: Array) -> Array:
@@ -376,9 +409,9 @@ def _symmetric_root(skeleton: Skeleton, world: Array, positions: Array) -> Array
 
 
 def _chordal_mean(q: Array) -> Array:
-    """The mean rotation of quaternions ``(N, 4)``: the dominant eigenvector of ``sum q q^T`` (sign-free, so ``q`` and
-    ``-q`` count alike; Markley et al. 2007)."""
-    return np.linalg.eigh(q.T @ q)[1][:, -1]
+    """The mean rotation of quaternions ``(N, 4)`` (w, x, y, z): scipy's chordal mean (Markley et al. 2007; sign-free,
+    so ``q`` and ``-q`` count alike)."""
+    return Rotation.from_quat(q, scalar_first=True).mean().as_quat(scalar_first=True)
 
 
 def _frames(motion: ArrayLike) -> Array:

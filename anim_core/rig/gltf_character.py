@@ -149,34 +149,60 @@ def character_from_gltf(asset: GltfAsset, explicit: Mapping[str, str] | None = N
     idx = mapping.source_index
     mapped = idx >= 0
     n = len(CANONICAL_NAMES)
+    joints, weights, folded = _folded_weights(asset, idx)
 
-    # Skin weights: every source joint onto its nearest mapped ancestor (or itself), summed per vertex.
+    vertices = rotate(world, asset.vertices) * scale
+    heads = np.where(mapped[:, None], pos[np.maximum(idx, 0)], 0.0)
+    tails = _mapped_tails(sk, idx, pos, heads, vertices, joints[:, 0])
+    _fill_missing(heads, tails, mapped.copy())
+    short = [RIG_NAMES[c] for c in range(n) if np.linalg.norm(tails[c] - heads[c]) < 1e-9
+             and not np.any(CANONICAL_PARENTS == c)]
+    if short:
+        raise CharacterError(f"{src}: the leaf joints {short} have no length (their parent joint is at the same "
+                             f"place); give them a child joint (an end joint) where the bone ends")
+
+    normals = rotate(world, asset.normals)
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    character = Character(RIG_NAMES, CANONICAL_PARENTS.copy(), heads, tails, vertices, normals,
+                          np.asarray(asset.faces, np.intp), joints.astype(np.intp), weights)
+    return MappedCharacter(character, mapping, units, up_axis, scale, folded)
+
+
+def _folded_weights(asset: GltfAsset, idx: NDArray[np.intp]) -> tuple[NDArray[np.intp], Array, dict[str, str]]:
+    """Skin weights on the canonical joints (source joint per canonical joint ``idx``, -1 unmapped): every source
+    joint's onto its nearest mapped ancestor (or itself), summed per vertex, the largest :data:`MAX_INFLUENCES`
+    kept and renormalised: ``joints``, ``weights`` ``(V, 8)`` and ``{source joint: canonical joint}`` of each
+    weighted source joint that went to an ancestor."""
+    sk = asset.skeleton
     fold = np.zeros(sk.n_joints, dtype=np.intp)
     canonical_of = {int(j): c for c, j in enumerate(idx) if j >= 0}
     for j in range(sk.n_joints):  # topological order: parents first
         fold[j] = canonical_of.get(j, fold[sk.parents[j]] if sk.parents[j] >= 0 else 0)
     n_v = len(asset.vertices)
-    dense = np.zeros((n_v, n))
+    dense = np.zeros((n_v, len(CANONICAL_NAMES)))
     np.add.at(dense, (np.repeat(np.arange(n_v), asset.joints.shape[1]), fold[asset.joints].ravel()),
               asset.weights.ravel())
     order = np.argsort(-dense, axis=1, kind="stable")[:, :MAX_INFLUENCES]
     weights = np.take_along_axis(dense, order, axis=1)
     totals = weights.sum(axis=1)
     if np.any(totals <= 0):
-        raise CharacterError(f"{src}: {int(np.sum(totals <= 0))} vertices have no skin weight")
+        raise CharacterError(f"{asset.source}: {int(np.sum(totals <= 0))} vertices have no skin weight")
     weights /= totals[:, None]
     joints = np.where(weights > 0, order, 0)
     weighted = np.unique(asset.joints[asset.weights > 0])
     folded = {sk.names[j]: RIG_NAMES[fold[j]] for j in weighted if j not in canonical_of}
+    return joints, weights, folded
 
-    # Tails of the mapped joints: the farthest source child, else the farthest vertex whose largest weight is
-    # on the joint, else the parent bone continued.
-    vertices = rotate(world, asset.vertices) * scale
-    heads = np.where(mapped[:, None], pos[np.maximum(idx, 0)], 0.0)
+
+def _mapped_tails(sk: Skeleton, idx: NDArray[np.intp], pos: Array, heads: Array, vertices: Array,
+                  dominant: NDArray[np.intp]) -> Array:
+    """Tails ``(31, 3)`` of the mapped canonical joints (the others: their heads, for :func:`_fill_missing`): the
+    farthest source child, else the farthest vertex whose largest weight (``dominant`` joint per vertex) is on the
+    joint, else the parent bone continued; ``pos`` the source joints' positions, ``heads`` the canonical ones'."""
+    mapped = idx >= 0
     tails = heads.copy()
-    dominant = joints[:, 0]
     source_children = [np.flatnonzero(sk.parents == j) for j in range(sk.n_joints)]
-    for c in range(n):  # 31 joints, once per character
+    for c in range(len(CANONICAL_NAMES)):  # 31 joints, once per character
         if not mapped[c]:
             continue
         kids = source_children[idx[c]]
@@ -190,15 +216,4 @@ def character_from_gltf(asset: GltfAsset, explicit: Mapping[str, str] | None = N
             while not mapped[p]:
                 p = int(CANONICAL_PARENTS[p])
             tails[c] = heads[c] + LEAF_EXTENSION * (heads[c] - heads[p])
-    _fill_missing(heads, tails, mapped.copy())
-    short = [RIG_NAMES[c] for c in range(n) if np.linalg.norm(tails[c] - heads[c]) < 1e-9
-             and not np.any(CANONICAL_PARENTS == c)]
-    if short:
-        raise CharacterError(f"{src}: the leaf joints {short} have no length (their parent joint is at the same "
-                             f"place); give them a child joint (an end joint) where the bone ends")
-
-    normals = rotate(world, asset.normals)
-    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-    character = Character(RIG_NAMES, CANONICAL_PARENTS.copy(), heads, tails, vertices, normals,
-                          np.asarray(asset.faces, np.intp), joints.astype(np.intp), weights)
-    return MappedCharacter(character, mapping, units, up_axis, scale, folded)
+    return tails

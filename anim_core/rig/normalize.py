@@ -7,7 +7,7 @@ the character's left is +X (:func:`normalize_motion`), and a BVH file as tools w
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -74,20 +74,30 @@ def canonical_frame(rest_positions: Array, source_index: NDArray[np.intp], up_ax
         up_axis = detect_up_axis(rest_positions, head, hips)
     if up_axis not in ("y", "z"):
         raise RigMapError(f"up axis must be 'y' or 'z', got {up_axis!r}")
-    # World change to Y up: Z up (x, y, z) -> (x, z, -y) is a -90 degree turn about x.
-    to_y = identity() if up_axis == "y" else quat_from_axis_angle(np.array([1.0, 0.0, 0.0]), -np.pi / 2)
-    p = rotate(to_y, rest_positions)
-    left = p[idx[CANONICAL_NAMES.index("LeftUpLeg")]] - p[idx[CANONICAL_NAMES.index("RightUpLeg")]]
-    # Rigs are authored facing along an axis: the turn is snapped to quarter turns so that a subject's slight
-    # asymmetry does not turn the motion.
-    facing = float(np.round(np.arctan2(left[2], left[0]) / (np.pi / 2)) * (np.pi / 2))
-    world = quat_mul(quat_from_axis_angle(np.array([0.0, 1.0, 0.0]), facing), to_y)
+    facing, world = _facing_turn(_to_y_up(up_axis), rest_positions, idx)
     height = float(np.ptp(rotate(world, rest_positions)[:, 1]))
     if units is None:
         units = detect_units(height)
     if units not in UNITS:
         raise RigMapError(f"units must be one of {', '.join(UNITS)}, got {units!r}")
     return world, up_axis, units, facing
+
+
+def _to_y_up(up_axis: str) -> Array:
+    """The world change ``(4,)`` to Y up from ``up_axis`` ``"y"`` or ``"z"``."""
+    # Z up (x, y, z) -> (x, z, -y) is a -90 degree turn about x.
+    return identity() if up_axis == "y" else quat_from_axis_angle(np.array([1.0, 0.0, 0.0]), -np.pi / 2)
+
+
+def _facing_turn(to_y: Array, rest_positions: Array, source_index: NDArray[np.intp]) -> tuple[float, Array]:
+    """``(facing, world)``: the turn about up (radians) that puts the left hip of ``rest_positions`` ``(J, 3)``
+    (Y up after ``to_y``) at +X, and ``world`` ``(4,)``, ``to_y`` followed by that turn."""
+    p = rotate(to_y, rest_positions)
+    left = p[source_index[CANONICAL_NAMES.index("LeftUpLeg")]] - p[source_index[CANONICAL_NAMES.index("RightUpLeg")]]
+    # Rigs are authored facing along an axis: the turn is snapped to quarter turns so that a subject's slight
+    # asymmetry does not turn the motion.
+    facing = float(np.round(np.arctan2(left[2], left[0]) / (np.pi / 2)) * (np.pi / 2))
+    return facing, quat_mul(quat_from_axis_angle(np.array([0.0, 1.0, 0.0]), facing), to_y)
 
 
 #: Joint extent of a standing person (head joint to toe joints) per leg length (thigh + shin bone), as on the CMU
@@ -180,19 +190,7 @@ def normalize_motion(skeleton: Skeleton, rotations: Array, root_translation: Arr
     those give the same canonical motion.
     """
     rotations = np.asarray(rotations, dtype=np.float64)
-    n_frames = rotations.shape[0]
-    if n_frames > MAX_FRAMES:
-        raise RigMapError(f"{source}: {n_frames} frames; at most {MAX_FRAMES} are supported")
-    if n_frames == 0:
-        raise RigMapError(f"{source}: the motion has no frames")
-    if not (np.all(np.isfinite(rotations)) and np.all(np.isfinite(root_translation))):
-        raise RigMapError(f"{source}: the motion holds NaN or infinite values")
-    if rest not in (None, "zero", "motion"):
-        raise ValueError(f"rest must be None, 'zero' or 'motion', got {rest!r}")
-    if up_axis not in (None, "y", "z"):
-        raise RigMapError(f"up axis must be 'y' or 'z', got {up_axis!r}")
-    if units is not None and units not in UNITS:
-        raise RigMapError(f"units must be one of {', '.join(UNITS)}, got {units!r}")
+    _check_motion(rotations, root_translation, source, units, up_axis, rest)
     g_rot, g_pos = skeleton.forward_kinematics(rotations, root_translation)
     rest_rot, rest_pos = skeleton.rest_global()
 
@@ -209,8 +207,7 @@ def normalize_motion(skeleton: Skeleton, rotations: Array, root_translation: Arr
     idx = mapping.source_index
     if up_axis is None:
         up_axis = motion_up_axis(g_pos, idx)
-    # World change to Y up: Z up (x, y, z) -> (x, z, -y) is a -90 degree turn about x.
-    to_y = identity() if up_axis == "y" else quat_from_axis_angle(np.array([1.0, 0.0, 0.0]), -np.pi / 2)
+    to_y = _to_y_up(up_axis)
     reference: int | None = None
     if rest == "motion" or (rest is None and uprightness(rotate(to_y, rest_pos), idx) < STANDING_COS):
         reference = int(np.argmax(uprightness(rotate(to_y, g_pos), idx)))
@@ -222,15 +219,48 @@ def normalize_motion(skeleton: Skeleton, rotations: Array, root_translation: Arr
             units = units_from_legs(leg_length(skeleton, idx))
         except RigMapError as exc:
             raise RigMapError(f"{source}: {exc}") from None
-    p = rotate(to_y, rest_pos)
-    left = p[idx[CANONICAL_NAMES.index("LeftUpLeg")]] - p[idx[CANONICAL_NAMES.index("RightUpLeg")]]
-    # Rigs are authored facing along an axis: the turn is snapped to quarter turns so that a subject's slight
-    # asymmetry does not turn the motion.
-    facing = float(np.round(np.arctan2(left[2], left[0]) / (np.pi / 2)) * (np.pi / 2))
-    world = quat_mul(quat_from_axis_angle(np.array([0.0, 1.0, 0.0]), facing), to_y)
+    facing, world = _facing_turn(to_y, rest_pos, idx)
     p = rotate(world, rest_pos)
-    hips = idx[0]
+    offsets, local, own = _canonical_motion(world, g_rot, g_pos, rest_rot, p, idx)
+    root = rotate(world, g_pos[:, idx[0]])
+    ends = _canonical_end_sites(skeleton, idx, end_sites, world, rest_rot, p)
+    bvh = bvh_from_poses(Skeleton(CANONICAL_NAMES, CANONICAL_PARENTS, offsets), local, root, frame_time, ends,
+                         source)
+    notes = []
+    if reference is not None:
+        notes.append(f"the rest (all-zero) pose is not a standing pose: the motion is taken relative to the pose "
+                     f"of frame {reference}" if rest is None else f"rest pose taken from frame {reference}")
+    if abs(facing) > 1e-9:
+        notes.append(f"turned {np.degrees(facing):.1f} degrees about up so the character's left is +X")
+    return Normalized(bvh, mapping, units, up_axis, UNITS[units][0], facing, tuple(notes), reference, own)
 
+
+def _check_motion(rotations: Array, root_translation: Array, source: str, units: str | None, up_axis: str | None,
+                  rest: str | None) -> None:
+    """:func:`normalize_motion`'s arguments checked before any work: frames, finite values, the options."""
+    n_frames = rotations.shape[0]
+    if n_frames > MAX_FRAMES:
+        raise RigMapError(f"{source}: {n_frames} frames; at most {MAX_FRAMES} are supported")
+    if n_frames == 0:
+        raise RigMapError(f"{source}: the motion has no frames")
+    if not (np.all(np.isfinite(rotations)) and np.all(np.isfinite(root_translation))):
+        raise RigMapError(f"{source}: the motion holds NaN or infinite values")
+    if rest not in (None, "zero", "motion"):
+        raise ValueError(f"rest must be None, 'zero' or 'motion', got {rest!r}")
+    if up_axis not in (None, "y", "z"):
+        raise RigMapError(f"up axis must be 'y' or 'z', got {up_axis!r}")
+    if units is not None and units not in UNITS:
+        raise RigMapError(f"units must be one of {', '.join(UNITS)}, got {units!r}")
+
+
+def _canonical_motion(world: Array, g_rot: Array, g_pos: Array, rest_rot: Array, p: Array,
+                      idx: NDArray[np.intp]) -> tuple[Array, Array, Array]:
+    """The canonical skeleton's rest offsets ``(31, 3)``, local rotations ``(F, 31, 4)`` and joint positions by the
+    source's own forward kinematics ``(F, 31, 3)`` (source units), from the source's global rotations and positions
+    ``g_rot``/``g_pos``, its reference pose's global rotations ``rest_rot`` and positions ``p`` (in the new
+    world), ``world`` the turn into the canonical world and ``idx`` the source joint per canonical joint (-1: none,
+    the joint then sits on its canonical parent and turns with it)."""
+    n_frames = g_rot.shape[0]
     # Source global rotation relative to the reference, in the new world: W G G_ref^-1 W^-1.
     aligned = quat_mul(quat_mul(world, quat_mul(g_rot, quat_conj(rest_rot))), quat_conj(world))
     n = len(CANONICAL_NAMES)
@@ -253,9 +283,15 @@ def normalize_motion(skeleton: Skeleton, rotations: Array, root_translation: Arr
     offsets[0] = 0.0  # the root translation is the hips' place, whatever pose the rest is
     local = c_glob.copy()
     local[:, 1:] = quat_mul(quat_conj(c_glob[:, CANONICAL_PARENTS[1:]]), c_glob[:, 1:])
-    root = rotate(world, g_pos[:, hips])
+    return offsets, local, own
+
+
+def _canonical_end_sites(skeleton: Skeleton, idx: NDArray[np.intp], end_sites: Mapping[int, Array], world: Array,
+                         rest_rot: Array, p: Array) -> dict[int, Array]:
+    """End Site ``(3,)`` of each canonical leaf in the canonical world: the source joint's End Site, else the bone
+    to its first child in the reference pose ``p`` (new world), else zero."""
     ends: dict[int, Array] = {}
-    for c in range(n):
+    for c in range(len(CANONICAL_NAMES)):
         if c in CANONICAL_PARENTS:
             continue
         j = idx[c]
@@ -266,15 +302,7 @@ def normalize_motion(skeleton: Skeleton, rotations: Array, root_translation: Arr
             ends[c] = p[skeleton.children(j)[0]] - p[j]
         else:
             ends[c] = np.zeros(3)
-    bvh = bvh_from_poses(Skeleton(CANONICAL_NAMES, CANONICAL_PARENTS, offsets), local, root, frame_time, ends,
-                         source)
-    notes = []
-    if reference is not None:
-        notes.append(f"the rest (all-zero) pose is not a standing pose: the motion is taken relative to the pose "
-                     f"of frame {reference}" if rest is None else f"rest pose taken from frame {reference}")
-    if abs(facing) > 1e-9:
-        notes.append(f"turned {np.degrees(facing):.1f} degrees about up so the character's left is +X")
-    return Normalized(bvh, mapping, units, up_axis, UNITS[units][0], facing, tuple(notes), reference, own)
+    return ends
 
 
 def _bvh_motion(bvh: Bvh) -> tuple[Skeleton, Array, Array, dict[int, Array], list[str]]:
@@ -316,22 +344,7 @@ def _bvh_motion(bvh: Bvh) -> tuple[Skeleton, Array, Array, dict[int, Array], lis
     static = s.offsets + np.where(restated[:, None], 0.0, values[0])  # translation of joints with constant channels
     static[0] = s.offsets[0]
     moving = [j for j in range(1, n_joints) if varying[j]]
-    children = [s.children(j) for j in range(n_joints)]
-    top = 0
-    if moving:
-        # The joint that carries the body: the first one that translates, if everything above it is still (a
-        # static reference root); else the first branching joint (the hips) below a chain of single joints whose
-        # motion, whatever it is, becomes the root's.
-        first = moving[0]
-        ancestors = joint_chain(s.parents, first, -1)[:-1]
-        still = [not varying[a] and np.allclose(rot[:, a], rot[:1, a], atol=1e-12) for a in ancestors]
-        still[0] = still[0] and not np.any(np.abs(values[:, 0] - values[:1, 0]) > 1e-6 * scale[0])
-        if all(still):
-            top = first
-        else:
-            top = 0
-            while len(children[top]) == 1:
-                top = children[top][0]
+    top = _body_root(s, moving, varying, rot, values, scale)
     notes: list[str] = []
     for j in moving:
         if j == top or joint_chain(s.parents, top, j):
@@ -348,8 +361,42 @@ def _bvh_motion(bvh: Bvh) -> tuple[Skeleton, Array, Array, dict[int, Array], lis
     if top == 0:
         skeleton = Skeleton(names, s.parents, static)
         return skeleton, rot, padded[:, columns[0]], dict(bvh.end_sites), notes
-    # Re-root at ``top``: the joints above it become one transform per frame.
-    q, t = identity((n_frames,)), np.zeros((n_frames, 3))
+    sub, rotations, root, ends, dropped = _reroot(s, bvh.end_sites, top, rot, static, translation)
+    notes.append(f"{', '.join(repr(d) for d in dropped)} above {names[top]!r} left out (its motion moved into "
+                 f"{names[top]!r}, the new root)")
+    return sub, rotations, root, ends, notes
+
+
+def _body_root(s: Skeleton, moving: list[int], varying: NDArray[np.bool_], rot: Array, values: Array,
+               scale: Array) -> int:
+    """The joint that carries the body: the first one that translates (``moving``: joints below the root whose
+    position channels ``values`` ``(F, J, 3)`` vary), if everything above it is still (a static reference root);
+    else the first branching joint (the hips) below a chain of single joints whose motion, whatever it is,
+    becomes the root's.  ``rot``: local rotations ``(F, J, 4)``; ``scale``: ``(J,)`` the rounding scale per joint."""
+    if not moving:
+        return 0
+    first = moving[0]
+    ancestors = joint_chain(s.parents, first, -1)[:-1]
+    still = [not varying[a] and np.allclose(rot[:, a], rot[:1, a], atol=1e-12) for a in ancestors]
+    still[0] = still[0] and not np.any(np.abs(values[:, 0] - values[:1, 0]) > 1e-6 * scale[0])
+    if all(still):
+        return first
+    children = [s.children(j) for j in range(s.n_joints)]
+    top = 0
+    while len(children[top]) == 1:
+        top = children[top][0]
+    return top
+
+
+def _reroot(s: Skeleton, end_sites: Mapping[int, Array], top: int, rot: Array, static: Array,
+            translation: Callable[[int], Array]) -> tuple[Skeleton, Array, Array, dict[int, Array], list[str]]:
+    """The motion re-rooted at joint ``top``: the joints above it become one transform per frame, folded into
+    ``top``'s rotation and translation.  Returns the skeleton of ``top`` and the joints below it (``static``
+    ``(J, 3)`` their offsets), its local rotations ``(F, J', 4)`` (of ``rot`` ``(F, J, 4)``), root translation
+    ``(F, 3)``, End Sites, and the names of the joints left out; ``translation(j)`` ``(F, 3)`` is joint ``j``'s in
+    its parent's frame."""
+    names, n_joints = s.names, s.n_joints
+    q, t = identity((rot.shape[0],)), np.zeros((rot.shape[0], 3))
     for a in joint_chain(s.parents, top, -1)[:-1]:
         t = t + rotate(q, translation(a))
         q = quat_mul(q, rot[:, a])
@@ -363,9 +410,7 @@ def _bvh_motion(bvh: Bvh) -> tuple[Skeleton, Array, Array, dict[int, Array], lis
     rotations[:, 0] = quat_mul(q, rot[:, top])
     root = t + rotate(q, own)
     dropped = [names[j] for j in range(n_joints) if j not in new]
-    notes.append(f"{', '.join(repr(d) for d in dropped)} above {names[top]!r} left out (its motion moved into "
-                 f"{names[top]!r}, the new root)")
-    return sub, rotations, root, {new[j]: e for j, e in bvh.end_sites.items() if j in new}, notes
+    return sub, rotations, root, {new[j]: e for j, e in end_sites.items() if j in new}, dropped
 
 
 def normalize_bvh(bvh: Bvh, explicit: Mapping[str, str] | None = None, units: str | None = None,

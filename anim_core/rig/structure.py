@@ -118,6 +118,48 @@ def structural_anchors(parents: NDArray[np.intp], positions: Array) -> dict[str,
     size = float(np.ptp(pos, axis=0).max())
     if size <= 0:
         raise RigMapError("all joints are at one place: no structure to map")
+    hips, chest, hip_branches, spine, arm_branches = _hips_and_chest(parents, children, below, pos, size)
+    up = pos[chest] - pos[hips]
+    if np.linalg.norm(up) < 1e-12:
+        raise RigMapError(f"the hips (joint {hips}) and the chest (joint {chest}) are at one place: no up")
+    up /= np.linalg.norm(up)
+    lateral = [float(np.linalg.norm(_across(pos[below[c]] - pos[chest], up), axis=1).max()) for c in arm_branches]
+    order = np.argsort(lateral)
+    if lateral[order[0]] > 0.5 * lateral[order[1]]:
+        raise RigMapError(f"of the chest's (joint {chest}) branches none keeps clearly closer to the spine's line "
+                          f"than the others (reach across {', '.join(f'{x:.3g}' for x in lateral)}): the neck is "
+                          f"not told from the arms")
+    neck = arm_branches[int(order[0])]
+    arms = [c for c in arm_branches if c != neck]
+    legs = [c for c in hip_branches if c != spine]
+    feet = [_foot(_main_chain(parents, below[c], pos, hips), pos, hips, up) for c in legs]
+    hands = [_end_of_chain(_main_chain(parents, below[c], pos, chest), children, pos, 0.5) for c in arms]
+    head = _end_of_chain(_main_chain(parents, below[neck], pos, chest), children, pos, 0.0)
+    left, sockets, shoulders = _facing_left(parents, below, pos, hips, chest, head, legs, arms, size)
+    elbows = [_elbow(parents, pos, chest, h) for h in hands]
+    out = {"Hips": hips, "Spine1": chest, "Head": head}
+    for what, pair, at in (("Foot", feet, sockets), ("Hand", hands, shoulders), ("ForeArm", elbows, shoulders)):
+        d = pos[at[0]] - pos[at[1]]
+        side = float(d @ left)
+        if abs(side) < 0.5 * np.linalg.norm(d):
+            raise RigMapError(f"the two {'legs' if what == 'Foot' else 'arms'} (joints {at[0]} and {at[1]}) are not "
+                              f"side by side across the facing: left and right cannot be told from the geometry")
+        first, second = pair if side > 0 else pair[::-1]
+        if first is not None and second is not None:
+            out["Left" + what], out["Right" + what] = first, second
+    return out
+
+
+def _across(v: Array, up: Array) -> Array:
+    """``v`` ``(..., 3)`` with its part along the unit ``up`` taken out."""
+    return v - (v @ up)[..., None] * up
+
+
+def _hips_and_chest(parents: NDArray[np.intp], children: list[list[int]], below: list[list[int]], pos: Array,
+                    size: float) -> tuple[int, int, list[int], int, list[int]]:
+    """``(hips, chest, the hips' three branches, the spine's branch of them, the chest's three branches)``: the
+    highest joint with three branches and the highest such joint of its one branch that holds another."""
+    n = len(parents)
     three = [j for j in range(n) if len(_branches(children, below, pos, j, size)) >= 3]
     if not three:
         raise RigMapError("no joint has three branches (two legs and a spine): not a humanoid tree")
@@ -133,80 +175,61 @@ def structural_anchors(parents: NDArray[np.intp], positions: Array) -> dict[str,
     if len(arm_branches) != 3:
         raise RigMapError(f"the chest (joint {chest}) has {len(arm_branches)} branches; two arms and a neck are "
                           f"needed to map by structure")
-    up = pos[chest] - pos[hips]
-    if np.linalg.norm(up) < 1e-12:
-        raise RigMapError(f"the hips (joint {hips}) and the chest (joint {chest}) are at one place: no up")
-    up /= np.linalg.norm(up)
+    return hips, chest, hip_branches, spines[0], arm_branches
 
-    def across(v: Array) -> Array:
-        return v - (v @ up)[..., None] * up
-    lateral = [float(np.linalg.norm(across(pos[below[c]] - pos[chest]), axis=1).max()) for c in arm_branches]
-    order = np.argsort(lateral)
-    if lateral[order[0]] > 0.5 * lateral[order[1]]:
-        raise RigMapError(f"of the chest's (joint {chest}) branches none keeps clearly closer to the spine's line "
-                          f"than the others (reach across {', '.join(f'{x:.3g}' for x in lateral)}): the neck is "
-                          f"not told from the arms")
-    neck = arm_branches[int(order[0])]
-    arms = [c for c in arm_branches if c != neck]
-    legs = [c for c in hip_branches if c != spines[0]]
 
-    def foot(branch: int) -> int:
-        chain = _main_chain(parents, below[branch], pos, hips)
-        height = (pos[chain] - pos[hips]) @ up
-        for k in range(len(chain) - 1):
-            d = pos[chain[k + 1]] - pos[chain[k]]
-            if height[k] < 0.5 * height.min() and abs(d @ up) < np.linalg.norm(across(d)):
-                return chain[k]
-        return chain[-1]
-    feet = [foot(c) for c in legs]
-    hands = [_end_of_chain(_main_chain(parents, below[c], pos, chest), children, pos, 0.5) for c in arms]
-    head = _end_of_chain(_main_chain(parents, below[neck], pos, chest), children, pos, 0.0)
+def _foot(chain: list[int], pos: Array, hips: int, up: Array) -> int:
+    """The foot on a leg's ``chain`` (hips to its farthest joint): the joint below half the leg's drop from which
+    the bone goes more across than down (to the toes), else the chain's last joint."""
+    height = (pos[chain] - pos[hips]) @ up
+    for k in range(len(chain) - 1):
+        d = pos[chain[k + 1]] - pos[chain[k]]
+        if height[k] < 0.5 * height.min() and abs(d @ up) < np.linalg.norm(_across(d, up)):
+            return chain[k]
+    return chain[-1]
 
-    # Facing: the legs' sockets and the shoulders stand in front of the spine.  Up now from the hips to the head
-    # (closer to the vertical than the chest, which sits back), and each compared with the spine joint at its
-    # height, so that little of a height difference leaks into "forward" through a leaning trunk.
+
+def _facing_left(parents: NDArray[np.intp], below: list[list[int]], pos: Array, hips: int, chest: int, head: int,
+                 legs: list[int], arms: list[int], size: float) -> tuple[Array, list[int], list[int]]:
+    """``(left (3,), the legs' sockets, the shoulders)``: the legs' sockets and the shoulders stand in front of the
+    spine, so forward is from the spine to them and left is up × forward."""
+    # Up now from the hips to the head (closer to the vertical than the chest, which sits back), and each compared
+    # with the spine joint at its height, so that little of a height difference leaks into "forward" through a
+    # leaning trunk.
     up = pos[head] - pos[hips]
     up /= max(float(np.linalg.norm(up)), 1e-12)
 
+    # Each the chain's first joint if none qualifies (only on geometry far from a body, as heavy noise makes).
     def socket(branch: int) -> int:  # the last joint of the leg at the hips' level (a quarter of its drop)
         chain = _main_chain(parents, below[branch], pos, hips)
         height = (pos[chain] - pos[hips]) @ up
-        return chain[int(np.flatnonzero(height >= 0.25 * height.min()).max())]
+        return chain[int(np.flatnonzero(height >= 0.25 * height.min()).max(initial=0))]
 
     def shoulder(branch: int) -> int:  # the last joint of the arm within a third of its reach across the trunk
         chain = _main_chain(parents, below[branch], pos, chest)
-        far = np.linalg.norm(across(pos[chain] - pos[chest]), axis=1)
-        return chain[int(np.flatnonzero(far <= far.max() / 3).max())]
+        far = np.linalg.norm(_across(pos[chain] - pos[chest], up), axis=1)
+        return chain[int(np.flatnonzero(far <= far.max() / 3).max(initial=0))]
     sockets = [socket(c) for c in legs]
     shoulders = [shoulder(c) for c in arms]
     spine = joint_chain(parents, chest, hips)
     low_back = spine[0] if len(spine) > 1 else hips
-    forward = across(pos[sockets].mean(axis=0) - pos[low_back]) + across(pos[shoulders].mean(axis=0) - pos[chest])
+    forward = (_across(pos[sockets].mean(axis=0) - pos[low_back], up)
+               + _across(pos[shoulders].mean(axis=0) - pos[chest], up))
     if np.linalg.norm(forward) < FACING_MIN * size:
         raise RigMapError(f"the legs' sockets and the shoulders stand {np.linalg.norm(forward):.3g} units in front "
                           f"of the spine, less than {FACING_MIN:.0%} of the figure's size: left and right cannot be "
                           f"told from the geometry")
-    left = np.cross(up, forward / np.linalg.norm(forward))
-    def elbow(hand: int) -> int | None:
-        """The elbow: within the straight stretch of the arm that ends at the hand (upper arm and forearm; the
-        collar bone leaves it), the joint that splits it into the two longest parts.  Lengths alone do not tell:
-        CMU's forearm is shorter than its collar bone."""
-        chain = joint_chain(parents, hand, chest)
-        for a in chain[:-2]:
-            if on_segment(pos, chain, a, hand):
-                inner = chain[chain.index(a) + 1:-1]
-                return max(inner, key=lambda j: min(np.linalg.norm(pos[j] - pos[a]),
-                                                    np.linalg.norm(pos[hand] - pos[j])))
-        return None
-    elbows = [elbow(h) for h in hands]
-    out = {"Hips": hips, "Spine1": chest, "Head": head}
-    for what, pair, at in (("Foot", feet, sockets), ("Hand", hands, shoulders), ("ForeArm", elbows, shoulders)):
-        d = pos[at[0]] - pos[at[1]]
-        side = float(d @ left)
-        if abs(side) < 0.5 * np.linalg.norm(d):
-            raise RigMapError(f"the two {'legs' if what == 'Foot' else 'arms'} (joints {at[0]} and {at[1]}) are not "
-                              f"side by side across the facing: left and right cannot be told from the geometry")
-        first, second = pair if side > 0 else pair[::-1]
-        if first is not None and second is not None:
-            out["Left" + what], out["Right" + what] = first, second
-    return out
+    return np.cross(up, forward / np.linalg.norm(forward)), sockets, shoulders
+
+
+def _elbow(parents: NDArray[np.intp], pos: Array, chest: int, hand: int) -> int | None:
+    """The elbow: within the straight stretch of the arm that ends at the hand (upper arm and forearm; the collar
+    bone leaves it), the joint that splits it into the two longest parts.  Lengths alone do not tell: CMU's
+    forearm is shorter than its collar bone."""
+    chain = joint_chain(parents, hand, chest)
+    for a in chain[:-2]:
+        if on_segment(pos, chain, a, hand):
+            inner = chain[chain.index(a) + 1:-1]
+            return max(inner, key=lambda j: min(np.linalg.norm(pos[j] - pos[a]),
+                                                np.linalg.norm(pos[hand] - pos[j])))
+    return None

@@ -27,6 +27,7 @@ from .kinds import (
     SplineRuntime,
     SpringRuntime,
     TableRuntime,
+    animated_joints,
     bone_lod_mask,
     check_inputs,
     pose_crowd,
@@ -50,7 +51,7 @@ if numba is not None:  # compiled only where numba is present
 __all__ = [
     "BONE_LODS", "C2_TOLERANCE_DEG", "FIT_TOLERANCE_DEG", "FOOT_LOCK_TOLERANCE_DEG", "AnyRuntime", "C2Runtime",
     "FootLockRuntime", "HeldCrowd", "HeldRuntime", "QuantizedRuntime", "SplineRuntime", "SpringRuntime", "TableRuntime",
-    "angle_error_deg",
+    "angle_error_deg", "animated_joints",
     "bone_lod_mask", "c2_runtime", "check_inputs", "crouch_params", "exact_global", "foot_lock_runtime", "lod_pose",
     "max_error_deg", "period", "pose_crowd", "quantized_runtime", "runtime_for", "sample_times", "spline_runtime",
     "spring_runtime",

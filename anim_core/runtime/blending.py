@@ -32,6 +32,8 @@ F32 = NDArray[np.float32]
 Array = NDArray[np.float64]
 
 if numba is not None:
+    from .kernels import fk_joint
+
     _njit = numba.njit(cache=True, fastmath=False)
 
     @_njit
@@ -117,26 +119,8 @@ if numba is not None:
     def _local_to_model_kernel(local, root, parents, offsets, out_rot, out_pos):
         for c in range(local.shape[0]):
             for j in range(local.shape[1]):
-                w, x, y, z = local[c, j, 0], local[c, j, 1], local[c, j, 2], local[c, j, 3]
-                p = parents[j]
-                ox, oy, oz = offsets[j, 0], offsets[j, 1], offsets[j, 2]
-                if p < 0:
-                    out_rot[c, j, 0], out_rot[c, j, 1], out_rot[c, j, 2], out_rot[c, j, 3] = w, x, y, z
-                    out_pos[c, j, 0], out_pos[c, j, 1], out_pos[c, j, 2] = (ox + root[c, 0], oy + root[c, 1],
-                                                                            oz + root[c, 2])
-                    continue
-                pw, px, py, pz = out_rot[c, p, 0], out_rot[c, p, 1], out_rot[c, p, 2], out_rot[c, p, 3]
-                out_rot[c, j, 0] = pw * w - px * x - py * y - pz * z
-                out_rot[c, j, 1] = pw * x + px * w + py * z - pz * y
-                out_rot[c, j, 2] = pw * y - px * z + py * w + pz * x
-                out_rot[c, j, 3] = pw * z + px * y - py * x + pz * w
-                tx = np.float32(2.0) * (py * oz - pz * oy)
-                ty = np.float32(2.0) * (pz * ox - px * oz)
-                tz = np.float32(2.0) * (px * oy - py * ox)
-                out_pos[c, j, 0] = out_pos[c, p, 0] + ox + pw * tx + (py * tz - pz * ty)
-                out_pos[c, j, 1] = out_pos[c, p, 1] + oy + pw * ty + (pz * tx - px * tz)
-                out_pos[c, j, 2] = out_pos[c, p, 2] + oz + pw * tz + (px * ty - py * tx)
-
+                fk_joint(c, j, local[c, j, 0], local[c, j, 1], local[c, j, 2], local[c, j, 3],
+                         root[c, 0], root[c, 1], root[c, 2], parents, offsets, out_rot, out_pos)
 
 def _need_numba() -> None:
     if numba is None:  # pragma: no cover - numba is a dependency

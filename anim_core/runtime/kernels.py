@@ -34,7 +34,7 @@ if numba is not None:
         return min(max(t, 0.0), duration), 0.0
 
     @_njit
-    def _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos):
+    def fk_joint(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos):
         """Write joint ``j`` of character ``c`` from its local rotation (and, for the root, its translation)."""
         p = parents[j]
         ox, oy, oz = offsets[j, 0], offsets[j, 1], offsets[j, 2]
@@ -100,7 +100,7 @@ if numba is not None:
                 w, x, y, z = w * inv, x * inv, y * inv, z * inv
             else:
                 w, x, y, z = keys[0, j, 0], keys[0, j, 1], keys[0, j, 2], keys[0, j, 3]
-            _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
+            fk_joint(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
 
     @_njit
     def _root_spline(ct, root_times, root_coef):
@@ -154,7 +154,7 @@ if numba is not None:
                                   mm[3, 0] * w + mm[3, 1] * x + mm[3, 2] * y + mm[3, 3] * z)
             else:
                 w, x, y, z = ctrl[0, j, 0], ctrl[0, j, 1], ctrl[0, j, 2], ctrl[0, j, 3]
-            _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
+            fk_joint(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
 
     @_njit
     def crouch_path_parameter(ct, params):
@@ -193,7 +193,7 @@ if numba is not None:
                 z = wa * keys[s, j, 3] + wb * keys[s + 1, j, 3]
             else:
                 w, x, y, z = keys[0, j, 0], keys[0, j, 1], keys[0, j, 2], keys[0, j, 3]
-            _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
+            fk_joint(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
 
     @_njit
     def _dequantize(codes, low, step, k, j):
@@ -226,7 +226,7 @@ if numba is not None:
                 w, x, y, z = w * inv, x * inv, y * inv, z * inv
             else:
                 w, x, y, z = _dequantize(codes, low, step, 0, j)
-            _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
+            fk_joint(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
 
     @_njit
     def _c2_one(c, knots, control, steps, root_times, root_coef, velocity, params, times, parents, offsets,
@@ -265,7 +265,7 @@ if numba is not None:
                 w, x, y, z = _times_exp(w, x, y, z, b3, steps, i3, j)
             else:
                 w, x, y, z = control[0, j, 0], control[0, j, 1], control[0, j, 2], control[0, j, 3]
-            _fk(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
+            fk_joint(c, j, w, x, y, z, rx, ry, rz, parents, offsets, out_rot, out_pos)
 
     @_njit
     def _times_exp(w, x, y, z, weight, steps, i, j):
@@ -348,89 +348,119 @@ if numba is not None:
             tz = ez + weight * (_hermite(values, slopes, i, leg, 2, h00, h10, h01, h11) + ik[6] * travel - ez)
             a = np.sqrt(offsets[m, 0] ** 2 + offsets[m, 1] ** 2 + offsets[m, 2] ** 2)
             b = np.sqrt(offsets[e, 0] ** 2 + offsets[e, 1] ** 2 + offsets[e, 2] ** 2)
-            # 1. clamped (and softened) distance and direction to the target
-            dx, dy, dz = tx - sx, ty - sy, tz - sz
-            dist = np.sqrt(dx * dx + dy * dy + dz * dz)
-            if dist > 1e-12:
-                dx, dy, dz = dx / dist, dy / dist, dz / dist
-            else:
-                fx, fy, fz = ex - sx, ey - sy, ez - sz
-                fn = np.sqrt(fx * fx + fy * fy + fz * fz)
-                if fn > 1e-12:
-                    dx, dy, dz = fx / fn, fy / fn, fz / fn
-                else:
-                    dx, dy, dz = _perpendicular(mx - sx, my - sy, mz - sz)
-            if soft > 0.0 and dist > a + b - soft:
-                dist = a + b - soft - soft * np.expm1(-(dist - (a + b - soft)) / soft)
-            dist = min(max(dist, abs(a - b) + 1e-9 * (a + b)), (a + b) * (1.0 - 1e-9))
-            # 2. the knee's plane (normal ``side``): the animated one turned to the hinge's side, easing into the
-            #    hinge's own as the animated leg straightens; the shin put at the solved angle in it
+            dx, dy, dz, dist = _leg_reach(tx - sx, ty - sy, tz - sz, ex - sx, ey - sy, ez - sz, mx - sx, my - sy,
+                                          mz - sz, a, b, soft)
             thx, thy, thz = mx - sx, my - sy, mz - sz
             shx, shy, shz = ex - mx, ey - my, ez - mz
             ux, uy, uz = thx / a, thy / a, thz / a
-            cx, cy, cz = thy * shz - thz * shy, thz * shx - thx * shz, thx * shy - thy * shx
-            cn = np.sqrt(cx * cx + cy * cy + cz * cz)
             hx, hy, hz = _qrot(np.float64(out_rot[c, m, 0]), np.float64(out_rot[c, m, 1]),
                                np.float64(out_rot[c, m, 2]), np.float64(out_rot[c, m, 3]),
                                np.float64(hinges[leg, 0]), np.float64(hinges[leg, 1]), np.float64(hinges[leg, 2]))
-            hu = hx * ux + hy * uy + hz * uz
-            qx, qy, qz = hx - hu * ux, hy - hu * uy, hz - hu * uz
-            qn = np.sqrt(qx * qx + qy * qy + qz * qz)
-            if qn > 1e-12:
-                qx, qy, qz = qx / qn, qy / qn, qz / qn
-            else:
-                qx, qy, qz = _perpendicular(thx, thy, thz)
-            flip = -1.0 if cx * hx + cy * hy + cz * hz < 0.0 else 1.0
-            ease = min(max(cn / (straight * a * b), 0.0), 1.0)
-            ease = ease * ease * (3.0 - 2.0 * ease)
-            nx, ny, nz = (cx / cn, cy / cn, cz / cn) if cn > 1e-12 else (qx, qy, qz)
-            vx = ease * flip * nx + (1.0 - ease) * qx
-            vy = ease * flip * ny + (1.0 - ease) * qy
-            vz = ease * flip * nz + (1.0 - ease) * qz
-            vn = np.sqrt(vx * vx + vy * vy + vz * vz)
-            if vn > 1e-12:
-                vx, vy, vz = vx / vn, vy / vn, vz / vn
-            else:
-                vx, vy, vz = qx, qy, qz
-            cos_inner = min(max((a * a + b * b - dist * dist) / (2.0 * a * b), -1.0), 1.0)
-            bend = np.pi - np.arccos(cos_inner)  # 0 = straight
-            cb, sb = b * np.cos(bend), b * np.sin(bend)
-            wx, wy, wz = vy * uz - vz * uy, vz * ux - vx * uz, vx * uy - vy * ux  # side x thigh direction
-            nsx, nsy, nsz = cb * ux + sb * wx, cb * uy + sb * wy, cb * uz + sb * wz  # the new shin
+            vx, vy, vz = _knee_side(thx, thy, thz, shx, shy, shz, ux, uy, uz, hx, hy, hz, a, b, straight)
+            nsx, nsy, nsz = _solved_shin(ux, uy, uz, vx, vy, vz, a, b, dist)
             mw, mqx, mqy, mqz = _between(shx, shy, shz, nsx, nsy, nsz)
-            # 3. swing the ankle onto the target, then twist about hip -> target so the plane (``side``, carried
-            #    by the swing) is as close as it gets to the animated one
-            sw, swx, swy, swz = _between(mx + nsx - sx, my + nsy - sy, mz + nsz - sz, dx, dy, dz)
-            px, py, pz = _qrot(sw, swx, swy, swz, vx, vy, vz)
-            vd = vx * dx + vy * dy + vz * dz
-            kx, ky, kz = vx - vd * dx, vy - vd * dy, vz - vd * dz  # wanted
-            angle = 0.0
-            if np.sqrt(kx * kx + ky * ky + kz * kz) > 1e-9 * a:
-                angle = np.arctan2(dx * (py * kz - pz * ky) + dy * (pz * kx - px * kz) + dz * (px * ky - py * kx),
-                                   px * kx + py * ky + pz * kz)
-            tw, twx, twy, twz = _axis_angle(dx, dy, dz, angle)
-            hip = _qmul(tw, twx, twy, twz, sw, swx, swy, swz)
+            hip = _hip_turn(mx + nsx - sx, my + nsy - sy, mz + nsz - sz, dx, dy, dz, vx, vy, vz, a)
             knee = _qmul(hip[0], hip[1], hip[2], hip[3], mw, mqx, mqy, mqz)
-            g = _qmul(hip[0], hip[1], hip[2], hip[3], out_rot[c, s, 0], out_rot[c, s, 1], out_rot[c, s, 2],
-                      out_rot[c, s, 3])
-            out_rot[c, s, 0], out_rot[c, s, 1], out_rot[c, s, 2], out_rot[c, s, 3] = g
-            for k in range(below.shape[1]):
-                j = below[leg, k]
-                if j < 0:
-                    break
-                turn = turns[leg, k]
-                if turn < 2:
-                    r = hip if turn == 0 else knee
-                    g = _qmul(r[0], r[1], r[2], r[3], out_rot[c, j, 0], out_rot[c, j, 1], out_rot[c, j, 2],
-                              out_rot[c, j, 3])
-                    out_rot[c, j, 0], out_rot[c, j, 1], out_rot[c, j, 2], out_rot[c, j, 3] = g
-                p = parents[j]
-                ox, oy, oz = _qrot(np.float64(out_rot[c, p, 0]), np.float64(out_rot[c, p, 1]),
-                                   np.float64(out_rot[c, p, 2]), np.float64(out_rot[c, p, 3]),
-                                   np.float64(offsets[j, 0]), np.float64(offsets[j, 1]), np.float64(offsets[j, 2]))
-                out_pos[c, j, 0] = out_pos[c, p, 0] + ox
-                out_pos[c, j, 1] = out_pos[c, p, 1] + oy
-                out_pos[c, j, 2] = out_pos[c, p, 2] + oz
+            _turn_leg(c, leg, s, hip, knee, below, turns, parents, offsets, out_rot, out_pos)
+
+    # _foot_lock's steps, as two_bone_ik's, on scalars: a numba kernel takes no small arrays without allocating, and
+    # these are inlined (inline="always"), so the compiled kernel is the one-function kernel it was.
+    @_njit
+    def _leg_reach(dx, dy, dz, fx, fy, fz, thx, thy, thz, a, b, soft):
+        """Step 1: unit direction and clamped (and softened) distance from hip to target ``d``; ``f`` (hip to the
+        animated ankle), then a perpendicular of the thigh ``th``, stand in for a target on the hip."""
+        dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if dist > 1e-12:
+            dx, dy, dz = dx / dist, dy / dist, dz / dist
+        else:
+            fn = np.sqrt(fx * fx + fy * fy + fz * fz)
+            if fn > 1e-12:
+                dx, dy, dz = fx / fn, fy / fn, fz / fn
+            else:
+                dx, dy, dz = _perpendicular(thx, thy, thz)
+        if soft > 0.0 and dist > a + b - soft:
+            dist = a + b - soft - soft * np.expm1(-(dist - (a + b - soft)) / soft)
+        dist = min(max(dist, abs(a - b) + 1e-9 * (a + b)), (a + b) * (1.0 - 1e-9))
+        return dx, dy, dz, dist
+
+    @_njit
+    def _knee_side(thx, thy, thz, shx, shy, shz, ux, uy, uz, hx, hy, hz, a, b, straight):
+        """Step 2's plane normal ``side``: the animated one (thigh ``th`` x shin ``sh``) turned to the side of the
+        hinge ``h`` (world), easing into the hinge's own plane as the animated leg straightens (``u``: the thigh's
+        direction)."""
+        cx, cy, cz = thy * shz - thz * shy, thz * shx - thx * shz, thx * shy - thy * shx
+        cn = np.sqrt(cx * cx + cy * cy + cz * cz)
+        hu = hx * ux + hy * uy + hz * uz
+        qx, qy, qz = hx - hu * ux, hy - hu * uy, hz - hu * uz
+        qn = np.sqrt(qx * qx + qy * qy + qz * qz)
+        if qn > 1e-12:
+            qx, qy, qz = qx / qn, qy / qn, qz / qn
+        else:
+            qx, qy, qz = _perpendicular(thx, thy, thz)
+        flip = -1.0 if cx * hx + cy * hy + cz * hz < 0.0 else 1.0
+        ease = min(max(cn / (straight * a * b), 0.0), 1.0)
+        ease = ease * ease * (3.0 - 2.0 * ease)
+        nx, ny, nz = (cx / cn, cy / cn, cz / cn) if cn > 1e-12 else (qx, qy, qz)
+        vx = ease * flip * nx + (1.0 - ease) * qx
+        vy = ease * flip * ny + (1.0 - ease) * qy
+        vz = ease * flip * nz + (1.0 - ease) * qz
+        vn = np.sqrt(vx * vx + vy * vy + vz * vz)
+        if vn > 1e-12:
+            vx, vy, vz = vx / vn, vy / vn, vz / vn
+        else:
+            vx, vy, vz = qx, qy, qz
+        return vx, vy, vz
+
+    @_njit
+    def _solved_shin(ux, uy, uz, vx, vy, vz, a, b, dist):
+        """Step 2: the new shin, at the angle from the thigh (direction ``u``) in the plane of normal ``v`` at
+        which the law of cosines gives ``dist``."""
+        cos_inner = min(max((a * a + b * b - dist * dist) / (2.0 * a * b), -1.0), 1.0)
+        bend = np.pi - np.arccos(cos_inner)  # 0 = straight
+        cb, sb = b * np.cos(bend), b * np.sin(bend)
+        wx, wy, wz = vy * uz - vz * uy, vz * ux - vx * uz, vx * uy - vy * ux  # side x thigh direction
+        return cb * ux + sb * wx, cb * uy + sb * wy, cb * uz + sb * wz
+
+    @_njit
+    def _hip_turn(lx, ly, lz, dx, dy, dz, vx, vy, vz, a):
+        """Step 3: the hip's turn that swings the ankle (``l``: hip to the bent leg's ankle) onto the target direction
+        ``d``, then twists about it so the plane (``v``, carried by the swing) is as close as it gets to the
+        animated one; ``a``: the thigh's length."""
+        sw, swx, swy, swz = _between(lx, ly, lz, dx, dy, dz)
+        px, py, pz = _qrot(sw, swx, swy, swz, vx, vy, vz)
+        vd = vx * dx + vy * dy + vz * dz
+        kx, ky, kz = vx - vd * dx, vy - vd * dy, vz - vd * dz  # wanted
+        angle = 0.0
+        if np.sqrt(kx * kx + ky * ky + kz * kz) > 1e-9 * a:
+            angle = np.arctan2(dx * (py * kz - pz * ky) + dy * (pz * kx - px * kz) + dz * (px * ky - py * kx),
+                               px * kx + py * ky + pz * kz)
+        tw, twx, twy, twz = _axis_angle(dx, dy, dz, angle)
+        return _qmul(tw, twx, twy, twz, sw, swx, swy, swz)
+
+    @_njit
+    def _turn_leg(c, leg, s, hip, knee, below, turns, parents, offsets, out_rot, out_pos):
+        """The hip joint ``s`` turned by ``hip``, and every joint under it (``below``) turned as ``turns`` says
+        (0: the hip's turn, 1: the knee's, 2: none) and re-placed from its parent."""
+        g = _qmul(hip[0], hip[1], hip[2], hip[3], out_rot[c, s, 0], out_rot[c, s, 1], out_rot[c, s, 2],
+                  out_rot[c, s, 3])
+        out_rot[c, s, 0], out_rot[c, s, 1], out_rot[c, s, 2], out_rot[c, s, 3] = g
+        for k in range(below.shape[1]):
+            j = below[leg, k]
+            if j < 0:
+                break
+            turn = turns[leg, k]
+            if turn < 2:
+                r = hip if turn == 0 else knee
+                g = _qmul(r[0], r[1], r[2], r[3], out_rot[c, j, 0], out_rot[c, j, 1], out_rot[c, j, 2],
+                          out_rot[c, j, 3])
+                out_rot[c, j, 0], out_rot[c, j, 1], out_rot[c, j, 2], out_rot[c, j, 3] = g
+            p = parents[j]
+            ox, oy, oz = _qrot(np.float64(out_rot[c, p, 0]), np.float64(out_rot[c, p, 1]),
+                               np.float64(out_rot[c, p, 2]), np.float64(out_rot[c, p, 3]),
+                               np.float64(offsets[j, 0]), np.float64(offsets[j, 1]), np.float64(offsets[j, 2]))
+            out_pos[c, j, 0] = out_pos[c, p, 0] + ox
+            out_pos[c, j, 1] = out_pos[c, p, 1] + oy
+            out_pos[c, j, 2] = out_pos[c, p, 2] + oz
 
 # The arguments every per-character function takes besides the runtime's arrays (its first is the character).
 _SHARED = ("times", "parents", "offsets", "active", "out_rot", "out_pos")

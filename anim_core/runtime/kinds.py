@@ -88,6 +88,21 @@ def bone_lod_mask(skeleton: Skeleton, level: int) -> NDArray[np.uint8]:
     return np.array([not any(p in name for p in BONE_LODS[level]) for name in skeleton.names], np.uint8)
 
 
+def animated_joints(clip: Any, level: int = 0) -> NDArray[np.uint8]:
+    """``(J,)`` 1 for every joint the crowd runtime samples when it plays ``clip`` at bone LOD ``level``, 0 for the
+    joints it holds: those of ``level`` (:func:`bone_lod_mask`) and a bone-LOD clip's frozen joints
+    (:class:`~anim_core.methods.lod.BoneLodClip`: their keys are the bind pose throughout, so the runtime copies
+    the first key, never samples or interpolates them; forward kinematics still places them).  This is the mask
+    a bone-LOD clip is played, timed and costed with (``animstudy bench``, the clip manifest's
+    ``cost_ms_per_1000``)."""
+    from ..methods.lod import BoneLodClip
+
+    mask = bone_lod_mask(clip.skeleton, level)
+    if isinstance(clip, BoneLodClip):
+        mask = mask & (~np.asarray(clip.frozen, bool)).astype(np.uint8)
+    return mask
+
+
 def frozen(a: ArrayLike, dtype: Any) -> NDArray[Any]:
     out = np.ascontiguousarray(a, dtype=dtype).copy()
     out.flags.writeable = False

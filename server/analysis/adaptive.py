@@ -44,6 +44,7 @@ from scipy import optimize
 from scipy.sparse.csgraph import minimum_spanning_tree
 
 from server.studies.design import Design
+from server.studies.scale import MAX_SCORE, SCORES
 
 from .ranking import GradedComparison, link_cdf_pdf, symmetric_cuts, vote_log_likelihood
 
@@ -70,14 +71,14 @@ class Posterior:
 
 
 def vote_counts(votes: Iterable[GradedComparison], conditions: Sequence[str]) -> np.ndarray:
-    """The sufficient statistics of ``votes`` for the posterior: (N, N, 5) counts of [reference, test, answer
-    0..4]; votes of other conditions and catch votes (a condition against itself) are left out.  Counts add up:
-    the counts of two sets of votes are the sum of their counts."""
+    """The sufficient statistics of ``votes`` for the posterior: (N, N, answers) counts of [reference, test,
+    answer 0..4 (score + MAX_SCORE)]; votes of other conditions and catch votes (a condition against itself) are
+    left out.  Counts add up: the counts of two sets of votes are the sum of their counts."""
     index = {c: i for i, c in enumerate(conditions)}
-    counts = np.zeros((len(index), len(index), 5), dtype=np.int64)
+    counts = np.zeros((len(index), len(index), len(SCORES)), dtype=np.int64)
     for v in votes:
         if v.reference != v.test and v.reference in index and v.test in index:
-            counts[index[v.reference], index[v.test], v.score + 2] += 1
+            counts[index[v.reference], index[v.test], v.score + MAX_SCORE] += 1
     return counts
 
 

@@ -65,6 +65,7 @@ from scipy import stats
 from server.studies.scale import RAW_SCORES, catch_row_failed
 from server.studies.screening import RULES, Screening
 
+from .json_numbers import finite_or_none
 from .screening_design import MEANT_FOR, Calibration, calibrate, fast_limit, planned
 
 MIN_COMMON_COMPARISONS = 3  # a correlation over fewer points says nothing
@@ -107,10 +108,6 @@ class ParticipantScreening:
                 "rules": {r: {"value": v.value, "threshold": v.threshold, "flagged": v.flagged,
                               "judged": v.judged, **({"note": v.note} if v.note else {})}
                           for r, v in self.results.items()}}
-
-
-def _finite(value: float) -> float | None:
-    return float(value) if math.isfinite(value) else None
 
 
 def opinion_array(votes: Iterable[Mapping[str, Any]]) -> tuple[np.ndarray, list[tuple[str, str, str]], list[str]]:
@@ -334,94 +331,127 @@ def screen(votes: Iterable[Mapping[str, Any]], rules: Screening, catch_failures_
     completed = [v for v in votes if v["session_state"] == "completed"]
     tests = [v for v in completed if not v["practice"] and not v["catch"]]
     sessions = sorted({v["session_id"] for v in completed})
-    out: dict[str, dict[str, RuleResult]] = {s: {} for s in sessions}
     chosen = set(rules.rules)
     design = calibration(votes, rules, playback_ms)
-
-    def verdict(rule: str, value: float | None, fixed_threshold: float | None, fixed_flag: bool) -> RuleResult:
-        """The fixed rule's verdict, or the calibrated one's."""
-        if design is None or rule not in design.rules:
-            return RuleResult(value, fixed_threshold, fixed_flag)
-        c = design.rules[rule]
-        return RuleResult(value, c.threshold, c.flags(value), c.judged, c.reason)
-
+    by_rule: dict[str, dict[str, RuleResult]] = {}  # rule -> session -> verdict, in the order the record lists them
     if "catch" in chosen:
-        catch: dict[str, list[int]] = defaultdict(list)
-        for v in completed:
-            if v["catch"]:
-                catch[v["session_id"]].append(catch_row_failed(v))  # by the study's answer format
-        for s in sessions:
-            failed = sum(catch[s]) if s in catch else None
-            out[s]["catch"] = RuleResult(failed, catch_failures_allowed,
-                                         failed is not None and failed > catch_failures_allowed,
-                                         judged=failed is not None,
-                                         note="" if failed is not None else "no catch trials to judge")
+        by_rule["catch"] = _catch_results(completed, sessions, catch_failures_allowed)
+    if "straight_lining" in chosen:
+        by_rule["straight_lining"] = _straight_lining_results(tests, sessions, rules, design)
+    if "fast" in chosen:
+        by_rule["fast"] = _fast_results(tests, sessions, rules, design, playback_ms or {})
+    if chosen & {"z_outlier", "bt500", "correlation", "disagreement"}:
+        by_rule.update(_panel_results(tests, sessions, rules, chosen, design))
+    return {s: ParticipantScreening(s, {rule: results[s] for rule, results in by_rule.items()}, design)
+            for s in sessions}
 
+
+def _verdict(design: Calibration | None, rule: str, value: float | None, fixed_threshold: float | None,
+             fixed_flag: bool) -> RuleResult:
+    """The fixed rule's verdict, or the calibrated one's."""
+    if design is None or rule not in design.rules:
+        return RuleResult(value, fixed_threshold, fixed_flag)
+    c = design.rules[rule]
+    return RuleResult(value, c.threshold, c.flags(value), c.judged, c.reason)
+
+
+def _catch_results(completed: list[Mapping[str, Any]], sessions: list[str],
+                   catch_failures_allowed: int) -> dict[str, RuleResult]:
+    """``catch``: failed catch trials (by the study's answer format) against the number allowed."""
+    catch: dict[str, list[int]] = defaultdict(list)
+    for v in completed:
+        if v["catch"]:
+            catch[v["session_id"]].append(catch_row_failed(v))
+    out = {}
+    for s in sessions:
+        failed = sum(catch[s]) if s in catch else None
+        out[s] = RuleResult(failed, catch_failures_allowed, failed is not None and failed > catch_failures_allowed,
+                            judged=failed is not None, note="" if failed is not None else "no catch trials to judge")
+    return out
+
+
+def _straight_lining_results(tests: list[Mapping[str, Any]], sessions: list[str], rules: Screening,
+                             design: Calibration | None) -> dict[str, RuleResult]:
+    """``straight_lining``: the variance of each participant's raw answers."""
     by_session: dict[str, list[Mapping[str, Any]]] = defaultdict(list)
     for v in tests:
         by_session[v["session_id"]].append(v)
+    out = {}
+    for s in sessions:
+        raw = [RAW_SCORES[v["choice"]] for v in by_session[s]]
+        variance = float(np.var(raw)) if len(raw) >= 2 else None
+        out[s] = _verdict(design, "straight_lining", variance, rules.min_variance,
+                          variance is not None and variance < rules.min_variance)
+    return out
 
-    if "straight_lining" in chosen:
-        for s in sessions:
-            raw = [RAW_SCORES[v["choice"]] for v in by_session[s]]
-            variance = float(np.var(raw)) if len(raw) >= 2 else None
-            out[s]["straight_lining"] = verdict("straight_lining", variance, rules.min_variance,
-                                                variance is not None and variance < rules.min_variance)
 
-    if "fast" in chosen:
-        counts = _fast_votes(tests, playback_ms or {})
-        for s in sessions:
-            fast, judged = counts.get(s, (0, 0))
-            share = fast / judged if judged else None
-            if design is not None and "fast" in design.rules:
-                c = design.rules["fast"]
-                limit = fast_limit(judged, design.fast_vote_rate, design.rate_per_rule)
-                threshold = limit / judged if judged else None
-                out[s]["fast"] = RuleResult(share, threshold, c.judged and share is not None and fast > limit,
-                                            c.judged, c.reason)
-            else:
-                out[s]["fast"] = RuleResult(share, rules.max_fast_share,
-                                            share is not None and share > rules.max_fast_share)
+def _fast_results(tests: list[Mapping[str, Any]], sessions: list[str], rules: Screening, design: Calibration | None,
+                  playback_ms: Mapping[tuple[str, str, str], float]) -> dict[str, RuleResult]:
+    """``fast``: the share of votes given before one playback had ended; calibrated, a count limit for the
+    participant's own number of judged votes."""
+    counts = _fast_votes(tests, playback_ms)
+    out = {}
+    for s in sessions:
+        fast, judged = counts.get(s, (0, 0))
+        share = fast / judged if judged else None
+        if design is not None and "fast" in design.rules:
+            c = design.rules["fast"]
+            limit = fast_limit(judged, design.fast_vote_rate, design.rate_per_rule)
+            threshold = limit / judged if judged else None
+            out[s] = RuleResult(share, threshold, c.judged and share is not None and fast > limit, c.judged, c.reason)
+        else:
+            out[s] = RuleResult(share, rules.max_fast_share, share is not None and share > rules.max_fast_share)
+    return out
 
-    if chosen & {"z_outlier", "bt500", "correlation", "disagreement"}:
-        x, _, subjects = opinion_array(tests)
-        index = {s: i for i, s in enumerate(subjects)}
-        if "z_outlier" in chosen:
-            shares = _z_shares(x, rules.z_limit) if subjects else np.array([])
-            for s in sessions:
-                value = _finite(shares[index[s]]) if s in index else None
-                out[s]["z_outlier"] = verdict("z_outlier", value, rules.max_rejected_share,
-                                              value is not None and value > rules.max_rejected_share)
-        if "bt500" in chosen:
-            if design is not None and "bt500" in design.rules and subjects:
-                c = design.rules["bt500"]
-                ratio = c.threshold if c.threshold is not None else math.inf
-                rejected, first, _ = bt500(x, ratio, rules.bt500_balance)
-                rejected &= c.judged
-            else:
-                rejected, first, _ = bt500(x, rules.bt500_ratio, rules.bt500_balance) if subjects else ([], [], [])
-            for s in sessions:
-                i = index.get(s)
-                value = None if i is None else _finite(first[i])
-                result = verdict("bt500", value, rules.bt500_ratio, i is not None and bool(rejected[i]))
-                # bt500 flags on two measures and spares everyone when it would flag everyone: its own verdict
-                out[s]["bt500"] = RuleResult(value, result.threshold, i is not None and bool(rejected[i]),
-                                             result.judged, result.note)
-        if "disagreement" in chosen:
-            spread = _disagreements(x) if subjects else np.array([])
-            for s in sessions:
-                value = _finite(spread[index[s]]) if s in index else None
-                out[s]["disagreement"] = verdict("disagreement", value, rules.max_disagreement,
-                                                 value is not None and value > rules.max_disagreement)
-        if "correlation" in chosen:
-            r = _correlations(x, rules.correlation_method) if subjects else np.array([])
-            threshold = correlation_threshold(r, rules.max_correlation_threshold)
-            for s in sessions:
-                value = _finite(r[index[s]]) if s in index else None
-                out[s]["correlation"] = verdict("correlation", value, threshold,
-                                                value is not None and threshold is not None and value <= threshold)
 
-    return {s: ParticipantScreening(s, results, design) for s, results in out.items()}
+def _panel_results(tests: list[Mapping[str, Any]], sessions: list[str], rules: Screening, chosen: set[str],
+                   design: Calibration | None) -> dict[str, dict[str, RuleResult]]:
+    """The chosen panel-relative rules (``z_outlier``, ``bt500``, ``disagreement``, ``correlation``), each
+    participant measured against the others on the opinion array of all of them."""
+    x, _, subjects = opinion_array(tests)
+    index = {s: i for i, s in enumerate(subjects)}
+    out: dict[str, dict[str, RuleResult]] = {}
+    if "z_outlier" in chosen:
+        shares = _z_shares(x, rules.z_limit) if subjects else np.array([])
+        values = {s: finite_or_none(shares[index[s]]) if s in index else None for s in sessions}
+        out["z_outlier"] = {s: _verdict(design, "z_outlier", v, rules.max_rejected_share,
+                                        v is not None and v > rules.max_rejected_share) for s, v in values.items()}
+    if "bt500" in chosen:
+        out["bt500"] = _bt500_results(x, subjects, index, sessions, rules, design)
+    if "disagreement" in chosen:
+        spread = _disagreements(x) if subjects else np.array([])
+        values = {s: finite_or_none(spread[index[s]]) if s in index else None for s in sessions}
+        out["disagreement"] = {s: _verdict(design, "disagreement", v, rules.max_disagreement,
+                                           v is not None and v > rules.max_disagreement) for s, v in values.items()}
+    if "correlation" in chosen:
+        r = _correlations(x, rules.correlation_method) if subjects else np.array([])
+        threshold = correlation_threshold(r, rules.max_correlation_threshold)
+        values = {s: finite_or_none(r[index[s]]) if s in index else None for s in sessions}
+        out["correlation"] = {s: _verdict(design, "correlation", v, threshold,
+                                          v is not None and threshold is not None and v <= threshold)
+                              for s, v in values.items()}
+    return out
+
+
+def _bt500_results(x: np.ndarray, subjects: list[str], index: Mapping[str, int], sessions: list[str],
+                   rules: Screening, design: Calibration | None) -> dict[str, RuleResult]:
+    """``bt500`` on the opinion array ``x``: calibrated, its ratio is the design's and a rule judged too weak
+    flags nobody."""
+    if design is not None and "bt500" in design.rules and subjects:
+        c = design.rules["bt500"]
+        ratio = c.threshold if c.threshold is not None else math.inf
+        rejected, first, _ = bt500(x, ratio, rules.bt500_balance)
+        rejected &= c.judged
+    else:
+        rejected, first, _ = bt500(x, rules.bt500_ratio, rules.bt500_balance) if subjects else ([], [], [])
+    out = {}
+    for s in sessions:
+        i = index.get(s)
+        value = None if i is None else finite_or_none(first[i])
+        result = _verdict(design, "bt500", value, rules.bt500_ratio, i is not None and bool(rejected[i]))
+        # bt500 flags on two measures and spares everyone when it would flag everyone: its own verdict
+        out[s] = RuleResult(value, result.threshold, i is not None and bool(rejected[i]), result.judged, result.note)
+    return out
 
 
 def flagged_counts(records: Iterable[ParticipantScreening], rules: Sequence[str]) -> dict[str, int]:

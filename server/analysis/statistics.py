@@ -24,13 +24,10 @@ from statsmodels.stats.power import TTestPower
 
 from server.studies.scale import MAX_SCORE, RAW_SCORES, SCORES
 
+from .json_numbers import finite_or_none
 from .ranking import GradedComparison, rank_conditions
 
 WILCOXON_ARE = 3 / math.pi  # asymptotic relative efficiency of Wilcoxon against t for a normal parent
-
-
-def _finite(value: float | None) -> float | None:
-    return None if value is None or not math.isfinite(value) else float(value)
 
 
 def wilcoxon_p(x: Sequence[float]) -> float | None:
@@ -39,7 +36,7 @@ def wilcoxon_p(x: Sequence[float]) -> float | None:
     if x.size == 0 or not np.any(x != 0):
         return None
     try:
-        return _finite(stats.wilcoxon(x, zero_method="pratt").pvalue)
+        return finite_or_none(stats.wilcoxon(x, zero_method="pratt").pvalue)
     except ValueError:
         return None
 
@@ -159,18 +156,60 @@ def counted(vote: Mapping[str, Any]) -> bool:
     return not vote["practice"] and not vote["catch"] and vote["outcome"] != "screened_out"
 
 
+#: How the results document's numbers are computed (its ``methods`` section).
+METHODS = {
+    "unit": "participant: mean of the two side-swapped showings of a comparison",
+    "exclusions": "practice and catch trials; every vote of a participant screened out by the catch trials "
+                  "(more failed than [recruitment] catch_failures_allowed)",
+    "wilcoxon": "scipy.stats.wilcoxon(participant_means, zero_method='pratt'), two-sided, default method",
+    "sign_test": "exact two-sided binomial test on the signs of participant means, zeros dropped",
+    "ci95": "Student t interval of the mean of participant means",
+    "multiplicity": "Holm over the Wilcoxon p-values of all the study's comparisons",
+    "power": "t-test power (statsmodels) at the observed d_z, divided by the Wilcoxon ARE 3/pi",
+    "ranking": "ordinal Bradley-Terry (Agresti 1992, logit) per animation, reference at 0; 95 % intervals "
+               "from cluster-robust standard errors over participants (server/analysis/ranking.py)",
+    "thesis_grouping": "per comparison: negative = reference significantly better (-2); positive = "
+                       "everything else",
+}
+
+# Showings of one comparison (animation, test condition, reference condition) per participant: (trial index,
+# score, test side) of each.
+_ByComparison = dict[tuple[str, str, str], dict[str, list[tuple[int, int, str]]]]
+
+
 def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
             questions: Sequence[str] = (), anchor: str | None = None) -> dict[str, Any]:
     """The results document of a study from its votes (export rows), participant counts and question ids;
     ``anchor``: the condition at 0 of the scales (the study's reference; needed when pairs have several first
     conditions, as in all-pairs designs)."""
     analysed = [v for v in votes if counted(v)]
-    by_comparison: dict[tuple[str, str, str], dict[str, list[tuple[int, int, str]]]] = defaultdict(
-        lambda: defaultdict(list))
+    by_comparison: _ByComparison = defaultdict(lambda: defaultdict(list))
     for v in analysed:
         by_comparison[(v["animation"], v["test_condition"], v["reference_condition"])][v["session_id"]].append(
             (v["trial_index"], v["score"], v["test_side"]))
+    comparisons = _comparisons(by_comparison)
+    # Krippendorff: units = trial kinds (comparison x test side), coders = participants.
+    units: dict[tuple[str, str, str], list[int]] = defaultdict(list)
+    for v in analysed:
+        units[(v["animation"], v["test_condition"], v["test_side"])].append(v["score"])
+    return {
+        "participants": dict(participants),
+        "comparisons": comparisons,
+        "conditions": _conditions(comparisons),
+        "rankings": _rankings(analysed, anchor),
+        "overall": _summary([float(np.mean([v["score"] for v in analysed if v["session_id"] == sid]))
+                             for sid in {v["session_id"] for v in analysed}]),
+        "side_bias": _side_bias(analysed),
+        "swap_consistency": _swap_consistency(by_comparison),
+        "krippendorff_alpha_ordinal": krippendorff_alpha_ordinal(units.values()),
+        "demographics": _demographics(analysed, questions),
+        "methods": dict(METHODS),
+    }
 
+
+def _comparisons(by_comparison: _ByComparison) -> list[dict[str, Any]]:
+    """One entry per comparison, in sorted order: the summary of its participant means (two showings each), the
+    vote counts, the participants needed for 80 % power, and the Holm-adjusted Wilcoxon p over all of them."""
     comparisons = []
     for (animation, condition, reference), per_person in sorted(by_comparison.items()):
         scores = [s for showings in per_person.values() for _, s, _ in showings]
@@ -185,8 +224,11 @@ def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
         comparisons.append(entry)
     for entry, p in zip(comparisons, holm([c["wilcoxon_p"] for c in comparisons]), strict=True):
         entry["p_holm"] = p
+    return comparisons
 
-    # The thesis's grouping (and the neutral split) per test condition, over all its animations.
+
+def _conditions(comparisons: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """The thesis's grouping (and the neutral split) per test condition, over all its animations."""
     conditions = []
     for condition in sorted({c["condition"] for c in comparisons}):
         of = [c for c in comparisons if c["condition"] == condition]
@@ -194,8 +236,11 @@ def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
                            "animations": [c["animation"] for c in of],
                            **{k: sum(c[k] for c in of) for k in ("votes", "positive", "negative", "test_better",
                                                                  "equal", "reference_better")}})
+    return conditions
 
-    # All conditions of an animation on one scale (the reference at 0), from every graded vote.
+
+def _rankings(analysed: Sequence[Mapping[str, Any]], anchor: str | None) -> list[dict[str, Any]]:
+    """All conditions of each animation on one scale (``anchor``, the reference, at 0), from every graded vote."""
     rankings = []
     for animation in sorted({v["animation"] for v in analysed}):
         ranking = rank_conditions((GradedComparison(v["session_id"], v["reference_condition"], v["test_condition"],
@@ -203,14 +248,21 @@ def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
                                   anchor=anchor)
         rankings.append({"animation": animation, "conditions": [asdict(c) for c in ranking.conditions],
                          "fit": asdict(ranking.fit)})
+    return rankings
 
-    # Side bias: each participant's mean raw answer, left = +2 ... right = -2, whatever is shown where.
+
+def _side_bias(analysed: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Side bias: each participant's mean raw answer, left = +2 ... right = -2, whatever is shown where."""
     raw: dict[str, list[int]] = defaultdict(list)
     for v in analysed:
         raw[v["session_id"]].append(RAW_SCORES[v["choice"]])
     side_means = [float(np.mean(r)) for r in raw.values()]
+    return {"mean": float(np.mean(side_means)) if side_means else None, "p": wilcoxon_p(side_means),
+            "n_participants": len(side_means)}
 
-    # Swap consistency: first against second showing of each comparison, per participant.
+
+def _swap_consistency(by_comparison: _ByComparison) -> dict[str, Any]:
+    """Swap consistency: first against second showing of each comparison, per participant."""
     first, second = [], []
     for per_person in by_comparison.values():
         for showings in per_person.values():
@@ -219,43 +271,11 @@ def analyse(votes: Iterable[Mapping[str, Any]], participants: Mapping[str, int],
                 first.append(a[1])
                 second.append(b[1])
     pairs = list(zip(first, second, strict=True))
-
-    # Krippendorff: units = trial kinds (comparison x test side), coders = participants.
-    units: dict[tuple[str, str, str], list[int]] = defaultdict(list)
-    for v in analysed:
-        units[(v["animation"], v["test_condition"], v["test_side"])].append(v["score"])
-
     return {
-        "participants": dict(participants),
-        "comparisons": comparisons,
-        "conditions": conditions,
-        "rankings": rankings,
-        "overall": _summary([float(np.mean([v["score"] for v in analysed if v["session_id"] == sid]))
-                             for sid in {v["session_id"] for v in analysed}]),
-        "side_bias": {"mean": float(np.mean(side_means)) if side_means else None, "p": wilcoxon_p(side_means),
-                      "n_participants": len(side_means)},
-        "swap_consistency": {
-            "weighted_kappa": weighted_kappa(first, second) if pairs else None,
-            "exact_agreement": float(np.mean([a == b for a, b in pairs])) if pairs else None,
-            "within_one": float(np.mean([abs(a - b) <= 1 for a, b in pairs])) if pairs else None,
-            "pairs": len(pairs),
-        },
-        "krippendorff_alpha_ordinal": krippendorff_alpha_ordinal(units.values()),
-        "demographics": _demographics(analysed, questions),
-        "methods": {
-            "unit": "participant: mean of the two side-swapped showings of a comparison",
-            "exclusions": "practice and catch trials; every vote of a participant screened out by the catch trials "
-                          "(more failed than [recruitment] catch_failures_allowed)",
-            "wilcoxon": "scipy.stats.wilcoxon(participant_means, zero_method='pratt'), two-sided, default method",
-            "sign_test": "exact two-sided binomial test on the signs of participant means, zeros dropped",
-            "ci95": "Student t interval of the mean of participant means",
-            "multiplicity": "Holm over the Wilcoxon p-values of all the study's comparisons",
-            "power": "t-test power (statsmodels) at the observed d_z, divided by the Wilcoxon ARE 3/pi",
-            "ranking": "ordinal Bradley-Terry (Agresti 1992, logit) per animation, reference at 0; 95 % intervals "
-                       "from cluster-robust standard errors over participants (server/analysis/ranking.py)",
-            "thesis_grouping": "per comparison: negative = reference significantly better (-2); positive = "
-                               "everything else",
-        },
+        "weighted_kappa": weighted_kappa(first, second) if pairs else None,
+        "exact_agreement": float(np.mean([a == b for a, b in pairs])) if pairs else None,
+        "within_one": float(np.mean([abs(a - b) <= 1 for a, b in pairs])) if pairs else None,
+        "pairs": len(pairs),
     }
 
 

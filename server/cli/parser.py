@@ -122,8 +122,9 @@ def _render_and_serve(sub: argparse._SubParsersAction) -> None:  # type: ignore[
     rend.add_argument("--clips", type=Path, default=None, help="clip set folder (default: <var dir>/clips)")
     rend.add_argument("--workers", type=int, default=2, help="worker processes (default: 2)")
     rend.add_argument("--study", type=Path, action="append", default=None,
-                      help="study file whose pairs to render, may be repeated (default: studies/thesis.toml); the "
-                           "pairs of the studies in the database are kept too")
+                      help="study file whose pairs to render, may be repeated (default: studies/thesis.toml for the "
+                           "server's clip set; another --clips set needs --study or --every-clip); the pairs of "
+                           "the studies in the database are kept too")
     rend.add_argument("--every-clip", action="store_true",
                       help="also a video of every clip of the clip set (default: of the clips the pairs show)")
     rend.add_argument("--width", type=even, default=640)

@@ -34,6 +34,7 @@ from server.researchers.service import normalize_email
 from server.stimuli.service import collect
 from server.studies import service
 from server.studies.archive import ArchiveLimits, export_archive
+from server.studies.design import Design
 from server.studies.models import Study, StudyState
 from server.studies.studyfile import THESIS_FILE, StudyFile, StudyFileError, load_study_file
 
@@ -44,11 +45,19 @@ from .common import fail
 def render(settings: Settings, out: Path, clips_dir: Path, workers: int, studies: list[Path],
            width: int, height: int, shadows: bool, every_clip: bool = False) -> int:
     """Render the clip set's videos into ``out`` (building the clip set first if it is missing): the pairs the
-    ``studies`` files (default: the thesis study file) show, the pairs of every study in the database, and the
-    clips of those pairs (``every_clip``: every clip).  A job of the database (kind ``render``,
-    :mod:`server.pipeline.commands`): resumed by ``animstudy serve`` if this process dies mid-job."""
+    ``studies`` files show (default: the thesis study file for the server's clip set, none for another), the pairs
+    of every study in the database, and the clips of those pairs (``every_clip``: every clip).  A job of the
+    database (kind ``render``, :mod:`server.pipeline.commands`): resumed by ``animstudy serve`` if this process
+    dies mid-job."""
 
-    files = studies or [THESIS_FILE]
+    # The thesis study's pairs are the server's clip set's; another set (say `clips build --config`) has its own
+    # animations, so without a study file over it only --every-clip says what to render.
+    own_set = Path(clips_dir).resolve() == settings.clips_dir
+    if not studies and not own_set and not every_clip:
+        return fail(f"{clips_dir} is not the server's clip set ({settings.clips_dir}), so the default study "
+                    f"(studies/thesis.toml) does not apply to it: give --study FILE (a study over that clip set), "
+                    f"--every-clip (a video of each of its clips), or both")
+    files = studies or ([THESIS_FILE] if own_set else [])
     try:
         for f in files:
             load_study_file(f)
@@ -80,9 +89,12 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
         return 0
     try:
         if command in ("simulate", "plan"):
-            design = load_study_file(args.file).design
+            study_file = load_study_file(args.file)
+            design = study_file.design
             if getattr(design, "mode", None) in threshold_commands.THRESHOLD_MODES:
-                return threshold_commands.simulate_or_plan(args, design)
+                # the levels are the clip set's: its [clips] file's conditions, or the server's clip manifest
+                place = pipeline.study_place(settings, study_file, args.file)
+                return threshold_commands.simulate_or_plan(args, pipeline.settled(place, design, str(args.file)))
             return _simulate_or_plan(args, design)
         if command == "validate":
             return _validate(settings, args)
@@ -107,21 +119,24 @@ def study_command(settings: Settings, args: argparse.Namespace) -> int:
 def _validate(settings: Settings, args: argparse.Namespace) -> int:
     """``study validate``: the file, and its animations and conditions against its clip set."""
     study_file = load_study_file(args.file)
+    design = study_file.design
     if study_file.clips is not None:
-        config = pipeline.study_place(settings, study_file, args.file).config
+        place = pipeline.study_place(settings, study_file, args.file)
+        config = place.config
         assert config is not None
-        ids = {c.id for c in config.conditions}
-        lacking = [c for c in pipeline.needed_conditions(study_file.design) if c not in ids] + [
-            a for a in study_file.design.animations if a not in config.animations]
-        if lacking:
-            return fail(f"{args.file}: {', '.join(lacking)} not in its clip set")
+        try:  # its levels, conditions and animations (takes and composites), each condition building a clip of each
+            design = pipeline.settled(place, design, str(args.file))
+            pipeline.check_design(config, design)
+        except ServiceError as exc:
+            return fail(f"{args.file}: {exc.detail}")
         checked = "; its animations and conditions are in its own clip set ([clips])"
     elif (settings.clips_dir / MANIFEST).is_file():
-        service.check_known(study_file.design, service.clip_set_index(settings.clips_dir))
+        design = service.settled(study_file.design, settings.clips_dir)
+        service.check_known(design, service.clip_set_index(settings.clips_dir))
         checked = f"; its animations and conditions are in the clip set {settings.clips_dir}"
     else:
         checked = f" (no clip set in {settings.clips_dir}: animations and conditions not checked)"
-    print(f"{args.file}: study {study_file.slug!r} is valid, {study_file.design.trials_total()} trials per "
+    print(f"{args.file}: study {study_file.slug!r} is valid, {design.trials_total()} trials per "
           f"participant{checked}")
     return 0
 
@@ -153,7 +168,7 @@ def _create(settings: Settings, session: Session, args: argparse.Namespace) -> i
     place = pipeline.study_place(settings, study_file, args.file, owner_id)
     print(f"created study {study.slug!r} ({study.state}, {service.trials_total(study)} trials per "
           f"participant); participant link: /s/{study.slug}")
-    for test, ref in service.identical_comparisons(study_file.design, place.clips_dir):
+    for test, ref in service.identical_comparisons(Design.model_validate(study.design), place.clips_dir):
         print(f"note: {test} is identical to {ref} (same arrays): that comparison shows one clip on "
               "both sides, like a catch trial")
     return 0

@@ -106,11 +106,11 @@ def threshold_plan(args: argparse.Namespace) -> int:
 
 
 def simulate_or_plan(args: argparse.Namespace, design: Any) -> int:
-    """``study simulate``/``plan`` of a study file whose design is a threshold design (``design.levels()``:
+    """``study simulate``/``plan`` of a study file whose design is a threshold design (``design.level_order()``:
     condition -> level of its ladder, ``design.detectable_at``, ``design.trials``/``repeats``)."""
     from server.analysis import thresholds as th
 
-    levels = sorted(float(v) for v in design.levels().values())
+    levels = sorted(float(v) for v in design.level_order().values())
     args.detectable_at = getattr(design, "detectable_at", "low")
     obs = _observer(levels, args)
     if args.study_command == "simulate":

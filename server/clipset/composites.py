@@ -24,8 +24,9 @@ LAYER_MODES = ("override", "additive")
 
 
 def is_composite(entry: Any) -> bool:
-    """Whether an ``[animations.NAME]`` table describes a composite (it has ``sequence``, ``base`` or ``layers``)."""
-    return isinstance(entry, dict) and any(k in entry for k in ("sequence", "base", "layers"))
+    """Whether an ``[animations.NAME]`` table describes a composite (it has ``sequence``, ``base``, ``layers`` or
+    ``blend``)."""
+    return isinstance(entry, dict) and any(k in entry for k in ("sequence", "base", "layers", "blend"))
 
 
 def _seconds(value: Any, where: str, fps: int) -> float:
@@ -49,9 +50,32 @@ def _travels(cfg: AnimationConfig) -> bool:
     return cfg.playback == "loop" and not cfg.in_place
 
 
+def _blend(name: str, entry: dict[str, Any], takes: Mapping[str, AnimationConfig], where: str) -> CompositeSpec:
+    if unknown := sorted(set(entry) - {"blend"}):
+        raise ConfigError(f"{where}: unknown field {unknown[0]!r} of a blend; allowed: blend")
+    raw = entry["blend"]
+    if not isinstance(raw, list) or len(raw) != 2:
+        raise ConfigError(f"{where} blend: a list of 2 takes [\"A\", \"B\"] (a parametric condition mixes them), "
+                          f"got {raw!r}")
+    pair = tuple(_take(n, takes, f"{where} blend #{k}") for k, n in enumerate(raw, 1))
+    if pair[0] == pair[1]:
+        raise ConfigError(f"{where} blend: two different takes, got {pair[0]!r} twice")
+    for n in pair:
+        if takes[n].playback != "loop":
+            raise ConfigError(f"{where} blend: both takes loop (their cycles are mapped onto one phase); {n!r} "
+                              f"plays {takes[n].playback!r}")
+    if takes[pair[0]].in_place != takes[pair[1]].in_place:
+        raise ConfigError(f"{where} blend: the takes are played alike, both in place or both travelling; "
+                          f"{pair[0]!r} in_place = {str(takes[pair[0]].in_place).lower()}, {pair[1]!r} "
+                          f"in_place = {str(takes[pair[1]].in_place).lower()}")
+    return CompositeSpec(name, "blend", blend=pair)
+
+
 def parse_composite(name: str, entry: dict[str, Any], takes: Mapping[str, AnimationConfig], fps: int,
                     where: str) -> CompositeSpec:
     """One composite entry, validated against the file's takes."""
+    if "blend" in entry:
+        return _blend(name, entry, takes, where)
     if "sequence" in entry:
         if unknown := sorted(set(entry) - {"sequence", "root_motion", "entry"}):
             raise ConfigError(f"{where}: unknown field {unknown[0]!r} of a sequence; allowed: entry, root_motion, "
@@ -119,16 +143,17 @@ def check_transitions(composites: Mapping[str, CompositeSpec], conditions: Seque
                                   f"shortest segment of [animations.{spec.name}] ({shortest:g} s)")
 
 
-def split_composites(table: dict[str, Any], fps: int, path: Path,
-                     parse_take: Callable[[str, Any, str], AnimationConfig]
+def split_composites(table: dict[str, Any], fps: int, path: Path | str,
+                     parse_take: Callable[[str, Any, str], AnimationConfig], prefix: str = "animations"
                      ) -> tuple[dict[str, AnimationConfig], dict[str, CompositeSpec]]:
-    """The ``[animations]`` table as takes (parsed by ``parse_take``) and composites (validated against them)."""
-    takes = {name: parse_take(name, entry, f"{path} [animations.{name}]") for name, entry in table.items()
+    """The ``[animations]`` table as takes (parsed by ``parse_take``) and composites (validated against them);
+    errors name ``path`` and ``[PREFIX.NAME]`` (a study file's inline tables: ``prefix = "clips.animations"``)."""
+    takes = {name: parse_take(name, entry, f"{path} [{prefix}.{name}]") for name, entry in table.items()
              if not is_composite(entry)}
     composites = {}
     for name, entry in table.items():
         if is_composite(entry):
-            where = f"{path} [animations.{name}]"
+            where = f"{path} [{prefix}.{name}]"
             parse_take_name_only(name, where)
             composites[name] = parse_composite(name, entry, takes, fps, where)
     return takes, composites

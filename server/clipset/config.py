@@ -223,17 +223,19 @@ def level_id(ladder: str, level: float | int) -> str:
     return f"{ladder}{text.replace('.', '_').replace('-', 'm').replace('+', '')}"
 
 
-def _ladders(raw: Any, path: Path, fps: int, explicit: tuple[Condition, ...]) -> tuple[Condition, ...]:
-    """The conditions of the ``[[ladders]]`` entries, one per level, each carrying its ladder's id and level;
-    every error names the ladder, the field and the level, and nothing is built."""
+def _ladders(raw: Any, path: Path, fps: int, explicit: tuple[Condition, ...], table: str = "[[ladders]]"
+             ) -> tuple[Condition, ...]:
+    """The conditions of the ``[[ladders]]`` entries (``table``: how the file names them, ``[[clips.ladders]]``
+    in a study file), one per level, each carrying its ladder's id and level; every error names the ladder, the
+    field and the level, and nothing is built."""
     if raw is None:
         return ()
     if not isinstance(raw, list):
-        raise ConfigError(f"{path}: [[ladders]] must be a list of tables (id, method, levels, param?, params?)")
+        raise ConfigError(f"{path}: {table} must be a list of tables (id, method, levels, param?, params?)")
     out: list[Condition] = []
     taken = {c.id: "[[conditions]]" for c in explicit}
     for k, entry in enumerate(raw, 1):
-        where = f"{path} [[ladders]] #{k}"
+        where = f"{path} {table} #{k}"
         if not isinstance(entry, dict):
             raise ConfigError(f"{where} must be a table")
         if unknown := sorted(set(entry) - {"id", "method", "levels", "param", "params"}):
@@ -241,7 +243,7 @@ def _ladders(raw: Any, path: Path, fps: int, explicit: tuple[Condition, ...]) ->
         lid = entry.get("id")
         if not isinstance(lid, str) or not NAME.fullmatch(lid):
             raise ConfigError(f"{where} id: 1..32 lower-case letters, digits or '_' (no '-'), got {lid!r}")
-        where = f"{path} [[ladders]] id = {lid!r}"
+        where = f"{path} {table} id = {lid!r}"
         method = entry.get("method")
         if not isinstance(method, str):
             raise ConfigError(f"{where} method: a string naming a registered method")
@@ -287,7 +289,7 @@ def _ladders(raw: Any, path: Path, fps: int, explicit: tuple[Condition, ...]) ->
                 raise ConfigError(f"{where} level {level!r}: {exc}") from None
             if (reason := condition.refused(fps)) is not None:
                 raise ConfigError(f"{where} level {level!r}: {reason}; drop the level")
-            taken[cid] = f"[[ladders]] id = {lid!r}"
+            taken[cid] = f"{table} id = {lid!r}"
             out.append(condition)
     return tuple(out)
 
@@ -305,15 +307,23 @@ def clip_set_config(animations: dict[str, dict[str, Any]], conditions: list[dict
 
 
 def inline_config(animations: dict[str, dict[str, Any]] | None, conditions: list[dict[str, Any]] | None,
-                  where: str) -> ClipSetConfig:
+                  where: str, ladders: list[dict[str, Any]] | None = None) -> ClipSetConfig:
     """The default clip-set file with its animations and/or conditions replaced by inline tables (a study file's
-    ``[clips]``), validated as a clip-set file's are."""
+    ``[clips]``), validated as a clip-set file's are: the animations are takes and composites (sequences, layers,
+    blends: :mod:`server.clipset.composites`), and the conditions of inline ``ladders`` (``[[clips.ladders]]``)
+    are added to the listed ones (the same checks, the same errors)."""
+    from .composites import check_transitions, split_composites
+
     default = load_config()
-    return dataclasses.replace(
-        default,
-        animations=default.animations if animations is None else {
-            name: _animation(name, entry, f"{where} [clips.animations.{name}]") for name, entry in animations.items()},
-        conditions=default.conditions if conditions is None else _conditions(conditions, Path(where)))
+    takes, composites = default.animations, default.composites
+    if animations is not None:  # takes and composites, as a clip-set file's [animations]
+        takes, composites = split_composites(animations, default.fps, where, _animation, "clips.animations")
+        if not takes:
+            raise ConfigError(f"{where} [clips.animations.<name>]: at least one take (composites name takes)")
+    listed = default.conditions if conditions is None else _conditions(conditions, Path(where))
+    chosen = listed + _ladders(ladders, Path(where), default.fps, listed, "[[clips.ladders]]")
+    check_transitions(composites, chosen, Path(where))
+    return dataclasses.replace(default, animations=takes, conditions=chosen, composites=composites)
 
 
 def load_config(path: Path = DEFAULT_CONFIG) -> ClipSetConfig:

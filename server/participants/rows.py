@@ -12,7 +12,6 @@ from sqlalchemy.orm import Session
 
 from server.analysis.screening import ParticipantScreening, screen
 from server.stimuli import service as stimulus_sets
-from server.studies.ladder import level_of
 from server.studies.models import ComparisonKind, Study
 from server.studies.scale import correct, other_side
 from server.studies.service import recruitment, screening_rules
@@ -57,6 +56,7 @@ def vote_rows(session: Session, study: Study, include_pilot: bool = False, sessi
     mode = study.design.get("mode", "reference")  # designs stored before issue 27 have no mode
     answer_format = study.scale.get("format", "rating5")  # scales stored before issue 38 are five-point
     ladder = study.design.get("ladder")
+    levels = study.design.get("levels") or {}  # filled in from the clip set when the study was created
     rows: list[dict[str, Any]] = []
     playback: Playback = {}
     for (vote, trial, ps, kind, animation, ref_condition, test_condition, ref_clip, test_clip, ref_video, test_video,
@@ -88,7 +88,7 @@ def vote_rows(session: Session, study: Study, include_pilot: bool = False, sessi
             "design_mode": mode, "left_condition": left_condition,
             "right_condition": right_condition,
             "screened_by": None, "pilot": ps.pilot, "answer_format": answer_format, "ladder": ladder,
-            "level": level_of(test_condition, ladder) if ladder else None, "correct": is_correct,
+            "level": levels.get(test_condition) if ladder else None, "correct": is_correct,
             **{p: external.get(p) for p in parameters},
         })
     return rows, playback

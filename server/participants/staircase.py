@@ -46,7 +46,7 @@ FALSE_ALARMS = (0.0, 0.1, 0.2)  # same/different: "different" said of identical 
 
 def intensities(design: Design) -> dict[str, float]:
     """Each level's intensity for QUEST+ (growing with detectability), hardest level first."""
-    levels = design.levels()
+    levels = design.level_order()
     logged = all(v > 0 for v in levels.values())
     sign = -1.0 if design.detectable_at == "low" else 1.0
     return {c: sign * (math.log10(v) if logged else v) for c, v in levels.items()}
@@ -203,7 +203,7 @@ def estimate(design: Design, answer_format: str, history: Iterable[tuple[str, bo
     levels = intensities(design)
     q = _staircase(tuple(levels.values()), answer_format, tuple((levels[c], bool(d)) for c, d in history))
     params = {k: float(v) for k, v in q.param_estimate.items()}
-    logged = all(v > 0 for v in design.levels().values())
+    logged = all(v > 0 for v in design.level_order().values())
     x = params["mean"] * (-1.0 if design.detectable_at == "low" else 1.0)
     params["threshold_level"] = 10**x if logged else x
     return params
@@ -213,7 +213,7 @@ def simulate(design: Design, answer_format: str, detect: Callable[[float], float
              ) -> list[tuple[str, bool]]:
     """One simulated staircase of ``design.trials`` trials: a planted observer who detects a level with
     probability ``detect(level)`` (a 2AFC guess adds half the rest); (condition, detected) per trial."""
-    levels = design.levels()
+    levels = design.level_order()
     history: list[tuple[str, bool]] = []
     for _ in range(design.trials or 0):
         condition = next_condition(design, answer_format, history)

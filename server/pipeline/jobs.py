@@ -208,6 +208,7 @@ def create_building(session: Session, settings: Settings, engine: Engine, study_
     it; 409 if a build is running or the slug is taken.  Nothing is created then."""
     from anim_core.clips.build import ConfigError
     from server.clipset.config import inline_config
+    from server.studies import ladder
     from server.studies.service import new_draft
 
     clips = study_file.clips
@@ -219,13 +220,15 @@ def create_building(session: Session, settings: Settings, engine: Engine, study_
                             "the server's data directory), or run `animstudy study create FILE` on the server")
     check_build_slot(session, settings, owner.id)
     try:
-        config = inline_config(clips.animations, clips.conditions, "the study file")
+        config = inline_config(clips.animations, clips.conditions, "the study file", clips.ladders)
     except ConfigError as exc:
         raise Unprocessable(str(exc)) from None
     for name, animation in (clips.animations or {}).items():
         check_data_file(settings, animation.get("source"), f"clips.animations.{name}.source")
         check_data_file(settings, animation.get("mapping"), f"clips.animations.{name}.mapping")
-    pipeline.check_design(config, study_file.design)
+    design = ladder.resolve(study_file.design, ladder.ladder_fields(config.conditions))
+    study_file = study_file.model_copy(update={"design": design})
+    pipeline.check_design(config, design)
     study = new_draft(session, study_file, owner)
     session.add(study)
     session.flush()  # its id names the folder of its [clips]

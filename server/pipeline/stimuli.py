@@ -18,7 +18,7 @@ in :mod:`server.pipeline.commands`; the build of uploads and of an API study's i
 A study file without ``[clips]`` uses the server's clip set (``<var>/clips``, its render manifest in
 ``<var>/media``); one with ``[clips] set = "file.toml"`` gets the clip set of that file, kept in
 ``<var>/clipsets/<key>/`` (``key``: a hash of the file's path and content, so an edited file is another clip set);
-one with inline ``[clips]`` conditions and/or animations gets the default clip-set file with those replaced
+one with inline ``[clips]`` conditions, ladders and/or animations gets the default clip-set file with those replaced
 (``key``: a hash of the study's owner, the tables and the default file: one researcher's inline clips are never
 another's).  A build or render of one clip set asks only for the pairs of studies whose clips it has
 (:func:`server.studies.service.pairs_in_use`).
@@ -87,8 +87,11 @@ def inline_place(settings: Settings, clips: Clips, where: str, owner_id: int | N
     one per owner: a researcher's inline clips are built, rendered and listed apart from every other
     researcher's, whatever they are named (``owner_id`` None: a study without owner, made on the server's
     command line)."""
-    config = inline_config(clips.animations, clips.conditions, where)
-    tables = json.dumps({"animations": clips.animations, "conditions": clips.conditions}, sort_keys=True)
+    config = inline_config(clips.animations, clips.conditions, where, clips.ladders)
+    given = {"animations": clips.animations, "conditions": clips.conditions}
+    if clips.ladders is not None:  # only then: the key of inline clips without ladders is as it was
+        given["ladders"] = clips.ladders
+    tables = json.dumps(given, sort_keys=True)
     owner = b"" if owner_id is None else f"owner {owner_id}\0".encode()
     key = hashlib.sha256(b"inline\0" + owner + tables.encode() + b"\0" + DEFAULT_CONFIG.read_bytes()
                          ).hexdigest()[:16]
@@ -114,6 +117,21 @@ def needed_conditions(design: Design) -> list[str]:
                                                                         else [])]))
 
 
+def settled(place: Place, design: Design, where: str = "") -> Design:
+    """``design`` settled against the clip set of ``place`` (:func:`server.studies.ladder.resolve`): a threshold
+    design's levels (and a ladder named for all its levels) from a described clip set's conditions, or from the
+    manifest of the server's; 422 (naming ``where``, if any) when they disagree."""
+    from server.studies import ladder
+    from server.studies.service import settled as settled_by_manifest
+
+    try:
+        if place.config is not None:
+            return ladder.resolve(design, ladder.ladder_fields(place.config.conditions))
+        return settled_by_manifest(design, place.clips_dir)
+    except Unprocessable as exc:
+        raise Unprocessable(f"{where}: {exc.detail}" if where else exc.detail) from None
+
+
 def build_animations(data_dir: Path, config: ClipSetConfig, wanted: dict[str, tuple[Condition, ...]],
                      progress: Progress = lambda _m: None,
                      each: Callable[[int, str], None] = lambda _k, _name: None, scheduler: str | None = None,
@@ -132,6 +150,24 @@ def build_animations(data_dir: Path, config: ClipSetConfig, wanted: dict[str, tu
     return [dataclasses.replace(c, source={**c.source, "character": record}) for c in built]
 
 
+def build_composite_animations(data_dir: Path, config: ClipSetConfig, wanted: dict[str, tuple[Condition, ...]],
+                               progress: Progress = lambda _m: None) -> list[BuiltClip]:
+    """The clips of each composite of ``wanted`` (sequences, layers, blends of ``config``'s takes) in its conditions
+    that apply to it (the reference among them), in this process (:func:`server.clipset.composites.build_composites`).
+    Nothing is written."""
+    if not wanted:
+        return []
+    from server.clipset.build import load_character
+    from server.clipset.composites import build_composites
+
+    character, record = load_character(data_dir, config.character, progress)
+    built = []
+    for name, conditions in wanted.items():
+        built += build_composites(data_dir, character, {name: config.composites[name]}, config.animations,
+                                  config.fps, conditions, config.relocate, progress)
+    return [dataclasses.replace(c, source={**c.source, "character": record}) for c in built]
+
+
 def check_design(config: ClipSetConfig, design: Design) -> list[str]:
     """The conditions ``design`` needs (:func:`needed_conditions`), or 422 naming what ``config`` does not have."""
     conditions = needed_conditions(design)
@@ -139,9 +175,15 @@ def check_design(config: ClipSetConfig, design: Design) -> list[str]:
     if unknown := [c for c in conditions if c not in by_id]:
         raise Unprocessable(f"design: condition(s) {', '.join(unknown)} are not in the study's clip set (it has "
                             f"{', '.join(by_id)})")
-    if unknown := [a for a in design.animations if a not in config.animations]:
+    names = [*config.animations, *config.composites]
+    if unknown := [a for a in design.animations if a not in names]:
         raise Unprocessable(f"design.animations: {', '.join(unknown)} are not in the study's clip set (it has "
-                            f"{', '.join(config.animations)})")
+                            f"{', '.join(names)})")
+    for name in design.animations:  # a take has no crossfade clip, a sequence no hybrid one
+        form = config.composites[name].form if name in config.composites else "take"
+        if wrong := [c for c in conditions if not by_id[c].applies(form)]:
+            raise Unprocessable(f"design.conditions: {', '.join(wrong)} build no clip of {name!r} (a {form}); its "
+                                f"clip set builds {', '.join(c.id for c in config.conditions if c.applies(form))}")
     return conditions
 
 
@@ -166,8 +208,11 @@ def build(data_dir: Path, config: ClipSetConfig, clips_dir: Path, design: Design
     for name in todo:
         keep = have.get(name, set()) | set(conditions)
         wanted[name] = tuple(c for c in config.conditions if c.id in keep or c.method == REFERENCE)
-    built = build_animations(data_dir, config, wanted, progress, lambda k, name: progress(
-        f"[{k + 1}/{len(todo)}] {name}: building {len(wanted[name])} clips"), scheduler, workers)
+    takes = {name: c for name, c in wanted.items() if name in config.animations}
+    built = build_animations(data_dir, config, takes, progress, lambda k, name: progress(
+        f"[{k + 1}/{len(todo)}] {name}: building {len(wanted[name])} clips"), scheduler, workers) if takes else []
+    built += build_composite_animations(data_dir, config, {name: c for name, c in wanted.items()
+                                                           if name in config.composites}, progress)
     try:
         merge_clip_set(clips_dir, built)
     except ManifestError as exc:
@@ -248,7 +293,11 @@ def make_stimuli(settings: Settings, session: Session, place: Place, designs: Ma
     size and shadows of the videos there already, so that a study's videos look alike), compute the pairs
     (:func:`study_pairs`) and render what is missing (:func:`render`); returns the render manifest of ``place``
     to pin a study over (:func:`server.studies.service.create_study`, ``show_design``, ``update_study``)."""
-    built(build_missing(settings, place, designs, progress, workers))
+    if place.config is None:  # the server's clip set: built whole first, its manifest then says the levels
+        built(build_missing(settings, place, designs, progress, workers))
+    designs = {where: settled(place, design, where) for where, design in designs.items()}
+    if place.config is not None:
+        built(build_missing(settings, place, designs, progress, workers))
     before = place.render_dir if (place.render_dir / MANIFEST).is_file() else place.videos(settings)
     chosen = size or rendered_settings(before)
     wanted = study_pairs(session, place, designs, place.videos(settings))

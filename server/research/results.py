@@ -14,6 +14,7 @@ import numpy as np
 from sqlalchemy.orm import Session
 
 from server.analysis.interval_scale import study_scales
+from server.analysis.json_numbers import finite_or_none
 from server.analysis.screening import flagged_counts, opinion_array, planned_calibration
 from server.analysis.statistics import analyse
 from server.analysis.subject_model import fit
@@ -56,10 +57,6 @@ def adaptive_rounds(session: Session, study: Study) -> list[dict[str, Any]]:
             for i, r in enumerate(session_batches(session, study))]
 
 
-def _number(value: float) -> float | None:
-    return float(value) if np.isfinite(value) else None
-
-
 @lru_cache(maxsize=16)
 def _subject_model_cached(votes: tuple[tuple[tuple[str, Any], ...], ...]) -> dict[str, Any]:
     """The P.910/P.913 subject model (``subject_model.fit``) of the test votes of the participants who finished
@@ -72,15 +69,16 @@ def _subject_model_cached(votes: tuple[tuple[tuple[str, Any], ...], ...]) -> dic
     model = fit(x, [animations.index(a) for a, _, _ in comparisons])
     return {
         "status": "ok" if model.converged else "not_converged", "iterations": model.iterations,
-        "comparisons": [{"animation": a, "reference": r, "condition": t, "score": _number(model.quality[e]),
-                         "ci95": [_number(v) for v in model.quality_ci95[e]]}
+        "comparisons": [{"animation": a, "reference": r, "condition": t, "score": finite_or_none(model.quality[e]),
+                         "ci95": [finite_or_none(v) for v in model.quality_ci95[e]]}
                         for e, (a, r, t) in enumerate(comparisons)],
-        "participants": [{"session_id": sid, "bias": _number(model.bias[s]),
-                          "bias_ci95": [_number(v) for v in model.bias_ci95[s]],
-                          "inconsistency": _number(model.inconsistency[s]),
-                          "inconsistency_ci95": [_number(v) for v in model.inconsistency_ci95[s]]}
+        "participants": [{"session_id": sid, "bias": finite_or_none(model.bias[s]),
+                          "bias_ci95": [finite_or_none(v) for v in model.bias_ci95[s]],
+                          "inconsistency": finite_or_none(model.inconsistency[s]),
+                          "inconsistency_ci95": [finite_or_none(v) for v in model.inconsistency_ci95[s]]}
                          for s, sid in enumerate(subjects)],
-        "animations": [{"animation": a, "ambiguity": _number(model.ambiguity[c])} for c, a in enumerate(animations)],
+        "animations": [{"animation": a, "ambiguity": finite_or_none(model.ambiguity[c])}
+                       for c, a in enumerate(animations)],
     }
 
 

@@ -7,30 +7,19 @@ the results API and the dashboard."""
 from __future__ import annotations
 
 import copy
-import math
 from collections import defaultdict
 from dataclasses import asdict
 from functools import lru_cache
 from typing import Any
 
 from server.analysis import frontier_plot, psychometric
+from server.analysis.json_numbers import json_safe
 
 THRESHOLD_MODES = ("constant-stimuli", "staircase")
 COST_METRIC = "cost_ms_per_1000"
 # Resamples of the threshold's bootstrap interval: a dashboard polls the results, and 200 keep a fit of a few
 # hundred answers under 0.2 s; the profile-likelihood interval (the one for staircase data) needs none.
 BOOTSTRAP = 200
-
-
-def _clean(value: Any) -> Any:
-    """JSON-safe: NaN and infinities become None, recursively."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _clean(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_clean(v) for v in value]
-    return value
 
 
 def counts(rows: list[dict[str, Any]]) -> dict[str, list[tuple[str, float, int, int]]]:
@@ -64,7 +53,7 @@ def _frontiers(tallies: tuple[tuple[str, tuple[tuple[str, float, int, int], ...]
             continue
         fronts.append(f)
         out.append(asdict(f))
-    return _clean(out), frontier_plot.svg(fronts) if fronts else ""
+    return json_safe(out), frontier_plot.svg(fronts) if fronts else ""
 
 
 def threshold_results(design: dict[str, Any], answer_format: str, rows: list[dict[str, Any]],

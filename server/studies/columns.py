@@ -93,7 +93,8 @@ COLUMNS: tuple[ExportColumn, ...] = (
                  "\"constant-stimuli\"` or `\"staircase\"`): the ladder whose levels the conditions are; empty "
                  "otherwise"),
     ExportColumn("level", "number or empty", "the test condition's level on `ladder` (e.g. 12 for `pps12`, poses "
-                 "per second); empty outside threshold designs"),
+                 "per second), as the clip set's manifest gives it (the study's `design.levels`); empty outside "
+                 "threshold designs"),
     ExportColumn("correct", "`true`, `false`, or empty", "derived from `choice`, never stored: 2afc — the "
                  "reference's side was chosen (empty when both sides show one clip); same_different — `same` "
                  "exactly when both sides show one clip; empty for `rating5`"),

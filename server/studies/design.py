@@ -9,7 +9,9 @@ Modes (``Design.mode``):
   consecutive slices of one seeded cyclic order of the pairs, so every pair is shown equally often (±1) over
   participants (see ``server.studies.sessions``).
 - ``constant-stimuli`` (issue 38): the reference against every level of one ``ladder`` (the design's
-  ``conditions``, each ``<ladder><level>``), ``repeats`` times per side, as in ``reference`` mode.
+  ``conditions``: levels of the ladder listed, or the ladder's id alone for all of them), ``repeats`` times per
+  side, as in ``reference`` mode.  The levels come from the clip set (its clips' ``ladder`` and ``level``),
+  filled into ``levels`` when the study is created (:func:`server.studies.ladder.resolve`).
 - ``staircase`` (issue 38): one QUEST+ staircase per animation over the ladder's levels, ``trials`` trials each,
   interleaved; the level of each trial is chosen on the server from the participant's own answers when the trial
   comes up (``server.participants.staircase``).  Catch trials of both ladder modes show the ladder's most
@@ -43,8 +45,6 @@ from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_vali
 
 from anim_core.methods.conditions import REFERENCE  # the reference condition's id is its method's name
 from server.clipset.config import NAME_PATTERN
-
-from .ladder import from_name, off_ladder
 
 # Animation names and condition ids, as the clip set names them (a "-" never matches one of its clips).
 Ident = Annotated[str, StringConstraints(pattern=NAME_PATTERN)]
@@ -96,6 +96,10 @@ class Design(BaseModel):
     detectable_at: Literal["low", "high"] = Field("low", description="ladder modes: the end of the ladder easiest "
                                                   "to tell from the reference (low for update rates and bits, "
                                                   "high for an error tolerance)")
+    levels: dict[Ident, float] | None = Field(None, description="ladder modes: each condition's level, filled in "
+                                              "from the clip set (its clips' ladder and level fields) when the "
+                                              "study is created; a study file need not give it, and one that "
+                                              "does has it checked against the clip set")
 
     @model_validator(mode="after")
     def consistent(self) -> Self:
@@ -120,6 +124,8 @@ class Design(BaseModel):
             if self.pairs_per_session > len(self.pairs()):
                 raise ValueError(f"pairs_per_session ({self.pairs_per_session}) exceeds the "
                                  f"{len(self.pairs())} pairs of {len(self.all_conditions())} conditions")
+        if self.whole_ladder() and self.mode != "staircase":  # its size is known once the levels are filled in
+            return self
         most = 2 * self.repeats  # showings of one comparison; the others must separate them
         if self.mode != "staircase" and most - 1 > self.session_items() - most:
             raise ValueError("this design cannot avoid showing a comparison twice in a row: add conditions, "
@@ -132,7 +138,7 @@ class Design(BaseModel):
 
     def _check_ladder(self) -> None:
         if self.mode not in LADDER_MODES:
-            for name in ("ladder", "trials"):
+            for name in ("ladder", "trials", "levels"):
                 if getattr(self, name) is not None:
                     raise ValueError(f"{name} is for mode = \"constant-stimuli\" or \"staircase\" only")
             return
@@ -144,29 +150,40 @@ class Design(BaseModel):
         if self.mode != "staircase" and self.trials is not None:
             raise ValueError("trials is for mode = \"staircase\" only")
         if "conditions" not in self.model_fields_set:
-            raise ValueError(f"conditions: list the levels of ladder {self.ladder!r} the design shows (e.g. "
-                             f"{self.ladder}4, {self.ladder}8, ...)")
-        outside = off_ladder(self.conditions, self.ladder)
-        if outside:
-            raise ValueError(f"conditions: {', '.join(outside)} not a level of ladder {self.ladder!r}: a "
-                             f"{self.mode} design runs over the levels of one ladder")
+            raise ValueError(f"conditions: name the ladder ({self.ladder!r}) for all its levels, or list the "
+                             f"levels the design shows")
+        if self.ladder in self.conditions and len(self.conditions) > 1:
+            raise ValueError(f"conditions: the ladder's id {self.ladder!r} stands for all its levels; give it "
+                             f"alone, or list levels without it")
+        if self.whole_ladder():
+            if self.levels is not None:
+                raise ValueError(f"levels: conditions = [{self.ladder!r}] takes every level from the clip set; "
+                                 f"drop levels")
+            return
         if len(self.conditions) < 3:
             raise ValueError(f"conditions: a {self.mode} design needs at least 3 levels of ladder "
                              f"{self.ladder!r}, got {len(self.conditions)}")
-        if self.practice is not None and from_name(self.practice, self.ladder) is None:
-            raise ValueError(f"practice: {self.practice} is not a level of ladder {self.ladder!r}")
+        if self.levels is not None and set(self.levels) != set(self.conditions):
+            raise ValueError(f"levels: one level for each condition and for no other (conditions "
+                             f"{', '.join(self.conditions)}; levels of {', '.join(self.levels)})")
 
-    def levels(self) -> dict[str, float]:
-        """Ladder modes: each condition's level, ordered from the hardest to tell from the reference to the
-        easiest."""
-        assert self.ladder is not None
-        levels = {c: from_name(c, self.ladder) for c in self.conditions}
-        ordered = sorted(levels, key=lambda c: levels[c] or 0.0, reverse=self.detectable_at == "low")
-        return {c: float(levels[c] or 0.0) for c in ordered}
+    def whole_ladder(self) -> bool:
+        """Ladder modes: ``conditions`` is the ladder's id alone, all its levels (expanded at creation)."""
+        return self.mode in LADDER_MODES and self.ladder is not None and self.conditions == [self.ladder]
+
+    def level_order(self) -> dict[str, float]:
+        """Ladder modes: each condition's level (``levels``, from the clip set), ordered from the hardest to tell
+        from the reference to the easiest.  ValueError for a design not yet settled against its clip set
+        (:func:`server.studies.ladder.resolve`)."""
+        if self.levels is None or self.whole_ladder():
+            raise ValueError(f"design.levels: the levels of ladder {self.ladder!r} are not known yet; they are "
+                             f"filled in from the clip set when the study is created")
+        levels = self.levels
+        return dict(sorted(levels.items(), key=lambda kv: kv[1], reverse=self.detectable_at == "low"))
 
     def easiest(self) -> str:
         """Ladder modes: the level easiest to tell from the reference (the catch trials')."""
-        return list(self.levels())[-1]
+        return list(self.level_order())[-1]
 
     def all_conditions(self) -> list[str]:
         """The reference first, then the other conditions."""

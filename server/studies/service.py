@@ -11,6 +11,7 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session, aliased, object_session
 
+from server.clipset.manifest import MANIFEST
 from server.config import Settings
 from server.db import utcnow
 from server.errors import Conflict, NotFound, Unprocessable
@@ -20,6 +21,7 @@ from server.media.plan import identical_clips, read_clip_set
 from server.researchers.models import Researcher
 from server.stimuli import service as stimulus_sets
 
+from . import ladder
 from .columns import EXPORT_COLUMNS, QUESTIONS_BEFORE
 from .design import LADDER_MODES, ComparisonIds, Design
 from .models import Comparison, ComparisonKind, Stimulus, Study, StudyState
@@ -106,7 +108,9 @@ def create_study(session: Session, media: RenderManifest, study_file: StudyFile,
     ``animations``: the ones its owner may use (default: all; the others are unknown to them, see
     ``server.uploads.service.usable_animations``)."""
     study = new_draft(session, study_file, owner)
-    _build_comparisons(session, study, media, study_file.design, media_dir, clips_dir, animations, stimulus_set)
+    design = _build_comparisons(session, study, media, study_file.design, media_dir, clips_dir, animations,
+                                stimulus_set)
+    study.design = design.model_dump()
     session.add(study)
     session.commit()
     return study
@@ -120,14 +124,30 @@ def new_draft(session: Session, study_file: StudyFile, owner: Researcher | None)
                  **_columns(study_file))
 
 
+def settled(design: Design, clips_dir: Path | None) -> Design:
+    """``design`` settled against the clip manifest in ``clips_dir`` (:func:`server.studies.ladder.resolve`: a
+    threshold design's levels from its clips' ``ladder``/``level`` fields, 422 if they disagree).  Without a clip
+    manifest only a design whose levels are given already (an imported study's) is accepted."""
+    if design.mode not in LADDER_MODES:
+        return design
+    if clips_dir is not None and (Path(clips_dir) / MANIFEST).is_file():
+        return ladder.resolve(design, ladder.ladder_fields(read_clip_set(clips_dir, read_arrays=False)))
+    if design.levels is None or design.whole_ladder():
+        raise Unprocessable(f"design: the levels of ladder {design.ladder!r} come from the clip set's manifest "
+                            f"(its clips' ladder and level), and there is none to read them from: build the clip "
+                            f"set first (`animstudy clips build --config FILE`) or name its file in [clips] set")
+    return design
+
+
 def _build_comparisons(session: Session, study: Study, media: RenderManifest, design: Design,
                        media_dir: Path | None, clips_dir: Path | None,
                        animations: Collection[str] | None = None,
-                       given: stimulus_sets.SetContent | None = None) -> None:
+                       given: stimulus_sets.SetContent | None = None) -> Design:
     """The study's stimuli, comparisons and stimulus set for ``design`` (replacing any it had), from the clips of
-    ``animations`` (default: all)."""
+    ``animations`` (default: all); returns the design :func:`settled` against the clip set, to be stored."""
     if study.opened_at is not None:  # its set is pinned
         raise Conflict(f"study {study.slug!r} has been open: what it shows is pinned")
+    design = settled(design, clips_dir)
     clips = {k: v for k, v in media.clip_index().items() if animations is None or k[0] in animations}
     pair_videos = media.pair_videos()
     needed = required_pairs(design, clips)
@@ -158,6 +178,7 @@ def _build_comparisons(session: Session, study: Study, media: RenderManifest, de
     content = given or stimulus_sets.make_content(media, [s.clip_id for s in study.stimuli], needed, media_dir,
                                                   clips_dir)
     study.stimulus_set = stimulus_sets.store(session, content)
+    return design
 
 
 def show_design(session: Session, study: Study, media: RenderManifest, media_dir: Path | None,
@@ -166,7 +187,8 @@ def show_design(session: Session, study: Study, media: RenderManifest, media_dir
     with inline ``[clips]``, once its build job has rendered them)."""
     if study.state != StudyState.draft:
         raise Conflict(f"study {study.slug!r} is {study.state}, no longer a draft")
-    _build_comparisons(session, study, media, Design.model_validate(study.design), media_dir, clips_dir)
+    design = _build_comparisons(session, study, media, Design.model_validate(study.design), media_dir, clips_dir)
+    study.design = design.model_dump()
     session.commit()
     return study
 
@@ -229,6 +251,8 @@ def revision(study: Study, changes: Mapping[str, Any], media: RenderManifest | N
     for key, value in changes.items():
         merge = isinstance(current.get(key), dict) and isinstance(value, dict)
         current[key] = {**current[key], **value} if merge else value
+    if isinstance(changes.get("design"), dict) and "levels" not in changes["design"]:
+        current["design"]["levels"] = None  # filled in again from the clip set when the design is rebuilt
     updated = StudyFile.model_validate(current)
     if redesigns(study, updated) and (study.state != StudyState.draft or media is None):
         raise Conflict("the design can change only while the study is a draft")
@@ -237,7 +261,9 @@ def revision(study: Study, changes: Mapping[str, Any], media: RenderManifest | N
 
 def redesigns(study: Study, updated: StudyFile) -> bool:
     """Whether ``updated`` changes the study's design, so that its comparisons are built anew."""
-    return updated.design != Design.model_validate(study.design)  # designs stored before a field existed compare equal
+    # designs stored before a field existed compare equal; levels are the clip set's, filled in by a rebuild
+    return (updated.design.model_copy(update={"levels": None})
+            != Design.model_validate(study.design).model_copy(update={"levels": None}))
 
 
 def revise_study(session: Session, study: Study, updated: StudyFile, media: RenderManifest | None = None,
@@ -247,7 +273,11 @@ def revise_study(session: Session, study: Study, updated: StudyFile, media: Rend
     changed.  What showed the old comparisons goes first: :func:`server.participants.service.update_study`."""
     if redesigns(study, updated):
         assert media is not None  # revision refuses a redesign without it
-        _build_comparisons(session, study, media, updated.design, media_dir, clips_dir, animations)
+        design = _build_comparisons(session, study, media, updated.design, media_dir, clips_dir, animations)
+        updated = updated.model_copy(update={"design": design})
+    else:  # the same design: its levels as they were settled
+        stored = Design.model_validate(study.design)
+        updated = updated.model_copy(update={"design": updated.design.model_copy(update={"levels": stored.levels})})
     for key, value in _columns(updated).items():
         setattr(study, key, value)
     session.commit()

@@ -290,9 +290,11 @@ def template_problem(url: str, fields: set[str]) -> str | None:
 class Clips(Strict):
     """The clip set a study's clips come from (``[clips]``): ``set``, a clip-set file (README "Clip-set file")
     relative to the study file; or inline ``conditions`` (``[[clips.conditions]]``, as a clip-set file's
-    ``[[conditions]]``) and/or ``animations`` (``[clips.animations.<name>]``, sources under the data directory),
-    the rest from the default clip-set file.  `animstudy study create` builds the clips of it the study needs and
-    renders their videos; without ``[clips]`` the study uses the server's clip set."""
+    ``[[conditions]]``), ``ladders`` (``[[clips.ladders]]``, as its ``[[ladders]]``, checked alike:
+    :func:`server.clipset.config.inline_config`) and/or ``animations`` (``[clips.animations.<name>]``, sources
+    under the data directory), the rest from the default clip-set file.  `animstudy study create` builds the
+    clips of it the study needs and renders their videos; without ``[clips]`` the study uses the server's clip
+    set."""
 
     set: str | None = Field(None, min_length=1, max_length=500, pattern=r"\.toml$",
                             description="clip-set file (TOML), relative to the study file")
@@ -301,13 +303,18 @@ class Clips(Strict):
     animations: dict[str, dict[str, Any]] | None = Field(None, min_length=1, max_length=64,
                                                          description="animations, as a clip-set file's "
                                                                      "[animations.<name>]")
+    ladders: list[dict[str, Any]] | None = Field(None, min_length=1, max_length=16,
+                                                 description="ladders, as a clip-set file's [[ladders]]: one "
+                                                             "condition per level, added to the conditions")
 
     @model_validator(mode="after")
     def one_source(self) -> Self:
-        if self.set is None and self.conditions is None and self.animations is None:
-            raise ValueError("[clips] needs set, or conditions and/or animations")
-        if self.set is not None and (self.conditions is not None or self.animations is not None):
-            raise ValueError("[clips] takes either set (a clip-set file) or conditions/animations inline, not both")
+        inline = (self.conditions, self.animations, self.ladders)
+        if self.set is None and all(v is None for v in inline):
+            raise ValueError("[clips] needs set, or conditions, ladders and/or animations")
+        if self.set is not None and any(v is not None for v in inline):
+            raise ValueError("[clips] takes either set (a clip-set file) or conditions/ladders/animations inline, "
+                             "not both")
         return self
 
 
