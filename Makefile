@@ -54,11 +54,12 @@ test: lint
 	@test -f $(AXE) || npm install --no-save --no-audit --no-fund --prefix var/node axe-core@4
 	@$(MAKE) --no-print-directory docs
 	@# In parallel (pytest-xdist, TEST_WORKERS processes, whole files per worker so that module fixtures are built
-	@# once; each worker has its own databases and var dir, see tests/conftest.py), then the tests marked `serial`
+	@# once; the files with the most `slow` tests first, so that the run ends on short ones: tests/conftest.py and
+	@# --no-loadscope-reorder; each worker has its own databases and var dir, see tests/conftest.py), then the tests marked `serial`
 	@# (PostgreSQL stopped for everyone) alone; exit status 5 there is "none selected" (no TEST_DATABASE_URL).
 	@start=$$(date +%s); rc=0; \
-	echo "$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile -m 'not serial'"; \
-	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile -m 'not serial' --durations=15 || rc=$$?; \
+	echo "$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m 'not serial'"; \
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m 'not serial' --durations=15 || rc=$$?; \
 	parallel=$$(( $$(date +%s) - start )); \
 	echo "$(BIN)/python -m pytest -p no:xdist -m serial"; \
 	$(BIN)/python -m pytest -p no:xdist -m serial || { s=$$?; test $$s -eq 5 || rc=$$s; }; \

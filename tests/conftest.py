@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -90,6 +91,20 @@ def pytest_sessionfinish(session, exitstatus):
                 conn.execute(text(f'DROP DATABASE IF EXISTS "{database}" WITH (FORCE)'))
     finally:
         admin.dispose()
+
+
+def pytest_collection_modifyitems(session, config, items):
+    """Whole files, those with the most tests marked ``slow`` first, then those with the most tests (the order
+    within a file kept): `make test` hands files to its workers in this order (``--no-loadscope-reorder``), so the
+    long files start first and the run ends on short ones, with both workers busy to the end."""
+    files: dict[Path, list] = {}
+    for item in items:
+        files.setdefault(item.path, []).append(item)
+
+    def weight(path: Path) -> tuple[int, int]:
+        return -sum(1 for item in files[path] if item.get_closest_marker("slow")), -len(files[path])
+
+    items[:] = [item for path in sorted(files, key=weight) for item in files[path]]
 
 
 def data_dir() -> Path:
@@ -202,6 +217,43 @@ def cmu_walk(data: Path):
     return dataclasses.replace(bvh, motion=bvh.motion[1:241])
 
 
+CONDITIONS16 = REPO / "server" / "clipset" / "conditions16.toml"
+
+
+@pytest.fixture(scope="session")
+def built_clip_set(data: Path, tmp_path_factory: pytest.TempPathFactory):
+    """``build(config=None)``: a copy of ``build_clip_set(data, load_config(config))`` (``config`` a clip-set
+    file of the repository: the default set, or :data:`CONDITIONS16`), built once per run and shared.
+
+    The first worker to ask builds it (under a file lock, so the other waits instead of building it too) and
+    pickles it into the run's temporary directory, which all workers share; every call unpickles a copy of its
+    own, so a test that changes its clips changes no other test's.  Keyed by the data directory and the file's
+    bytes; a run never changes either."""
+    import fcntl
+    import hashlib
+    import pickle
+
+    shared = tmp_path_factory.getbasetemp().parent if WORKER else tmp_path_factory.getbasetemp()
+
+    def build(config: Path | None = None) -> list:
+        from server.clipset.build import build_clip_set
+        from server.clipset.config import load_config
+
+        text = config.read_bytes() if config is not None else b"<the default clip set>"
+        key = hashlib.sha256(str(data).encode() + b"\0" + text).hexdigest()[:16]
+        path = shared / f"clip-set-{key}.pickle"
+        with open(shared / f"clip-set-{key}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if not path.exists():
+                clips = build_clip_set(data, load_config(config) if config is not None else None)
+                partial = path.with_suffix(".partial")
+                partial.write_bytes(pickle.dumps(clips, protocol=pickle.HIGHEST_PROTOCOL))
+                partial.replace(path)
+        return pickle.loads(path.read_bytes())
+
+    return build
+
+
 # The browser tests' Chromium, in one place: Debian's (never a downloaded browser), headless, no network chatter of
 # its own so a test's requests are the page's only.
 CHROMIUM = "/usr/bin/chromium"
@@ -209,6 +261,9 @@ CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic"
                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 
 
+# Module scope, not session: while a sync Playwright is open its event loop counts as running in this thread
+# (playwright/_impl/_greenlets.py sets it after every call), so asyncio.run() in a later non-browser test of the
+# worker would fail.
 @pytest.fixture(scope="module")
 def playwright():
     from playwright.sync_api import sync_playwright  # only the browser tests need it
@@ -219,10 +274,24 @@ def playwright():
 
 @pytest.fixture(scope="module")
 def browser(playwright):
-    # Module scope: one launch per file (a launch costs about a second), a fresh context per test below.
+    # One launch per file (a launch costs one to three seconds), a fresh context per test; tests never close it
+    # (:func:`own_contexts` closes what they opened).
     b = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
     yield b
     b.close()
+
+
+@contextmanager
+def own_contexts(browser):
+    """Close, on leaving, every browser context opened inside (``browser.new_page`` opens one too): a test's pages,
+    cookies and storage are its own, as with a browser of its own, on the shared :func:`browser`."""
+    before = set(browser.contexts)
+    try:
+        yield browser
+    finally:
+        for context in browser.contexts:
+            if context not in before:
+                context.close()
 
 
 @pytest.fixture

@@ -16,7 +16,6 @@ import tomllib
 from pathlib import Path
 
 import pytest
-from playwright.sync_api import sync_playwright
 from sqlalchemy import select
 
 from server.app import create_app
@@ -28,8 +27,9 @@ from server.participants.models import ParticipantSession
 from server.researchers.service import create_researcher
 from server.studies.models import Study
 from server.studies.scale import CHOICES
+from tests.conftest import own_contexts
 from tests.server_fixtures import live_server
-from tests.test_participant_page import ARGS, ARTIFACTS, CHROMIUM, wait_until
+from tests.test_participant_page import ARTIFACTS, CHROMIUM, wait_until
 from tests.test_studies16_browser import CLIP_SET, RESEARCHER, run, walk_through
 
 REPO = Path(__file__).resolve().parents[1]
@@ -99,11 +99,10 @@ def site(data, tmp_path_factory):
 
 
 @pytest.mark.slow  # tens of seconds (the serial run's slowest; still run by `make test`)
-def test_six_conditions_run_adaptively_in_the_browser(site):
+def test_six_conditions_run_adaptively_in_the_browser(browser, site):
     base, factory = site
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+    with own_contexts(browser):
         context = browser.new_context(viewport={"width": 1280, "height": 720})
         page = context.new_page()
         errors = []
@@ -131,5 +130,4 @@ def test_six_conditions_run_adaptively_in_the_browser(site):
         page.locator("#scale-panel").screenshot(path=str(ARTIFACTS / "adaptive-walk-scale.png"))
         page.locator("#adaptive-panel").screenshot(path=str(ARTIFACTS / "adaptive-walk-rounds.png"))
         context.close()
-        browser.close()
         assert not errors, errors

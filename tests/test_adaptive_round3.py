@@ -67,6 +67,7 @@ def _pairs(ps) -> list[tuple[str, str, str]]:
 # --- finding 3 -------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # tens of seconds (the parallel run's slowest; still run by `make test`)
 def test_bots_pilots_and_screened_out_sessions_do_not_steer_the_design(db, monkeypatch):
     """Issue 36's reproduction: after 40 bot sessions (every answer "left much better", each in 0.1 s: screened out
     by the catch and fast rules) and 10 pilot sessions (answering the opposite of the real observers), the next
@@ -159,6 +160,7 @@ def _work(db, monkeypatch, study) -> tuple[int, int]:
     return len(fits), len(statements)
 
 
+@pytest.mark.slow  # tens of seconds (the parallel run's slowest; still run by `make test`)
 def test_results_work_per_vote_does_not_grow_with_the_sessions(db, monkeypatch):
     """The results request after one more participant (the dashboard polling while votes arrive) refits the
     posterior and queries the database as often with 16 sessions before it as with 8: today it refitted every

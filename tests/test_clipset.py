@@ -22,8 +22,8 @@ KEY_COUNTS = {"walk": [4, 8, 16], "run": [4, 8, 16], "crouch": [2, 3, 5], "idle"
 
 
 @pytest.fixture(scope="module")
-def clips(data):
-    return build_clip_set(data)
+def clips(built_clip_set):
+    return built_clip_set()
 
 
 @pytest.fixture(scope="module")

@@ -145,7 +145,7 @@ def small_set(data, tmp_path_factory):
     return folder / "clips", clips
 
 
-def test_any_animation_names_and_a_subset_of_conditions_build(small_set, data):
+def test_any_animation_names_and_a_subset_of_conditions_build(small_set, data, built_clip_set):
     out, clips = small_set
     assert [c.id for c in clips] == ["stroll-reference", "stroll-few_keys", "sway-reference", "sway-few_keys"]
     manifest = read_clip_manifest(out)
@@ -154,7 +154,7 @@ def test_any_animation_names_and_a_subset_of_conditions_build(small_set, data):
         ("stroll", "reference", "keyframe", {}), ("stroll", "few_keys", "hybrid", {"increment": 1}),
         ("sway", "reference", "keyframe", {}), ("sway", "few_keys", "hybrid", {"increment": 1})]
     # The same animations under other names give the same clips as the default set's walk-hybrid1.
-    default = {c.id: c for c in build_clip_set(data) if c.animation in ("walk", "idle")}
+    default = {c.id: c for c in built_clip_set() if c.animation in ("walk", "idle")}
     np.testing.assert_array_equal(clips[1].world_positions, default["walk-hybrid1"].world_positions)
     np.testing.assert_array_equal(clips[2].world_positions, default["idle-keyframe"].world_positions)
     assert clips[1].key_times.size == 8 and clips[3].key_times.size == 3
@@ -219,8 +219,8 @@ def _clip_fingerprints(folder: Path) -> dict[str, dict[str, dict[str, object]]]:
     return out
 
 
-def test_default_clip_set_equals_the_accepted_clip_set(data, tmp_path):
-    write_clip_set(build_clip_set(data), tmp_path)
+def test_default_clip_set_equals_the_accepted_clip_set(built_clip_set, tmp_path):
+    write_clip_set(built_clip_set(), tmp_path)
     got = _clip_fingerprints(tmp_path)
     if os.environ.get("ANIMSTUDY_WRITE_REFERENCE") == "1":
         ACCEPTED_CLIPS.write_text(json.dumps(got, indent=1) + "\n")

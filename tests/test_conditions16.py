@@ -301,11 +301,9 @@ CONDITIONS16 = Path(__file__).resolve().parents[1] / "server" / "clipset" / "con
 
 
 @pytest.fixture(scope="module")
-def full_set(data):
+def full_set(built_clip_set):
     """The clip set of server/clipset/conditions16.toml: the thesis's conditions and those of issue 16."""
-    from server.clipset.build import build_clip_set
-    from server.clipset.config import load_config
-    return build_clip_set(data, load_config(CONDITIONS16))
+    return built_clip_set(CONDITIONS16)
 
 
 @pytest.fixture(scope="module")

@@ -11,13 +11,12 @@ from anim_core.math import quat as Q
 from anim_core.math.clip import KeyframeClip
 from anim_core.runtime import pose_crowd
 from anim_core.runtime.crowd import BAKE_TOLERANCE_DEG, bake, numba, pose_crowd_numpy, table_from_keyframes
-from server.clipset.build import build_clip_set
 from tests.synthetic import biped, random_rotations
 
 
 @pytest.fixture(scope="module")
-def clips(data):
-    return build_clip_set(data)
+def clips(built_clip_set):
+    return built_clip_set()
 
 
 def reference(clip, t):

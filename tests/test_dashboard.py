@@ -1,17 +1,15 @@
 """The researcher dashboard in Chromium: login, every chart drawn from a study with simulated participants."""
 
 import pytest
-from playwright.sync_api import sync_playwright
 
 from server.app import create_app
-from server.clipset.build import build_clip_set
 from server.clipset.manifest import write_clip_set
 from server.config import Settings
 from server.db import migrate, session_factory
 from server.researchers.service import create_researcher
-from tests.conftest import _fresh_engine
+from tests.conftest import _fresh_engine, own_contexts
 from tests.server_fixtures import live_server, make_study
-from tests.test_participant_page import ARGS, ARTIFACTS, CHROMIUM, wait_until
+from tests.test_participant_page import ARTIFACTS, wait_until
 from tests.test_results import simulate
 
 CHARTS = ("chart-distribution", "chart-thesis", "chart-split", "chart-means", "chart-q-gamer", "chart-q-tech_savvy",
@@ -19,10 +17,10 @@ CHARTS = ("chart-distribution", "chart-thesis", "chart-split", "chart-means", "c
 
 
 @pytest.fixture(scope="module")
-def dashboard_site(data, tmp_path_factory):
+def dashboard_site(data, built_clip_set, tmp_path_factory):
     settings = Settings(var_dir=tmp_path_factory.mktemp("var"), data_dir=data,
                         secret_key="dashboard-test-secret-0123456789abcdef")
-    write_clip_set(build_clip_set(data), settings.clips_dir)  # the clips' objective metrics
+    write_clip_set(built_clip_set(), settings.clips_dir)  # the clips' objective metrics
     engine = _fresh_engine("sqlite", tmp_path_factory)
     migrate(engine)
     with session_factory(engine)() as db:
@@ -33,9 +31,8 @@ def dashboard_site(data, tmp_path_factory):
     engine.dispose()
 
 
-def test_dashboard_logs_in_and_draws_every_chart(dashboard_site):
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+def test_dashboard_logs_in_and_draws_every_chart(browser, dashboard_site):
+    with own_contexts(browser):
         page = browser.new_page(viewport={"width": 1280, "height": 720}, accept_downloads=True)
         errors = []
         page.on("pageerror", lambda e: errors.append(str(e)))
@@ -69,5 +66,4 @@ def test_dashboard_logs_in_and_draws_every_chart(dashboard_site):
         assert lines[0].startswith("session_id,trial_index") and len(lines) == 1 + 19 * 16 + 10
         page.click("#toggle-state")
         wait_until(page, "document.getElementById('state-badge').textContent === 'closed'")
-        browser.close()
         assert not errors, errors

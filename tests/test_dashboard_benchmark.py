@@ -5,7 +5,6 @@ import json
 from pathlib import Path
 
 import pytest
-from playwright.sync_api import sync_playwright
 
 from anim_core.bench import suite as benchmark
 from server.app import create_app
@@ -14,20 +13,20 @@ from server.clipset.config import load_config
 from server.config import Settings
 from server.db import migrate, session_factory
 from server.researchers.service import create_researcher
-from tests.conftest import _fresh_engine
+from tests.conftest import _fresh_engine, own_contexts
 from tests.server_fixtures import live_server, make_study
-from tests.test_participant_page import ARGS, ARTIFACTS, CHROMIUM
+from tests.test_participant_page import ARTIFACTS
 
 CONDITIONS16 = Path(__file__).resolve().parents[1] / "server" / "clipset" / "conditions16.toml"
 
 
 @pytest.fixture(scope="module")
-def site(data, tmp_path_factory):
+def site(data, built_clip_set, tmp_path_factory):
     settings = Settings(var_dir=tmp_path_factory.mktemp("var"), data_dir=data,
                         secret_key="dashboard-test-secret-0123456789abcdef")
     # The thesis's conditions and those of issue 16 on the walk (14 clips), the thesis's on the idle (4).
     walk = dataclasses.replace(config := load_config(CONDITIONS16), animations={"walk": config.animations["walk"]})
-    clips = build_clip_set(data, walk) + [c for c in build_clip_set(data) if c.animation == "idle"]
+    clips = build_clip_set(data, walk) + [c for c in built_clip_set() if c.animation == "idle"]
     doc = benchmark.run(clips, characters=(1, 10), stages=("pose",), frames=2, warmup=1)
     doc["series"] = benchmark.series(doc["results"])
     settings.benchmark_path.parent.mkdir(parents=True)
@@ -42,10 +41,9 @@ def site(data, tmp_path_factory):
     engine.dispose()
 
 
-def test_performance_panel_shows_the_keys_figures_and_the_memory_chart(site):
+def test_performance_panel_shows_the_keys_figures_and_the_memory_chart(browser, site):
     base, doc = site
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+    with own_contexts(browser):
         page = browser.new_page(viewport={"width": 1280, "height": 720})
         errors = []
         page.on("pageerror", lambda e: errors.append(str(e)))
@@ -83,5 +81,4 @@ def test_performance_panel_shows_the_keys_figures_and_the_memory_chart(site):
         assert "keys runtime: worst hybrid / keyframe" in page.inner_text("#summary-benchmark")
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         page.locator("#chart-benchmark").locator("xpath=..").screenshot(path=str(ARTIFACTS / "performance.png"))
-        browser.close()
         assert not errors, errors

@@ -4,16 +4,15 @@ list with its reasons, the subject model, and the pilot controls (issue 28)."""
 import re
 
 import pytest
-from playwright.sync_api import sync_playwright
 
 from server.app import create_app
 from server.config import Settings
 from server.db import migrate, session_factory
 from server.participants import service
 from server.researchers.service import create_researcher
-from tests.conftest import _fresh_engine
+from tests.conftest import _fresh_engine, own_contexts
 from tests.server_fixtures import live_server, make_study
-from tests.test_participant_page import ARGS, CHROMIUM, wait_until
+from tests.test_participant_page import wait_until
 from tests.test_results import simulate
 
 
@@ -42,10 +41,10 @@ def rows(page, selector):
     return page.eval_on_selector(selector, "e => [...e.querySelectorAll('tbody tr')].map(r => r.innerText)")
 
 
-def test_screening_panel(site):
+@pytest.mark.slow  # tens of seconds (the parallel run's slowest; still run by `make test`)
+def test_screening_panel(browser, site):
     base, (straight, _pilot) = site
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+    with own_contexts(browser):
         page = browser.new_page(viewport={"width": 1280, "height": 720})
         errors = []
         page.on("pageerror", lambda e: errors.append(str(e)))
@@ -89,5 +88,4 @@ def test_screening_panel(site):
         page.click("#delete-pilot")
         wait_until(page, "document.getElementById('pilot-message').textContent.startsWith('Deleted 1 pilot')")
         wait_until(page, "document.getElementById('pilot-count').textContent.startsWith('0 pilot')")
-        browser.close()
         assert not errors, errors

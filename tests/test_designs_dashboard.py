@@ -6,7 +6,6 @@ from __future__ import annotations
 import random
 
 import pytest
-from playwright.sync_api import sync_playwright
 
 from server.app import create_app
 from server.config import Settings
@@ -15,9 +14,9 @@ from server.participants import service
 from server.researchers.service import create_researcher
 from server.studies.design import Design
 from server.studies.scale import CHOICES
-from tests.conftest import _fresh_engine
+from tests.conftest import _fresh_engine, own_contexts
 from tests.server_fixtures import live_server, make_study
-from tests.test_participant_page import ARGS, ARTIFACTS, CHROMIUM, wait_until
+from tests.test_participant_page import ARTIFACTS, wait_until
 
 CONDITIONS = ["keyframe", "hybrid0", "hybrid1", "hybrid2"]
 QUALITY = {"keyframe": 0.0, "hybrid0": -1.0, "hybrid1": -2.0, "hybrid2": -3.0}  # logit units, keyframe best
@@ -48,9 +47,8 @@ def site(tmp_path_factory):
     engine.dispose()
 
 
-def test_dashboard_shows_the_scale_matrices_and_rounds(site):
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+def test_dashboard_shows_the_scale_matrices_and_rounds(browser, site):
+    with own_contexts(browser):
         page = browser.new_page(viewport={"width": 1280, "height": 720})
         errors = []
         page.on("pageerror", lambda e: errors.append(str(e)))
@@ -82,5 +80,4 @@ def test_dashboard_shows_the_scale_matrices_and_rounds(site):
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         page.locator("#scale-panel").screenshot(path=str(ARTIFACTS / "designs-scale.png"))
         page.locator("#adaptive-panel").screenshot(path=str(ARTIFACTS / "designs-rounds.png"))
-        browser.close()
         assert not errors, errors

@@ -76,6 +76,7 @@ def test_gltf_bombs_are_refused_before_allocating(client, admin, settings, tmp_p
     assert stored(settings) == []
 
 
+@pytest.mark.slow  # tens of seconds (the parallel run's slowest; still run by `make test`)
 def test_peak_memory_of_inspecting_the_bomb_files_is_within_50_times_their_size_plus_200_mb(data, tmp_path):
     files = write_bombs(tmp_path, data)
     bound_mib = (50 * min(f.stat().st_size for f in files) + 200e6) / 2**20  # the bound

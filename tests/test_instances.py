@@ -98,6 +98,7 @@ def two_instances(request, tmp_path_factory, tmp_path) -> Iterator[tuple[list[st
         engine.dispose()
 
 
+@pytest.mark.slow  # tens of seconds (the parallel run's slowest; still run by `make test`)
 def test_two_instances_count_limits_once_and_store_votes_once(two_instances):
     bases, factory = two_instances
     clients = [httpx.Client(base_url=b, timeout=30) for b in bases]

@@ -45,6 +45,7 @@ def _videos(out: Path) -> dict[str, int]:
     return {f.name: f.stat().st_ino for f in out.iterdir() if f.suffix == ".mp4" and f.with_suffix(".jpg").is_file()}
 
 
+@pytest.mark.slow  # tens of seconds (the parallel run's slowest; still run by `make test`)
 @pytest.mark.parametrize("kind", DATABASES)
 def test_a_render_killed_mid_job_is_resumed_and_renders_only_what_was_missing(kind, data, clips_dir, tmp_path,
                                                                               tmp_path_factory, monkeypatch):

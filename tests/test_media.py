@@ -16,7 +16,6 @@ from PIL import Image
 
 from anim_core.rig.character import bind_mesh
 from server.assets import character as load_character
-from server.clipset.build import build_clip_set
 from server.clipset.manifest import write_clip_set
 from server.errors import MediaError
 from server.media.build import render_media
@@ -36,9 +35,9 @@ ARTIFACTS = Path(__file__).resolve().parents[1] / "var" / "test-artifacts" / "me
 
 
 @pytest.fixture(scope="module")
-def clips_dir(data, tmp_path_factory):
+def clips_dir(built_clip_set, tmp_path_factory):
     out = tmp_path_factory.mktemp("clips")
-    write_clip_set(build_clip_set(data), out)
+    write_clip_set(built_clip_set(), out)
     return out
 
 
@@ -57,6 +56,7 @@ def media(data, clips_dir, pairs, tmp_path_factory):
     return out, manifest, messages
 
 
+@pytest.mark.slow  # tens of seconds (the parallel run's slowest; still run by `make test`)
 def test_every_video_decodes_with_the_expected_frames(media, clips_dir):
     out, manifest, _ = media
     clips = {c.id: c for c in read_clip_set(clips_dir)}

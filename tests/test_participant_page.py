@@ -9,7 +9,6 @@ import pytest
 from sqlalchemy import func, select
 
 from server.app import create_app
-from server.clipset.build import build_clip_set
 from server.clipset.manifest import write_clip_set
 from server.config import Settings
 from server.db import migrate, session_factory
@@ -35,13 +34,13 @@ SWEDISH = REPO_STUDIES / "thesis-sv.toml"
 
 
 @pytest.fixture(scope="module")
-def site(data, tmp_path_factory):
+def site(data, built_clip_set, tmp_path_factory):
     """A live server on SQLite with the default study over really rendered videos."""
     if not Path(CHROMIUM).exists():
         pytest.fail(f"{CHROMIUM} is missing: `make test` installs Debian's chromium")
     var = tmp_path_factory.mktemp("var")
     settings = Settings(var_dir=var, data_dir=data, secret_key="browser-test-secret-0123456789abcdef")
-    write_clip_set(build_clip_set(data), settings.clips_dir)
+    write_clip_set(built_clip_set(), settings.clips_dir)
     study_file = thesis_study()
     manifest = render_media(data, settings.clips_dir, settings.media_dir, settings.secret, VIDEO,
                             pairs=required_pairs(study_file.design, clip_set_index(settings.clips_dir)))

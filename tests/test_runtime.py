@@ -9,13 +9,11 @@ from anim_core import runtime as R
 from anim_core.math import quat as Q
 from anim_core.methods.hybrid import SpringClip, SquadClip
 from anim_core.runtime.crowd import CrowdBuffers
-from server.clipset.build import build_clip_set
-from server.clipset.config import load_config
 
 
 @pytest.fixture(scope="module")
-def clips(data):
-    return build_clip_set(data)
+def clips(built_clip_set):
+    return built_clip_set()
 
 
 @pytest.fixture(scope="module")
@@ -159,8 +157,8 @@ NEW_METHODS = ("hybrid_ik", "hybrid_c2", "reduced", "quantized")
 
 
 @pytest.fixture(scope="module")
-def clips16(data):
-    return [c for c in build_clip_set(data, load_config(CONDITIONS16)) if c.method in NEW_METHODS]
+def clips16(built_clip_set):
+    return [c for c in built_clip_set(CONDITIONS16) if c.method in NEW_METHODS]
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,6 @@ import av
 import httpx
 import numpy as np
 import pytest
-from playwright.sync_api import sync_playwright
 from sqlalchemy import select
 
 from server.app import create_app
@@ -33,10 +32,10 @@ from server.studies.design import Design
 from server.studies.models import Study, StudyState
 from server.studies.service import create_study, set_state
 from server.studies.studyfile import StudyFile, load_study_file
-from tests.conftest import _fresh_engine
+from tests.conftest import _fresh_engine, own_contexts
 from tests.server_fixtures import live_server
 from tests.test_answer_formats import UPDATE_RATE, ladder_media, observer, run_session
-from tests.test_participant_page import ARGS, ARTIFACTS, CHROMIUM, wait_until
+from tests.test_participant_page import ARTIFACTS, CHROMIUM, wait_until
 from tests.test_update_rate_study import pps_clip_set
 
 TRIALS = 6  # per staircase (the file's 30, cut for time)
@@ -139,13 +138,12 @@ def stored_and_replayed(db, sid: str) -> tuple[list, list]:
 
 
 @pytest.mark.slow  # about a minute: every trial's video is watched to its end
-def test_update_rate_staircase_with_simulated_and_real_participants(site):
+def test_update_rate_staircase_with_simulated_and_real_participants(browser, site):
     base, factory, _ = site
     rng = random.Random(38)
     simulated = [simulate(base, factory, rng, threshold) for threshold in (6.0, 12.0, 20.0)[:SIMULATED]]
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+    with own_contexts(browser):
         context = browser.new_context(viewport={"width": 1280, "height": 720})
         page = context.new_page()
         errors: list[str] = []
@@ -191,7 +189,6 @@ def test_update_rate_staircase_with_simulated_and_real_participants(site):
             page.keyboard.press("Enter")
         page.wait_for_selector("#page-thanks:not([hidden])")
         context.close()
-        browser.close()
         assert not errors, errors
     with factory() as db:
         study = db.scalar(select(Study).where(Study.slug == "update-rate"))
@@ -209,11 +206,10 @@ def test_update_rate_staircase_with_simulated_and_real_participants(site):
         assert all(r["correct"] == (r["choice"] == r["reference_side"]) for r in rows)
 
 
-def test_2afc_answers_stay_side_by_side_on_a_phone(site):
+def test_2afc_answers_stay_side_by_side_on_a_phone(browser, site):
     """On a phone-sized screen the five-point answers stack; the two 2AFC answers stay in one row, left first."""
     base, _, _ = site
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+    with own_contexts(browser):
         context = browser.new_context(viewport={"width": 390, "height": 844}, is_mobile=True, has_touch=True)
         page = context.new_page()
         page.goto(f"{base}/s/update-rate-phone")
@@ -235,10 +231,9 @@ def test_2afc_answers_stay_side_by_side_on_a_phone(site):
         assert boxes[1]["x"] + boxes[1]["width"] <= 390
         page.screenshot(path=str(ARTIFACTS / "update-rate-phone.png"))
         context.close()
-        browser.close()
 
 
-def test_the_dashboard_shows_each_animations_threshold_panel(site):
+def test_the_dashboard_shows_each_animations_threshold_panel(browser, site):
     """The researcher's dashboard of a threshold study draws the thresholds panel from the results (issue 38), with
     the costs the built clip set measured: per animation the cheapest level nobody tells from the original, with
     its cost, and the frontier plot with one point per level at its cost.  Four participants of the
@@ -267,8 +262,7 @@ def test_the_dashboard_shows_each_animations_threshold_panel(site):
         create_researcher(db, "thresholds@example.org", "correct horse battery", admin=True)
     costs = {(c.animation, c.condition): c.metrics["cost_ms_per_1000"] for c in read_clip_manifest(clips_dir).clips}
     cheapest = {a: min(("pps12", "pps16", "pps24"), key=lambda c, a=a: costs[(a, c)]) for a in ("walk", "run")}
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+    with own_contexts(browser):
         page = browser.new_page(viewport={"width": 1280, "height": 720})
         errors: list[str] = []
         page.on("pageerror", lambda e: errors.append(str(e)))
@@ -298,5 +292,4 @@ def test_the_dashboard_shows_each_animations_threshold_panel(site):
             assert [x for _, x in mine] == sorted(x for _, x in mine)
         table = page.inner_text("#table-thresholds")
         assert f"{costs[('walk', cheapest['walk'])]:.3f}" in table
-        browser.close()
     assert not errors, errors

@@ -13,7 +13,7 @@ from anim_core.math import contacts
 from anim_core.math import quat as Q
 from anim_core.rig.character import FEET
 from server.assets import character as load_character
-from server.clipset.build import build_clip_set, load_source
+from server.clipset.build import load_source
 from server.clipset.config import load_config
 
 ANIMATIONS = ("walk", "run", "crouch", "idle")
@@ -21,8 +21,8 @@ CMU_METRES = 0.056444
 
 
 @pytest.fixture(scope="module")
-def clips(data):
-    return build_clip_set(data)
+def clips(built_clip_set):
+    return built_clip_set()
 
 
 @pytest.fixture(scope="module")

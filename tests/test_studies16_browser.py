@@ -79,6 +79,7 @@ def site(data, tmp_path_factory):
     engine.dispose()
 
 
+@pytest.mark.slow  # tens of seconds (the parallel run's slowest; still run by `make test`)
 @pytest.mark.slow  # tens of seconds (the serial run's slowest; still run by `make test`)
 def test_only_what_the_studies_show_is_rendered_and_the_counts_agree(site):
     _, _, settings, logs = site

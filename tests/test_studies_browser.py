@@ -6,7 +6,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from playwright.sync_api import sync_playwright
 
 from server.app import create_app
 from server.config import Settings
@@ -14,9 +13,9 @@ from server.db import migrate, session_factory
 from server.participants.models import ParticipantSession
 from server.researchers.service import create_researcher
 from server.studies.models import Study
-from tests.conftest import _fresh_engine
+from tests.conftest import _fresh_engine, own_contexts
 from tests.server_fixtures import live_server, make_study, write_fake_media
-from tests.test_participant_page import ARGS, ARTIFACTS, CHROMIUM, wait_until
+from tests.test_participant_page import ARTIFACTS, CHROMIUM, wait_until
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -41,14 +40,12 @@ def site(tmp_path_factory):
 
 
 @pytest.fixture
-def page():
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+def page(browser):
+    with own_contexts(browser):
         pg = browser.new_page(viewport={"width": 1280, "height": 800})
         errors: list[str] = []
         pg.on("pageerror", lambda e: errors.append(str(e)))
         yield pg
-        browser.close()
         assert not errors, errors
 
 

@@ -44,6 +44,7 @@ def create(client: TestClient, headers: dict, slug: str, animations: list[str]):
                        headers=headers)
 
 
+@pytest.mark.slow  # tens of seconds (the parallel run's slowest; still run by `make test`)
 @pytest.mark.parametrize("kind", DATABASES)
 def test_two_researchers(kind, tmp_path, tmp_path_factory, data):
     engine = _fresh_engine(kind, tmp_path_factory, database="test_animstudy_two_researchers")

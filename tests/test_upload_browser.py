@@ -7,15 +7,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from playwright.sync_api import sync_playwright
 
 from server.app import create_app
 from server.clipset.config import NAME_PATTERN
 from server.config import Settings
 from server.db import migrate
-from tests.conftest import _fresh_engine
+from tests.conftest import _fresh_engine, own_contexts
 from tests.server_fixtures import RESEARCHER, live_server
-from tests.test_participant_page import ARGS, ARTIFACTS, AXE, CHROMIUM, check_page, wait_until
+from tests.test_participant_page import ARTIFACTS, AXE, CHROMIUM, check_page, wait_until
 from tests.test_upload_job import small_site
 from tests.test_uploads import SECRET, excerpt
 
@@ -33,14 +32,13 @@ def site(tmp_path, tmp_path_factory, data):
     engine.dispose()
 
 
-def test_upload_inspect_and_build_from_the_studies_page(site, tmp_path, data):
+def test_upload_inspect_and_build_from_the_studies_page(browser, site, tmp_path, data):
     base = site
     good = tmp_path / "Sway 45.bvh"
     good.write_bytes(excerpt(data, frames=45))
     bad = tmp_path / "broken.bvh"
     bad.write_bytes(excerpt(data, frames=45)[:300])
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+    with own_contexts(browser):
         # the context bypasses the page's CSP only so that the test can inject axe-core
         page = browser.new_context(viewport={"width": 1280, "height": 900}, bypass_csp=True).new_page()
         errors: list[str] = []
@@ -106,5 +104,4 @@ def test_upload_inspect_and_build_from_the_studies_page(site, tmp_path, data):
                          ".textContent === '5'")
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(ARTIFACTS / "studies-upload.png"), full_page=True)
-        browser.close()
         assert not errors, errors

@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import json
 
-from playwright.sync_api import sync_playwright
-
+from tests.conftest import own_contexts
 from tests.server_fixtures import RESEARCHER
-from tests.test_participant_page import ARGS, CHROMIUM, wait_until
+from tests.test_participant_page import wait_until
 from tests.test_upload_browser import site
 from tests.test_uploads import excerpt
 from tests.test_wild_uploads import _scaled
@@ -16,7 +15,7 @@ from tests.test_wild_uploads import _scaled
 __all__ = ["site"]
 
 
-def test_units_and_mapping_from_the_upload_form(site, tmp_path, data):
+def test_units_and_mapping_from_the_upload_form(browser, site, tmp_path, data):
     small = tmp_path / "small.bvh"
     small.write_bytes(_scaled(excerpt(data, frames=45), 0.3))  # legs of 4.4 units: no human in any unit
     stick = tmp_path / "stick.bvh"
@@ -24,8 +23,7 @@ def test_units_and_mapping_from_the_upload_form(site, tmp_path, data):
     for joint in ("LeftUpLeg", "LeftLeg", "LeftFoot"):
         text = text.replace(f"JOINT {joint}\n", f"JOINT Stick{joint[4:]}\n")
     stick.write_text(text)
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+    with own_contexts(browser):
         page = browser.new_context(viewport={"width": 1280, "height": 900}).new_page()
         errors: list[str] = []
         page.on("pageerror", lambda e: errors.append(str(e)))
@@ -62,4 +60,3 @@ def test_units_and_mapping_from_the_upload_form(site, tmp_path, data):
                          "document.querySelector('#table-assets tr[data-asset=stick]').textContent"
                          ".includes('cm (given)')")
         assert errors == [], json.dumps(errors)
-        browser.close()
