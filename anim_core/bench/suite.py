@@ -203,15 +203,9 @@ def _accuracy(c: BuiltClip, variant: str, runtime: AnyRuntime | HeldRuntime | No
     return out
 
 
-def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTERS,
-        stages: Sequence[str] = ("pose", "skin"), frames: int = 200, warmup: int = 20, seed: int = 2017,
-        variants: Sequence[str] = VARIANTS, progress: Callable[[str], None] = lambda _m: None) -> dict[str, Any]:
-    """Time every animation x method x variant x stage x crowd size; returns the results document."""
-    unknown = [v for v in variants if v not in VARIANTS]
-    if unknown or not variants:
-        raise ValueError(f"variants are {', '.join(VARIANTS)}, got {', '.join(variants) or 'none'}")
-    rng = np.random.default_rng(seed)
-    started = time.perf_counter()
+def _runtimes(clips: Sequence[BuiltClip], variants: Sequence[str]) -> dict[str, dict[str, AnyRuntime | HeldRuntime]]:
+    """Per timed variant (``keys``, ``baked``), each clip's runtime: a baked one keeps a keyframe or held clip's
+    own (it is a table already)."""
     runtimes: dict[str, dict[str, AnyRuntime | HeldRuntime]] = {"keys": {}, "baked": {}}
     for c in clips:
         if "keys" in variants:
@@ -219,7 +213,12 @@ def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTE
         if "baked" in variants:
             runtimes["baked"][c.id] = (runtime_for(c.clip) if c.method == "keyframe" or isinstance(c.clip, HeldClip)
                                        else TableRuntime.from_table(bake(c.clip)))
-    progress(f"runtimes built ({time.perf_counter() - started:.0f} s)")
+    return runtimes
+
+
+def _memory_and_accuracy(clips: Sequence[BuiltClip], runtimes: dict[str, dict[str, AnyRuntime | HeldRuntime]],
+                         variants: Sequence[str]) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The memory rows and accuracy rows of every clip x timed variant (the LOD variants ride on ``keys``)."""
     timed_variants = list(variants) + ([name for name, _ in lod_variants()] if "keys" in variants else [])
     memory: list[dict[str, Any]] = []
     accuracy: list[dict[str, Any]] = []
@@ -237,11 +236,75 @@ def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTE
             size = runtime.runtime_bytes if runtime is not None else reference_bytes(c.clip, naive=v == "naive")
             memory.append({**label, "variant": v, "stored_bytes": stored, "runtime_bytes": size})
             accuracy.append({**label, "variant": v, **_accuracy(c, v, runtime, rate, lods.get(v, {}))})
+    return memory, accuracy
+
+
+def _rounds(stage: str, group: Sequence[BuiltClip], n: int, runtimes: dict[str, dict[str, AnyRuntime | HeldRuntime]],
+            variants: Sequence[str], frames: int, warmup: int) -> list[tuple[int, list[Case], int, int]]:
+    """The timing rounds of one animation's clips at ``n`` characters: (threads, cases, frames, warm-up) each;
+    the cases of a round are timed interleaved, so their ratios come from the same moments."""
+    rounds: list[tuple[int, list[Case], int, int]] = []
+    full = (frames, warmup) if stage == "pose" else (min(frames, SKIN_FRAMES), min(warmup, SHORT_WARMUP))
+    short = (min(frames, NUMPY_FRAMES), min(warmup, SHORT_WARMUP))
+    keyed = runtimes["keys"]
+    for v in ("keys", "baked"):
+        if v in variants and (stage == "pose" or v == "keys"):
+            rounds.append((1, [_case(c, v, _runtime_step(runtimes[v][c.id], n, clip=c.clip)) for c in group], *full))
+    if stage == "pose" and "keys" in variants:
+        if n >= PARALLEL_MIN_CHARACTERS:
+            rounds.append((os.cpu_count() or 2, [_case(c, "keys", _runtime_step(keyed[c.id], n, parallel=True,
+                                                                                 clip=c.clip))
+                                                 for c in group], *full))
+        if n >= LOD_MIN_CHARACTERS:
+            lod_cases = [_case(c, "keys-fk-only", _runtime_step(keyed[c.id], n, fk_only=True)) for c in group]
+            lod_cases += [_case(c, name, _runtime_step(keyed[c.id], n, **lod, clip=c.clip))
+                          for name, lod in lod_variants() for c in group]
+            rounds.append((1, lod_cases, min(frames, LOD_FRAMES), min(warmup, SHORT_WARMUP)))
+    if stage == "pose" and n <= REFERENCE_MAX_CHARACTERS:
+        numpy_cases = [_case(c, "reference", _reference_step(c.clip)) for c in group] if "reference" in variants \
+            else []
+        if "naive" in variants:
+            numpy_cases += [_case(c, "naive", _naive_step(c.clip)) for c in group if isinstance(c.clip, SquadClip)]
+        if numpy_cases:
+            rounds.append((1, numpy_cases, *short))
+    return rounds
+
+
+def _timed_rows(stage: str, rounds: list[tuple[int, list[Case], int, int]], mesh: Any, phases: np.ndarray,
+                n: int) -> list[dict[str, Any]]:
+    """Time ``rounds`` (skinned on ``mesh`` for the ``skin`` stage): one result row per case."""
+    rows = []
+    for threads, round_cases, n_frames, n_warmup in rounds:
+        if stage == "skin":
+            round_cases = [Case(k.animation, k.condition, k.method, k.increment, k.variant, _skinned(k.step, mesh))
+                           for k in round_cases]
+        timed = _time(round_cases, phases, n_frames, n_warmup)
+        for i, case in enumerate(round_cases):
+            ms = np.asarray(timed[i])
+            median = float(np.median(ms))
+            rows.append({"animation": case.animation, "condition": case.condition, "method": case.method,
+                         "increment": case.increment, "variant": case.variant, "stage": stage,
+                         "characters": n, "threads": threads, "median_ms": median,
+                         "p95_ms": float(np.percentile(ms, 95)), "fps": 1000.0 / median, "frames": len(ms)})
+    return rows
+
+
+def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTERS,
+        stages: Sequence[str] = ("pose", "skin"), frames: int = 200, warmup: int = 20, seed: int = 2017,
+        variants: Sequence[str] = VARIANTS, progress: Callable[[str], None] = lambda _m: None) -> dict[str, Any]:
+    """Time every animation x method x variant x stage x crowd size; returns the results document."""
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown or not variants:
+        raise ValueError(f"variants are {', '.join(VARIANTS)}, got {', '.join(variants) or 'none'}")
+    rng = np.random.default_rng(seed)
+    started = time.perf_counter()
+    runtimes = _runtimes(clips, variants)
+    progress(f"runtimes built ({time.perf_counter() - started:.0f} s)")
+    memory, accuracy = _memory_and_accuracy(clips, runtimes, variants)
     progress(f"memory and accuracy measured ({time.perf_counter() - started:.0f} s)")
 
     results: list[dict[str, Any]] = []
     animations = list(dict.fromkeys(c.animation for c in clips))
-    cores = os.cpu_count() or 2
     blend_memory: list[dict[str, Any]] = []
     for stage in stages:
         if stage == "blend":  # the blending jobs beside playback (issue 39): anim_core.bench.blend
@@ -251,55 +314,12 @@ def run(clips: Sequence[BuiltClip], characters: Sequence[int] = DEFAULT_CHARACTE
             results += rows
             progress(f"  blend: done ({time.perf_counter() - started:.0f} s)")
             continue
-        sizes = [n for n in characters if stage == "pose" or n <= SKIN_MAX_CHARACTERS]
-        for n in sizes:
+        for n in [n for n in characters if stage == "pose" or n <= SKIN_MAX_CHARACTERS]:
             for animation in animations:
                 group = [c for c in clips if c.animation == animation]
-                duration = max(float(c.clip.duration) for c in group)
-                phases = rng.uniform(0.0, 2 * duration, n)
-                mesh = group[0].character.mesh
-                rounds: list[tuple[int, list[Case], int, int]] = []  # threads, cases, frames, warm-up
-                full = (frames, warmup) if stage == "pose" else (min(frames, SKIN_FRAMES), min(warmup, SHORT_WARMUP))
-                short = (min(frames, NUMPY_FRAMES), min(warmup, SHORT_WARMUP))
-                keyed = runtimes["keys"]
-                for v in ("keys", "baked"):
-                    if v in variants and (stage == "pose" or v == "keys"):
-                        cases = [_case(c, v, _runtime_step(runtimes[v][c.id], n, clip=c.clip)) for c in group]
-                        rounds.append((1, cases, *full))
-                if stage == "pose" and "keys" in variants:
-                    if n >= PARALLEL_MIN_CHARACTERS:
-                        rounds.append((cores, [_case(c, "keys", _runtime_step(keyed[c.id], n, parallel=True,
-                                                                              clip=c.clip))
-                                               for c in group], *full))
-                    if n >= LOD_MIN_CHARACTERS:
-                        lod_cases = [_case(c, "keys-fk-only", _runtime_step(keyed[c.id], n, fk_only=True))
-                                     for c in group]
-                        lod_cases += [_case(c, name, _runtime_step(keyed[c.id], n, **lod, clip=c.clip))
-                                      for name, lod in lod_variants() for c in group]
-                        rounds.append((1, lod_cases, min(frames, LOD_FRAMES), min(warmup, SHORT_WARMUP)))
-                if stage == "pose" and n <= REFERENCE_MAX_CHARACTERS:
-                    numpy_cases = ([_case(c, "reference", _reference_step(c.clip)) for c in group]
-                                   if "reference" in variants else [])
-                    if "naive" in variants:
-                        numpy_cases += [_case(c, "naive", _naive_step(c.clip)) for c in group
-                                        if isinstance(c.clip, SquadClip)]
-                    if numpy_cases:
-                        rounds.append((1, numpy_cases, *short))
-                for threads, round_cases, n_frames, n_warmup in rounds:
-                    if stage == "skin":
-                        round_cases = [Case(k.animation, k.condition, k.method, k.increment, k.variant,
-                                            _skinned(k.step, mesh))
-                                       for k in round_cases]
-                    timed = _time(round_cases, phases, n_frames, n_warmup)
-                    for i, case in enumerate(round_cases):
-                        ms = np.asarray(timed[i])
-                        median = float(np.median(ms))
-                        results.append({"animation": case.animation, "condition": case.condition,
-                                        "method": case.method,
-                                        "increment": case.increment, "variant": case.variant, "stage": stage,
-                                        "characters": n, "threads": threads, "median_ms": median,
-                                        "p95_ms": float(np.percentile(ms, 95)), "fps": 1000.0 / median,
-                                        "frames": len(ms)})
+                phases = rng.uniform(0.0, 2 * max(float(c.clip.duration) for c in group), n)
+                results += _timed_rows(stage, _rounds(stage, group, n, runtimes, variants, frames, warmup),
+                                       group[0].character.mesh, phases, n)
             progress(f"  {stage}: {n} characters done ({time.perf_counter() - started:.0f} s)")
     return {"machine": machine(), "settings": {"frames": frames, "skin_frames": min(frames, SKIN_FRAMES),
                                                "numpy_frames": min(frames, NUMPY_FRAMES),

@@ -297,23 +297,10 @@ def entry_time(outgoing: Pose, clip: KeyframeClip, fps: int) -> float:
     return float(t[int(np.argmin(cost))])
 
 
-def compose_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, transition: TransitionSpec,
-                     root_motion: RootMotion | None = None, name: str = "", entry: Entry = "start",
-                     lock: FeetLock | None = None) -> Composite:
-    """One loop from ``segments`` ``[(clip, seconds), ...]`` (each clip played for its seconds), switching by
-    ``transition`` from each to the next and from the last back to the first.
-
-    ``entry``: where each clip starts playing: ``"start"``, at its time 0; ``"matched"``, every looping clip after
-    the first at the frame of its cycle nearest the pose the previous clip has at the switch (:func:`entry_time`),
-    the first clip (where the loop starts) at 0.  The entry times depend on the takes only, never on the transition,
-    so a sequence's conditions differ by how they switch alone.
-
-    Root: the horizontal root velocity (blended as the rotations are) is integrated from frame to frame, so no
-    switch moves the character; the height is blended.  ``lock``: the feet in contact during a blended transition
-    are held there (:mod:`anim_core.methods.transition_feet`; a cut is left as it is), before the settling is
-    measured.  Clips that travel and clips played in place mix only with
-    a ``root_motion`` rule (``"travel"``: every clip with its travel, ``"in_place"``: every clip on the spot).
-    """
+def _checked_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, transition: TransitionSpec,
+                      root_motion: RootMotion | None, entry: Entry) -> tuple[list[KeyframeClip], Array, RootMotion]:
+    """The clips (with the root-motion rule applied), their seconds and the rule, or CompositeError naming the
+    field (:func:`compose_sequence`)."""
     if len(segments) < 2:
         raise CompositeError("sequence: at least 2 animations")
     clips = [c for c, _ in segments]
@@ -334,11 +321,86 @@ def compose_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, t
     clips = [_travelling(c, root_motion) for c in clips]
     if entry not in ENTRIES:
         raise CompositeError(f"entry: one of {', '.join(map(repr, ENTRIES))}, got {entry!r}")
-    up = clips[0].up_axis
+    return clips, seconds, root_motion
+
+
+def _entry_times(clips: Sequence[KeyframeClip], seconds: Array, entry: Entry, fps: int) -> Array:
+    """Where each clip starts playing, s of its own time (:func:`compose_sequence`'s ``entry``)."""
     begin = np.zeros(len(clips))
     for s in range(1, len(clips)):
         if entry == "matched" and clips[s].mode == "loop":
             begin[s] = entry_time(clips[s - 1].sample(np.array([begin[s - 1] + seconds[s - 1]])), clips[s], fps)
+    return begin
+
+
+def _inertialized(out: KeyframeClip, s_out: float, clip: KeyframeClip, begin: float, cur: Pose, v_cur: Array,
+                  uu: Array, d: float, up: int) -> tuple[Array, Array, Array, Array]:
+    """Rotations, root velocities, heights and incoming weights over one segment's frames ``uu`` (s since its
+    switch) for an inertialization of ``d`` s from ``out`` (at its own time ``s_out``) into ``clip`` (entered at
+    ``begin``; its pose ``cur`` and velocity ``v_cur`` there): the offset at the switch decays by a quintic."""
+    a0 = out.sample(np.array([s_out]))
+    qa_dot, va = _velocity(out, np.array([s_out]))
+    b0 = clip.sample(np.array([begin]))
+    qb_dot, vb = _velocity(clip, np.array([begin]), forward=True)
+    qa = align_hemisphere(a0.rotations[0], b0.rotations[0])
+    sign = np.where(np.sum(a0.rotations[0] * b0.rotations[0], axis=-1) < 0, -1.0, 1.0)[:, None]
+    x_rot = quintic_offset(qa - b0.rotations[0], sign * qa_dot[0] - qb_dot[0], uu, d)
+    rotations = quat_normalize(cur.rotations + x_rot)
+    x_v = quintic_offset(va[0] - vb[0], np.zeros(3), uu, d)
+    velocity = v_cur + x_v
+    dy = a0.root_translation[0, up] - b0.root_translation[0, up]
+    x_y = quintic_offset(np.array([dy]), np.array([va[0, up] - vb[0, up]]), uu, d)[:, 0]
+    heights = cur.root_translation[:, up] + x_y
+    scale = np.abs(qa - b0.rotations[0]).max()
+    weights = 1.0 - (np.abs(x_rot).max(axis=(1, 2)) / scale if scale > 0 else 0.0)
+    return rotations, velocity, heights, weights
+
+
+def _integrated_root(vel: Array, height: Array, fps: int, up: int) -> Array:
+    """The root ``(n + 1, 3)``: horizontal velocity integrated (trapezoid), height as blended; key n repeats frame 0
+    one loop on."""
+    v_h = vel.copy()
+    v_h[:, up] = 0.0
+    steps = 0.5 * (v_h + np.roll(v_h, -1, axis=0)) / fps
+    root = np.concatenate([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
+    root[:, up] = np.append(height, height[0])
+    return root
+
+
+def _settle_times(skeleton: Skeleton, rot: Array, rot_in: Array, starts: Array, fps: int) -> list[float]:
+    """Per switch, the first time after it from which every joint stays within :data:`SETTLE_DEG` of the incoming
+    clip's (``rot_in``)."""
+    g_out, _ = skeleton.forward_kinematics(rot)
+    g_in, _ = skeleton.forward_kinematics(rot_in)
+    off = np.degrees(quat_angle(g_out, g_in).max(axis=1)) > SETTLE_DEG
+    settle = []
+    for s in range(len(starts) - 1):
+        window = off[starts[s]:starts[s + 1]]
+        late = np.flatnonzero(window)
+        settle.append(float((late[-1] + 1) / fps) if late.size else 0.0)
+    return settle
+
+
+def compose_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, transition: TransitionSpec,
+                     root_motion: RootMotion | None = None, name: str = "", entry: Entry = "start",
+                     lock: FeetLock | None = None) -> Composite:
+    """One loop from ``segments`` ``[(clip, seconds), ...]`` (each clip played for its seconds), switching by
+    ``transition`` from each to the next and from the last back to the first.
+
+    ``entry``: where each clip starts playing: ``"start"``, at its time 0; ``"matched"``, every looping clip after
+    the first at the frame of its cycle nearest the pose the previous clip has at the switch (:func:`entry_time`),
+    the first clip (where the loop starts) at 0.  The entry times depend on the takes only, never on the transition,
+    so a sequence's conditions differ by how they switch alone.
+
+    Root: the horizontal root velocity (blended as the rotations are) is integrated from frame to frame, so no
+    switch moves the character; the height is blended.  ``lock``: the feet in contact during a blended transition
+    are held there (:mod:`anim_core.methods.transition_feet`; a cut is left as it is), before the settling is
+    measured.  Clips that travel and clips played in place mix only with
+    a ``root_motion`` rule (``"travel"``: every clip with its travel, ``"in_place"``: every clip on the spot).
+    """
+    clips, seconds, root_motion = _checked_sequence(segments, fps, transition, root_motion, entry)
+    up = clips[0].up_axis
+    begin = _entry_times(clips, seconds, entry, fps)
     frames = np.round(seconds * fps).astype(int)
     starts = np.concatenate([[0], np.cumsum(frames)])
     n = int(starts[-1])
@@ -370,29 +432,11 @@ def compose_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, t
             vel[here] = (1 - w)[:, None] * v_old + w[:, None] * v_cur
             height[here] = (1 - w) * old.root_translation[:, up] + w * cur.root_translation[:, up]
         elif transition.method == "inertialization":
-            a0 = out.sample(np.array([s_out]))
-            qa_dot, va = _velocity(out, np.array([s_out]))
-            b0 = clip.sample(np.array([begin[s]]))
-            qb_dot, vb = _velocity(clip, np.array([begin[s]]), forward=True)
-            qa = align_hemisphere(a0.rotations[0], b0.rotations[0])
-            sign = np.where(np.sum(a0.rotations[0] * b0.rotations[0], axis=-1) < 0, -1.0, 1.0)[:, None]
-            x_rot = quintic_offset(qa - b0.rotations[0], sign * qa_dot[0] - qb_dot[0], uu, d)
-            rot[here] = quat_normalize(cur.rotations + x_rot)
-            x_v = quintic_offset(va[0] - vb[0], np.zeros(3), uu, d)
-            vel[here] = v_cur + x_v
-            dy = a0.root_translation[0, up] - b0.root_translation[0, up]
-            x_y = quintic_offset(np.array([dy]), np.array([va[0, up] - vb[0, up]]), uu, d)[:, 0]
-            height[here] = cur.root_translation[:, up] + x_y
-            scale = np.abs(qa - b0.rotations[0]).max()
-            weights[here] = 1.0 - (np.abs(x_rot).max(axis=(1, 2)) / scale if scale > 0 else 0.0)
+            rot[here], vel[here], height[here], weights[here] = _inertialized(out, s_out, clip, begin[s], cur, v_cur,
+                                                                              uu, d, up)
         else:
             raise CompositeError(f"method: unknown transition {transition.method!r}")
-    # The root: horizontal velocity integrated (trapezoid), height as blended; key n repeats frame 0 one loop on.
-    v_h = vel.copy()
-    v_h[:, up] = 0.0
-    steps = 0.5 * (v_h + np.roll(v_h, -1, axis=0)) / fps
-    root = np.concatenate([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
-    root[:, up] = np.append(height, height[0])
+    root = _integrated_root(vel, height, fps, up)
     if lock is not None and transition.method != "cut":
         span = max(1, round(d * fps))
         rot = lock_transition_feet(clips[0].skeleton, rot, root, [(int(f), int(f) + span) for f in starts[:-1]],
@@ -400,15 +444,7 @@ def compose_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, t
     rotations = np.concatenate([rot, rot[:1]])
     clip = KeyframeClip(clips[0].skeleton, np.arange(n + 1) / fps, rotations, root, "loop",
                         root_motion == "in_place", up, name)
-    # Settling: after each switch, the first time from which every joint stays within SETTLE_DEG of the incoming.
-    g_out, _ = clips[0].skeleton.forward_kinematics(rot)
-    g_in, _ = clips[0].skeleton.forward_kinematics(rot_in)
-    off = np.degrees(quat_angle(g_out, g_in).max(axis=1)) > SETTLE_DEG
-    settle = []
-    for s in range(len(clips)):
-        window = off[starts[s]:starts[s + 1]]
-        late = np.flatnonzero(window)
-        settle.append(float((late[-1] + 1) / fps) if late.size else 0.0)
+    settle = _settle_times(clips[0].skeleton, rot, rot_in, starts, fps)
     return Composite(clip, rot, tuple(int(x) for x in starts[:-1]), weights, tuple(settle))
 
 
