@@ -2,6 +2,7 @@
 
 import json
 import xml.etree.ElementTree as ET
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -124,3 +125,19 @@ def test_benchmark_lod_and_parallel_rounds_at_large_crowds(clips, monkeypatch):
     assert {m["variant"] for m in doc["memory"]} == {"keys", *[n for n, _ in benchmark.lod_variants()]}
     with pytest.raises(ValueError, match="variants are"):
         benchmark.run(idle, characters=(1,), variants=("fast",))
+
+
+def test_bench_steps_are_timed_in_a_new_order_every_frame():
+    """No step always follows the same one (a step after a full-crowd pose finds the caches emptied: in a fixed
+    or rotated order the update-rate ladder's pps4 came out dearer than pps6); every step timed every frame."""
+    from anim_core.bench.suite import interleaved_ms
+
+    calls: list[int] = []
+    steps = [lambda _t, _f, k=k: calls.append(k) for k in range(5)]
+    timed = interleaved_ms(steps, np.zeros(3), frames=40, warmup=2)
+    assert [len(ms) for ms in timed] == [40] * 5
+    assert len(calls) == 42 * 5
+    predecessors: dict[int, set[int]] = {k: set() for k in range(5)}
+    for before, after in pairwise(calls):
+        predecessors[after].add(before)
+    assert all(len(p) >= 3 for p in predecessors.values())

@@ -19,7 +19,6 @@ figures (the bench's interleaved rounds compare conditions more fairly).
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -32,7 +31,7 @@ from ..methods.base import REFERENCE
 from ..methods.lod import strongest_influences
 from ..runtime import HeldRuntime, animated_joints, runtime_for
 from ..runtime.crowd import CrowdBuffers
-from .suite import FPS
+from .suite import FPS, interleaved_ms
 
 CHARACTERS = 1000
 FRAMES = 60
@@ -44,19 +43,10 @@ SEED = 38
 
 def _medians_ms(steps: Sequence[Callable[[np.ndarray], Any]], phases: np.ndarray, frames: int, warmup: int
                 ) -> list[float]:
-    """The median milliseconds of each step, timed interleaved, in a new (seeded) order every frame: a shared
-    machine's load hits them alike, and no step always follows the same one (a step after one that posed the whole
-    crowd finds the caches emptied: measured, a held clip after a full one took half as long again)."""
-    times: list[list[float]] = [[] for _ in steps]
-    rng = np.random.default_rng(SEED)
-    for frame in range(warmup + frames):
-        t = phases + frame / FPS
-        for k in rng.permutation(len(steps)):
-            start = time.perf_counter()
-            steps[k](t)
-            if frame >= warmup:
-                times[k].append((time.perf_counter() - start) * 1000.0)
-    return [float(np.median(ms)) for ms in times]
+    """The median milliseconds of each step, timed interleaved in a new (seeded) order every frame
+    (:func:`anim_core.bench.suite.interleaved_ms`)."""
+    timed = interleaved_ms([lambda t, _f, step=step: step(t) for step in steps], phases, frames, warmup, SEED)
+    return [float(np.median(ms)) for ms in timed]
 
 
 def pose_step(clip: Any, n: int) -> Callable[[np.ndarray], Any]:

@@ -144,18 +144,28 @@ def machine() -> dict[str, Any]:
             "numba": numba.__version__ if numba else None, "platform": platform.platform(), "load_average": load}
 
 
-def _time(cases: Sequence[Case], phases: np.ndarray, frames: int, warmup: int) -> dict[int, list[float]]:
-    """Per case, the milliseconds of each timed frame; cases alternate within every frame."""
-    times: dict[int, list[float]] = {i: [] for i in range(len(cases))}
+def interleaved_ms(steps: Sequence[Callable[[np.ndarray, int], Any]], phases: np.ndarray, frames: int, warmup: int,
+                   seed: int = 0) -> list[list[float]]:
+    """Per step, the milliseconds of each timed frame (``step(t, frame)``, ``t = phases + frame / FPS``), the steps
+    timed interleaved in a new (seeded) order every frame: a shared machine's load hits them alike, and no step
+    always follows the same one.  (In a fixed order, or one rotated, which keeps each step's predecessor, a step
+    after one that posed the whole crowd finds the caches emptied: the update-rate ladder's pps4, timed after a
+    joint-LOD clip, came out dearer than pps6 though it poses three quarters as many characters a frame.)"""
+    times: list[list[float]] = [[] for _ in steps]
+    order = np.random.default_rng(seed)
     for frame in range(warmup + frames):
         t = phases + frame / FPS
-        for i, case in enumerate(cases):
+        for k in order.permutation(len(steps)):
             start = time.perf_counter()
-            case.step(t, frame)
-            elapsed = (time.perf_counter() - start) * 1000.0
+            steps[k](t, frame)
             if frame >= warmup:
-                times[i].append(elapsed)
+                times[k].append((time.perf_counter() - start) * 1000.0)
     return times
+
+
+def _time(cases: Sequence[Case], phases: np.ndarray, frames: int, warmup: int) -> dict[int, list[float]]:
+    """Per case (by index), the milliseconds of each timed frame (:func:`interleaved_ms`)."""
+    return dict(enumerate(interleaved_ms([c.step for c in cases], phases, frames, warmup)))
 
 
 def _case(c: BuiltClip, variant: str, step: Callable[[np.ndarray, int], Any]) -> Case:
