@@ -228,7 +228,7 @@
     Researcher.fillTable($("table-metrics"), ["clip", "in this study", "method", "same arrays as", "keys", "foot skate", "source skate", "slide mm",
                                "penetration mm", "floating mm", "MPJPE mm", "max rotation error °",
                                "key velocity jump rad/s", "key acceleration jump rad/s²", "jerk m/s³", "bytes",
-                               "seam jump mm", "transition skate", "transition slide mm", "switch velocity jump rad/s",
+                               "seam jump mm", "transition skate", "source window skate", "transition slide mm", "switch velocity jump rad/s",
                                "switch acceleration jump rad/s²", "settle s", "hips phase r (lag)", "knee phase r (lag)", "fidelity",
                                "pose error °", "bones off ° (p95)", "hip width ×", "knees forward", "worst stance mm",
                                "mirrored half ° (p95)", "head over hips m", "feet reach mm"],
@@ -240,7 +240,8 @@
                             fmt(m(c).key_velocity_jump_rad_s, 3), fmt(m(c).key_accel_jump_rad_s2, 3),
                             fmt(m(c).jerk_mean, 1), m(c).bytes, fmt(m(c).seam_jump_mm, 1),
                             // a sequence's transitions (issue 39; "–" for any other clip)
-                            fmt(m(c).transition_foot_skate_ratio, 3), fmt(m(c).transition_foot_slide_mm, 1),
+                            fmt(m(c).transition_foot_skate_ratio, 3), fmt(m(c).source_window_foot_skate_ratio, 3),
+                            fmt(m(c).transition_foot_slide_mm, 1),
                             fmt(m(c).switch_velocity_jump_rad_s, 1), fmt(m(c).switch_accel_jump_rad_s2, 0),
                             fmt(m(c).settle_s, 2),
                             phase(m(c).phase_hips_r, m(c).phase_hips_lag), phase(m(c).phase_knee_r, m(c).phase_knee_lag),

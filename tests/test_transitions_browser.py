@@ -35,7 +35,7 @@ CLIP_SET = REPO / "server" / "clipset" / "transitions.toml"
 STUDY = REPO / "studies" / "transitions.toml"
 RESEARCHER = ("lead@example.org", "correct horse battery")
 WIDTH, HEIGHT = 128, 96
-TRANSITION_COLUMNS = ("transition skate", "transition slide mm", "switch velocity jump rad/s",
+TRANSITION_COLUMNS = ("transition skate", "source window skate", "transition slide mm", "switch velocity jump rad/s",
                       "switch acceleration jump rad/s²", "settle s")
 
 
@@ -163,3 +163,4 @@ def test_a_participant_completes_the_study_and_the_dashboard_shows_the_transitio
     for c in d["conditions"]:
         r = mine[f"{animation} {c}"]
         assert float(r["transition skate"]) <= float(r["source skate"]), (c, r["transition skate"])
+        assert float(r["source window skate"]) >= float(r["source skate"]), (c, r["source window skate"])
