@@ -30,7 +30,7 @@ from server.studies.scale import CHOICES
 from tests.conftest import own_contexts
 from tests.server_fixtures import live_server
 from tests.test_participant_page import ARTIFACTS, CHROMIUM, wait_until
-from tests.test_studies16_browser import CLIP_SET, RESEARCHER, run, walk_through
+from tests.test_studies16_browser import CLIP_SET, RESEARCHER, cli_environment, run, walk_through
 
 REPO = Path(__file__).resolve().parents[1]
 STUDY = REPO / "studies" / "adaptive-walk.toml"
@@ -65,12 +65,7 @@ def site(data, tmp_path_factory):
     if not Path(CHROMIUM).exists():
         pytest.fail(f"{CHROMIUM} is missing: `make test` installs Debian's chromium")
     var = tmp_path_factory.mktemp("var")
-    env = {"ANIMSTUDY_VAR_DIR": str(var), "ANIMSTUDY_DATA_DIR": str(data),
-           "ANIMSTUDY_SECRET_KEY": "adaptive-test-secret-0123456789abcdef"}
-    with pytest.MonkeyPatch.context() as mp:
-        for key, value in env.items():
-            mp.setenv(key, value)
-        mp.delenv("DATABASE_URL", raising=False)
+    with cli_environment(data, var, "adaptive-test-secret-0123456789abcdef"):
         run("clips", "build", "--config", str(study_clip_set(var)))
         run("render", "--width", "160", "--height", "120", "--no-shadows", "--study", str(STUDY))
         run("study", "create", str(STUDY), "--open")

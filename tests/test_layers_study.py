@@ -26,7 +26,7 @@ from server.participants.models import ParticipantSession, Vote
 from server.studies.models import Study
 from tests.server_fixtures import live_server
 from tests.test_participant_page import ARTIFACTS, CHROMIUM, wait_until
-from tests.test_studies16_browser import run
+from tests.test_studies16_browser import cli_environment, run
 
 REPO = Path(__file__).resolve().parents[1]
 CLIP_SET = REPO / "server" / "clipset" / "layers.toml"
@@ -164,11 +164,7 @@ def site(data, tmp_path_factory):
     if not Path(CHROMIUM).exists():
         pytest.fail(f"{CHROMIUM} is missing: `make test` installs Debian's chromium")
     var = tmp_path_factory.mktemp("var")
-    with pytest.MonkeyPatch.context() as mp:
-        for key, value in {"ANIMSTUDY_VAR_DIR": str(var), "ANIMSTUDY_DATA_DIR": str(data),
-                           "ANIMSTUDY_SECRET_KEY": "layers-test-secret-0123456789abcdef"}.items():
-            mp.setenv(key, value)
-        mp.delenv("DATABASE_URL", raising=False)
+    with cli_environment(data, var, "layers-test-secret-0123456789abcdef"):
         logs = {"build": run("clips", "build", "--config", str(CLIP_SET))}
         logs["render"] = run("render", "--width", "160", "--height", "120", "--no-shadows", "--study", str(STUDY))
         logs["create"] = run("study", "create", str(STUDY), "--open")

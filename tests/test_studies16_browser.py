@@ -13,6 +13,7 @@ import io
 import json
 import math
 import tomllib
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -44,6 +45,18 @@ def designs() -> dict[str, dict]:
     return {slug: tomllib.loads(path.read_text(encoding="utf-8")) for slug, path in STUDIES.items()}
 
 
+@contextlib.contextmanager
+def cli_environment(data: Path, var: Path, secret: str) -> Iterator[None]:
+    """The environment `run` works in for a test's own site: var dir ``var``, the sample data, a fixed secret,
+    SQLite under the var dir (no DATABASE_URL); restored after."""
+    with pytest.MonkeyPatch.context() as mp:
+        for key, value in {"ANIMSTUDY_VAR_DIR": str(var), "ANIMSTUDY_DATA_DIR": str(data),
+                           "ANIMSTUDY_SECRET_KEY": secret}.items():
+            mp.setenv(key, value)
+        mp.delenv("DATABASE_URL", raising=False)
+        yield
+
+
 def run(*argv: str) -> str:
     """`animstudy ARGV`; its standard output (it must succeed)."""
     out, err = io.StringIO(), io.StringIO()
@@ -58,12 +71,7 @@ def site(data, tmp_path_factory):
     if not Path(CHROMIUM).exists():
         pytest.fail(f"{CHROMIUM} is missing: `make test` installs Debian's chromium")
     var = tmp_path_factory.mktemp("var")
-    env = {"ANIMSTUDY_VAR_DIR": str(var), "ANIMSTUDY_DATA_DIR": str(data),
-           "ANIMSTUDY_SECRET_KEY": "studies16-test-secret-0123456789abcdef"}
-    with pytest.MonkeyPatch.context() as mp:
-        for key, value in env.items():
-            mp.setenv(key, value)
-        mp.delenv("DATABASE_URL", raising=False)
+    with cli_environment(data, var, "studies16-test-secret-0123456789abcdef"):
         logs = {"build": run("clips", "build", "--config", str(CLIP_SET))}
         logs["render"] = run("render", "--width", "160", "--height", "120", "--no-shadows",
                              *[arg for path in STUDIES.values() for arg in ("--study", str(path))])

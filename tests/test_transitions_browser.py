@@ -28,7 +28,7 @@ from server.researchers.service import create_researcher
 from server.studies.models import Study
 from tests.server_fixtures import live_server
 from tests.test_participant_page import ARTIFACTS, CHROMIUM, wait_until
-from tests.test_studies16_browser import rows, run
+from tests.test_studies16_browser import cli_environment, rows, run
 
 REPO = Path(__file__).resolve().parents[1]
 CLIP_SET = REPO / "server" / "clipset" / "transitions.toml"
@@ -55,12 +55,7 @@ def site(data, tmp_path_factory):
     if not Path(CHROMIUM).exists():
         pytest.fail(f"{CHROMIUM} is missing: `make test` installs Debian's chromium")
     var = tmp_path_factory.mktemp("var")
-    env = {"ANIMSTUDY_VAR_DIR": str(var), "ANIMSTUDY_DATA_DIR": str(data),
-           "ANIMSTUDY_SECRET_KEY": "transitions-test-secret-0123456789abcdef"}
-    with pytest.MonkeyPatch.context() as mp:
-        for key, value in env.items():
-            mp.setenv(key, value)
-        mp.delenv("DATABASE_URL", raising=False)
+    with cli_environment(data, var, "transitions-test-secret-0123456789abcdef"):
         logs = {"build": run("clips", "build", "--config", str(CLIP_SET))}
         logs["render"] = run("render", "--width", str(WIDTH), "--height", str(HEIGHT), "--no-shadows",
                              "--study", str(STUDY))

@@ -21,7 +21,7 @@ from server.research.export import export_rows
 from server.studies.design import Design
 from server.studies.models import Study
 from tests.test_answer_formats import _replayed, observer
-from tests.test_studies16_browser import run
+from tests.test_studies16_browser import cli_environment, run
 
 REPO = Path(__file__).resolve().parents[1]
 CLIP_SET = REPO / "server" / "clipset" / "update-rate.toml"
@@ -47,11 +47,7 @@ def pps_clip_set(folder: Path) -> Path:
 @pytest.mark.slow  # about a minute: builds 14 clips and renders 38 small videos
 def test_update_rate_study_end_to_end(data, tmp_path):
     var = tmp_path / "var"
-    with pytest.MonkeyPatch.context() as mp:
-        for key, value in {"ANIMSTUDY_VAR_DIR": str(var), "ANIMSTUDY_DATA_DIR": str(data),
-                           "ANIMSTUDY_SECRET_KEY": "update-rate-secret-0123456789abcdef"}.items():
-            mp.setenv(key, value)
-        mp.delenv("DATABASE_URL", raising=False)
+    with cli_environment(data, var, "update-rate-secret-0123456789abcdef"):
         run("clips", "build", "--config", str(pps_clip_set(tmp_path)))
         run("render", "--width", "160", "--height", "120", "--no-shadows", "--study", str(STUDY))
         assert "62 trials per participant" in run("study", "create", str(STUDY), "--open")

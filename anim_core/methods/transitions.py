@@ -56,6 +56,7 @@ from ..math.quat import (
     slerp,
 )
 from ..math.skeleton import Skeleton
+from .ik import smoothstep
 from .transition_feet import FeetLock, lock_transition_feet
 
 Array = NDArray[np.float64]
@@ -123,7 +124,7 @@ def blend_weights(u: ArrayLike, duration: float, curve: Curve = "linear") -> Arr
     if curve == "linear":
         return s
     if curve == "smoothstep":
-        return s * s * (3.0 - 2.0 * s)
+        return smoothstep(s)
     raise ValueError(f"curve must be 'linear' or 'smoothstep', got {curve!r}")
 
 
