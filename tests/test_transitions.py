@@ -41,6 +41,18 @@ def _swing(amplitude: float, period: float, speed: float, seconds: float = 2.0, 
     return KeyframeClip(sk, t, rot, root, "loop", in_place, 1, "swing")
 
 
+def _circle(amplitude: float = 0.5, speed: float = 1.4) -> KeyframeClip:
+    """A 1.0 s looping biped clip whose pose is different at every phase (the left hip swings as sin, the right as
+    cos of 2 pi t), unlike :func:`_swing`, whose poses repeat mirrored in time within a cycle."""
+    sk = biped()
+    t = np.arange(121) / 120
+    rot = np.tile(Q.identity((sk.n_joints,)), (t.size, 1, 1))
+    rot[:, 3] = Q.quat_from_axis_angle([1, 0, 0], amplitude * np.sin(2 * np.pi * t))
+    rot[:, 6] = Q.quat_from_axis_angle([1, 0, 0], amplitude * np.cos(2 * np.pi * t))
+    root = np.stack([np.zeros_like(t), np.full_like(t, 0.9), speed * t], axis=-1)
+    return KeyframeClip(sk, t, rot, root, "loop", False, 1, "circle")
+
+
 def test_weights_by_hand() -> None:
     # 100 ms at 30 fps: frames 0..3 after the switch are 0, 1/3, 2/3, 1.
     u = np.arange(5) / FPS
@@ -221,14 +233,32 @@ def test_crossfade_foot_skate_no_worse_than_the_sources() -> None:
     assert during <= sources * 1.05 + 0.05
 
 
+def test_the_loops_own_switch_is_matched_too() -> None:
+    """The loop's own switch (the last clip back into the first) is matched as well: a looping first clip starts at
+    the frame of its cycle whose pose is the last clip's at that switch.  The last clip here holds the first's pose
+    at 0.3 s (frame 9 at 30 fps), so the loop starts there (it started at 0 before); a first clip that is no loop
+    starts at 0."""
+    walk = _circle()
+    pose = walk.sample(np.array([0.3, 0.3]))
+    hold = KeyframeClip(walk.skeleton, np.array([0.0, 1.0]), pose.rotations, pose.root_translation, "pingpong")
+    comp = compose_sequence([(walk, 0.6), (hold, 0.5)], FPS, TransitionSpec("cut"), "travel", entry="matched")
+    assert np.abs(np.abs(np.sum(comp.rotations[0] * pose.rotations[0], axis=-1)) - 1).max() < 1e-12
+    assert np.abs(np.abs(np.sum(comp.rotations[0] * walk.sample(np.zeros(1)).rotations[0], axis=-1)) - 1).max() > 0.01
+    comp = compose_sequence([(hold, 0.5), (walk, 0.6)], FPS, TransitionSpec("cut"), "travel", entry="matched")
+    assert np.array_equal(comp.rotations[0], pose.rotations[0])
+
+
 def test_a_take_entered_matched_after_itself_goes_on_where_it_was() -> None:
     """``entry = "matched"``: a loop entered after itself starts at the frame of its cycle where the outgoing copy
     is at the switch, so a cut between them is seamless (every frame the take's own, as if it had played on); from
     its time 0 ("start") the cut jumps back to the cycle's first pose."""
-    walk = _swing(0.5, 1.0, 1.4)  # a 1.0 s cycle
+    walk = _circle()  # a 1.0 s cycle, a different pose at every phase
     matched = compose_sequence([(walk, 0.6), (walk, 0.6)], FPS, TransitionSpec("cut"), entry="matched")
     t = np.arange(36) / FPS
-    assert np.abs(np.abs(np.sum(matched.rotations * walk.sample(t).rotations, axis=-1)) - 1).max() < 1e-12
+    # The first copy starts where the loop's own switch matches (the test above); from there on, one take playing on.
+    cycle = walk.sample(t[:30]).rotations
+    b = t[np.argmin(np.abs(np.abs(np.sum(cycle * matched.rotations[0], axis=-1)) - 1).max(axis=1))]
+    assert np.abs(np.abs(np.sum(matched.rotations * walk.sample(b + t).rotations, axis=-1)) - 1).max() < 1e-12
     start = compose_sequence([(walk, 0.6), (walk, 0.6)], FPS, TransitionSpec("cut"), entry="start")
     assert np.array_equal(start.rotations[18:], walk.sample(t[:18]).rotations)
     with pytest.raises(CompositeError, match="entry"):

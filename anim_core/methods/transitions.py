@@ -285,6 +285,11 @@ Entry = Literal["start", "matched"]
 ENTRIES: tuple[str, ...] = ("start", "matched")
 
 
+def _pose_cost(candidates: Array, outgoing: Pose) -> Array:
+    """Per candidate pose ``(N, J, 4)``: the sum over the non-root joints of the angle to ``outgoing``'s rotations."""
+    return quat_angle(candidates[:, 1:], np.asarray(outgoing.rotations)[:, 1:]).sum(axis=1)
+
+
 def entry_time(outgoing: Pose, clip: KeyframeClip, fps: int) -> float:
     """The time of ``clip`` (a loop) whose pose is nearest ``outgoing`` (one pose, ``(1, J, 4)`` local rotations):
     the frame of its cycle (on the ``fps`` grid) with the least sum over the non-root joints of the angle between
@@ -293,9 +298,7 @@ def entry_time(outgoing: Pose, clip: KeyframeClip, fps: int) -> float:
     skated more than the sources)."""
     n = max(1, round(clip.duration * fps))
     t = np.arange(n) / fps
-    candidates = clip.sample(t).rotations[:, 1:]
-    cost = quat_angle(candidates, np.asarray(outgoing.rotations)[:, 1:]).sum(axis=1)
-    return float(t[int(np.argmin(cost))])
+    return float(t[int(np.argmin(_pose_cost(clip.sample(t).rotations, outgoing)))])
 
 
 def _checked_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, transition: TransitionSpec,
@@ -325,13 +328,31 @@ def _checked_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, 
     return clips, seconds, root_motion
 
 
-def _entry_times(clips: Sequence[KeyframeClip], seconds: Array, entry: Entry, fps: int) -> Array:
-    """Where each clip starts playing, s of its own time (:func:`compose_sequence`'s ``entry``)."""
+def _chained_entries(clips: Sequence[KeyframeClip], seconds: Array, first: float, fps: int) -> Array:
+    """Entry times when the first clip starts at ``first`` and every looping clip after it is entered matched."""
     begin = np.zeros(len(clips))
+    begin[0] = first
     for s in range(1, len(clips)):
-        if entry == "matched" and clips[s].mode == "loop":
+        if clips[s].mode == "loop":
             begin[s] = entry_time(clips[s - 1].sample(np.array([begin[s - 1] + seconds[s - 1]])), clips[s], fps)
     return begin
+
+
+def _entry_times(clips: Sequence[KeyframeClip], seconds: Array, entry: Entry, fps: int) -> Array:
+    """Where each clip starts playing, s of its own time (:func:`compose_sequence`'s ``entry``).  ``"matched"``
+    also matches the loop's own switch, from the last clip back into the first: a looping first clip starts at the
+    frame of its cycle (the chain after it following) whose pose is nearest the pose the last clip ends on (issue
+    39: started at 0, the run's swing foot came down into the walk's toe-off, 0.304 of the window skating)."""
+    if entry != "matched":
+        return np.zeros(len(clips))
+    if clips[0].mode != "loop":
+        return _chained_entries(clips, seconds, 0.0, fps)
+    starts = np.arange(max(1, round(clips[0].duration * fps))) / fps
+    chains = [_chained_entries(clips, seconds, t, fps) for t in starts]
+    ends = [clips[-1].sample(np.array([b[-1] + seconds[-1]])) for b in chains]
+    heads = clips[0].sample(starts).rotations
+    cost = [float(_pose_cost(heads[i:i + 1], end)[0]) for i, end in enumerate(ends)]
+    return chains[int(np.argmin(cost))]
 
 
 def _inertialized(out: KeyframeClip, s_out: float, clip: KeyframeClip, begin: float, cur: Pose, v_cur: Array,
@@ -390,7 +411,8 @@ def compose_sequence(segments: Sequence[tuple[KeyframeClip, float]], fps: int, t
 
     ``entry``: where each clip starts playing: ``"start"``, at its time 0; ``"matched"``, every looping clip after
     the first at the frame of its cycle nearest the pose the previous clip has at the switch (:func:`entry_time`),
-    the first clip (where the loop starts) at 0.  The entry times depend on the takes only, never on the transition,
+    and a looping first clip where the loop's own switch from the last clip matches best (:func:`_entry_times`;
+    any other first clip at 0).  The entry times depend on the takes only, never on the transition,
     so a sequence's conditions differ by how they switch alone.
 
     Root: the horizontal root velocity (blended as the rotations are) is integrated from frame to frame, so no
