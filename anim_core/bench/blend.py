@@ -9,6 +9,11 @@ timed interleaved in the same rounds:
   ``pose`` stage times;
 * ``playback_jobs``: the same as two jobs, sampling then local-to-model;
 * ``crossfade``: sample A, sample B, blend (each character its own weight), local-to-model;
+* ``crossfade_feet``: the crossfade with its feet held (:mod:`anim_core.methods.transition_feet`, what
+  ``foot_lock`` stores in a built clip): the crossfade, then the two-bone IK job
+  (:class:`anim_core.runtime.ik.TwoBoneIKJob`) on both legs of every character (the worst case: every character
+  mid-transition with both feet down), each ankle's target its blended position plus a held offset of up to
+  10 cm (drawn once per character and leg, added per frame in the timed step);
 * ``additive``: sample A, an additive upper-body delta, local-to-model.
 """
 
@@ -22,13 +27,18 @@ import numpy as np
 from ..clips.record import BuiltClip
 from ..math.clip import KeyframeClip
 from ..math.quat import quat_from_axis_angle
+from ..math.skeleton import Skeleton
+from ..methods.footlock import SOFT_REACH
+from ..methods.ik import hinge_axis
 from ..methods.transitions import CompositeError, joint_mask
+from ..rig.character import LEGS
 from ..runtime.blending import LocalPose, SamplingJob, additive, blend, local_to_model
 from ..runtime.crowd import CrowdBuffers
+from ..runtime.ik import TwoBoneIKJob
 from ..runtime.offline import runtime_for
 
 Step = Callable[[np.ndarray, int], Any]
-CASES = ("playback", "playback_jobs", "crossfade", "additive")
+CASES = ("playback", "playback_jobs", "crossfade", "crossfade_feet", "additive")
 
 
 def _steps(a: KeyframeClip, b: KeyframeClip, n: int, seed: int) -> tuple[dict[str, Step], dict[str, int]]:
@@ -56,12 +66,42 @@ def _steps(a: KeyframeClip, b: KeyframeClip, n: int, seed: int) -> tuple[dict[st
     def add(t: np.ndarray, _f: int) -> None:
         local_to_model(sk, additive(job_a.run(t, la), delta, upper, lo), g_rot, g_pos)
 
+    ik = feet_job(a, b)
+    ankles = ik.chains[:, 2].astype(np.intp)
+    held = np.random.default_rng(seed + 1).uniform(-0.1, 0.1, (n, len(ankles), 3)).astype(np.float32)
+    targets, both = np.empty_like(held), np.ones((n, len(ankles)), np.float32)
+
+    def crossfade_feet(t: np.ndarray, f: int) -> None:
+        crossfade(t, f)
+        np.take(g_pos, ankles, axis=1, out=targets)
+        np.add(targets, held, out=targets)
+        ik.run(g_rot, g_pos, targets, both)
+
     steps = {"playback": lambda t, _f: table.pose(t, buffers), "playback_jobs": playback_jobs,
-             "crossfade": crossfade, "additive": add}
+             "crossfade": crossfade, "crossfade_feet": crossfade_feet, "additive": add}
     sizes = {"playback": table.runtime_bytes, "playback_jobs": job_a.runtime_bytes,
              "crossfade": job_a.runtime_bytes + job_b.runtime_bytes,
+             "crossfade_feet": job_a.runtime_bytes + job_b.runtime_bytes + ik.runtime_bytes,
              "additive": job_a.runtime_bytes + int(delta.nbytes)}
     return steps, sizes
+
+
+def feet_job(a: KeyframeClip, b: KeyframeClip) -> TwoBoneIKJob:
+    """The IK job of the character's legs (:data:`anim_core.rig.character.LEGS`, as a built clip's ``foot_lock``
+    finds them) as a built crossfade of ``a`` into ``b`` holds them: each knee's hinge from both takes' keys, the
+    legs' soft reach (:data:`anim_core.methods.footlock.SOFT_REACH` of the shortest)."""
+    sk: Skeleton = a.skeleton
+    legs = [(int(s), int(m), int(e)) for s, m, e in (sk.indices(leg) for leg in LEGS)]
+    rotations = np.concatenate([a.rotations, b.rotations])
+    root = np.concatenate([a.root_translation, b.root_translation])
+    hinges = []
+    for chain in legs:
+        try:
+            hinges.append(hinge_axis(sk, rotations, root, chain))
+        except ValueError:  # straight in every key: any axis across the leg costs the same
+            hinges.append(np.array([1.0, 0.0, 0.0]))
+    soft = SOFT_REACH * min(float(np.linalg.norm(sk.offsets[m]) + np.linalg.norm(sk.offsets[e])) for _, m, e in legs)
+    return TwoBoneIKJob.for_legs(sk, legs, hinges, soft)
 
 
 def blend_stage(clips: Sequence[BuiltClip], characters: Sequence[int], frames: int, warmup: int,

@@ -5,7 +5,9 @@
 * :mod:`.offline`: building a runtime from a clip (:func:`runtime_for`), the fits and their tolerances;
 * :mod:`.checks`: accuracy: the exact curve, a pose under a LOD, the angle between them;
 * :mod:`.held`: the held-update path (:class:`HeldCrowd`): a character posed at its clip's update rate only;
-* :mod:`.crowd`: the uniform pose tables (and baking a hybrid into one) the table runtime starts from.
+* :mod:`.crowd`: the uniform pose tables (and baking a hybrid into one) the table runtime starts from;
+* :mod:`.blending`: the sampling, blending, additive and local-to-model jobs (ozz-style, one job per stage);
+* :mod:`.ik`: the two-bone IK job (:class:`~anim_core.runtime.ik.TwoBoneIKJob`) that holds feet after a blend.
 """
 
 from .checks import (

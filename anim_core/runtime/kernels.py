@@ -1,6 +1,7 @@
 """The compiled kernels of the runtimes (:mod:`anim_core.runtime.kinds`): per kind of clip one function that poses
 one character (``_<kind>_one``), made into a serial and a parallel kernel by one factory (:func:`crowd_kernels`);
-a foot-locked hybrid's runs its base kind's and then the legs' IK (``_foot_lock``).  Without numba this module
+a foot-locked hybrid's runs its base kind's and then the legs' IK (``_foot_lock``, each leg by :func:`solve_leg`,
+which the run-time IK job of :mod:`anim_core.runtime.ik` runs too).  Without numba this module
 defines no kernels (the runtimes refuse to pose; :mod:`anim_core.runtime.crowd` falls back to numpy).
 
 Conventions as :mod:`anim_core.runtime.kinds`: float32 poses, float64 times and parameters, quaternions
@@ -319,10 +320,8 @@ if numba is not None:
 
     @_njit
     def _foot_lock(c, chains, hinges, below, turns, values, slopes, ik, times, parents, offsets, out_rot, out_pos):
-        """Both legs of character ``c`` (posed by the base kernel) solved towards their tracks' targets: the
-        steps of :func:`anim_core.methods.ik.two_bone_ik` with the knee's hinge, no pole, the soft reach and the ankle's
-        world orientation kept,
-        in float64; the hip's and knee's global rotations turn, every joint under the hip is re-placed."""
+        """Both legs of character ``c`` (posed by the base kernel) solved towards their tracks' targets by
+        :func:`solve_leg`."""
         fps, loop, duration, mode, soft, straight = ik[0], ik[1], ik[2], int(ik[3]), ik[7], ik[8]
         ct, cycles = _clip_time(times[c], duration, mode)
         travel = ct + cycles * duration
@@ -339,31 +338,53 @@ if numba is not None:
             weight = min(max(_hermite(values, slopes, i, leg, 3, h00, h10, h01, h11), 0.0), 1.0)
             if weight <= 0.0:
                 continue
-            s, m, e = chains[leg, 0], chains[leg, 1], chains[leg, 2]
-            sx, sy, sz = np.float64(out_pos[c, s, 0]), np.float64(out_pos[c, s, 1]), np.float64(out_pos[c, s, 2])
-            mx, my, mz = np.float64(out_pos[c, m, 0]), np.float64(out_pos[c, m, 1]), np.float64(out_pos[c, m, 2])
-            ex, ey, ez = np.float64(out_pos[c, e, 0]), np.float64(out_pos[c, e, 1]), np.float64(out_pos[c, e, 2])
-            tx = ex + weight * (_hermite(values, slopes, i, leg, 0, h00, h10, h01, h11) + ik[4] * travel - ex)
-            ty = ey + weight * (_hermite(values, slopes, i, leg, 1, h00, h10, h01, h11) + ik[5] * travel - ey)
-            tz = ez + weight * (_hermite(values, slopes, i, leg, 2, h00, h10, h01, h11) + ik[6] * travel - ez)
-            a = np.sqrt(offsets[m, 0] ** 2 + offsets[m, 1] ** 2 + offsets[m, 2] ** 2)
-            b = np.sqrt(offsets[e, 0] ** 2 + offsets[e, 1] ** 2 + offsets[e, 2] ** 2)
-            dx, dy, dz, dist = _leg_reach(tx - sx, ty - sy, tz - sz, ex - sx, ey - sy, ez - sz, mx - sx, my - sy,
-                                          mz - sz, a, b, soft)
-            thx, thy, thz = mx - sx, my - sy, mz - sz
-            shx, shy, shz = ex - mx, ey - my, ez - mz
-            ux, uy, uz = thx / a, thy / a, thz / a
-            hx, hy, hz = _qrot(np.float64(out_rot[c, m, 0]), np.float64(out_rot[c, m, 1]),
-                               np.float64(out_rot[c, m, 2]), np.float64(out_rot[c, m, 3]),
-                               np.float64(hinges[leg, 0]), np.float64(hinges[leg, 1]), np.float64(hinges[leg, 2]))
-            vx, vy, vz = _knee_side(thx, thy, thz, shx, shy, shz, ux, uy, uz, hx, hy, hz, a, b, straight)
-            nsx, nsy, nsz = _solved_shin(ux, uy, uz, vx, vy, vz, a, b, dist)
-            mw, mqx, mqy, mqz = _between(shx, shy, shz, nsx, nsy, nsz)
-            hip = _hip_turn(mx + nsx - sx, my + nsy - sy, mz + nsz - sz, dx, dy, dz, vx, vy, vz, a)
-            knee = _qmul(hip[0], hip[1], hip[2], hip[3], mw, mqx, mqy, mqz)
-            _turn_leg(c, leg, s, hip, knee, below, turns, parents, offsets, out_rot, out_pos)
+            solve_leg(c, leg, chains, hinges, below, turns, weight,
+                      _hermite(values, slopes, i, leg, 0, h00, h10, h01, h11) + ik[4] * travel,
+                      _hermite(values, slopes, i, leg, 1, h00, h10, h01, h11) + ik[5] * travel,
+                      _hermite(values, slopes, i, leg, 2, h00, h10, h01, h11) + ik[6] * travel,
+                      soft, straight, parents, offsets, out_rot, out_pos)
 
-    # _foot_lock's steps, as two_bone_ik's, on scalars: a numba kernel takes no small arrays without allocating, and
+    @_njit
+    def solve_leg(c, leg, chains, hinges, below, turns, weight, tx, ty, tz, soft, straight, parents, offsets,
+                  out_rot, out_pos):
+        """Leg ``leg`` (``chains[leg]`` = hip, knee, ankle) of character ``c``, posed in model space in ``out_rot``
+        / ``out_pos``, solved towards the model-space target ``t`` blended from the animated ankle by ``weight``
+        (0..1): the steps of :func:`anim_core.methods.ik.two_bone_ik` with the knee's hinge (``hinges[leg]``, in
+        the knee's frame), no pole, the soft reach ``soft`` and the ankle's world orientation kept, in float64;
+        the hip's and knee's global rotations turn, every joint under the hip is re-placed (``below``, ``turns``).
+        Shared by the foot-locked hybrid's kernel and the run-time IK job (:mod:`anim_core.runtime.ik`)."""
+        s, m, e = chains[leg, 0], chains[leg, 1], chains[leg, 2]
+        sx, sy, sz = np.float64(out_pos[c, s, 0]), np.float64(out_pos[c, s, 1]), np.float64(out_pos[c, s, 2])
+        mx, my, mz = np.float64(out_pos[c, m, 0]), np.float64(out_pos[c, m, 1]), np.float64(out_pos[c, m, 2])
+        ex, ey, ez = np.float64(out_pos[c, e, 0]), np.float64(out_pos[c, e, 1]), np.float64(out_pos[c, e, 2])
+        tx = ex + weight * (tx - ex)
+        ty = ey + weight * (ty - ey)
+        tz = ez + weight * (tz - ez)
+        a, b = _bone_length(offsets, m), _bone_length(offsets, e)
+        dx, dy, dz, dist = _leg_reach(tx - sx, ty - sy, tz - sz, ex - sx, ey - sy, ez - sz, mx - sx, my - sy,
+                                      mz - sz, a, b, soft)
+        thx, thy, thz = mx - sx, my - sy, mz - sz
+        shx, shy, shz = ex - mx, ey - my, ez - mz
+        ux, uy, uz = thx / a, thy / a, thz / a
+        hx, hy, hz = _qrot(np.float64(out_rot[c, m, 0]), np.float64(out_rot[c, m, 1]),
+                           np.float64(out_rot[c, m, 2]), np.float64(out_rot[c, m, 3]),
+                           np.float64(hinges[leg, 0]), np.float64(hinges[leg, 1]), np.float64(hinges[leg, 2]))
+        vx, vy, vz = _knee_side(thx, thy, thz, shx, shy, shz, ux, uy, uz, hx, hy, hz, a, b, straight)
+        nsx, nsy, nsz = _solved_shin(ux, uy, uz, vx, vy, vz, a, b, dist)
+        mw, mqx, mqy, mqz = _between(shx, shy, shz, nsx, nsy, nsz)
+        hip = _hip_turn(mx + nsx - sx, my + nsy - sy, mz + nsz - sz, dx, dy, dz, vx, vy, vz, a)
+        knee = _qmul(hip[0], hip[1], hip[2], hip[3], mw, mqx, mqy, mqz)
+        _turn_leg(c, leg, s, hip, knee, below, turns, parents, offsets, out_rot, out_pos)
+
+    @_njit
+    def _bone_length(offsets, j):
+        """The length of joint ``j``'s offset in float64 (in float32, ``a * a + b * b - d * d`` near full reach
+        rounds by more than the solve's 1e-9 margin, and the bend of a leg at full reach came out 0.006 degrees
+        off the offline solve's)."""
+        x, y, z = np.float64(offsets[j, 0]), np.float64(offsets[j, 1]), np.float64(offsets[j, 2])
+        return np.sqrt(x * x + y * y + z * z)
+
+    # solve_leg's steps, as two_bone_ik's, on scalars: a numba kernel takes no small arrays without allocating, and
     # these are inlined (inline="always"), so the compiled kernel is the one-function kernel it was.
     @_njit
     def _leg_reach(dx, dy, dz, fx, fy, fz, thx, thy, thz, a, b, soft):
@@ -461,6 +482,22 @@ if numba is not None:
             out_pos[c, j, 0] = out_pos[c, p, 0] + ox
             out_pos[c, j, 1] = out_pos[c, p, 1] + oy
             out_pos[c, j, 2] = out_pos[c, p, 2] + oz
+
+    @numba.njit(cache=True, fastmath=False)
+    def ik_job(chains, hinges, below, turns, params, targets, weights, parents, offsets, out_rot, out_pos):
+        """The run-time IK job's kernel (:class:`anim_core.runtime.ik.TwoBoneIKJob`): every leg of weight > 0 of
+        every character solved by :func:`solve_leg` towards ``targets (N, F, 3)``; ``params`` = (soft reach, the
+        IK's straight-knee threshold).  Here, beside :func:`solve_leg`, because numba's cache of a kernel is
+        refreshed when its own file changes, not when a function it inlines from another file does."""
+        soft, straight = params[0], params[1]
+        for c in range(out_rot.shape[0]):
+            for leg in range(chains.shape[0]):
+                w = min(max(np.float64(weights[c, leg]), 0.0), 1.0)
+                if w <= 0.0:
+                    continue
+                solve_leg(c, leg, chains, hinges, below, turns, w, np.float64(targets[c, leg, 0]),
+                          np.float64(targets[c, leg, 1]), np.float64(targets[c, leg, 2]), soft, straight, parents,
+                          offsets, out_rot, out_pos)
 
 # The arguments every per-character function takes besides the runtime's arrays (its first is the character).
 _SHARED = ("times", "parents", "offsets", "active", "out_rot", "out_pos")

@@ -7,6 +7,8 @@ curve (:mod:`anim_core.runtime.checks`) and refused beyond its tolerance.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -128,14 +130,7 @@ def foot_lock_runtime(clip: FootLockedClip, tolerance_deg: float = FOOT_LOCK_TOL
         raise ValueError(f"clip {clip.name!r}: the foot-lock tracks are not on the clip's frame grid")
     values = np.concatenate([targets(knots), weights(knots)[..., None]], axis=-1)
     slopes = np.concatenate([targets(knots, 1), weights(knots, 1)[..., None]], axis=-1)
-    chains = np.array(clip.legs, np.int32)
-    under = [_below(sk, chain) for chain in clip.legs]
-    width = max(len(u) for u in under)
-    below = np.full((len(under), width), -1, np.int32)
-    turns = np.full((len(under), width), 2, np.int32)
-    for leg, joints in enumerate(under):
-        below[leg, :len(joints)] = [j for j, _ in joints]
-        turns[leg, :len(joints)] = [k for _, k in joints]
+    chains, below, turns = leg_arrays(sk, clip.legs)
     loop = clip.mode == "loop"
     travel = clip.velocity if loop and not clip.in_place else np.zeros(3)
     runtime = FootLockRuntime(sk, base, frozen(chains, np.int32), frozen(clip.hinges, np.float32),
@@ -150,6 +145,22 @@ def foot_lock_runtime(clip: FootLockedClip, tolerance_deg: float = FOOT_LOCK_TOL
                          f"more than {tolerance_deg} degrees")
     object.__setattr__(runtime, "error_deg", error)
     return runtime
+
+
+def leg_arrays(skeleton: Skeleton, legs: Sequence[tuple[int, int, int]]
+               ) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]]:
+    """What the legs' IK kernel (:func:`anim_core.runtime.kernels.solve_leg`) takes of the legs: ``chains (F, 3)``
+    (hip, knee, ankle), ``below (F, L)`` the joints under each hip in topological order (-1 padded) and
+    ``turns (F, L)`` what turns each (:func:`_below`), int32."""
+    chains = np.array(legs, np.int32).reshape(-1, 3)
+    under = [_below(skeleton, (int(s), int(m), int(e))) for s, m, e in chains]
+    width = max([1, *(len(u) for u in under)])
+    below = np.full((len(under), width), -1, np.int32)
+    turns = np.full((len(under), width), 2, np.int32)
+    for leg, joints in enumerate(under):
+        below[leg, :len(joints)] = [j for j, _ in joints]
+        turns[leg, :len(joints)] = [k for _, k in joints]
+    return chains, below, turns
 
 
 def _below(skeleton: Skeleton, chain: tuple[int, int, int]) -> list[tuple[int, int]]:
