@@ -11,7 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from anim_core.bench.blend import CASES, blend_stage, format_blend
+from anim_core.bench.blend import CASES, _steps, blend_stage, format_blend
 from anim_core.bench.suite import interleaved_ms
 from anim_core.math import quat as Q
 from anim_core.math.clip import KeyframeClip
@@ -192,3 +192,15 @@ def test_the_blend_stage_has_a_held_feet_crossfade_row() -> None:
         assert feet["runtime_bytes"] > by_case["crossfade"]["runtime_bytes"]
     assert {m["method"] for m in memory} == set(CASES)
     assert "crossfade_feet" in format_blend(rows)
+
+
+def test_the_held_feet_step_moves_the_ankles_and_only_the_legs() -> None:
+    sk = biped()
+    a, b = _walk(sk, 0, 1.0), _walk(sk, 1, 2.0)
+    steps, _ = _steps(a, b, 50, 9)
+    t = np.random.default_rng(10).uniform(0, 2, 50)
+    free_rot, free_pos = (x.copy() for x in steps["crossfade"](t, 0))
+    held_rot, held_pos = steps["crossfade_feet"](t, 0)
+    moved = np.linalg.norm(held_pos[:, [5, 8]] - free_pos[:, [5, 8]], axis=-1)
+    assert np.all(moved > 1e-4) and moved.max() < 0.1 * np.sqrt(3) + 1e-6  # the held offsets: up to 10 cm a side
+    assert np.array_equal(held_pos[:, :3], free_pos[:, :3]) and np.array_equal(held_rot[:, :3], free_rot[:, :3])
