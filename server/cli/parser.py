@@ -218,7 +218,8 @@ def _gc_and_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type
     bn.add_argument("--quick", action="store_true",
                     help=f"short run: {QUICK_BENCH} unless given")
     bn.add_argument("--characters", type=_int_list(1, "10,200"), default=None, help="crowd sizes, e.g. 10,200,10000")
-    bn.add_argument("--stages", type=_stages, default=None, help="pose, skin (default: both), blend (blending jobs)")
+    bn.add_argument("--stages", type=_stages, default=None,
+                    help="pose, skin (default: both), blend (blending jobs, crossfade with held feet)")
     bn.add_argument("--frames", type=int, default=None, help="timed frames per measurement (default: 200)")
     bn.add_argument("--variants", type=_variants, default=None,
                     help="comma-separated: keys, baked, reference, naive (default: all)")
