@@ -272,12 +272,38 @@ def playwright():
         yield p
 
 
+# A participant answers after watching a stimulus loop once, counted on the media clock (static/participant.js,
+# measure): at FAST_PLAYBACK times the speed a test's participant waits a fraction of each loop's real time, the
+# gate unchanged.  Tests that measure playback itself (hitches, stalls) are marked ``real_speed``.
+FAST_PLAYBACK = 4
+_FAST_PLAYBACK_JS = f"document.addEventListener('play', e => {{ e.target.playbackRate = {FAST_PLAYBACK}; }}, true);"
+
+
+class FastPlaybackBrowser:
+    """The shared Chromium whose new contexts and pages play every video at :data:`FAST_PLAYBACK` times its speed;
+    everything else is the browser's own (``real`` is the browser itself)."""
+
+    def __init__(self, real) -> None:
+        self.real = real
+
+    def new_context(self, **options):
+        context = self.real.new_context(**options)
+        context.add_init_script(_FAST_PLAYBACK_JS)
+        return context
+
+    def new_page(self, **options):
+        return self.new_context(**options).new_page()
+
+    def __getattr__(self, name: str):
+        return getattr(self.real, name)
+
+
 @pytest.fixture(scope="module")
 def browser(playwright):
     # One launch per file (a launch costs one to three seconds), a fresh context per test; tests never close it
     # (:func:`own_contexts` closes what they opened).
     b = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-    yield b
+    yield FastPlaybackBrowser(b)
     b.close()
 
 
@@ -295,9 +321,11 @@ def own_contexts(browser):
 
 
 @pytest.fixture
-def page(browser):
-    """A 1280x720 page in a context of its own; a JavaScript error on it fails the test."""
-    context = browser.new_context(viewport={"width": 1280, "height": 720})
+def page(browser, request):
+    """A 1280x720 page in a context of its own, its videos at :data:`FAST_PLAYBACK` times their speed unless the
+    test is marked ``real_speed``; a JavaScript error on it fails the test."""
+    real = request.node.get_closest_marker("real_speed") is not None
+    context = (browser.real if real else browser).new_context(viewport={"width": 1280, "height": 720})
     pg = context.new_page()
     errors: list[str] = []
     pg.on("pageerror", lambda e: errors.append(str(e)))

@@ -134,6 +134,7 @@ def vote_by_keyboard(pg, key="3"):
 
 @pytest.mark.slow  # tens of seconds (the serial run's slowest; still run by `make test`)
 @pytest.mark.serial  # it counts video stalls: with every core busy with another worker, playback stalls (seen once)
+@pytest.mark.real_speed
 def test_full_run_by_keyboard_with_real_videos(site, page):
     base, factory = site
     begin(page, base, screenshots=True)
