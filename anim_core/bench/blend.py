@@ -60,8 +60,9 @@ def _steps(a: KeyframeClip, b: KeyframeClip, n: int, seed: int) -> tuple[dict[st
     def playback_jobs(t: np.ndarray, _f: int) -> None:
         local_to_model(sk, job_a.run(t, la), g_rot, g_pos)
 
-    def crossfade(t: np.ndarray, _f: int) -> None:
+    def crossfade(t: np.ndarray, _f: int) -> tuple[np.ndarray, np.ndarray]:
         local_to_model(sk, blend(job_a.run(t, la), job_b.run(t, lb), weights, ones, lo), g_rot, g_pos)
+        return g_rot, g_pos
 
     def add(t: np.ndarray, _f: int) -> None:
         local_to_model(sk, additive(job_a.run(t, la), delta, upper, lo), g_rot, g_pos)
@@ -71,11 +72,12 @@ def _steps(a: KeyframeClip, b: KeyframeClip, n: int, seed: int) -> tuple[dict[st
     held = np.random.default_rng(seed + 1).uniform(-0.1, 0.1, (n, len(ankles), 3)).astype(np.float32)
     targets, both = np.empty_like(held), np.ones((n, len(ankles)), np.float32)
 
-    def crossfade_feet(t: np.ndarray, f: int) -> None:
+    def crossfade_feet(t: np.ndarray, f: int) -> tuple[np.ndarray, np.ndarray]:
         crossfade(t, f)
         np.take(g_pos, ankles, axis=1, out=targets)
         np.add(targets, held, out=targets)
         ik.run(g_rot, g_pos, targets, both)
+        return g_rot, g_pos
 
     steps = {"playback": lambda t, _f: table.pose(t, buffers), "playback_jobs": playback_jobs,
              "crossfade": crossfade, "crossfade_feet": crossfade_feet, "additive": add}
