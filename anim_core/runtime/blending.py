@@ -122,12 +122,12 @@ if numba is not None:
                 fk_joint(c, j, local[c, j, 0], local[c, j, 1], local[c, j, 2], local[c, j, 3],
                          root[c, 0], root[c, 1], root[c, 2], parents, offsets, out_rot, out_pos)
 
-def _need_numba() -> None:
+def need_numba() -> None:
     if numba is None:  # pragma: no cover - numba is a dependency
         raise RuntimeError("the blending jobs need numba")
 
 
-def _buffer(name: str, buf: Any, shape: tuple[int, ...]) -> F32:
+def buffer(name: str, buf: Any, shape: tuple[int, ...]) -> F32:
     """``buf`` if it is a C-contiguous float32 array of ``shape``; ValueError naming the buffer otherwise."""
     if not isinstance(buf, np.ndarray) or buf.dtype != np.float32:
         raise ValueError(f"{name} must be a float32 array, got {getattr(buf, 'dtype', type(buf))}")
@@ -138,15 +138,15 @@ def _buffer(name: str, buf: Any, shape: tuple[int, ...]) -> F32:
     return buf
 
 
-def _output(name: str, buf: Any, shape: tuple[int, ...]) -> F32:
-    out = _buffer(name, buf, shape)
+def output(name: str, buf: Any, shape: tuple[int, ...]) -> F32:
+    out = buffer(name, buf, shape)
     if not out.flags.writeable:
         raise ValueError(f"{name} must be writeable")
     return out
 
 
-def _weights(name: str, w: Any, shape: tuple[int, ...]) -> F32:
-    w = _buffer(name, w, shape)
+def weights_buffer(name: str, w: Any, shape: tuple[int, ...]) -> F32:
+    w = buffer(name, w, shape)
     if not np.all(np.isfinite(w)) or np.any(w < 0) or np.any(w > 1):
         raise ValueError(f"{name} must be finite weights in [0, 1]")
     return w
@@ -189,44 +189,44 @@ class SamplingJob:
         return int(self.keys.nbytes + self.roots.nbytes + self.velocity.nbytes + self.params.nbytes)
 
     def run(self, t: ArrayLike, out: LocalPose) -> LocalPose:
-        _need_numba()
+        need_numba()
         times = np.ascontiguousarray(t, np.float64)
         if times.ndim != 1 or not np.all(np.isfinite(times)):
             raise ValueError("times must be a 1-D array of finite seconds, one per character")
         n, j = times.shape[0], self.skeleton.n_joints
         _sample_kernel(self.keys, self.roots, self.velocity, self.params, times,
-                       _output("output rotations", out.rotations, (n, j, 4)), _output("output root", out.root, (n, 3)))
+                       output("output rotations", out.rotations, (n, j, 4)), output("output root", out.root, (n, 3)))
         return out
 
 
 def blend(a: LocalPose, b: LocalPose, weights: ArrayLike, joint_weights: ArrayLike, out: LocalPose) -> LocalPose:
     """The blending job: ``out = nlerp(a, b, weights[c] * joint_weights[j])`` per character and joint (root: lerp by
     ``weights[c]``).  Every buffer is validated first."""
-    _need_numba()
+    need_numba()
     n, j = a.rotations.shape[:2] if isinstance(a.rotations, np.ndarray) and a.rotations.ndim == 3 else (-1, -1)
     if n < 0:
         raise ValueError("pose a rotations must be an (N, J, 4) array")
-    _blend_kernel(_buffer("pose a rotations", a.rotations, (n, j, 4)), _buffer("pose a root", a.root, (n, 3)),
-                  _buffer("pose b rotations", b.rotations, (n, j, 4)), _buffer("pose b root", b.root, (n, 3)),
-                  _weights("weights", weights, (n,)), _weights("joint weights", joint_weights, (j,)),
-                  _output("output rotations", out.rotations, (n, j, 4)), _output("output root", out.root, (n, 3)))
+    _blend_kernel(buffer("pose a rotations", a.rotations, (n, j, 4)), buffer("pose a root", a.root, (n, 3)),
+                  buffer("pose b rotations", b.rotations, (n, j, 4)), buffer("pose b root", b.root, (n, 3)),
+                  weights_buffer("weights", weights, (n,)), weights_buffer("joint weights", joint_weights, (j,)),
+                  output("output rotations", out.rotations, (n, j, 4)), output("output root", out.root, (n, 3)))
     return out
 
 
 def additive(base: LocalPose, delta: ArrayLike, joint_weights: ArrayLike, out: LocalPose) -> LocalPose:
     """The additive job: ``out = base * nlerp(1, delta, joint_weights[j])``; ``delta (J, 4)`` or ``(N, J, 4)``;
     the root is the base's."""
-    _need_numba()
+    need_numba()
     if not isinstance(base.rotations, np.ndarray) or base.rotations.ndim != 3:
         raise ValueError("base rotations must be an (N, J, 4) array")
     n, j = base.rotations.shape[:2]
     d = np.asarray(delta)
-    d = _buffer("delta", d[None] if d.ndim == 2 else d, (1, j, 4) if d.ndim == 2 else (n, j, 4))
-    _buffer("base root", base.root, (n, 3))
-    _additive_kernel(_buffer("base rotations", base.rotations, (n, j, 4)), d,
-                     _weights("joint weights", joint_weights, (j,)),
-                     _output("output rotations", out.rotations, (n, j, 4)))
-    out_root = _output("output root", out.root, (n, 3))
+    d = buffer("delta", d[None] if d.ndim == 2 else d, (1, j, 4) if d.ndim == 2 else (n, j, 4))
+    buffer("base root", base.root, (n, 3))
+    _additive_kernel(buffer("base rotations", base.rotations, (n, j, 4)), d,
+                     weights_buffer("joint weights", joint_weights, (j,)),
+                     output("output rotations", out.rotations, (n, j, 4)))
+    out_root = output("output root", out.root, (n, 3))
     if out_root is not base.root:
         out_root[:] = base.root
     return out
@@ -234,12 +234,12 @@ def additive(base: LocalPose, delta: ArrayLike, joint_weights: ArrayLike, out: L
 
 def local_to_model(skeleton: Skeleton, pose: LocalPose, out_rotations: F32, out_positions: F32) -> None:
     """The local-to-model job: model-space rotations ``(N, J, 4)`` and positions ``(N, J, 3)``."""
-    _need_numba()
+    need_numba()
     j = skeleton.n_joints
     if not isinstance(pose.rotations, np.ndarray) or pose.rotations.ndim != 3:
         raise ValueError("local rotations must be an (N, J, 4) array")
     n = pose.rotations.shape[0]
-    _local_to_model_kernel(_buffer("local rotations", pose.rotations, (n, j, 4)), _buffer("root", pose.root, (n, 3)),
+    _local_to_model_kernel(buffer("local rotations", pose.rotations, (n, j, 4)), buffer("root", pose.root, (n, 3)),
                            *skeleton_arrays(skeleton),
-                           _output("output rotations", out_rotations, (n, j, 4)),
-                           _output("output positions", out_positions, (n, j, 3)))
+                           output("output rotations", out_rotations, (n, j, 4)),
+                           output("output positions", out_positions, (n, j, 3)))

@@ -27,7 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..math.skeleton import Skeleton
 from ..methods.ik import STRAIGHT
-from .blending import _buffer, _need_numba, _output, _weights
+from .blending import buffer, need_numba, output, weights_buffer
 from .crowd import numba
 from .kinds import frozen, skeleton_arrays
 from .offline import leg_arrays
@@ -40,7 +40,7 @@ if numba is not None:
 
 
 def _finite(name: str, buf: Any, shape: tuple[int, ...]) -> F32:
-    out = _buffer(name, buf, shape)
+    out = buffer(name, buf, shape)
     if not np.all(np.isfinite(out)):
         raise ValueError(f"{name} must be finite (no NaN or infinity)")
     return out
@@ -95,15 +95,15 @@ class TwoBoneIKJob:
         ``weights (N, F)``, in place in ``model_rotations (N, J, 4)`` / ``model_positions (N, J, 3)``.  Every
         buffer is validated first (float32, C-contiguous, its shape; targets finite, weights in 0..1):
         ``ValueError`` naming the buffer, and nothing written."""
-        _need_numba()
+        need_numba()
         j, legs = self.skeleton.n_joints, self.chains.shape[0]
         if not isinstance(model_rotations, np.ndarray) or model_rotations.ndim != 3:
             raise ValueError("model rotations must be an (N, J, 4) array")
         n = model_rotations.shape[0]
-        rot = _output("model rotations", model_rotations, (n, j, 4))
-        pos = _output("model positions", model_positions, (n, j, 3))
+        rot = output("model rotations", model_rotations, (n, j, 4))
+        pos = output("model positions", model_positions, (n, j, 3))
         if np.shares_memory(rot, pos):
             raise ValueError("model rotations and positions must not overlap")
         ik_job(self.chains, self.hinges, self.below, self.turns, self.params,
-                   _finite("targets", targets, (n, legs, 3)), _weights("weights", weights, (n, legs)),
+                   _finite("targets", targets, (n, legs, 3)), weights_buffer("weights", weights, (n, legs)),
                    *skeleton_arrays(self.skeleton), rot, pos)
