@@ -8,7 +8,7 @@ import pytest
 
 from anim_core.io.bvh import read_bvh
 from anim_core.math.clip import Pose
-from anim_core.rig.character import CharacterError, retarget
+from anim_core.rig.character import CharacterError, rebind, retarget
 from server.assets import CHARACTER_DIR, AssetError
 from server.assets import character as load_character
 
@@ -132,3 +132,30 @@ def test_retargeting_needs_matching_joints(character, data):
     bvh = read_bvh(data / "mocap/cmu/12_03_walk.bvh.gz")
     with pytest.raises(CharacterError, match="no joints for mocap joints"):
         retarget(character, bvh.skeleton, bvh.end_sites, name_map={})
+
+
+def test_rebind_moves_the_mesh_as_the_motions_own_binding_does(character, data):
+    # issue 39: a composite plays every take on its first take's skeleton. Each take is bound on its own (its rest
+    # directions, its pelvis as it holds it), so the run's rotations played unchanged on the idle's binding move the
+    # mesh elsewhere (seen: up to 0.32 m); re-expressed by rebind, every vertex lands where the run's own binding
+    # puts it.
+    run = read_bvh(data / "mocap/cmu/09_11_run.bvh.gz")
+    idle = read_bvh(data / "mocap/cmu/113_21_idle_30fps.bvh.gz")
+    rot, root = run.pose_arrays()
+    rot, root = rot[1:60:6], root[1:60:6]
+    mine = retarget(character, run.skeleton, run.end_sites, motion=rot, relocate=("LHipJoint", "RHipJoint"))
+    other = retarget(character, idle.skeleton, idle.end_sites, motion=idle.pose_arrays()[0][1:],
+                     relocate=("LHipJoint", "RHipJoint"))
+    pose = mine.pose(Pose(rot, root))
+
+    def mesh(rc, p):
+        g, x = rc.skeleton.forward_kinematics(*p)
+        return np.stack([rc.mesh.skin(rc.mesh.skinning_matrices(gi, xi))[0] for gi, xi in zip(g, x, strict=True)])
+
+    want = mesh(mine, pose)
+    unchanged = np.linalg.norm(mesh(other, Pose(pose.rotations, pose.root_translation + mine.skeleton.offsets[0]
+                                                - other.skeleton.offsets[0])) - want, axis=-1)
+    print(f"unchanged: {unchanged.max():.3f} m")
+    assert unchanged.max() > 0.1
+    assert np.abs(mesh(other, rebind(pose, mine, other)) - want).max() < 1e-9
+    assert rebind(pose, mine, mine) is pose

@@ -10,15 +10,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from anim_core.math.quat import quat_conj, quat_mul
 from anim_core.methods.transitions import joint_mask
 from server.clipset.build import build_clip_set
 from server.clipset.config import load_config
+from tests.poses import mesh_local, same
 
 CONFIG = Path(__file__).resolve().parents[1] / "server" / "clipset" / "transitions.toml"
 LAYERS = """
 [animations.walk_arms]
 base = "walk"
 layers = [{ animation = "idle", joints = "upper_body", mode = "override" }]
+
+[animations.walk_rest_arms]
+base = "walk"
+layers = [{ animation = "idle", joints = "arms", mode = "additive", reference_pose = "rest" }]
 
 [animations.walk_still]
 base = "walk"
@@ -64,6 +70,7 @@ def test_every_condition_that_applies_and_no_other(by_id: dict) -> None:
     assert {i.split("-")[1] for i in by_id if i.startswith("walk_run_walk-")} == sequence
     assert {i.split("-")[1] for i in by_id if i.startswith("walk-")} == {"keyframe"}
     assert {i.split("-")[1] for i in by_id if i.startswith("walk_arms-")} == {"keyframe"}
+    assert {i.split("-")[1] for i in by_id if i.startswith("walk_rest_arms-")} == {"keyframe"}
     assert {i.split("-")[1] for i in by_id if i.startswith("walk_run-")} == {
         "keyframe", "parametric0", "parametric50", "parametric100"}
 
@@ -119,13 +126,22 @@ def test_the_lock_moves_the_legs_only_and_nothing_before_a_switch(by_id: dict) -
 def test_the_cut_plays_each_take_as_built(by_id: dict) -> None:
     seq, run = by_id["idle_walk_run-cut"], by_id["run-keyframe"]
     # The run starts 5 s in (idle 2 s, walk 3 s), entered at the frame of its cycle in the walk's leg phase
-    # (entry = "matched", the default): its first second is the run clip's own rotations from that frame on.
-    cycle = run.clip.sample(np.arange(round(run.clip.duration * 30)) / 30).rotations
-    k = int(np.argmin(np.abs(np.abs(np.sum(cycle * seq.local_rotations[150], axis=-1)) - 1).max(axis=1)))
+    # (entry = "matched", the default): its first second is the run clip's own motion from that frame on, as the
+    # mesh shows it (the sequence plays on the idle's skeleton, each take bound on its own: mesh_local).
+    cycle = mesh_local(run, run.clip.sample(np.arange(round(run.clip.duration * 30)) / 30).rotations)
+    shown = mesh_local(seq, seq.local_rotations)
+    k = int(np.argmin(np.abs(np.abs(np.sum(cycle * shown[150], axis=-1)) - 1).max(axis=1)))
     frames = np.arange(150, 180)
-    expected = run.clip.sample((k + frames - 150) / 30).rotations
-    got = seq.local_rotations[frames]
-    assert np.abs(np.abs(np.sum(got * expected, axis=-1)) - 1).max() < 1e-12
+    expected = mesh_local(run, run.clip.sample((k + frames - 150) / 30).rotations)
+    assert same(shown[frames], expected) < 1e-12
+    # and so its feet: where they are against the hips is the run's own (played unchanged on the idle's skeleton
+    # they were up to 0.31 m off, seen)
+    feet, hips = run.character.skeleton.indices(["LeftToeBase", "RightToeBase", "LeftFoot", "RightFoot"]), 0
+    got = seq.world_positions[frames][:, feet] - seq.world_positions[frames][:, [hips]]
+    run_pose = run.clip.sample((k + frames - 150) / 30)
+    want = run.character.skeleton.forward_kinematics(*run_pose)[1]
+    want = want[:, feet] - want[:, [hips]]
+    assert np.abs(got - want).max() < 1e-9
 
 
 def test_layers_leave_the_rest_of_the_base(by_id: dict) -> None:
@@ -137,6 +153,18 @@ def test_layers_leave_the_rest_of_the_base(by_id: dict) -> None:
     assert np.array_equal(np.abs(still.local_rotations[:, ~upper]), np.abs(walk.local_rotations[:, ~upper]))
     assert not np.allclose(np.abs(still.local_rotations[:, upper]), np.abs(walk.local_rotations[:, upper]))
     assert arms.metrics["foot_skate_ratio"] == walk.metrics["foot_skate_ratio"]
+
+
+def test_an_additive_rest_reference_is_the_layer_takes_own_rest_pose(by_id: dict) -> None:
+    # The idle's arms against the idle's rest pose, added to the walk: as the mesh shows it, the walk's arm turned
+    # by the idle's turn away from its own rest (M_walk M_rest^-1 M_idle); the idle is bound on its own, so its rest
+    # is not the walk skeleton's identity (against that the arms were 0.0061 off, 1 - |<q, q'>|, seen).
+    walk, idle, layered = by_id["walk-keyframe"], by_id["idle-keyframe"], by_id["walk_rest_arms-keyframe"]
+    arms = joint_mask(walk.character.skeleton, "arms")
+    shown_idle = mesh_local(idle, idle.clip.sample(np.arange(walk.n_frames) / walk.fps).rotations)
+    rest = mesh_local(idle, np.asarray(idle.character.skeleton.rest_rotations)[None])
+    expected = quat_mul(mesh_local(walk, walk.local_rotations), quat_mul(quat_conj(rest), shown_idle))
+    assert same(mesh_local(layered, layered.local_rotations)[:, arms], expected[:, arms]) < 1e-12
 
 
 def test_a_travelling_sequence_is_stored_in_place_with_its_floor_travel(by_id: dict) -> None:
@@ -158,12 +186,13 @@ def test_parametric_mixes_the_two_takes_after_aligning_their_cycles(by_id: dict)
     # the blend's reference and weight 0 are the walk
     assert np.array_equal(ref.local_rotations, walk.local_rotations)
     assert np.abs(np.abs(np.sum(p0.local_rotations * walk.local_rotations, axis=-1)) - 1).max() < 1e-9
-    # weight 1 is the run's cycle entered elsewhere: every frame is the run's frame a fixed shift later
-    shift = int(np.argmin(np.abs(np.abs(np.sum(run.local_rotations * p100.local_rotations[0], axis=-1)) - 1)
-                          .max(axis=1)))
-    expected = run.local_rotations[(np.arange(run.n_frames) + shift) % run.n_frames]
+    # weight 1 is the run's cycle entered elsewhere: every frame is the run's frame a fixed shift later, as the
+    # mesh shows it (the blend plays on the walk's skeleton: mesh_local)
+    run_shown, p100_shown = mesh_local(run, run.local_rotations), mesh_local(p100, p100.local_rotations)
+    shift = int(np.argmin(np.abs(np.abs(np.sum(run_shown * p100_shown[0], axis=-1)) - 1).max(axis=1)))
+    expected = run_shown[(np.arange(run.n_frames) + shift) % run.n_frames]
     assert p100.n_frames == run.n_frames
-    assert np.abs(np.abs(np.sum(p100.local_rotations * expected, axis=-1)) - 1).max() < 1e-9
+    assert same(p100_shown, expected) < 1e-9
     # halfway: half way in length and speed (from the take clips: 40 and 24 frames, 1.1 and 3.3 m/s or so)
     assert p50.n_frames == round((walk.n_frames + run.n_frames) / 2)
     speed = 0.5 * (walk.clip.velocity * walk.clip.duration + run.clip.velocity * run.clip.duration) / p50.clip.duration

@@ -14,7 +14,9 @@ clips, plus the transition metrics of a sequence (docs/methods/transitions.md):
 * ``settle_s``: the longest time after a switch until every joint's global rotation stays within
   :data:`anim_core.methods.transitions.SETTLE_DEG` of the incoming take's.
 
-The composite plays on the skeleton (and character) of its first take (a sequence) or its base.  Foot metrics of
+The composite plays on the skeleton (and character) of its first take (a sequence) or its base; every other take
+is re-expressed on it first (:func:`rebound`: each take is bound on its own, and a take's rotations played on
+another's skeleton put its feet up to 0.3 m elsewhere).  Foot metrics of
 a composite are taken in world space on the non-periodic frames (its speed changes, so no single ground velocity
 describes it).
 """
@@ -30,11 +32,13 @@ from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter1d
 
 from ..math import contacts
+from ..math.clip import KeyframeClip, Pose
 from ..math.quat import canonicalize, quat_conj, quat_log, quat_mul
+from ..methods.base import Animation
 from ..methods.composite_builders import BlendAnimation, LayeredAnimation, SequenceAnimation, SequenceClip
 from ..methods.conditions import Condition
 from ..methods.transitions import CompositeError, joint_mask
-from ..rig.character import UP
+from ..rig.character import UP, RetargetedCharacter, rebind
 from . import metrics
 from .build import place_on_floor
 from .entry import ConfigError, Source
@@ -145,11 +149,11 @@ def format_transitions(clips: Sequence[BuiltClip]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _reference_pose(spec: LayerSpec, animation: Any, skeleton: Any, where: str) -> Array | None:
+def _reference_pose(spec: LayerSpec, animation: Any, rest: Array, where: str) -> Array | None:
     if spec.mode != "additive" or spec.reference_pose == "first":
         return None
     if spec.reference_pose == "rest":
-        return np.asarray(skeleton.rest_rotations)
+        return rest
     frames = animation.reference.rotations
     if not isinstance(spec.reference_pose, int) or not 0 <= spec.reference_pose < frames.shape[0]:
         raise ConfigError(f"{where} reference_pose: 'first', 'rest' or a frame 0..{frames.shape[0] - 1} of "
@@ -157,29 +161,50 @@ def _reference_pose(spec: LayerSpec, animation: Any, skeleton: Any, where: str) 
     return frames[spec.reference_pose]
 
 
+def rest_pose(source: RetargetedCharacter, target: RetargetedCharacter) -> Array:
+    """``(J, 4)``: the rest pose of a take bound by ``source`` (identity rotations) on ``target``'s skeleton, the
+    reference an additive layer's ``"rest"`` means."""
+    n = source.skeleton.n_joints
+    return rebind(Pose(np.asarray(source.skeleton.rest_rotations), np.zeros(3)), source, target).rotations.reshape(n, 4)
+
+
+def rebound(animation: Animation, source: RetargetedCharacter, target: RetargetedCharacter) -> Animation:
+    """``animation`` (a take's reference on ``source``'s skeleton) re-expressed on ``target``'s skeleton
+    (:func:`anim_core.rig.character.rebind`): the same mesh motion, so that takes bound on their own can be mixed."""
+    if source is target:
+        return animation
+    ref = animation.reference
+    pose = rebind(Pose(ref.rotations, ref.root_translation), source, target)
+    clip = KeyframeClip(target.skeleton, ref.times, pose.rotations, pose.root_translation, ref.mode, ref.in_place,
+                        ref.up_axis, ref.name)
+    return replace(animation, reference=clip, bind_rotations=target.mirror_bind(pose.rotations))
+
+
 def build_composite(spec: CompositeSpec, sources: Mapping[str, Source], fps: int, conditions: Sequence[Condition],
                     progress: Callable[[str], None] = lambda _msg: None) -> list[BuiltClip]:
     """One clip per condition that applies to the composite's form (the reference first), measured."""
     where = f"[animations.{spec.name}]"
-    refs = {name: reference_animation(sources[name], fps) for name in spec.takes}
     first = spec.takes[0]
     source = sources[first]
-    skeleton = refs[first][0].reference.skeleton
+    refs = {name: rebound(reference_animation(sources[name], fps)[0], sources[name].character, source.character)
+            for name in spec.takes}
+    skeleton = refs[first].reference.skeleton
     if spec.form == "blend":
-        animation: Any = BlendAnimation(spec.name, refs[spec.blend[0]][0], refs[spec.blend[1]][0], fps)
+        animation: Any = BlendAnimation(spec.name, refs[spec.blend[0]], refs[spec.blend[1]], fps)
     elif spec.form == "sequence":
-        animation = SequenceAnimation(spec.name, tuple((refs[n][0], s) for n, s in spec.segments),
+        animation = SequenceAnimation(spec.name, tuple((refs[n], s) for n, s in spec.segments),
                                            spec.root_motion, fps, spec.entry)  # type: ignore[arg-type]
     else:
-        layers = []
+        layers, rests = [], []
         for k, layer in enumerate(spec.layers):
             try:
                 mask = joint_mask(skeleton, layer.joints)
             except CompositeError as exc:
                 raise ConfigError(f"{where} layers #{k + 1} {exc}") from None
-            take = refs[layer.animation][0]
-            layers.append((take, mask, layer.mode, _reference_pose(layer, take, skeleton, f"{where} layers #{k + 1}")))
-        animation = LayeredAnimation(spec.name, refs[first][0], tuple(layers), fps)
+            take = refs[layer.animation]
+            rests.append(rest_pose(sources[layer.animation].character, source.character))
+            layers.append((take, mask, layer.mode, _reference_pose(layer, take, rests[-1], f"{where} layers #{k + 1}")))
+        animation = LayeredAnimation(spec.name, refs[first], tuple(layers), fps, tuple(rests))
     applying = [c for c in conditions if c.applies(spec.form)]
     ordered = [*(c for c in applying if c.is_reference), *(c for c in applying if not c.is_reference)]
     skate = max(source_skate(sources[n], sources[n].time_of(sources[n].config.frames[0]),

@@ -61,12 +61,14 @@ class SequenceAnimation:
 @dataclass(frozen=True, eq=False)
 class LayeredAnimation:
     """A layered animation: the base take and its layers ``(take, joint mask (J,), mode, reference pose (J, 4) or
-    None)``."""
+    None)``, all on the base's skeleton; ``rests``: each layer take's rest pose there (``(J, 4)``, what an additive
+    ``"rest"`` reference means; empty: the skeleton's rest pose)."""
 
     name: str
     base: Animation
     layers: tuple[tuple[Animation, NDArray[np.bool_], str, NDArray[np.float64] | None], ...] = field(repr=False)
     fps: int = 30
+    rests: tuple[NDArray[np.float64], ...] = field(default=(), repr=False)
 
 
 @dataclass(frozen=True, eq=False)
@@ -174,13 +176,17 @@ def build_override(animation: LayeredAnimation, params: OverrideParams) -> Keyfr
 
 def build_additive(animation: LayeredAnimation, params: AdditiveParams) -> KeyframeClip:
     """Every layer additive against ``params.reference_pose``: ``"first"`` (each layer's first frame), ``"rest"``
-    (the base skeleton's rest pose) or a frame of each layer's clip (out of range: :class:`CompositeError`)."""
+    (each layer take's rest pose, :attr:`LayeredAnimation.rests`) or a frame of each layer's clip (out of range:
+    :class:`CompositeError`)."""
     ref = params.reference_pose
     if ref == "first":
         return _relayer(animation, "additive", None, weight=params.weight)
     if ref == "rest":
-        return _relayer(animation, "additive", np.asarray(animation.base.reference.skeleton.rest_rotations),
-                        weight=params.weight)
+        rests = animation.rests or (np.asarray(animation.base.reference.skeleton.rest_rotations),) * len(
+            animation.layers)
+        return layered(animation.base.reference, [(a.reference, mask, "additive", rest) for (a, mask, _, _), rest
+                                                  in zip(animation.layers, rests, strict=True)],
+                       animation.fps, animation.name, weight=params.weight)
     clips = [a.reference for a, _, _, _ in animation.layers]
     short = min(c.rotations.shape[0] for c in clips)
     if not 0 <= ref < short:

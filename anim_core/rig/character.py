@@ -14,6 +14,11 @@ where the mocap's bone points, at every frame.  The mesh is bound to that skelet
 the A-posed mesh; it is computed down each chain relative to the parent's, so twist carries over smoothly.  A
 gait is mirrored about a bind made from the clip itself (:func:`mirror_bind`), so that its hybrid does not depend on
 the rig the take came on.
+
+Each take is bound on its own (its mocap's rest directions, its pelvis as it holds it), so two takes' skeletons
+differ even on one character: a take's rotations played on another take's skeleton put its feet elsewhere (up to
+0.3 m for CMU's run on its idle's).  :func:`rebind` re-expresses a motion on another binding so that every bone of
+the mesh turns as it did (what a composite of several takes needs).
 """
 
 from __future__ import annotations
@@ -234,6 +239,25 @@ class RetargetedCharacter:
         """The bind a clip is mirrored about (:func:`mirror_bind`): ``motion`` ``(F, J, 4)``, the local rotations
         of the clip as it is mirrored (its root's in the frame whose plane ``x = 0`` is the mirror)."""
         return mirror_bind(self.skeleton, self.bind_rotations, self.bones, motion)
+
+
+def rebind(motion: Pose, source: RetargetedCharacter, target: RetargetedCharacter) -> Pose:
+    """The motion ``motion`` (local rotations ``(..., J, 4)``, root translation ``(..., 3)`` in metres) of the
+    character bound by ``source``, re-expressed on the binding ``target`` of the same character and joints: the mesh
+    turns exactly as before.  Each joint's global rotation becomes ``G_j C_j`` with ``C_j = B_j^-1 B'_j`` (``B``,
+    ``B'``: the two bindings' ``bind_rotations``), so its local rotation is ``C_parent^-1 L_j C_j``; the root keeps
+    its world position.  Joints then land where they were up to the bindings' own differences (CMU's zero-length hip
+    joints, placed per take: about 2 cm); the feet exactly.  ``ValueError`` if the joints differ."""
+    if source.skeleton.names != target.skeleton.names:
+        raise ValueError("rebind: both bindings need the same joints in the same order")
+    if source is target:
+        return motion
+    c = quat_mul(quat_conj(source.bind_rotations), target.bind_rotations)  # (J, 4)
+    c_parent = c[np.maximum(target.skeleton.parents, 0)]
+    c_parent[0] = identity()
+    rotations = quat_mul(quat_mul(quat_conj(c_parent), np.asarray(motion.rotations)), c)
+    root = np.asarray(motion.root_translation) + source.skeleton.offsets[0] - target.skeleton.offsets[0]
+    return Pose(rotations, root)
 
 
 def bind_mesh(character: Character, joint_names: Sequence[str], bind_rotations: Array, bind_positions: Array,
