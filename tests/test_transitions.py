@@ -9,6 +9,7 @@ import pytest
 from anim_core.clips.metrics import foot_metrics
 from anim_core.math import quat as Q
 from anim_core.math.clip import KeyframeClip
+from anim_core.methods.transition_feet import FeetLock, landings
 from anim_core.methods.transitions import (
     CompositeError,
     TransitionSpec,
@@ -192,6 +193,51 @@ def test_parametric_of_takes_played_in_place_keeps_their_speed() -> None:
     with pytest.raises(CompositeError, match="blend"):
         parametric(walk, KeyframeClip(run.skeleton, run.times, run.rotations, run.root_translation, "pingpong"),
                    0.5, 120)
+
+
+def _warped_circle(amplitude: float = 0.5) -> KeyframeClip:
+    """:func:`_circle`'s poses over 0.8 s with its phase warped: phase 0.25 at 0.24 s, 0.75 at 0.56 s (linear
+    between, and across the wrap), where the circle has them at 0.25 s and 0.75 s."""
+    c = _circle(amplitude)
+    t = np.arange(97) / 120
+    phase = np.interp(t / 0.8, [0.0, 0.3, 0.7, 1.0], [0.0, 0.25, 0.75, 1.0])
+    rot = np.tile(Q.identity((c.skeleton.n_joints,)), (t.size, 1, 1))
+    rot[:, 3] = Q.quat_from_axis_angle([1, 0, 0], amplitude * np.sin(2 * np.pi * phase))
+    rot[:, 6] = Q.quat_from_axis_angle([1, 0, 0], amplitude * np.cos(2 * np.pi * phase))
+    root = np.stack([np.zeros_like(t), np.full_like(t, 0.9), 1.4 * t], axis=-1)
+    return KeyframeClip(c.skeleton, t, rot, root, "loop", False, 1, "warped")
+
+
+def test_parametric_synced_by_markers_mixes_like_poses() -> None:
+    # Both takes go round the same circle of poses (left hip A sin, right hip A cos of the phase), the second with a
+    # warped phase. Synced at the marker phases 0.25 and 0.75, every frame mixes two poses of one phase: the hips
+    # stay on the circle (radius A). On one linear phase the takes are up to 0.05 of a cycle apart and the mix
+    # cuts inside it (seen: 1.2 % short).
+    a, b = _circle(), _warped_circle()
+    for w in (0.25, 0.5, 0.75):
+        for markers, on_circle in ((((0.25, 0.75), (0.24, 0.56)), True), (None, False)):
+            mixed = parametric(a, b, w, 120, markers=markers)
+            assert mixed.duration == pytest.approx((1 - w) * 1.0 + w * 0.8, abs=1 / 120)
+            left = Q.quat_angle(mixed.rotations[:, 3], Q.identity())
+            right = Q.quat_angle(mixed.rotations[:, 6], Q.identity())
+            radius = np.hypot(left, right) / 0.5
+            assert (np.abs(radius - 1).max() < 1e-3) == on_circle, (w, markers, np.abs(radius - 1).max())
+    # weight 0 is the first take, at its own times, markers or not
+    same = parametric(a, b, 0.0, 120, markers=((0.25, 0.75), (0.24, 0.56)))
+    assert np.abs(Q.quat_angle(same.rotations, a.rotations)).max() < 1e-9
+    with pytest.raises(CompositeError, match="different orders"):
+        parametric(a, b, 0.5, 120, markers=((0.25, 0.75, 0.9), (0.24, 0.7, 0.56)))
+    with pytest.raises(CompositeError, match="as many sync markers"):
+        parametric(a, b, 0.5, 120, markers=((0.25, 0.75), (0.24,)))
+
+
+def test_a_take_that_does_not_step_has_no_landings() -> None:
+    # Standing still, each foot is down over the whole loop: no landing to sync on (the blend's builder then asks
+    # for sync = "phase").
+    still = _circle(amplitude=0.0, speed=0.0)
+    sk = still.skeleton
+    lock = FeetLock(((3, 4, 5), (6, 7, 8)), ((sk.index("LeftFoot"),), (sk.index("RightFoot"),)))
+    assert landings(still, lock) is None
 
 
 @pytest.mark.parametrize(("spec", "message"), [

@@ -8,8 +8,8 @@ and builders, and the reference of every form (:func:`build_reference`).
 * ``crossfade`` (``duration_ms``, ``curve`` linear/smoothstep, ``interp`` nlerp/slerp) and ``inertialization``
   (``duration_ms``; Bollo's quintic per quaternion component): :mod:`anim_core.methods.transitions`; both hold the
   feet through the transition unless ``foot_lock = false`` (:mod:`anim_core.methods.transition_feet`).
-* ``parametric`` (``weight`` 0..1, ``interp``): a blend's two takes mixed after time alignment; its reference is
-  the first take.
+* ``parametric`` (``weight`` 0..1, ``interp``, ``sync`` feet/phase): a blend's two takes mixed after time alignment
+  (the feet's landings synced by default); its reference is the first take.
 * ``override`` (``space`` local/model) and ``additive`` (``reference_pose`` first/rest/a frame, ``weight``): a
   layered animation with every layer applied in that mode, whatever mode the clip-set file gives it, so two ways
   of layering one take are conditions of one animation (``studies/layers.toml``).
@@ -28,7 +28,7 @@ from pydantic import Field
 from ..math.clip import KeyframeClip
 from ..rig.character import FEET, LEGS
 from .base import Animation, Params
-from .transition_feet import FeetLock
+from .transition_feet import FeetLock, landings
 from .transitions import (
     Composite,
     CompositeError,
@@ -123,6 +123,8 @@ class AdditiveParams(Params):
 class ParametricParams(Params):
     weight: float = Field(ge=0, le=1, description="share of the second take: 0 is the first, 1 the second")
     interp: Literal["nlerp", "slerp"] = Field("slerp", description="per-joint rotation blend")
+    sync: Literal["feet", "phase"] = Field("feet", description="time alignment: each foot's landing together, or "
+                                                               "one linear phase")
 
 
 def feet_lock(skeleton: Any) -> FeetLock:
@@ -157,10 +159,22 @@ def build_inertialization(animation: SequenceAnimation, params: InertializationP
 def build_parametric(animation: BlendAnimation, params: ParametricParams) -> KeyframeClip:
     """The two takes mixed by ``weight`` (:func:`~anim_core.methods.transitions.parametric`) after time alignment:
     the second take's cycle entered at its frame nearest the first take's first pose
-    (:func:`~anim_core.methods.transitions.entry_time`: the same foot forward), both mapped onto one phase."""
+    (:func:`~anim_core.methods.transitions.entry_time`: the same foot forward), then with ``sync = "feet"`` each
+    foot's landing in the one synced with its landing in the other
+    (:func:`~anim_core.methods.transition_feet.landings` as sync markers), with ``"phase"`` both mapped onto one
+    linear phase (a weight of 0 or 1 is the take as it is either way)."""
     a, b = animation.a.reference, animation.b.reference
     b = cycle_from(b, entry_time(a.sample(np.array([0.0])), b, animation.fps))
-    return parametric(a, b, params.weight, animation.fps, params.interp)
+    lock = feet_lock(a.skeleton)
+    markers = None
+    if params.sync == "feet":
+        markers = landings(a, lock), landings(b, lock)
+        if markers[0] is None or markers[1] is None:
+            which = " and ".join(n for n, m in zip((animation.a.name, animation.b.name), markers, strict=True)
+                                 if m is None)
+            raise CompositeError(f"sync = 'feet': {which} does not land each foot once per cycle; give "
+                                 "sync = 'phase'")
+    return parametric(a, b, params.weight, animation.fps, params.interp, markers)
 
 
 def _relayer(animation: LayeredAnimation, mode: str, reference: NDArray[np.float64] | None = None,

@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..math import contacts
+from ..math.clip import KeyframeClip
 from ..math.skeleton import Skeleton
 from .footlock import SOFT_REACH, steps
 from .footplant import foot_targets, leg_hinge
@@ -169,3 +170,30 @@ def lock_transition_feet(skeleton: Skeleton, local_rotations: ArrayLike, root_tr
                                       ankles[active, leg] + offsets[active, leg], weight=weights[active, leg],
                                       hinge=leg_hinge(skeleton, local_rotations, in_place, chain), soft=soft)
     return rot
+
+
+def landings(clip: KeyframeClip, lock: FeetLock, up_axis: int = 1) -> Array | None:
+    """``(F,)`` the time (s, in ``[0, duration)``) at which each foot of a looping clip (its last key repeating the
+    first) lands: within its one step per cycle (a contact phase in which the foot slows to ``lock.rest_speed``,
+    :func:`anim_core.methods.footlock.steps`; one period in place, the ground moving under it at the loop's mean
+    velocity), the first frame at which its slowest joint is under the skate threshold
+    (:data:`anim_core.math.contacts.SKATE_SPEED_MPS`), or its slowest frame.  Not the phase's first frame: a
+    run's foot enters the contact height band still swinging at up to 5 m/s (Bandai's run: 4 frames early, its two
+    landings 0.23 and 0.50 s apart instead of half its 0.73 s cycle each).  None if a foot does not step exactly
+    once (an idle, a shuffle)."""
+    fps = (clip.rotations.shape[0] - 1) / clip.duration
+    velocity = np.array(clip.velocity, dtype=np.float64)
+    root = clip.root_translation[:-1] - velocity * clip.times[:-1, None]
+    points = clip.skeleton.forward_kinematics(clip.rotations[:-1], root)[1][:, np.array([list(f) for f in lock.feet])]
+    speed = contacts.foot_speed(points, fps, up_axis, periodic=True, ground_velocity=velocity)
+    down = steps(contacts.foot_down(points, up_axis), speed, periodic=True, rest_speed=lock.rest_speed)
+    n = down.shape[0]
+    out = []
+    for f in range(down.shape[1]):
+        phases = contacts.contact_intervals(down[:, f], periodic=True)
+        if len(phases) != 1 or phases[0, 1] - phases[0, 0] >= n:
+            return None
+        frames = np.arange(phases[0, 0], phases[0, 1]) % n
+        slow = np.flatnonzero(speed[frames, f] <= contacts.SKATE_SPEED_MPS)
+        out.append(frames[slow[0] if slow.size else int(np.argmin(speed[frames, f]))] / fps)
+    return np.array(out)

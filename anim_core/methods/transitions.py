@@ -31,8 +31,9 @@ an arm driven by the other animation unless the set says so):
   stated reference pose (a frame of the layer, or the rest pose); a delta that is exactly the identity leaves the
   base bit-identical.
 
-Parametric (two takes mixed by a weight after time alignment): both cycles mapped onto a normalized phase
-``p in [0, 1)``, the blended clip lasts ``(1 - w) T_A + w T_B``, per joint ``slerp(A(p T_A), B(p T_B), w)``.
+Parametric (two takes mixed by a weight after time alignment): both cycles mapped onto one phase, linearly or
+piecewise between sync markers (each foot's landing: between two markers each take plays its own stretch), the
+blended clip lasts ``(1 - w) T_A + w T_B``, per joint ``slerp(A(t_A(p)), B(t_B(p)), w)``.
 """
 
 from __future__ import annotations
@@ -197,12 +198,18 @@ def additive(base: ArrayLike, delta: ArrayLike, mask: NDArray[np.bool_], weight:
 
 # --- parametric ---------------------------------------------------------------------------------------------------
 
-def parametric(a: KeyframeClip, b: KeyframeClip, weight: float, fps: int, interp: Interp = "slerp"
-               ) -> KeyframeClip:
+def parametric(a: KeyframeClip, b: KeyframeClip, weight: float, fps: int, interp: Interp = "slerp",
+               markers: tuple[ArrayLike, ArrayLike] | None = None) -> KeyframeClip:
     """Two cycles (loops) mixed by ``weight`` (0: ``a``, 1: ``b``) after time alignment: both played over a
     normalized phase, the result lasting ``(1 - w) T_a + w T_b`` on the ``fps`` grid, rotations blended per joint,
     the root's position blended (the travel per cycle with it); played in place if ``a`` is.  Where each cycle
-    starts is the caller's (:func:`cycle_from` aligns ``b``'s start with ``a``'s)."""
+    starts is the caller's (:func:`cycle_from` aligns ``b``'s start with ``a``'s).
+
+    ``markers``: sync markers, ``K`` times (s) in ``a``'s cycle and the ``K`` corresponding times in ``b``'s (e.g.
+    each foot's landing, :func:`anim_core.methods.transition_feet.landings`), in the same cyclic order: between two
+    markers both takes play their own stretch, the blend's stretch lasting ``(1 - w)`` of ``a``'s plus ``w`` of
+    ``b``'s, so the markers coincide (the feet land together); None: one linear phase.  Output time 0 is ``a``'s
+    time 0 in either case."""
     if not 0.0 <= weight <= 1.0:
         raise CompositeError(f"weight: between 0 and 1, got {weight!r}")
     if a.mode != "loop" or b.mode != "loop":
@@ -211,15 +218,43 @@ def parametric(a: KeyframeClip, b: KeyframeClip, weight: float, fps: int, interp
     duration = (1.0 - weight) * a.duration + weight * b.duration
     n = max(2, round(duration * fps))
     phase = np.arange(n + 1) / n
+    if markers is None or weight in (0.0, 1.0):
+        ta, tb = phase * a.duration, phase * b.duration
+    else:
+        ta, tb = _synced_times(np.asarray(markers[0], np.float64), np.asarray(markers[1], np.float64),
+                               a.duration, b.duration, weight, phase)
     # Sampled with their travel (a clip played in place keeps its keys' root and takes its speed from them).
-    pa = _travelling(a, "travel").sample(phase * a.duration)
-    pb = _travelling(b, "travel").sample(phase * b.duration)
+    pa = _travelling(a, "travel").sample(ta)
+    pb = _travelling(b, "travel").sample(tb)
     if a is b or weight == 0.0:
         rot, root = pa.rotations, pa.root_translation
     else:
         rot = blend_rotations(pa.rotations, pb.rotations, np.full(n + 1, weight), interp)
         root = (1.0 - weight) * pa.root_translation + weight * pb.root_translation
     return KeyframeClip(a.skeleton, phase * duration, rot, root, a.mode, a.in_place, a.up_axis, a.name)
+
+
+def _synced_times(ma: Array, mb: Array, duration_a: float, duration_b: float, weight: float,
+                  phase: Array) -> tuple[Array, Array]:
+    """``a``'s and ``b``'s times ``(n,)`` at the blend's ``phase`` ``(n,)`` (0..1 over one cycle, 0 at ``a``'s time
+    0) with sync markers ``ma``/``mb`` ``(K,)`` (:func:`parametric`); both increase over exactly one cycle."""
+    if ma.shape != mb.shape or ma.ndim != 1 or ma.size == 0:
+        raise CompositeError(f"blend: as many sync markers in each take, got {ma.shape} and {mb.shape}")
+    order = np.argsort(np.mod(ma, duration_a))
+    ma, mb = np.mod(ma, duration_a)[order], mb[order]
+    mb = mb[0] + np.mod(mb - mb[0], duration_b)  # b's markers from its first, within one cycle
+    if np.any(np.diff(ma) <= 0) or np.any(np.diff(mb) <= 0):
+        raise CompositeError("blend: the takes' sync markers (their feet's landings) come in different orders")
+    xa, xb = np.append(ma, ma[0] + duration_a), np.append(mb, mb[0] + duration_b)
+    xo = np.concatenate([[0.0], np.cumsum((1.0 - weight) * np.diff(xa) + weight * np.diff(xb))])
+    period = xo[-1]
+    # Two periods of knots, so that a cycle starting anywhere in the first is covered.
+    xo2, xa2, xb2 = (np.concatenate([x, x[1:] + span]) for x, span in ((xo, period), (xa, duration_a),
+                                                                         (xb, duration_b)))
+    u = np.interp(duration_a, xa, xo) + phase * period  # a's time 0 (= its duration) on the blend's knots
+    ta = np.interp(u, xo2, xa2) - duration_a
+    tb = np.interp(u, xo2, xb2)
+    return ta, tb - duration_b * np.floor(tb[0] / duration_b)
 
 
 def cycle_from(clip: KeyframeClip, start: float) -> KeyframeClip:
