@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from anim_core.clips import fidelity
 from anim_core.math.quat import quat_conj, quat_mul
 from anim_core.methods.transitions import joint_mask
 from server.clipset.build import build_clip_set
@@ -198,6 +199,12 @@ def test_parametric_mixes_the_two_takes_after_aligning_their_cycles(by_id: dict)
     expected = run_shown[(np.arange(run.n_frames) + shift) % run.n_frames]
     assert p100.n_frames == run.n_frames
     assert same(p100_shown, expected) < 1e-9
+    # and it stands where the run stands: each blend is placed on the floor by its own feet (placed by the walk's,
+    # weight 1 floated 18-24 mm over the floor, seen)
+    # (the feet and the head; CMU's zero-length hip joints are placed per take: 2 cm apart)
+    joints = run.character.skeleton.indices(["LeftFoot", "LeftToeBase", "RightFoot", "RightToeBase", "Head"])
+    heights = run.world_positions[(np.arange(run.n_frames) + shift) % run.n_frames][:, joints, 1]
+    assert np.abs(p100.world_positions[:, joints, 1] - heights).max() < 1e-6
     # halfway: half way in length and speed (from the take clips: 40 and 24 frames, 1.1 and 3.3 m/s or so)
     assert p50.n_frames == round((walk.n_frames + run.n_frames) / 2)
     speed = 0.5 * (walk.clip.velocity * walk.clip.duration + run.clip.velocity * run.clip.duration) / p50.clip.duration
@@ -213,6 +220,36 @@ def test_a_parametric_blend_lands_its_feet_together_and_skates_no_more_than_its_
     takes = max(walk["foot_skate_ratio"], run["foot_skate_ratio"])
     assert synced["foot_skate_ratio"] <= takes
     assert linear["foot_skate_ratio"] > takes
+
+
+def test_every_composite_clip_passes_the_gate_against_its_takes(by_id: dict) -> None:
+    # The gate holds a composite against its takes, each on its own skeleton: a sequence's frames that show one take
+    # alone (the cut everywhere, a transition once settled) are poses of that take (seen: 0.0 in the cuts, at most
+    # 1.0 after settling; limit TAKE_POSE_DEG).
+    composites = [c for c in by_id.values() if c.animation in ("idle_walk_run", "walk_run_walk", "walk_run",
+                                                                "walk_arms", "walk_rest_arms", "walk_still")]
+    assert len(composites) == 20
+    for c in composites:
+        assert c.fidelity is not None and c.fidelity.ok, (c.id, c.fidelity)
+        if c.animation in ("idle_walk_run", "walk_run_walk"):
+            assert c.fidelity.bone_error_deg <= fidelity.TAKE_POSE_DEG, c.id
+            if c.condition in ("keyframe", "cut"):
+                assert c.fidelity.bone_error_deg < 1e-3, c.id
+
+
+def test_the_gate_fails_a_take_played_on_another_takes_skeleton(by_id: dict) -> None:
+    # The defect the gate missed before: the run's rotations played unchanged on the idle's skeleton (each take is
+    # bound on its own); its bones are then 21 degrees from any pose of the run (seen).
+    run, idle = by_id["run-keyframe"], by_id["idle-keyframe"]
+    played = idle.character.skeleton.forward_kinematics(run.local_rotations, run.root_positions)[1]
+    frames = np.arange(run.n_frames)
+    check = fidelity.check_composite(played, run.character.contact_heights, idle.world_positions,
+                                     [("run", frames, run.world_positions)])
+    assert any("not its takes" in p for p in check.problems), check.problems
+    assert check.bone_error_deg > 10
+    own = fidelity.check_composite(run.world_positions, run.character.contact_heights, idle.world_positions,
+                                   [("run", frames, run.world_positions)])
+    assert own.ok and own.bone_error_deg < 1e-3
 
 
 def test_worst_window_of_a_loop() -> None:

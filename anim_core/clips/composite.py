@@ -39,7 +39,7 @@ from ..methods.composite_builders import BlendAnimation, LayeredAnimation, Seque
 from ..methods.conditions import Condition
 from ..methods.transitions import CompositeError, joint_mask
 from ..rig.character import UP, RetargetedCharacter, rebind
-from . import metrics
+from . import fidelity, metrics
 from .build import place_on_floor
 from .entry import ConfigError, Source
 from .measure import clip_feet, measure
@@ -186,8 +186,8 @@ def build_composite(spec: CompositeSpec, sources: Mapping[str, Source], fps: int
     where = f"[animations.{spec.name}]"
     first = spec.takes[0]
     source = sources[first]
-    refs = {name: rebound(reference_animation(sources[name], fps)[0], sources[name].character, source.character)
-            for name in spec.takes}
+    own = {name: reference_animation(sources[name], fps)[0] for name in spec.takes}
+    refs = {name: rebound(own[name], sources[name].character, source.character) for name in spec.takes}
     skeleton = refs[first].reference.skeleton
     if spec.form == "blend":
         animation: Any = BlendAnimation(spec.name, refs[spec.blend[0]], refs[spec.blend[1]], fps)
@@ -230,14 +230,15 @@ def build_composite(spec: CompositeSpec, sources: Mapping[str, Source], fps: int
                                 **({"sequence": [[n, s] for n, s in spec.segments]} if spec.segments else {})},
                                source.character, pose.rotations, pose.root_translation,
                                *source.character.skeleton.forward_kinematics(*pose)))
-    placed = place_on_floor(built)
+    # A blend's clips each on the floor as its own feet stand (each is its own motion: at weight 1 the second take).
+    placed = [place_on_floor([c])[0] for c in built] if spec.form == "blend" else place_on_floor(built)
     if spec.form == "blend":  # each its own speed and length: measured on its own (no frame-by-frame reference)
-        return [measure([c], np.asarray(c.clip.velocity) if c.in_place else np.zeros(3), "other", skate)[0]
-                for c in placed]
+        return _gated(spec, [measure([c], np.asarray(c.clip.velocity) if c.in_place else np.zeros(3), "other",
+                                     skate)[0] for c in placed], own, sources)
     if spec.form == "layered":  # plays as its base does (in place: a treadmill at the base's speed)
         base = placed[0].clip
         ground = np.asarray(base.velocity) if base.in_place else np.zeros(3)
-        return measure(placed, ground, "other", skate)
+        return _gated(spec, measure(placed, ground, "other", skate), own, sources)
     # A composite's speed changes along it: measured on its frames as they are, against a still ground.
     # The periodic metrics (seam, jerk, phase) on one period with the loop's travel spread over it, as a take's
     # travelling loop is measured; the feet then in world space on the frames as they are.
@@ -256,6 +257,37 @@ def build_composite(spec: CompositeSpec, sources: Mapping[str, Source], fps: int
         m["foot_skate_ratio"] = contacts.foot_skate_ratio(c.world_positions[:, feet], fps, UP, periodic=False)
         m.update(transition_metrics(c, skate, skating))
         out.append(_shown_in_place(replace(c, metrics=m)))
+    return _gated(spec, out, own, sources)
+
+
+def _alone(spec: CompositeSpec, c: BuiltClip) -> list[tuple[str, NDArray[np.intp]]]:
+    """The frames of a sequence's clip that show one take alone, per segment: from its switch (once the switch has
+    settled, :attr:`SequenceClip.settle_s`) to the next switch; none for a layered or blended clip."""
+    clip = c.clip
+    if not isinstance(clip, SequenceClip):
+        return []
+    starts = [*clip.switch_times, clip.duration]  # segment k starts at switch k (the first: the loop's own)
+    return [(name, np.arange(round((starts[k] + clip.settle_s[k]) * c.fps), round(starts[k + 1] * c.fps)))
+            for k, (name, _) in enumerate(spec.segments)]
+
+
+def _gated(spec: CompositeSpec, clips: list[BuiltClip], own: Mapping[str, Animation],
+           sources: Mapping[str, Source]) -> list[BuiltClip]:
+    """The fidelity gate on a composite's clips (:func:`anim_core.clips.fidelity.check_composite`): held against
+    its takes as each plays on its own skeleton.  A failure raises :class:`ConfigError` naming the composite, the
+    condition and the frame, unless a take accepts being unfaithful (then the clips are marked)."""
+    poses = {n: a.reference.skeleton.forward_kinematics(a.reference.rotations, a.reference.root_translation)[1]
+             for n, a in own.items()}
+    accept = any(sources[n].config.accept_unfaithful for n in spec.takes)
+    out = []
+    for c in clips:
+        check = fidelity.check_composite(c.world_positions, c.character.contact_heights, poses[spec.takes[0]],
+                                         [(n, frames, poses[n]) for n, frames in _alone(spec, c)])
+        if check.problems and not accept:
+            raise ConfigError(f"[animations.{spec.name}] condition {c.condition!r} fails the fidelity gate: "
+                              f"{'; '.join(check.problems)}")
+        out.append(replace(c, metrics={**c.metrics, **check.as_metrics(), "unfaithful": float(not check.ok)},
+                           fidelity=check))
     return out
 
 

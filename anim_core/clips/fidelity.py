@@ -36,6 +36,12 @@ that never landed) is also measured by what a viewer notices (:func:`check_body`
   :func:`anim_core.math.contacts.foot_down`), the condition's foot must come within :data:`LANDING_M` of the lowest the
   reference's foot comes there (a foot that never lands fails); ``landing_m`` is the worst phase's excess.
 
+A **composite** (a sequence of takes, a layered take, a blend of two; issue 39) is held against its takes
+(:func:`check_composite`): the body checks; widths and knees against its first take; and every frame that shows one
+take alone (a sequence's cut everywhere, any transition once its switch has settled) must be a pose of that take,
+its bones within :data:`TAKE_POSE_DEG` of the take's nearest frame (``bone_error_deg``; a take played on another
+take's skeleton was 9-21 degrees off, and the transition metrics all looked fine).
+
 Handedness is read from the hips and the knees (forward is where the bent knees point), not from the toes: the
 toes of a swinging foot point back.
 """
@@ -108,6 +114,10 @@ MIRROR_MARGIN_DEG = 5.0
 #: percentile of the largest bone angle): exact at the keys; between them SQUAD interpolates twists the mirror gives
 #: the mirrored keys, and a foot-locked hybrid's IK targets follow each half's own contacts.
 SELF_MIRROR_DEG = 10.0
+#: A composite's frame that shows one take alone must be a pose of that take within this (degrees, the largest bone
+#: angle to the take's nearest frame): exact by design (the sample sequences: 0.0 in their cuts, at most 1.0 once a
+#: transition has settled, the settle measure's 1 degree per joint); the run played on the idle's skeleton was 21 off.
+TAKE_POSE_DEG = 2.0
 _PARTNER = mirror_partners(CANONICAL_NAMES)
 
 #: Bones whose world directions :func:`bone_directions` compares: (from joint, to joint).
@@ -209,6 +219,7 @@ class Fidelity:
     knees_forward: float | None = None
     landing_m: float | None = None
     mirror_error_deg: float | None = None
+    against: str | None = None  # what the clip is held against, where it is not the source or the reference
 
     @property
     def ok(self) -> bool:
@@ -377,6 +388,39 @@ def check_body(positions: Array, against: Array, what: str) -> tuple[dict[str, f
     knees, knee_problems = _knees_problems(positions, against)
     return ({"bone_error_deg": bones, "hip_width_ratio": hips, "shoulder_width_ratio": shoulders,
              "knees_forward": knees}, problems + knee_problems)
+
+
+def take_pose_angles(positions: Array, take: Array) -> Array:
+    """``(T,)`` for each frame of ``positions`` ``(T, 31, 3)``, the largest bone angle (degrees, :func:`bone_angles`)
+    to the nearest frame of ``take`` ``(G, 31, 3)``: 0 where the frame is one of the take's poses."""
+    a, b = bone_directions(positions), bone_directions(take)
+    cos = np.clip(np.einsum("tbk,gbk->tgb", a, b), -1.0, 1.0)
+    has = np.linalg.norm(b, axis=-1) > 0.5  # (G, B): bones of zero length left out
+    return np.where(has[None], np.degrees(np.arccos(cos)), 0.0).max(axis=2).min(axis=1)
+
+
+def check_composite(positions: Array, contact_heights: Array, first: Array,
+                    shown: list[tuple[str, NDArray[np.intp], Array]]) -> Fidelity:
+    """The gate on a composite's clip ``(T, 31, 3)`` (metres, on the floor): the body checks, its widths and knees
+    against ``first`` (its first take or base, ``(G, 31, 3)``, any length), and ``shown``: per take, its name, the
+    frames of the clip that show it alone and its own poses ``(G, 31, 3)`` (on its own skeleton), each such frame
+    within :data:`TAKE_POSE_DEG` of one of them."""
+    up, reach, under, hand, problems = _body(positions, contact_heights)
+    hips, shoulders, width_problems = _widths_problems(positions, first, "first take")
+    knees, knee_problems = _knees_problems(positions, first)
+    worst, at = None, None
+    for name, frames, take in shown:
+        if frames.size:
+            angles = take_pose_angles(positions[frames], take)
+            k = int(np.argmax(angles))
+            if worst is None or angles[k] > worst:
+                worst, at = float(angles[k]), f"{name} at frame {int(frames[k])}"
+    if worst is not None and worst > TAKE_POSE_DEG:
+        problems.append(f"not its takes: the {at} has its bones {worst:.0f} degrees from the nearest pose of that "
+                        f"take (limit {TAKE_POSE_DEG:.0f})")
+    return Fidelity(up, reach, under, hand, None, at, tuple(problems + width_problems + knee_problems),
+                    bone_error_deg=worst, hip_width_ratio=hips, shoulder_width_ratio=shoulders, knees_forward=knees,
+                    against="takes")
 
 
 def check_landing(positions: Array, contact_heights: Array, reference: Array, periodic: bool, fps: float

@@ -201,7 +201,7 @@ def _print_fidelity(clips: list) -> None:
             continue
         verdict = ("UNFAITHFUL (built anyway): " + "; ".join(f.problems) if not f.ok else
                    "UNFAITHFUL (its reference; built anyway)" if c.metrics.get("unfaithful") else "ok")
-        against = "source" if c is clips[0] or c.animation != prev else "reference"
+        against = f.against or ("source" if c is clips[0] or c.animation != prev else "reference")
         prev = c.animation
         at = f.pose_error_at or "-"
         land = None if f.landing_m is None else f.landing_m * 1000
