@@ -5,9 +5,10 @@ one's, so a foot's position *relative to the root* moves from the outgoing take'
 ``p_B(u)``.  With the root's velocity blended as the weights are, a foot planted in both takes moves in the world at
 ``w'(u) (p_B(u) - p_A(u))`` (plus its takes' own slide): the weight's rate times the distance between where the two
 takes have that foot.  Measured on idle -> walk -> run (a 250 ms smoothstep crossfade, each take entered in the
-outgoing take's leg phase): the two takes' ankles 0.27-0.37 m apart, the planted foot sliding at up to 2.1 m/s
-while each take's own foot moves at 0.02 m/s.  No entry time or time warp of the two cycles closes that distance
-(a run's stride is longer than a walk's, an idle's feet stand under the hips), so the foot is held instead.
+outgoing take's leg phase): the two takes' ankles 0.31-0.39 m apart against the hips at the switches, so the
+first term reaches 1.5 / 0.25 s x 0.39 m = 2.3 m/s (the smoothstep's steepest rate) while each take's own planted
+foot moves at 0.02 m/s.  No entry time or time warp of the two cycles closes that distance (a run's stride is
+longer than a walk's, an idle's feet stand under the hips), so the foot is held instead.
 
 How (:func:`lock_transition_feet`): on the composed loop (frames at ``fps``, the root with the loop's travel), the
 contact phases (:func:`anim_core.math.contacts.foot_down`, standing heights of the whole loop) in which the foot
