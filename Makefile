@@ -56,13 +56,16 @@ test: lint
 	@# In parallel (pytest-xdist, TEST_WORKERS processes, whole files per worker so that module fixtures are built
 	@# once; the files with the most `slow` tests first, so that the run ends on short ones: tests/conftest.py and
 	@# --no-loadscope-reorder; each worker has its own databases and var dir, see tests/conftest.py), then the tests marked `serial`
-	@# (PostgreSQL stopped for everyone) alone; exit status 5 there is "none selected" (no TEST_DATABASE_URL).
+	@# (PostgreSQL stopped for everyone) alone, collected from the files that mark any (a test marked `serial` in a
+	@# file that does not say `mark.serial` would be missed: tests/test_test_setup.py checks there is none); exit
+	@# status 5 there is "none selected" (no TEST_DATABASE_URL).
 	@start=$$(date +%s); rc=0; \
 	echo "$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m 'not serial'"; \
 	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m 'not serial' --durations=15 || rc=$$?; \
 	parallel=$$(( $$(date +%s) - start )); \
-	echo "$(BIN)/python -m pytest -p no:xdist -m serial"; \
-	$(BIN)/python -m pytest -p no:xdist -m serial || { s=$$?; test $$s -eq 5 || rc=$$s; }; \
+	serial=$$(grep -l 'mark\.serial' tests/test_*.py); \
+	echo "$(BIN)/python -m pytest -p no:xdist -m serial" $$serial; \
+	$(BIN)/python -m pytest -p no:xdist -m serial $$serial || { s=$$?; test $$s -eq 5 || rc=$$s; }; \
 	total=$$(( $$(date +%s) - start )); \
 	printf 'make test: pytest took %dm%02ds (parallel step %dm%02ds with -n %s, serial step %dm%02ds)\n' \
 		$$((total / 60)) $$((total % 60)) $$((parallel / 60)) $$((parallel % 60)) "$(TEST_WORKERS)" \

@@ -105,6 +105,14 @@ def pytest_collection_modifyitems(session, config, items):
         return -sum(1 for item in files[path] if item.get_closest_marker("slow")), -len(files[path])
 
     items[:] = [item for path in sorted(files, key=weight) for item in files[path]]
+    # `make test` runs the tests marked serial from the files that say "mark.serial" only (a shorter collection):
+    # a serial test marked some other way would be run by neither step.
+    hidden = sorted({str(path.name) for path, found in files.items()
+                     if any(item.get_closest_marker("serial") for item in found)
+                     and "mark.serial" not in path.read_text(encoding="utf-8")})
+    if hidden:
+        raise pytest.UsageError(f"tests marked serial in {', '.join(hidden)}, whose text does not say mark.serial: "
+                                "write @pytest.mark.serial (or pytestmark = pytest.mark.serial) there")
 
 
 def data_dir() -> Path:
