@@ -32,8 +32,10 @@ F32 = NDArray[np.float32]
 Array = NDArray[np.float64]
 
 if numba is not None:
-    from .kernels import fk_joint
+    from .kernels import local_to_model as _local_to_model_kernel
 
+    # Every kernel here uses only what this file defines: numba's on-disk cache of a kernel is refreshed when its
+    # own file changes, not when a function it inlines from another file does (the FK kernel is kernels.py's).
     _njit = numba.njit(cache=True, fastmath=False)
 
     @_njit
@@ -114,13 +116,6 @@ if numba is not None:
                 out_rot[c, j, 1] = bw * dx + bx * dw + by * dz - bz * dy
                 out_rot[c, j, 2] = bw * dy - bx * dz + by * dw + bz * dx
                 out_rot[c, j, 3] = bw * dz + bx * dy - by * dx + bz * dw
-
-    @_njit
-    def _local_to_model_kernel(local, root, parents, offsets, out_rot, out_pos):
-        for c in range(local.shape[0]):
-            for j in range(local.shape[1]):
-                fk_joint(c, j, local[c, j, 0], local[c, j, 1], local[c, j, 2], local[c, j, 3],
-                         root[c, 0], root[c, 1], root[c, 2], parents, offsets, out_rot, out_pos)
 
 def need_numba() -> None:
     if numba is None:  # pragma: no cover - numba is a dependency

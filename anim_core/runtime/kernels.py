@@ -484,6 +484,15 @@ if numba is not None:
             out_pos[c, j, 2] = out_pos[c, p, 2] + oz
 
     @numba.njit(cache=True, fastmath=False)
+    def local_to_model(local, root, parents, offsets, out_rot, out_pos):
+        """The local-to-model job's kernel (:func:`anim_core.runtime.blending.local_to_model`): every joint of
+        every character by :func:`fk_joint`.  Here, as :func:`ik_job`, for numba's cache."""
+        for c in range(local.shape[0]):
+            for j in range(local.shape[1]):
+                fk_joint(c, j, local[c, j, 0], local[c, j, 1], local[c, j, 2], local[c, j, 3],
+                         root[c, 0], root[c, 1], root[c, 2], parents, offsets, out_rot, out_pos)
+
+    @numba.njit(cache=True, fastmath=False)
     def ik_job(chains, hinges, below, turns, params, targets, weights, parents, offsets, out_rot, out_pos):
         """The run-time IK job's kernel (:class:`anim_core.runtime.ik.TwoBoneIKJob`): every leg of weight > 0 of
         every character solved by :func:`solve_leg` towards ``targets (N, F, 3)``; ``params`` = (soft reach, the
