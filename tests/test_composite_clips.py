@@ -270,3 +270,19 @@ def test_the_like_for_like_source_yardstick(by_id: dict) -> None:
             m = by_id[f"{name}-{condition}"].metrics
             assert m["source_window_foot_skate_ratio"] >= m["source_foot_skate_ratio"] - 1e-12
             assert m["transition_foot_skate_ratio"] <= m["source_window_foot_skate_ratio"], (name, condition)
+
+
+def test_a_sequences_switches_are_no_seam_or_flip_warnings_but_a_flip_between_them_is(by_id: dict) -> None:
+    from dataclasses import replace
+
+    from anim_core.clips.measure import clip_warnings
+    from anim_core.math.quat import quat_from_axis_angle
+
+    # The cut's switches turn a forearm by 96 degrees and its loop's seam is the run -> idle switch (seen: a flip
+    # warning at frame 149 -> 150 and a 527 mm seam warning); the switch metrics measure those.
+    cut = by_id["idle_walk_run-cut"]
+    assert clip_warnings([cut]) == []
+    rot = cut.local_rotations.copy()
+    rot[100, 5] = quat_mul(quat_from_axis_angle([1.0, 0.0, 0.0], np.radians(120.0)), rot[100, 5])
+    warnings = clip_warnings([replace(cut, local_rotations=rot)])
+    assert len(warnings) == 1 and "from frame 99 to 100" in warnings[0], warnings

@@ -89,12 +89,18 @@ def clip_warnings(clips: list[BuiltClip]) -> list[str]:
     reference (best lag beyond :data:`MAX_LAG_FRAMES`), a seam that jumps (beyond
     :func:`~anim_core.clips.metrics.seam_limit_from_median`), a joint that flips (turns more than
     :data:`MAX_FRAME_TURN_DEG` between two frames, the wrap included), or a hybrid of kind ``other`` with at least
-    :data:`NEAR_REFERENCE_KEY_RATIO` of its reference's keys (nearly the reference)."""
+    :data:`NEAR_REFERENCE_KEY_RATIO` of its reference's keys (nearly the reference).  A sequence's seam is its loop's
+    own switch, which its transition metrics measure (:mod:`anim_core.clips.composite`), so it gets no seam warning,
+    and a sequence switched without blending (its cut) turns its joints at each switch by design: those frames get no
+    flip warning."""
     reference = {c.animation: c.id for c in clips if c.method == REFERENCE}
     reference_keys = {c.animation: c.key_times.size for c in clips if c.method == REFERENCE}
     out = []
     for c in clips:
         turn = np.degrees(quat_angle(np.roll(c.local_rotations, -1, axis=0), c.local_rotations))  # (T, J)
+        switches = getattr(c.clip, "switch_times", None)  # a sequence (SequenceClip)
+        if switches and not c.clip.transition_s:
+            turn[[(round(s * c.fps) - 1) % c.n_frames for s in switches]] = 0.0  # into each switch's frame
         frame, joint = np.unravel_index(int(np.argmax(turn)), turn.shape)
         if turn[frame, joint] > MAX_FRAME_TURN_DEG:
             out.append(f"{c.id}: joint {c.character.skeleton.names[joint]} turns {turn[frame, joint]:.0f} degrees "
@@ -102,7 +108,7 @@ def clip_warnings(clips: list[BuiltClip]) -> list[str]:
                        f"flip)")
         m = c.metrics
         limit = metrics.seam_limit_from_median(m["median_step_mm"])
-        if m["seam_jump_mm"] > limit:
+        if m["seam_jump_mm"] > limit and switches is None:
             out.append(f"{c.id}: the seam jumps {m['seam_jump_mm']:.1f} mm (limit {limit:.1f} mm: twice the "
                        f"median step {m['median_step_mm']:.1f} mm + 5 mm)")
         n_ref = reference_keys.get(c.animation)
