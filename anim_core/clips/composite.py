@@ -4,8 +4,9 @@ clips, plus the transition metrics of a sequence (docs/methods/transitions.md):
 
 * ``transition_foot_skate_ratio`` and ``transition_foot_slide_mm``: the feet over the transition window of every
   switch (from :data:`WINDOW_BEFORE_S` before it to the transition's end plus :data:`WINDOW_AFTER_S`), in world
-  space, the worst switch; ``source_foot_skate_ratio`` is the worst of the takes' own over their whole spans, and
-  ``source_window_foot_skate_ratio`` the like-for-like yardstick: per switch, the worst window of the same length
+  space, a foot down against the whole loop's standing heights, the worst switch; ``source_foot_skate_ratio`` is
+  the worst of the takes' own over their whole spans, and ``source_window_foot_skate_ratio`` the like-for-like
+  yardstick: per switch, the worst window of the same length
   in either of its two takes' own frames (a take's skate is uneven over its cycle: a window's worst is higher
   than its whole), the worst switch;
 * ``switch_velocity_jump_rad_s`` / ``switch_accel_jump_rad_s2``: the largest jump of any joint's angular velocity
@@ -111,12 +112,15 @@ def transition_metrics(c: BuiltClip, source_skate: float,
     feet, contact = clip_feet(c)
     window = max(clip.transition_s, MIN_WINDOW_S)
     skate, slide, v_jump, a_jump = [], [], [], []
+    # Down is judged against the whole loop's standing heights, as the yardstick judges a take's frames against the
+    # whole take's (a window's own lowest frames need not be standing ones: a window mostly in the air).
+    standing = contacts.standing_heights(c.world_positions[:, feet], UP)
     for s in clip.switch_times:
         frames = np.arange(round((s - WINDOW_BEFORE_S) * c.fps), round((s + window + WINDOW_AFTER_S) * c.fps))
         # World positions over the window, unwrapped across the loop's seam by the loop's travel.
         travel = np.floor(frames / c.n_frames)[:, None, None] * (clip.velocity * clip.duration)
         pos = c.world_positions[frames % c.n_frames] + travel
-        skate.append(contacts.foot_skate_ratio(pos[:, feet], c.fps, UP, periodic=False))
+        skate.append(contacts.foot_skate_ratio(pos[:, feet], c.fps, UP, periodic=False, standing=standing))
         if skating:  # switch k enters segment k from segment k - 1 (the first from the last: the loop's)
             k = clip.switch_times.index(s)
             yardstick.append(max(worst_window(skating[i], len(frames)) for i in (k - 1, k)))

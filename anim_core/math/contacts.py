@@ -72,16 +72,18 @@ def foot_speed(feet: ArrayLike, fps: float, up_axis: int = 1, periodic: bool = F
 
 def foot_skating(feet: ArrayLike, fps: float, up_axis: int = 1, periodic: bool = False,
                  ground_velocity: ArrayLike | None = None, clearance: float = CONTACT_CLEARANCE_M,
-                 speed: float = SKATE_SPEED_MPS) -> NDArray[np.bool_]:
-    """``(T, F)``: the foot is down (:func:`foot_down`) and its slowest joint moves faster than ``speed`` m/s."""
-    down = foot_down(feet, up_axis, clearance)
+                 speed: float = SKATE_SPEED_MPS, standing: ArrayLike | None = None) -> NDArray[np.bool_]:
+    """``(T, F)``: the foot is down (:func:`foot_down`; ``standing``: its standing heights ``(F, K)``, default
+    those of these frames) and its slowest joint moves faster than ``speed`` m/s."""
+    down = foot_down(feet, up_axis, clearance, standing)
     return down & (foot_speed(feet, fps, up_axis, periodic, ground_velocity) > speed)
 
 
 def foot_skate_ratio(feet: ArrayLike, fps: float, up_axis: int = 1, periodic: bool = False,
-                     ground_velocity: ArrayLike | None = None) -> float:
+                     ground_velocity: ArrayLike | None = None, standing: ArrayLike | None = None) -> float:
     """Share of frames (0..1) in which at least one foot skates (:func:`foot_skating`)."""
-    return float(np.mean(np.any(foot_skating(feet, fps, up_axis, periodic, ground_velocity), axis=1)))
+    return float(np.mean(np.any(foot_skating(feet, fps, up_axis, periodic, ground_velocity,
+                                             standing=standing), axis=1)))
 
 
 def contact_intervals(down: ArrayLike, periodic: bool = False) -> NDArray[np.intp]:
