@@ -35,6 +35,16 @@ def test_sliding_foot_skates_above_the_speed_threshold_only():
     assert contacts.foot_skate_ratio(foot_track(60, 0.08, 0.02, 0.4), FPS) == 0.0
 
 
+def test_a_window_in_the_air_is_judged_against_the_standing_heights_given():
+    # A swing skimming 9 cm over the floor at 2 m/s: against its own frames' heights it looks planted and skates;
+    # against the standing heights of the whole loop (ankle 8 cm, toe 2 cm) it is in the air (issue 39: a
+    # transition window against the loop's heights, as the yardstick's frames against the whole take's).
+    skim = foot_track(12, 0.17, 0.11, 2.0)
+    assert contacts.foot_skate_ratio(skim, FPS) == 1.0
+    assert contacts.foot_skate_ratio(skim, FPS, standing=[[0.08, 0.02]]) == 0.0
+    assert contacts.foot_skate_ratio(foot_track(12, 0.08, 0.02, 2.0), FPS, standing=[[0.08, 0.02]]) == 1.0
+
+
 def test_a_foot_is_down_only_when_ankle_and_toe_are_both_low():
     n = 90
     ankle = np.full(n, 0.08)
