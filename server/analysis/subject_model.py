@@ -15,9 +15,10 @@ conditions over everyone else, ``v_s`` how inconsistent they are and ``a_c`` how
 The solver is sureal's ("simplified" gradient: Newton steps per parameter block, damped by 0.1, until the
 stimulus scores move less than 1e-8; then the biases are shifted to mean 0, the stimulus scores by the same
 amount), ported from sureal 0.9.0 (Apache License 2.0, Copyright Netflix, Inc.) to arrays without its dataset
-classes, its iterations compiled (numba: about a thousand of them, and a study refits at each participant's start:
-15 ms instead of 190 ms for 10 comparisons x 80 participants x 2 showings, 2026-12-05); the standard errors and 95 % intervals are sureal's too (Fisher information of each parameter alone;
-the inconsistency's interval from the chi-square distribution).  ``tests/test_subject_model.py`` pins it to
+classes, its iterations compiled (numba: about a thousand of them, and a study refits at each participant's
+start: 15 ms instead of 190 ms for 10 comparisons x 80 participants x 2 showings, 2026-12-05); the standard
+errors and 95 % intervals are sureal's too (Fisher information of each parameter alone; the inconsistency's
+interval from the chi-square distribution).  ``tests/test_subject_model.py`` pins it to
 sureal's numbers on sureal's own datasets.
 """
 
@@ -65,104 +66,128 @@ class SubjectModel:
     inconsistency_ci95: np.ndarray | None = None  # shape (S, 2), set by fit()
 
 
-@numba.njit(cache=True, error_model="numpy")
-def _solve(x: np.ndarray, content: np.ndarray, n_c: int, q: np.ndarray, b: np.ndarray, v: np.ndarray,
-           a: np.ndarray, refresh: float, max_iterations: int, delta: float) -> tuple:
-    """sureal's iterations (module docstring) on ``x[e, s, r]`` from the starting estimates: per iteration (12) the
-    biases, (14) the inconsistencies, (15) the ambiguities, (11) the stimulus scores, each sum over the terms that
-    are not NaN (as ``np.nansum`` over the whole expression: a missing score makes its term NaN).  Compiled: the
-    solver takes about a thousand iterations, and a study refits at every participant's start."""
+_jit = numba.njit(cache=True, error_model="numpy")  # IEEE division: 1/0 is inf, 0/0 NaN, as numpy's
+
+
+@_jit
+def _biases(x, content, q, b, v, a, refresh, b_std):
+    """(12) each participant's bias ``b`` (and its standard error) in place; a sum skips its NaN terms (as
+    ``np.nansum`` over the whole expression: a missing score makes its term NaN)."""
     n_e, n_s, n_r = x.shape
-    q, b, v, a = q.copy(), b.copy(), v.copy(), a.copy()
-    q_std, b_std = np.full(n_e, np.nan), np.full(n_s, np.nan)
-    v_std, a_std = np.full(n_s, np.nan), np.full(n_c, np.nan)
+    for s in range(n_s):
+        den, num = 0.0, 0.0
+        for e in range(n_e):
+            var = v[s] ** 2 + a[content[e]] ** 2
+            for r in range(n_r):
+                t = (x[e, s, r] - x[e, s, r] + 1.0) / var  # 1 / var where scored, NaN where not
+                if t == t:
+                    den += t
+                t = (x[e, s, r] - q[e]) / var
+                if t == t:
+                    num += t
+        b[s] = b[s] * (1 - refresh) + (num / den) * refresh
+        b_std[s] = 1 / np.sqrt(max(0.0, den))
+
+
+@_jit
+def _inconsistencies(x, content, q, b, v, a, refresh, v_std):
+    """(14) each participant's inconsistency ``v`` in place, a Newton step from the residuals of the new biases."""
+    n_e, n_s, n_r = x.shape
+    new = np.empty(n_s)
+    for s in range(n_s):
+        num, lpp, vs = 0.0, 0.0, v[s]
+        for e in range(n_e):
+            ae = a[content[e]]
+            var, diff = vs ** 2 + ae ** 2, vs ** 2 - ae ** 2
+            poly = ae ** 4 - 3 * vs ** 4 - 2 * vs ** 2 * ae ** 2
+            for r in range(n_r):
+                resid = x[e, s, r] - q[e] - b[s]
+                t = -vs / var + vs * resid ** 2 / var ** 2
+                if t == t:
+                    num += t
+                t = diff / var ** 2 + resid ** 2 * poly / var ** 4
+                if t == t:
+                    lpp += t
+        new[s] = vs * (1 - refresh) + (vs - num / lpp) * refresh
+        v_std[s] = 1 / np.sqrt(max(0.0, -lpp))
+    for s in range(n_s):
+        v[s] = 0.0 if new[s] < 0.0 else new[s]  # NaN stays NaN, as np.maximum
+
+
+@_jit
+def _ambiguities(x, content, q, b, v, a, refresh, a_std):
+    """(15) each content's ambiguity ``a`` in place, from the same residuals and the new inconsistencies."""
+    n_e, n_s, n_r = x.shape
+    num_e, lpp_e = np.zeros(n_e), np.zeros(n_e)
+    for e in range(n_e):
+        ae = a[content[e]]
+        for s in range(n_s):
+            vs = v[s]
+            var, diff = vs ** 2 + ae ** 2, vs ** 2 - ae ** 2
+            poly = vs ** 4 - 3 * ae ** 4 - 2 * vs ** 2 * ae ** 2
+            for r in range(n_r):
+                resid = x[e, s, r] - q[e] - b[s]
+                t = -ae / var + ae * resid ** 2 / var ** 2
+                if t == t:
+                    num_e[e] += t
+                t = -diff / var ** 2 + resid ** 2 * poly / var ** 4
+                if t == t:
+                    lpp_e[e] += t
+    for c in range(a.shape[0]):  # sums over the stimuli of each content (a matrix product: NaN or inf spread alike)
+        num, lpp = 0.0, 0.0
+        for e in range(n_e):
+            one = 1.0 if content[e] == c else 0.0
+            num += num_e[e] * one
+            lpp += lpp_e[e] * one
+        new = a[c] * (1 - refresh) + (a[c] - num / lpp) * refresh
+        a_std[c] = 1 / np.sqrt(max(0.0, -lpp))
+        a[c] = 0.0 if new < 0.0 else new
+
+
+@_jit
+def _scores(x, content, q, b, v, a, refresh, q_std):
+    """(11) each stimulus's score ``q`` in place; returns how far the scores moved (their difference's norm)."""
+    n_e, n_s, n_r = x.shape
+    change = 0.0
+    for e in range(n_e):
+        den, num, ae = 0.0, 0.0, a[content[e]]
+        for s in range(n_s):
+            var = v[s] ** 2 + ae ** 2
+            for r in range(n_r):
+                t = (x[e, s, r] - x[e, s, r] + 1.0) / var
+                if t == t:
+                    den += t
+                t = (x[e, s, r] - b[s]) / var
+                if t == t:
+                    num += t
+        new = q[e] * (1 - refresh) + (num / den) * refresh
+        q_std[e] = 1 / np.sqrt(max(0.0, den))
+        change += (new - q[e]) ** 2
+        q[e] = new
+    return np.sqrt(change)
+
+
+@_jit
+def _solve(x, content, q, b, v, a, refresh, max_iterations, delta):
+    """sureal's iterations (module docstring) on ``x[e, s, r]`` from the starting estimates ``q, b, v, a`` (updated
+    in place): (12), (14), (15), (11) until the scores move less than ``delta``.  Compiled: the solver takes about a
+    thousand iterations, and a study refits at every participant's start.  Returns the standard errors of the last
+    iteration, the iterations and whether it converged."""
+    q_std, b_std = np.full(q.shape[0], np.nan), np.full(b.shape[0], np.nan)
+    v_std, a_std = np.full(v.shape[0], np.nan), np.full(a.shape[0], np.nan)
     iterations, converged = 0, False
     while iterations < max_iterations:
-        previous = q.copy()
-        # (12) b_s
-        for s in range(n_s):
-            den, num = 0.0, 0.0
-            for e in range(n_e):
-                var = v[s] ** 2 + a[content[e]] ** 2
-                for r in range(n_r):
-                    t = (x[e, s, r] - x[e, s, r] + 1.0) / var  # 1 where scored, NaN where not
-                    if t == t:
-                        den += t
-                    t = (x[e, s, r] - q[e]) / var
-                    if t == t:
-                        num += t
-            b[s] = b[s] * (1 - refresh) + (num / den) * refresh
-            b_std[s] = 1 / np.sqrt(max(0.0, den))
-        # (14) v_s, with the new biases; (15) a_c from the same residuals and the new v_s
-        v_new = np.empty(n_s)
-        for s in range(n_s):
-            num, lpp = 0.0, 0.0
-            vs = v[s]
-            for e in range(n_e):
-                ae = a[content[e]]
-                var, diff = vs ** 2 + ae ** 2, vs ** 2 - ae ** 2
-                poly = ae ** 4 - 3 * vs ** 4 - 2 * vs ** 2 * ae ** 2
-                for r in range(n_r):
-                    resid = x[e, s, r] - q[e] - b[s]
-                    t = -vs / var + vs * resid ** 2 / var ** 2
-                    if t == t:
-                        num += t
-                    t = diff / var ** 2 + resid ** 2 * poly / var ** 4
-                    if t == t:
-                        lpp += t
-            v_new[s] = v[s] * (1 - refresh) + (v[s] - num / lpp) * refresh
-            v_std[s] = 1 / np.sqrt(max(0.0, -lpp))
-        for s in range(n_s):
-            v[s] = 0.0 if v_new[s] < 0.0 else v_new[s]
-        num_e, lpp_e = np.zeros(n_e), np.zeros(n_e)
-        for e in range(n_e):
-            ae = a[content[e]]
-            for s in range(n_s):
-                vs = v[s]
-                var, diff = vs ** 2 + ae ** 2, vs ** 2 - ae ** 2
-                poly = vs ** 4 - 3 * ae ** 4 - 2 * vs ** 2 * ae ** 2
-                for r in range(n_r):
-                    resid = x[e, s, r] - q[e] - b[s]
-                    t = -ae / var + ae * resid ** 2 / var ** 2
-                    if t == t:
-                        num_e[e] += t
-                    t = -diff / var ** 2 + resid ** 2 * poly / var ** 4
-                    if t == t:
-                        lpp_e[e] += t
-        for c in range(n_c):  # sums over the stimuli of each content (a matrix product: NaN or inf spread alike)
-            num, lpp = 0.0, 0.0
-            for e in range(n_e):
-                one = 1.0 if content[e] == c else 0.0
-                num += num_e[e] * one
-                lpp += lpp_e[e] * one
-            new = a[c] * (1 - refresh) + (a[c] - num / lpp) * refresh
-            a_std[c] = 1 / np.sqrt(max(0.0, -lpp))
-            a[c] = 0.0 if new < 0.0 else new
-        # (11) x_e
-        change = 0.0
-        for e in range(n_e):
-            den, num = 0.0, 0.0
-            ae = a[content[e]]
-            for s in range(n_s):
-                var = v[s] ** 2 + ae ** 2
-                for r in range(n_r):
-                    t = (x[e, s, r] - x[e, s, r] + 1.0) / var
-                    if t == t:
-                        den += t
-                    t = (x[e, s, r] - b[s]) / var
-                    if t == t:
-                        num += t
-            q[e] = q[e] * (1 - refresh) + (num / den) * refresh
-            q_std[e] = 1 / np.sqrt(max(0.0, den))
-            change += (previous[e] - q[e]) ** 2
+        _biases(x, content, q, b, v, a, refresh, b_std)
+        _inconsistencies(x, content, q, b, v, a, refresh, v_std)
+        _ambiguities(x, content, q, b, v, a, refresh, a_std)
+        change = _scores(x, content, q, b, v, a, refresh, q_std)
         iterations += 1
-        change = np.sqrt(change)
         if not np.isfinite(change):
             break
         if change < delta:
             converged = True
             break
-    return q, b, v, a, q_std, b_std, v_std, a_std, iterations, converged
+    return q_std, b_std, v_std, a_std, iterations, converged
 
 
 def fit(x: np.ndarray, content: np.ndarray | list[int], force_bias_zero_mean: bool = True) -> SubjectModel:
@@ -193,8 +218,7 @@ def _fit(x: np.ndarray, content: np.ndarray, present: np.ndarray, n_e: int, n_s:
     a = np.array([np.nanstd(residual[content == c]) if np.any(content == c) else 0.0 for c in range(n_c)])
     q, b = mos.copy(), np.zeros(n_s)
 
-    q, b, v, a, q_std, b_std, v_std, a_std, iterations, converged = _solve(
-        x, content, n_c, q, b, v, a, REFRESH, MAX_ITERATIONS, DELTA)
+    q_std, b_std, v_std, a_std, iterations, converged = _solve(x, content, q, b, v, a, REFRESH, MAX_ITERATIONS, DELTA)
 
     if force_bias_zero_mean:
         shift = float(np.mean(b))
