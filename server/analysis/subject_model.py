@@ -90,6 +90,16 @@ def _biases(x, content, q, b, v, a, refresh, b_std):
 
 
 @_jit
+def _newton_terms(p, o, resid):
+    """The two terms one score adds to the Newton step of a standard deviation ``p`` (an inconsistency, or an
+    ambiguity) beside the other ``o``: the log-likelihood's first and second derivative in ``p`` (sureal's (14) and
+    (15) are this with the roles swapped)."""
+    var, diff = p ** 2 + o ** 2, p ** 2 - o ** 2
+    poly = o ** 4 - 3 * p ** 4 - 2 * (p ** 2 * o ** 2)
+    return -p / var + p * resid ** 2 / var ** 2, diff / var ** 2 + resid ** 2 * poly / var ** 4
+
+
+@_jit
 def _inconsistencies(x, content, q, b, v, a, refresh, v_std):
     """(14) each participant's inconsistency ``v`` in place, a Newton step from the residuals of the new biases."""
     n_e, n_s, n_r = x.shape
@@ -98,16 +108,12 @@ def _inconsistencies(x, content, q, b, v, a, refresh, v_std):
         num, lpp, vs = 0.0, 0.0, v[s]
         for e in range(n_e):
             ae = a[content[e]]
-            var, diff = vs ** 2 + ae ** 2, vs ** 2 - ae ** 2
-            poly = ae ** 4 - 3 * vs ** 4 - 2 * vs ** 2 * ae ** 2
             for r in range(n_r):
-                resid = x[e, s, r] - q[e] - b[s]
-                t = -vs / var + vs * resid ** 2 / var ** 2
-                if t == t:
-                    num += t
-                t = diff / var ** 2 + resid ** 2 * poly / var ** 4
-                if t == t:
-                    lpp += t
+                t1, t2 = _newton_terms(vs, ae, x[e, s, r] - q[e] - b[s])
+                if t1 == t1:
+                    num += t1
+                if t2 == t2:
+                    lpp += t2
         new[s] = vs * (1 - refresh) + (vs - num / lpp) * refresh
         v_std[s] = 1 / np.sqrt(max(0.0, -lpp))
     for s in range(n_s):
@@ -122,17 +128,12 @@ def _ambiguities(x, content, q, b, v, a, refresh, a_std):
     for e in range(n_e):
         ae = a[content[e]]
         for s in range(n_s):
-            vs = v[s]
-            var, diff = vs ** 2 + ae ** 2, vs ** 2 - ae ** 2
-            poly = vs ** 4 - 3 * ae ** 4 - 2 * vs ** 2 * ae ** 2
             for r in range(n_r):
-                resid = x[e, s, r] - q[e] - b[s]
-                t = -ae / var + ae * resid ** 2 / var ** 2
-                if t == t:
-                    num_e[e] += t
-                t = -diff / var ** 2 + resid ** 2 * poly / var ** 4
-                if t == t:
-                    lpp_e[e] += t
+                t1, t2 = _newton_terms(ae, v[s], x[e, s, r] - q[e] - b[s])
+                if t1 == t1:
+                    num_e[e] += t1
+                if t2 == t2:
+                    lpp_e[e] += t2
     for c in range(a.shape[0]):  # sums over the stimuli of each content (a matrix product: NaN or inf spread alike)
         num, lpp = 0.0, 0.0
         for e in range(n_e):
