@@ -57,7 +57,7 @@ test: lint
 	@# once; the files with the most `slow` tests first, so that the run ends on short ones: tests/conftest.py and
 	@# --no-loadscope-reorder; each worker has its own databases and var dir, see tests/conftest.py), then the tests marked `serial`
 	@# (PostgreSQL stopped for everyone) alone, collected from the files that mark any (a test marked `serial` in a
-	@# file that does not say `mark.serial` would be missed: tests/test_test_setup.py checks there is none); exit
+	@# file that does not say `mark.serial` would be missed: tests/conftest.py stops the collection then); exit
 	@# status 5 there is "none selected" (no TEST_DATABASE_URL).
 	@start=$$(date +%s); rc=0; \
 	echo "$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m 'not serial'"; \

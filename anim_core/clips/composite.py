@@ -168,8 +168,7 @@ def _reference_pose(spec: LayerSpec, animation: Any, rest: Array, where: str) ->
 def rest_pose(source: RetargetedCharacter, target: RetargetedCharacter) -> Array:
     """``(J, 4)``: the rest pose of a take bound by ``source`` (identity rotations) on ``target``'s skeleton, the
     reference an additive layer's ``"rest"`` means."""
-    n = source.skeleton.n_joints
-    return rebind(Pose(np.asarray(source.skeleton.rest_rotations), np.zeros(3)), source, target).rotations.reshape(n, 4)
+    return rebind(Pose(np.asarray(source.skeleton.rest_rotations), np.zeros(3)), source, target).rotations
 
 
 def rebound(animation: Animation, source: RetargetedCharacter, target: RetargetedCharacter) -> Animation:
@@ -234,11 +233,11 @@ def build_composite(spec: CompositeSpec, sources: Mapping[str, Source], fps: int
                                 **({"sequence": [[n, s] for n, s in spec.segments]} if spec.segments else {})},
                                source.character, pose.rotations, pose.root_translation,
                                *source.character.skeleton.forward_kinematics(*pose)))
-    # A blend's clips each on the floor as its own feet stand (each is its own motion: at weight 1 the second take).
-    placed = [place_on_floor([c])[0] for c in built] if spec.form == "blend" else place_on_floor(built)
-    if spec.form == "blend":  # each its own speed and length: measured on its own (no frame-by-frame reference)
-        return _gated(spec, [measure([c], np.asarray(c.clip.velocity) if c.in_place else np.zeros(3), "other",
-                                     skate)[0] for c in placed], own, sources)
+    if spec.form == "blend":  # each its own motion (at weight 1 the second take), speed and length: placed on the
+        # floor by its own feet and measured on its own (no frame-by-frame reference)
+        return _gated(spec, [measure(place_on_floor([c]), np.asarray(c.clip.velocity) if c.in_place else np.zeros(3),
+                                     "other", skate)[0] for c in built], own, sources)
+    placed = place_on_floor(built)
     if spec.form == "layered":  # plays as its base does (in place: a treadmill at the base's speed)
         base = placed[0].clip
         ground = np.asarray(base.velocity) if base.in_place else np.zeros(3)

@@ -184,10 +184,15 @@ def bone_angles(positions: Array, other: Array) -> Array:
     """``(T,)`` the largest angle (degrees) between a bone of ``positions`` and the same bone of ``other`` per frame
     (both ``(T, 31, 3)``, any units; each turned to its own facing, :func:`bone_directions`); bones of zero length in
     ``other`` (an unmapped joint of a source) are left out."""
-    a, b = bone_directions(positions), bone_directions(other)
+    return _largest_angle(bone_directions(positions), bone_directions(other))
+
+
+def _largest_angle(a: Array, b: Array) -> Array:
+    """The largest angle (degrees) between bone directions ``a`` and ``b`` ``(..., B, 3)`` over the bones, leaving
+    out the bones of zero length in ``b``."""
     angle = np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1)))
     has = np.linalg.norm(b, axis=-1) > 0.5
-    return np.where(has, angle, 0.0).max(axis=1)
+    return np.where(has, angle, 0.0).max(axis=-1)
 
 
 def widths(positions: Array) -> tuple[float, float]:
@@ -393,10 +398,7 @@ def check_body(positions: Array, against: Array, what: str) -> tuple[dict[str, f
 def take_pose_angles(positions: Array, take: Array) -> Array:
     """``(T,)`` for each frame of ``positions`` ``(T, 31, 3)``, the largest bone angle (degrees, :func:`bone_angles`)
     to the nearest frame of ``take`` ``(G, 31, 3)``: 0 where the frame is one of the take's poses."""
-    a, b = bone_directions(positions), bone_directions(take)
-    cos = np.clip(np.einsum("tbk,gbk->tgb", a, b), -1.0, 1.0)
-    has = np.linalg.norm(b, axis=-1) > 0.5  # (G, B): bones of zero length left out
-    return np.where(has[None], np.degrees(np.arccos(cos)), 0.0).max(axis=2).min(axis=1)
+    return _largest_angle(bone_directions(positions)[:, None], bone_directions(take)[None]).min(axis=1)
 
 
 def check_composite(positions: Array, contact_heights: Array, first: Array,

@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 
 from ..math import contacts
 from ..math.quat import quat_angle
+from ..methods.composite_builders import SequenceClip
 from ..methods.conditions import REFERENCE, Kind
 from ..rig.character import FEET, LEGS, UP
 from . import metrics
@@ -98,9 +99,9 @@ def clip_warnings(clips: list[BuiltClip]) -> list[str]:
     out = []
     for c in clips:
         turn = np.degrees(quat_angle(np.roll(c.local_rotations, -1, axis=0), c.local_rotations))  # (T, J)
-        switches = getattr(c.clip, "switch_times", None)  # a sequence (SequenceClip)
-        if switches and not c.clip.transition_s:
-            turn[[(round(s * c.fps) - 1) % c.n_frames for s in switches]] = 0.0  # into each switch's frame
+        sequence = isinstance(c.clip, SequenceClip)
+        if sequence and not c.clip.transition_s:  # into each switch's frame
+            turn[[(round(s * c.fps) - 1) % c.n_frames for s in c.clip.switch_times]] = 0.0
         frame, joint = np.unravel_index(int(np.argmax(turn)), turn.shape)
         if turn[frame, joint] > MAX_FRAME_TURN_DEG:
             out.append(f"{c.id}: joint {c.character.skeleton.names[joint]} turns {turn[frame, joint]:.0f} degrees "
@@ -108,7 +109,7 @@ def clip_warnings(clips: list[BuiltClip]) -> list[str]:
                        f"flip)")
         m = c.metrics
         limit = metrics.seam_limit_from_median(m["median_step_mm"])
-        if m["seam_jump_mm"] > limit and switches is None:
+        if m["seam_jump_mm"] > limit and not sequence:
             out.append(f"{c.id}: the seam jumps {m['seam_jump_mm']:.1f} mm (limit {limit:.1f} mm: twice the "
                        f"median step {m['median_step_mm']:.1f} mm + 5 mm)")
         n_ref = reference_keys.get(c.animation)
