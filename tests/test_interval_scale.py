@@ -8,10 +8,18 @@ from itertools import combinations
 import numpy as np
 import pandas as pd
 import pytest
+from scipy import optimize
 from statsmodels.miscmodels.ordinal_model import OrderedModel
 
-from server.analysis.interval_scale import animation_scale, bootstrap_draws, jnd_unit
-from server.analysis.ranking import GradedComparison
+from server.analysis.interval_scale import (
+    BOOT_PRIOR_SD,
+    _design,
+    _ridge_all,
+    animation_scale,
+    bootstrap_draws,
+    jnd_unit,
+)
+from server.analysis.ranking import GradedComparison, vote_log_likelihood
 from server.analysis.simulate import simulate
 from server.studies.design import Design
 
@@ -102,3 +110,30 @@ def test_all_pairs_recovers_the_true_order():
     taus = [simulate(design, truth, 40, seed=seed).kendall_tau for seed in range(20)]
     print("Kendall tau over 20 seeds:", np.round(taus, 3))
     assert np.mean(np.array(taus) >= 0.9) >= 0.9
+
+
+def test_batched_newton_refits_equal_one_fit_per_resample():
+    """The bootstrap fits all resamples at once (Newton); each must be the minimum of its own ridge objective,
+    found here one resample at a time by scipy's BFGS at a tight tolerance on that objective written from the
+    ranking's per-vote likelihood.  Mostly "no difference" answers: some resamples are nearly separated."""
+    rng = np.random.default_rng(5)
+    votes = [GradedComparison(f"p{p}", "ref", c, int(rng.choice([-1, 0, 0, 0, 0, 0, 0, 1, 2])))
+             for p in range(6) for c in NAMES[1:] for _ in range(2)]
+    x, y = _design(votes, NAMES)
+    people = list(dict.fromkeys(v.participant for v in votes))
+    draws = bootstrap_draws(people, 40, 1)
+    weight = np.stack([[np.sum(np.bincount(d, minlength=6)[int(v.participant[1:])]) for v in votes] for d in draws])
+    n = len(NAMES) - 1
+    precision = np.concatenate([np.full(n, BOOT_PRIOR_SD**-2), np.full(2, 1e-2)])
+    centre = np.concatenate([np.zeros(n), np.log([0.5, 1.5])])
+
+    def objective(params, w):
+        loglik, grad = vote_log_likelihood(params, x, y, False, n, "logit")
+        diff = params - centre
+        return -float(w @ loglik) + 0.5 * float(diff @ (precision * diff)), -w @ grad + precision * diff
+
+    expected = np.array([optimize.minimize(objective, centre, args=(w,), jac=True, method="BFGS",
+                                           options={"gtol": 1e-10, "maxiter": 5000}).x for w in weight])
+    got = _ridge_all(x, y, weight.astype(float), expected.mean(axis=0))
+    np.testing.assert_allclose(got, expected, atol=1e-5)
+    assert np.abs(got[:, :n]).max() > 2  # nearly separated resamples among them

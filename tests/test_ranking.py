@@ -3,11 +3,13 @@
 import dataclasses
 import math
 import warnings
+from collections import Counter
 
 import numpy as np
 import pandas as pd
 import pytest
 import statsmodels.api as sm
+from scipy import optimize
 from statsmodels.miscmodels.ordinal_model import OrderedModel
 
 from server.analysis.ranking import GradedComparison, rank_conditions
@@ -237,6 +239,78 @@ def test_degenerate_input():
     assert got["x"].bound is None and got["x"].value is None and "not linked" in lone.fit.message
     assert got["a"].value == pytest.approx(0.0, abs=1e-6) and got["a"].se is None and got["a"].ci95 is None
     assert got["a"].se_model is not None and _no_nan(lone)
+
+
+def _loglik(votes, values, cut):
+    """The three-level model's log-likelihood written out here (not the module's): P(y <= k) = F(c_k - delta)."""
+    f = lambda z: 1 / (1 + math.exp(-z))  # noqa: E731
+    total = 0.0
+    for _, reference, test, score in votes:
+        delta = values[test] - values[reference]
+        upper = 1.0 if score == 1 else f((cut if score == 0 else -cut) - delta)
+        lower = 0.0 if score == -1 else f((-cut if score == 0 else cut) - delta)
+        total += math.log(upper - lower)
+    return total
+
+
+def test_separation_through_the_cut_points():
+    """Almost every vote "no difference"; one "+1" for a (never rated worse), one "-1" for b (never better).
+    The graph test sees nothing (no extreme answer is one-sided), yet the likelihood has no maximum: moving a up, b
+    down and the cut between "equal" and "better" with them raises it without end.  Before the check, the fit
+    said "ok" with a at +12.7 and b at -12.7 logit units (where the optimiser happened to stop)."""
+    votes = [(f"p{p}", "ref", c, 0) for p in range(20) for c in ("a", "b") for _ in range(4)]
+    votes[0], votes[1] = ("p0", "ref", "a", 1), ("p0", "ref", "b", -1)
+    along = [_loglik(votes, {"ref": 0.0, "a": 0.5 + s, "b": -0.5 - s}, 1.0 + s) for s in (0, 2, 5, 10, 20)]
+    assert np.all(np.diff(along) > 0) and along[-1] < 0
+
+    separated = rank_conditions(votes, anchor="ref")
+    got = by_name(separated)
+    assert separated.fit.status == "separated" and _no_nan(separated)
+    assert (got["a"].bound, got["a"].value, got["b"].bound, got["b"].value) == ("above", None, "below", None)
+    assert "a infinitely above" in separated.fit.message and "b infinitely below" in separated.fit.message
+
+    # One "-1" for a as well pins the cut, and a finite maximum exists: the fit is the one found here by
+    # Nelder-Mead on the likelihood above.
+    pinned_votes = [*votes, ("p1", "ref", "a", -1)]
+    pinned = rank_conditions(pinned_votes, anchor="ref")
+    got = by_name(pinned)
+    assert pinned.fit.status == "ok" and got["a"].bound is None and got["b"].bound is None
+
+    def minus(p):
+        return -_loglik(pinned_votes, {"ref": 0.0, "a": p[0], "b": p[1]}, math.exp(p[2]))
+
+    best = optimize.minimize(minus, [0.0, 0.0, 0.0], method="Nelder-Mead",
+                             options={"xatol": 1e-8, "fatol": 1e-12, "maxiter": 20000}).x
+    assert (got["a"].value, got["b"].value, pinned.fit.thresholds[1]) == pytest.approx(
+        (best[0], best[1], math.exp(best[2])), abs=1e-4)
+
+
+def test_sparse_answers_ok_only_where_the_likelihood_has_a_maximum():
+    """Seeded: 30 small studies answering mostly "no difference" (levels -1, 0, +1).  Where the ranking says "ok",
+    its values are the maximum that Nelder-Mead finds on the likelihood written out above; where it says
+    "separated", pushing the bounded conditions out (with the cut) raises that likelihood."""
+    rng = np.random.default_rng(20261205)
+    seen = Counter()
+    for _ in range(30):
+        votes = [(f"p{p}", "ref", c, int(rng.choice([-1, 0, 1], p=[0.06, 0.88, 0.06])))
+                 for p in range(4) for c in ("a", "b") for _ in range(3)]
+        if {s for *_, s in votes} != {-1, 0, 1}:
+            continue
+        ranking = rank_conditions(votes, anchor="ref")
+        got = by_name(ranking)
+        seen[ranking.fit.status] += 1
+        if ranking.fit.status == "ok":
+            best = optimize.minimize(
+                lambda p: -_loglik(votes, {"ref": 0.0, "a": p[0], "b": p[1]}, math.exp(p[2])),  # noqa: B023
+                [0.0, 0.0, 0.0], method="Nelder-Mead", options={"xatol": 1e-8, "fatol": 1e-12, "maxiter": 20000}).x
+            assert (got["a"].value, got["b"].value) == pytest.approx((best[0], best[1]), abs=1e-3)
+        else:
+            assert ranking.fit.status == "separated"
+            sign = {"above": 1, "below": -1, None: 0}
+            values = [{"ref": 0.0, **{c: 0.3 * sign[got[c].bound] * s for c in ("a", "b")}} for s in (1, 5, 20)]
+            likelihoods = [max(_loglik(votes, v, cut) for cut in np.linspace(0.1, 30, 300)) for v in values]
+            assert np.all(np.diff(likelihoods) > 0)
+    assert seen["ok"] >= 3 and seen["separated"] >= 3
 
 
 def test_bad_input_is_refused():

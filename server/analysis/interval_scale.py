@@ -31,6 +31,8 @@ from .statistics import counted
 
 BOOT_PRIOR_SD = 10.0
 N_BOOT = 200
+_NEWTON_STEPS = 50
+_GTOL = 1e-6  # the largest gradient component at a fit (BFGS's gtol in _ridge)
 _CUT_START = np.log([0.5, 1.5])
 
 
@@ -58,6 +60,99 @@ def _ridge(x: np.ndarray, y: np.ndarray, start: np.ndarray | None, weight: np.nd
 
     return optimize.minimize(objective, centre if start is None else start, jac=True, method="BFGS",
                              options={"gtol": 1e-6}).x
+
+
+def _ridge_terms(params: np.ndarray, x: np.ndarray, y: np.ndarray, weight: np.ndarray, precision: np.ndarray,
+                 centre: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ridge objective of every resample, its gradient and its Hessian, all resamples at once.
+
+    ``params`` (B, p): scale values then the 2 cut log-increments; ``x`` (C, p-2), ``y`` (C,): the cells (answer
+    index 0..4); ``weight`` (B, C): how often each resample counts each cell.  Returns (B,), (B, p), (B, p, p).
+    Per cell, with u = c_y - x beta and l = c_(y-1) - x beta, log P = log(F(u) - F(l)) differentiated in (u, l),
+    then by the chain rule; the cuts are sums of exp(eta), so their second derivative in eta equals their first.
+    """
+    n = x.shape[1]
+    inc = np.exp(np.clip(params[:, n:], -50.0, 50.0))  # (B, 2): the cut increments
+    dt = np.stack([inc * np.array([1.0, 0.0]), inc], axis=1)  # (B, 2 cuts, 2 etas): d t_j / d eta_i
+    t = dt.sum(axis=2)  # (B, 2): the positive cuts a < b
+    # Cuts -b, -a, a, b and their d/d eta; index 0 and 5 are -inf and +inf (no bound).
+    cut = np.stack([-t[:, 1], -t[:, 0], t[:, 0], t[:, 1]], axis=1)  # (B, 4)
+    dcut = np.stack([-dt[:, 1], -dt[:, 0], dt[:, 0], dt[:, 1]], axis=1)  # (B, 4, 2)
+    delta = params[:, :n] @ x.T  # (B, C)
+    has_up, has_lo = y < 4, y > 0
+    up_k, lo_k = np.minimum(y, 3), np.maximum(y - 1, 0)
+    upper = np.where(has_up, cut[:, up_k] - delta, np.inf)
+    lower = np.where(has_lo, cut[:, lo_k] - delta, -np.inf)
+    f_up, d_up = link_cdf_pdf(upper, "logit")
+    f_lo, d_lo = link_cdf_pdf(lower, "logit")
+    d_up, d_lo = np.where(has_up, d_up, 0.0), np.where(has_lo, d_lo, 0.0)
+    # The upper tail by symmetry keeps precision where both cdf values are near 1 (as vote_log_likelihood).
+    prob = np.where(lower > 0, link_cdf_pdf(-lower, "logit")[0] - link_cdf_pdf(-upper, "logit")[0], f_up - f_lo)
+    prob = np.maximum(prob, 1e-300)
+    lu, ll = d_up / prob, -d_lo / prob  # d log P / du, / dl
+    luu = d_up * (1 - 2 * f_up) / prob - lu * lu
+    lll = -d_lo * (1 - 2 * f_lo) / prob - ll * ll
+    lul = -lu * ll
+    # A cell a resample does not take counts 0 times: no 0 * inf where its probability underflowed.
+    unused = weight == 0
+    for term in (lu, ll, luu, lll, lul):
+        term[unused] = 0.0
+    # d u / d params and d l / d params, (B, C, p): -x for the values, the cut's row for the etas.
+    grad_u = np.concatenate([np.broadcast_to(-x, (*delta.shape, n)),
+                             np.where(has_up[None, :, None], dcut[:, up_k], 0.0)], axis=2)
+    grad_l = np.concatenate([np.broadcast_to(-x, (*delta.shape, n)),
+                             np.where(has_lo[None, :, None], dcut[:, lo_k], 0.0)], axis=2)
+    cell_grad = lu[..., None] * grad_u + ll[..., None] * grad_l
+    cell_hess = (np.einsum("bc,bci,bcj->bcij", luu, grad_u, grad_u)
+                 + np.einsum("bc,bci,bcj->bcij", lll, grad_l, grad_l)
+                 + np.einsum("bc,bci,bcj->bcij", lul, grad_u, grad_l)
+                 + np.einsum("bc,bci,bcj->bcij", lul, grad_l, grad_u))
+    curvature = lu[..., None] * grad_u[..., n:] + ll[..., None] * grad_l[..., n:]  # the cuts' second derivative
+    cell_hess[..., np.arange(n, n + 2), np.arange(n, n + 2)] += curvature
+    diff = params - centre
+    value = -np.einsum("bc,bc->b", weight, np.log(prob)) + 0.5 * np.einsum("bi,i,bi->b", diff, precision, diff)
+    grad = -np.einsum("bc,bci->bi", weight, cell_grad) + precision * diff
+    hess = -np.einsum("bc,bcij->bij", weight, cell_hess) + np.diag(precision)
+    return value, grad, hess
+
+
+def _ridge_all(x: np.ndarray, y: np.ndarray, weight: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """The ridge fits of all resamples at once (``weight`` (B, C)), by Newton's method from ``start`` with
+    step halving; a resample that has not converged after ``_NEWTON_STEPS`` steps, or whose step cannot lower the
+    objective, is fitted on its own by :func:`_ridge` (BFGS)."""
+    n = x.shape[1]
+    precision = np.concatenate([np.full(n, BOOT_PRIOR_SD**-2), np.full(2, 1e-2)])
+    centre = np.concatenate([np.zeros(n), _CUT_START])
+    params = np.tile(start, (len(weight), 1))
+    value, grad, hess = _ridge_terms(params, x, y, weight, precision, centre)
+    active = np.ones(len(weight), dtype=bool)
+    for _ in range(_NEWTON_STEPS):
+        active &= np.abs(grad).max(axis=1) >= _GTOL
+        if not active.any():
+            break
+        idx = np.flatnonzero(active)
+        # The objective is not convex in the cut log-increments: where the Hessian has a negative eigenvalue, its
+        # absolute value (a descent direction still; Dauphin et al. 2014's saddle-free Newton); near the fit the
+        # Hessian is positive definite and this is Newton's step.
+        eig, vec = np.linalg.eigh(hess[idx])
+        eig = np.maximum(np.abs(eig), 1e-10 * np.abs(eig).max(axis=1, keepdims=True))
+        step = -np.einsum("bij,bj->bi", vec, np.einsum("bji,bj->bi", vec, grad[idx]) / eig)
+        scale = np.ones(len(idx))
+        for _ in range(30):  # halve each step until the objective does not rise
+            trial = params[idx] + scale[:, None] * step
+            t_value, t_grad, t_hess = _ridge_terms(trial, x, y, weight[idx], precision, centre)
+            ok = t_value <= value[idx] + 1e-12 * np.abs(value[idx])
+            done = idx[ok]
+            params[done], value[done], grad[done], hess[done] = trial[ok], t_value[ok], t_grad[ok], t_hess[ok]
+            idx, step, scale = idx[~ok], step[~ok], scale[~ok] / 2
+            if not idx.size:
+                break
+        active[idx] = False  # no step lowered the objective: left to BFGS below
+    unfinished = np.flatnonzero(np.abs(grad).max(axis=1) >= _GTOL)
+    for b in unfinished:
+        taken = weight[b] > 0
+        params[b] = _ridge(x[taken], y[taken], start, weight[b, taken])
+    return params
 
 
 def jnd_unit(cuts: Sequence[float]) -> float | None:
@@ -125,11 +220,9 @@ def animation_scale(animation: str, votes: Sequence[GradedComparison], condition
         np.add.at(per_person, ([person[v.participant] for v in used], cell_of.ravel()), 1)
         cx, cy = cells[:, :-1], cells[:, -1].astype(int)
         start = _ridge(cx, cy, None, per_person.sum(axis=0))  # the full data's fit: a close start for resamples
+        taken = np.stack([np.bincount(draw, minlength=len(people)) for draw in bootstrap_draws(people, n_boot, seed)])
         samples = np.zeros((n_boot, n))
-        for b, draw in enumerate(bootstrap_draws(people, n_boot, seed)):
-            weight = np.bincount(draw, minlength=len(people)) @ per_person
-            taken = weight > 0
-            samples[b, 1:] = _ridge(cx[taken], cy[taken], start, weight[taken])[: n - 1]
+        samples[:, 1:] = _ridge_all(cx, cy, taken @ per_person, start)[:, : n - 1]
         low, high = np.percentile(samples, [2.5, 97.5], axis=0)
         ci = [(0.0, 0.0) if i == 0 else (float(low[i]), float(high[i])) for i in range(n)]
         above = (samples[:, :, None] > samples[:, None, :]).mean(axis=0)

@@ -35,11 +35,13 @@ Degenerate input never raises and never yields NaN; what comes out is stated in 
 - ``"no_votes"``: no comparison of two different conditions; every value but the anchor's is ``None``.
 - ``"single_condition"``: only the anchor; it is at 0.
 - ``"all_ties"``: every vote that could be used said "no difference": the model has no unit; values ``None``.
-- ``"separated"``: some condition, or group of conditions, only ever got the extreme answer in one direction
-  against all the others it was compared with (the maximum likelihood scale value is infinite): their value is
-  ``None`` and ``bound`` says ``"above"`` or ``"below"`` the anchor; conditions never linked to the anchor by any
-  vote have ``bound=None``.  The others are fitted on the votes among themselves (the limit of the likelihood
-  maximisation).
+- ``"separated"``: the maximum likelihood value of some condition is infinite: it, or a group of conditions, only
+  ever got the extreme answer in one direction against all the others it was compared with, or (the separation
+  moving the cut points too) it was never rated worse than the anchor, only "equal" or better, in data where no
+  other vote fixes the cut it would carry along (typical of studies that answer almost only "no difference").  Their
+  value is ``None`` and ``bound`` says ``"above"`` or ``"below"`` the anchor; conditions never linked to the anchor
+  by any vote have ``bound=None``.  The others are fitted on the votes among themselves (the limit of the
+  likelihood maximisation).
 - ``"not_converged"``: the optimiser stopped early; values are reported, standard errors only if finite.
 
 The anchor itself always has value 0, standard error 0 and interval (0, 0): it is the origin by definition.
@@ -63,6 +65,7 @@ from statsmodels.tools.numdiff import approx_fprime
 from server.studies.scale import MAX_SCORE
 
 Link = Literal["logit", "probit"]
+_LP_TOL = 1e-7  # a separating direction's total slack (directions are boxed to [-1, 1])
 
 
 class GradedComparison(NamedTuple):
@@ -195,13 +198,83 @@ def _finite_component(votes: list[GradedComparison], names: list[str], anchor: s
         component = from_anchor & to_anchor
         inside = [v for v in votes if index[v.reference] in component and index[v.test] in component]
         if len(inside) == len(votes):
-            break
+            through_cuts = _threshold_separation(votes, anchor)
+            if not through_cuts:
+                break
+            bounds.update(through_cuts)
+            votes = [v for v in votes if v.reference not in through_cuts and v.test not in through_cuts]
+            continue
         for name in names:
             i = index[name]
             if i not in component and name not in bounds:
                 bounds[name] = "below" if i in from_anchor else "above" if i in to_anchor else None
         votes = inside
     return votes, bounds
+
+
+def _threshold_separation(votes: list[GradedComparison], anchor: str) -> dict[str, Literal["above", "below"] | None]:
+    """The conditions whose maximum likelihood value is infinite by a separation that moves the cut points too.
+
+    The graph test of :func:`_finite_component` sees a condition that only ever got the extreme answer one way.  A
+    subtler separation moves cut points with the values: a condition never rated below the anchor (only "equal"
+    and "better") goes up while the cut between "equal" and "better" follows it, so its "better" answers keep
+    their probability and its "worse" probability, never observed, falls to 0.  In general the likelihood has no
+    maximum exactly when some direction ``d`` in (scale values, positive cut positions) leaves every vote's upper
+    bound ``c_y - delta`` not lower and its lower bound ``c_(y-1) - delta`` not higher, one of them strictly
+    (each vote's probability is strictly monotone in both, the log-likelihood concave in these coordinates): the
+    linear programme below finds such a direction (as for separation in logistic regression, Konis 2007).  A
+    condition is infinitely above (below) the anchor when some such direction moves it up (down).
+    """
+    free = sorted({c for v in votes for c in (v.reference, v.test)} - {anchor})
+    magnitudes = sorted({abs(v.score) for v in votes})
+    if not free or magnitudes == [0]:
+        return {}
+    zero_cut = magnitudes[0] != 0
+    levels = sorted({s * m for m in magnitudes for s in (-1, 1)})
+    category = {s: i for i, s in enumerate(levels)}
+    m = len(magnitudes) - 1  # positive cut positions t_1 < ... < t_m
+    # Cut k as a linear function of t: -t_m .. -t_1, (0), t_1 .. t_m.
+    cut_map = np.concatenate([-np.eye(m)[::-1], np.zeros((1, m))[:int(zero_cut)], np.eye(m)])
+    column = {n: j for j, n in enumerate(free)}
+    rows = set()
+    for v in votes:
+        x = [0] * len(free)
+        if v.test in column:
+            x[column[v.test]] += 1
+        if v.reference in column:
+            x[column[v.reference]] -= 1
+        rows.add((*x, category[v.score]))
+    # Each row g with g . d >= 0 for a direction d = (values, t): upper bounds may not fall, lower ones not rise.
+    g = []
+    for *x, k in sorted(rows):
+        if k < len(cut_map):
+            g.append(np.concatenate([-np.array(x, float), cut_map[k]]))
+        if k > 0:
+            g.append(np.concatenate([np.array(x, float), -cut_map[k - 1]]))
+    g = np.array(g)
+    # The cut positions stay ordered along d (implied when every level is used; stated for the solver).
+    order = np.zeros((m, len(free) + m))
+    for j in range(m):
+        order[j, len(free) + j] = 1
+        if j:
+            order[j, len(free) + j - 1] = -1
+    constraints = np.concatenate([-g, -order])
+
+    def most(objective: np.ndarray) -> float:
+        result = optimize.linprog(-objective, A_ub=constraints, b_ub=np.zeros(len(constraints)),
+                                  bounds=(-1, 1), method="highs")
+        return -float(result.fun) if result.status == 0 else 0.0
+
+    if most(g.sum(axis=0)) <= _LP_TOL:
+        return {}
+    bounds: dict[str, Literal["above", "below"] | None] = {}
+    for name, j in column.items():
+        unit = np.zeros(len(free) + m)
+        unit[j] = 1
+        up, down = most(unit) > _LP_TOL, most(-unit) > _LP_TOL
+        if up or down:
+            bounds[name] = None if up and down else "above" if up else "below"
+    return bounds
 
 
 def _separation_message(bounds: dict[str, Literal["above", "below"] | None]) -> str:
