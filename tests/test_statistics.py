@@ -5,6 +5,7 @@ import math
 import numpy as np
 import pytest
 from scipy import stats
+from statsmodels.stats.multitest import multipletests
 
 from server.analysis.statistics import (
     holm,
@@ -60,6 +61,13 @@ def test_holm_against_the_benjamini_hochberg_example():
     assert adjusted[:5] == pytest.approx([0.0015, 0.0056, 0.0247, 0.114, 0.2211], abs=1e-12)
     assert sum(p < 0.05 for p in adjusted) == 3  # Holm rejects 3 at 0.05 (BH would reject 4)
     assert holm([None, 0.01, None, 0.04]) == [None, pytest.approx(0.02), None, pytest.approx(0.04)]
+
+
+def test_holm_equals_statsmodels_on_unsorted_and_tied_p_values():
+    rng = np.random.default_rng(3)
+    for size in (1, 2, 7, 30):
+        ps = np.round(rng.uniform(0, 0.3, size) ** 2, 3)  # rounded: ties and zeros among them
+        assert holm(list(ps)) == pytest.approx(multipletests(ps, method="holm")[1].tolist(), abs=1e-15)
 
 
 # R irr package, data(anxiety): three raters of 20 subjects (column-major).

@@ -11,7 +11,9 @@ below 0.025 or above 0.975 is a difference at the 5 % level, two-sided).
 Refits use a weak normal ridge (``BOOT_PRIOR_SD`` logit units) so that a resample in which a condition only ever
 got one extreme answer still gives a finite value (the plain maximum likelihood value is then infinite); with it
 the refit of the full data differs from the point value by well under its interval's width (the point value
-itself is the plain maximum likelihood one).
+itself is the plain maximum likelihood one).  All resamples are refitted together, by Newton's method from the full
+data's fit (``_ridge_all``): one BFGS per resample spent most of a study's results request on flat directions of
+nearly separated resamples.
 
 JND units: as in pwcmp, one JND is the difference at which the better condition is preferred 75 % of the time;
 here "preferred" is a non-tie answer in its favour, from the fitted cut points:

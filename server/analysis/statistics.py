@@ -19,7 +19,6 @@ from typing import Any
 
 import numpy as np
 from scipy import stats
-from statsmodels.stats.multitest import multipletests
 from statsmodels.stats.power import TTestPower
 
 from server.studies.scale import MAX_SCORE, RAW_SCORES, SCORES
@@ -75,9 +74,14 @@ def holm(pvalues: Sequence[float | None]) -> list[float | None]:
     present = [i for i, p in enumerate(pvalues) if p is not None]
     out: list[float | None] = [None] * len(pvalues)
     if present:
-        adjusted = multipletests([pvalues[i] for i in present], method="holm")[1]
-        for i, p in zip(present, adjusted, strict=True):
-            out[i] = float(p)
+        # Holm (1979) directly: statsmodels' multipletests(method="holm") calls gc.collect(), 0.2 s of a results
+        # request in a server's heap.  Sorted ascending, the k-th smallest (from 0) times (m - k), kept monotone.
+        p = np.array([pvalues[i] for i in present], dtype=float)
+        order = np.argsort(p, kind="stable")
+        adjusted = np.empty_like(p)
+        adjusted[order] = np.minimum(np.maximum.accumulate(p[order] * np.arange(p.size, 0, -1)), 1.0)
+        for i, value in zip(present, adjusted, strict=True):
+            out[i] = float(value)
     return out
 
 
