@@ -428,10 +428,7 @@ def test_dashboard_has_no_axe_violations(site, sized, axe_source):
     pg.fill("#email", "axe@example.org")
     pg.fill("#password", "correct horse battery")
     pg.click("#login-form button")
-    # By now the module's earlier tests have left ~20 finished participants, whose results (the interval scales'
-    # 200 bootstrap refits per animation, server/analysis/interval_scale.py) took 12-18 s here on an idle machine
-    # and over 30 s (Playwright's default) on a loaded one: this test checks accessibility, not speed.
-    pg.wait_for_selector("#dashboard:not([hidden])", timeout=180_000)
+    pg.wait_for_selector("#dashboard:not([hidden])")
     pg.wait_for_timeout(500)  # charts drawn
     check_page(pg, axe_source, f"{size}-dashboard")
 
