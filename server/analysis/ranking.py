@@ -212,6 +212,25 @@ def _finite_component(votes: list[GradedComparison], names: list[str], anchor: s
     return votes, bounds
 
 
+def _answer_levels(votes: list[GradedComparison]) -> tuple[bool, list[int]]:
+    """Whether the middle cut is fixed at 0 (no "no difference" answer used), and the used answer levels, unused
+    ones merged into their neighbours: the scores of every used magnitude with both signs."""
+    magnitudes = sorted({abs(v.score) for v in votes})
+    return magnitudes[0] != 0, sorted({s * m for m in magnitudes for s in (-1, 1)})
+
+
+def _contrasts(votes: list[GradedComparison], free: list[str]) -> np.ndarray:
+    """(votes, free conditions): +1 in the test condition's column, -1 in the reference's (the anchor has none)."""
+    column = {n: j for j, n in enumerate(free)}
+    x = np.zeros((len(votes), len(free)))
+    for i, v in enumerate(votes):
+        if v.test in column:
+            x[i, column[v.test]] += 1
+        if v.reference in column:
+            x[i, column[v.reference]] -= 1
+    return x
+
+
 def _threshold_separation(votes: list[GradedComparison], anchor: str) -> dict[str, Literal["above", "below"] | None]:
     """The conditions whose maximum likelihood value is infinite by a separation that moves the cut points too.
 
@@ -226,32 +245,19 @@ def _threshold_separation(votes: list[GradedComparison], anchor: str) -> dict[st
     condition is infinitely above (below) the anchor when some such direction moves it up (down).
     """
     free = sorted({c for v in votes for c in (v.reference, v.test)} - {anchor})
-    magnitudes = sorted({abs(v.score) for v in votes})
-    if not free or magnitudes == [0]:
+    zero_cut, levels = _answer_levels(votes)
+    if not free or levels == [0]:
         return {}
-    zero_cut = magnitudes[0] != 0
-    levels = sorted({s * m for m in magnitudes for s in (-1, 1)})
-    category = {s: i for i, s in enumerate(levels)}
-    m = len(magnitudes) - 1  # positive cut positions t_1 < ... < t_m
+    m = (len(levels) - 1) // 2  # positive cut positions t_1 < ... < t_m
     # Cut k as a linear function of t: -t_m .. -t_1, (0), t_1 .. t_m.
     cut_map = np.concatenate([-np.eye(m)[::-1], np.zeros((1, m))[:int(zero_cut)], np.eye(m)])
-    column = {n: j for j, n in enumerate(free)}
-    rows = set()
-    for v in votes:
-        x = [0] * len(free)
-        if v.test in column:
-            x[column[v.test]] += 1
-        if v.reference in column:
-            x[column[v.reference]] -= 1
-        rows.add((*x, category[v.score]))
+    category = np.searchsorted(levels, [v.score for v in votes])
+    cells = np.unique(np.column_stack([_contrasts(votes, free), category]), axis=0)
+    x, k = cells[:, :-1], cells[:, -1].astype(int)
     # Each row g with g . d >= 0 for a direction d = (values, t): upper bounds may not fall, lower ones not rise.
-    g = []
-    for *x, k in sorted(rows):
-        if k < len(cut_map):
-            g.append(np.concatenate([-np.array(x, float), cut_map[k]]))
-        if k > 0:
-            g.append(np.concatenate([np.array(x, float), -cut_map[k - 1]]))
-    g = np.array(g)
+    upper, lower = k < len(cut_map), k > 0
+    g = np.concatenate([np.column_stack([-x[upper], cut_map[k[upper]]]),
+                        np.column_stack([x[lower], -cut_map[k[lower] - 1]])])
     # The cut positions stay ordered along d (implied when every level is used; stated for the solver).
     order = np.zeros((m, len(free) + m))
     for j in range(m):
@@ -268,7 +274,7 @@ def _threshold_separation(votes: list[GradedComparison], anchor: str) -> dict[st
     if most(g.sum(axis=0)) <= _LP_TOL:
         return {}
     bounds: dict[str, Literal["above", "below"] | None] = {}
-    for name, j in column.items():
+    for j, name in enumerate(free):
         unit = np.zeros(len(free) + m)
         unit[j] = 1
         up, down = most(unit) > _LP_TOL, most(-unit) > _LP_TOL
@@ -361,18 +367,11 @@ def rank_conditions(comparisons: Iterable[GradedComparison | tuple[str, str, str
 def _fit(votes: list[GradedComparison], others: list[str], link: Link,
          level: float) -> tuple[list[ConditionScale], dict[str, object]]:
     """Maximum likelihood fit on votes whose conditions all have finite values; ``others``: all but the anchor."""
-    magnitudes = sorted({abs(v.score) for v in votes})
-    zero_cut = magnitudes[0] != 0  # no "no difference" answer used: the middle cut sits at 0
-    levels = sorted({s * m for m in magnitudes for s in (-1, 1)})
+    zero_cut, levels = _answer_levels(votes)
     category = {s: i for i, s in enumerate(levels)}  # every used score is a level
     free = [n for n in others if any(n in (v.reference, v.test) for v in votes)]
     column = {n: j for j, n in enumerate(free)}
-    x = np.zeros((len(votes), len(free)))
-    for i, v in enumerate(votes):
-        if v.test in column:
-            x[i, column[v.test]] += 1
-        if v.reference in column:
-            x[i, column[v.reference]] -= 1
+    x = _contrasts(votes, free)
     y = np.array([category[v.score] for v in votes])
     n_beta = len(free)
 
@@ -380,7 +379,7 @@ def _fit(votes: list[GradedComparison], others: list[str], link: Link,
         loglik, grad = vote_log_likelihood(params, x, y, zero_cut, n_beta, link)
         return -float(loglik.sum()), -grad.sum(axis=0)
 
-    opt = optimize.minimize(objective, np.zeros(n_beta + len(magnitudes) - 1), jac=True, method="BFGS",
+    opt = optimize.minimize(objective, np.zeros(n_beta + (len(levels) - 1) // 2), jac=True, method="BFGS",
                             options={"gtol": 1e-9, "maxiter": 2000})
     params = opt.x
     # BFGS reports "precision loss" at a gradient already ~1e-8 on easy problems: judge by the gradient itself.
