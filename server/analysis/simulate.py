@@ -142,7 +142,8 @@ def summarise(design: Design, truth: dict[str, float], participants: int, seeds:
 def power(design: Design, effect: float, participants: int, seeds: int,
           observers: Observers = Observers()) -> float:
     """The share of simulated studies in which the 95 % interval (cluster-robust, ``ranking``) of the first
-    condition excludes the reference, every condition ``effect`` logit units above the reference."""
+    condition excludes the reference, or the condition has no finite value (separated: a bound), every condition
+    ``effect`` logit units above the reference."""
     truth = {c: 0.0 if c == design.reference else effect for c in design.all_conditions()}
     first = design.conditions[0]
     hits = 0
