@@ -66,13 +66,13 @@ window.DashboardScreening = (() => {
     $("excluded-empty").hidden = s.excluded.length > 0;
     renderCalibration(s);
     const m = res.subject_model;
-    if (m && m.status !== "too_few") {
+    if (m && m.comparisons) {
       Researcher.fillTable($("table-subject-comparisons"), ["comparison", "modelled score", "95 % CI"],
             m.comparisons.map((c) => [`${c.animation}, ${c.condition}`, fmt(c.score), interval(c.ci95)]));
       Researcher.fillTable($("table-subject-participants"), ["participant", "bias", "95 % CI", "inconsistency", "95 % CI"],
             m.participants.map((q) => [short(q.session_id), fmt(q.bias), interval(q.bias_ci95), fmt(q.inconsistency),
                                        interval(q.inconsistency_ci95)]));
-      $("subject-model-note").textContent = `Maximum likelihood, ${m.iterations} iterations (${m.status}).`;
+      $("subject-model-note").textContent = m.note || `Maximum likelihood, ${m.iterations} iterations (${m.status}).`;
     } else {
       $("table-subject-comparisons").replaceChildren();
       $("table-subject-participants").replaceChildren();

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from server.analysis.subject_model import fit
 
@@ -131,3 +132,30 @@ def test_unanimous_answers_do_not_raise():
     None), as sureal's would."""
     m = fit(np.zeros((4, 3, 2)), [0, 0, 1, 1])
     assert not m.converged and np.isnan(m.quality).all()
+
+
+def test_a_fit_without_maximum_is_named_degenerate():
+    """Two participants answering at random (seeded): participant 1 gave both showings of every comparison of
+    contents 2 and 3 the same answer.  Scoring those comparisons at that participant's answers (minus their bias)
+    and letting their inconsistency and the content's ambiguity go to 0 raises the likelihood without end (checked
+    here with scipy's normal density, not the module's), so the fit cannot be a maximum and must say so."""
+    rng = np.random.default_rng(0)
+    x = rng.choice([-2, -1, 0, 1, 2], p=[0.05, 0.15, 0.5, 0.2, 0.1], size=(8, 2, 2)).astype(float)
+    content = np.array([0, 0, 1, 1, 2, 2, 3, 3])
+    m = fit(x, content)
+    assert m.converged and m.degenerate
+    for s, c in m.degenerate:  # a participant whose showings agree on every comparison of that content
+        assert np.all(x[content == c, s, 0] == x[content == c, s, 1]), (s, c)
+    s, c = m.degenerate[0]
+
+    def loglik(eps):
+        q = np.where(content == c, x[:, s, 0], x.mean(axis=(1, 2)))  # participant s's bias taken as 0
+        sd = np.sqrt(np.array([[eps, 1.0]] if s == 0 else [[1.0, eps]]) ** 2
+                     + np.where(content == c, eps, 0.5)[:, None] ** 2)  # (E, S): v_s and a_c at eps
+        return stats.norm.logpdf(x, q[:, None, None], sd[:, :, None]).sum()
+
+    assert loglik(1e-2) < loglik(1e-4) < loglik(1e-8)
+    # A panel that does vary (the planted test's) is not degenerate.
+    rng = np.random.default_rng(3)
+    varied = np.linspace(-1.5, 1.5, 12)[:, None, None] + rng.normal(0, 0.5, (12, 20, 2))
+    assert fit(varied, [e % 4 for e in range(12)]).degenerate == ()

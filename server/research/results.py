@@ -67,8 +67,17 @@ def _subject_model_cached(votes: tuple[tuple[tuple[str, Any], ...], ...]) -> dic
         return {"status": "too_few", "note": "needs at least two participants and two comparisons"}
     animations = sorted({a for a, _, _ in comparisons})
     model = fit(x, [animations.index(a) for a, _, _ in comparisons])
+    status = "degenerate" if model.degenerate else "ok" if model.converged else "not_converged"
+    note = None
+    if model.degenerate:
+        who = "; ".join(f"participant {subjects[s][:8]} on {animations[c]}" for s, c in model.degenerate)
+        note = (f"No maximum likelihood fit: {who} answered exactly as the model predicts (both showings alike, the "
+                "animation adding no spread of its own), so the likelihood grows without end as that participant's "
+                "inconsistency and the animation's ambiguity go to 0. The numbers are where the solver stopped (as "
+                "sureal's), not estimates.")
     return {
-        "status": "ok" if model.converged else "not_converged", "iterations": model.iterations,
+        "status": status, "note": note, "iterations": model.iterations,
+        "degenerate": [{"session_id": subjects[s], "animation": animations[c]} for s, c in model.degenerate],
         "comparisons": [{"animation": a, "reference": r, "condition": t, "score": finite_or_none(model.quality[e]),
                          "ci95": [finite_or_none(v) for v in model.quality_ci95[e]]}
                         for e, (a, r, t) in enumerate(comparisons)],
