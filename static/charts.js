@@ -124,7 +124,7 @@ const Charts = (() => {
       const y = top + i * rowH + rowH / 2;
       root.appendChild(el("text", { x: left - 8, y: y + 4, "text-anchor": "end" }, row.label));
       if (row.value === null || row.value === undefined) {
-        root.appendChild(el("text", { x: x(0) + 6, y: y + 4, class: "muted" }, "no data"));
+        root.appendChild(el("text", { x: x(0) + 6, y: y + 4, class: "muted" }, row.missing || "no data"));
         return;
       }
       if (row.ci) {

@@ -21,7 +21,10 @@
   let timer = null;
 
   const label = (c) => `${c.animation}, ${c.condition}`;
-  const fmt = (v, digits = 3) => (v === null || v === undefined ? "–" : Number(v).toFixed(digits));
+  // -0.00 reads as a sign where there is none: toFixed keeps the sign of a value that rounds to 0.
+  const fmt = (v, digits = 3) => (v === null || v === undefined ? "–" : (Number(v).toFixed(digits)).replace(/^-(0\.?0*)$/, "$1"));
+  // A condition without a finite scale value (ranking status "separated"): which way it runs off, if known.
+  const unbounded = (bound) => (bound ? `no finite value (${bound} the reference)` : "–");
   const p = (v) => (v === null || v === undefined ? "–" : v < 0.001 ? "< 0.001" : v.toFixed(3));
 
   const api = Researcher.api;
@@ -101,7 +104,7 @@
       `Krippendorff's α (ordinal): ${fmt(res.krippendorff_alpha_ordinal, 2)}. ${res.methods.wilcoxon}.`;
     Researcher.fillTable($("table-ranking"), ["animation", "condition", "scale value", "95 % CI", "votes", "fit"],
           (res.rankings || []).flatMap((r) => r.conditions.map((c) => [
-            r.animation, c.condition, c.value == null ? (c.bound ? `${c.bound} all others` : "–") : fmt(c.value, 2),
+            r.animation, c.condition, c.value == null ? unbounded(c.bound) : fmt(c.value, 2),
             c.ci95 ? `${fmt(c.ci95[0], 2)} … ${fmt(c.ci95[1], 2)}` : "–", c.votes, r.fit.status])));
     renderScale(res);
     renderThresholds(res.thresholds);
@@ -121,13 +124,14 @@
   function renderScale(res) {
     const scales = res.scale || [];
     const rows = scales.flatMap((s) => s.conditions.map((c, i) => ({
-      label: `${s.animation}, ${c}`, value: s.value[i], ci: s.ci95[i] })));
-    const values = rows.flatMap((r) => (r.ci ? r.ci : [r.value])).filter((v) => v !== null && v !== undefined);
+      label: `${s.animation}, ${c}`, value: s.value[i], ci: s.ci95[i], missing: s.bound[i] ? unbounded(s.bound[i]) : null })));
+    // The axis spans what is drawn: a row without a value shows its text only, not its bootstrap interval.
+    const values = rows.filter((r) => r.value !== null && r.value !== undefined).flatMap((r) => (r.ci ? r.ci : [r.value]));
     const lo = Math.floor(Math.min(0, ...values) * 2) / 2, hi = Math.ceil(Math.max(0, ...values) * 2) / 2;
     $("chart-scale").replaceChildren(Charts.forest(rows, lo, Math.max(hi, lo + 0.5), "Scale per animation"));
     Researcher.fillTable($("table-scale"), ["animation", "condition", "scale value", "95 % CI", "JND", "participants", "fit"],
           scales.flatMap((s) => s.conditions.map((c, i) => [
-            s.animation, c, fmt(s.value[i], 2), s.ci95[i] ? `${fmt(s.ci95[i][0], 2)} … ${fmt(s.ci95[i][1], 2)}` : "–",
+            s.animation, c, s.value[i] == null ? unbounded(s.bound[i]) : fmt(s.value[i], 2), s.ci95[i] ? `${fmt(s.ci95[i][0], 2)} … ${fmt(s.ci95[i][1], 2)}` : "–",
             fmt(s.value_jnd[i], 2), s.participants, s.status])));
     const matrix = (cell) => scales.flatMap((s) => s.conditions.map((c, i) => [
       `${s.animation}, ${c}`, ...s.conditions.map((_, j) => cell(s, i, j))]));

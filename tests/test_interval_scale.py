@@ -137,3 +137,14 @@ def test_batched_newton_refits_equal_one_fit_per_resample():
     got = _ridge_all(x, y, weight.astype(float), expected.mean(axis=0))
     np.testing.assert_allclose(got, expected, atol=1e-5)
     assert np.abs(got[:, :n]).max() > 2  # nearly separated resamples among them
+
+
+def test_a_separated_condition_has_no_value_and_says_which_way():
+    """Almost every vote "no difference", a never rated worse and b never better (the ranking's separation through
+    the cut points): no value, the bound the dashboard shows, and still the bootstrap's interval."""
+    votes = [GradedComparison(f"p{p}", "ref", c, 0) for p in range(10) for c in ("a", "b") for _ in range(4)]
+    votes[0], votes[4] = votes[0]._replace(score=1), votes[4]._replace(score=-1)  # p0: a +1, b -1
+    scale = animation_scale("walk", votes, ["ref", "a", "b"], n_boot=50)
+    assert scale.status == "separated" and scale.value == (0.0, None, None)
+    assert scale.bound == (None, "above", "below")
+    assert scale.ci95[1][0] >= 0 and scale.ci95[2][1] <= 0

@@ -186,6 +186,8 @@ class AnimationScale:
     n_boot: int
     status: str  # ranking.RankingFit.status of the point fit
     message: str
+    # Per condition, for a value None because the point fit is separated: "above"/"below" the anchor (or None).
+    bound: tuple[str | None, ...] = ()
 
 
 def bootstrap_draws(participants: Sequence[str], n_boot: int, seed: int) -> np.ndarray:
@@ -205,8 +207,8 @@ def animation_scale(animation: str, votes: Sequence[GradedComparison], condition
         counts[index[v.reference], index[v.test]] += 1
         counts[index[v.test], index[v.reference]] += 1
     ranking = rank_conditions(used, anchor=names[0], conditions=names)
-    point = {c.condition: c.value for c in ranking.conditions}
-    value = tuple(point[n] for n in names)
+    point = {c.condition: c for c in ranking.conditions}
+    value = tuple(point[n].value for n in names)
     people = list(dict.fromkeys(v.participant for v in used))
     n = len(names)
     ci: list[tuple[float, float] | None] = [None] * n
@@ -234,7 +236,7 @@ def animation_scale(animation: str, votes: Sequence[GradedComparison], condition
         animation, tuple(names), value, tuple(ci),
         tuple(None if v is None or jnd is None else v / jnd for v in value), jnd,
         tuple(tuple(row) for row in p_better), tuple(tuple(int(c) for c in row) for row in counts),
-        len(people), n_boot, ranking.fit.status, ranking.fit.message)
+        len(people), n_boot, ranking.fit.status, ranking.fit.message, tuple(point[n].bound for n in names))
 
 
 def study_scales(rows: Sequence[dict], conditions: Sequence[str], n_boot: int = N_BOOT) -> list[dict]:

@@ -70,7 +70,10 @@ def _subject_model_cached(votes: tuple[tuple[tuple[str, Any], ...], ...]) -> dic
     status = "degenerate" if model.degenerate else "ok" if model.converged else "not_converged"
     note = None
     if model.degenerate:
-        who = "; ".join(f"participant {subjects[s][:8]} on {animations[c]}" for s, c in model.degenerate)
+        on: dict[int, list[str]] = {}
+        for s, c in model.degenerate:
+            on.setdefault(s, []).append(animations[c])
+        who = "; ".join(f"participant {subjects[s][:8]} on {', '.join(names)}" for s, names in on.items())
         note = (f"No maximum likelihood fit: {who} answered exactly as the model predicts (both showings alike, the "
                 "animation adding no spread of its own), so the likelihood grows without end as that participant's "
                 "inconsistency and the animation's ambiguity go to 0. The numbers are where the solver stopped (as "
