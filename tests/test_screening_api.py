@@ -72,7 +72,11 @@ def test_rules_flag_in_the_export_and_the_results_with_and_without_screening(cli
     assert [c["n_participants"] for c in results["without_screening"]["comparisons"]] == [6] * 8
     assert results["without_screening"]["participants"]["screened_out"] == 0
     model = results["subject_model"]
-    assert model["status"] == "ok" and len(model["participants"]) == 3 and len(model["comparisons"]) == 8
+    assert len(model["participants"]) == 3 and len(model["comparisons"]) == 8
+    # Three simulated whole-number panels: sometimes one answers an animation exactly as modelled (no maximum
+    # likelihood, docs/screening.md); the trial orders, hence the data, differ from run to run.
+    assert model["status"] == ("degenerate" if model["degenerate"] else "ok")
+    assert (model["note"] is not None) == bool(model["degenerate"])
 
 
 def test_the_default_is_the_catch_rule_and_a_study_without_catch_rule_keeps_careless_answers(client, db,
