@@ -49,11 +49,15 @@ def _design(votes: Sequence[GradedComparison], names: Sequence[str]) -> tuple[np
     return x, np.array([v.score + 2 for v in votes], dtype=int)
 
 
+def _prior(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ridge's precision and centre for ``n`` scale values and the 2 cut log-increments."""
+    return np.concatenate([np.full(n, BOOT_PRIOR_SD**-2), np.full(2, 1e-2)]), np.concatenate([np.zeros(n), _CUT_START])
+
+
 def _ridge(x: np.ndarray, y: np.ndarray, start: np.ndarray | None, weight: np.ndarray) -> np.ndarray:
     """The ridge fit of the rows ``x``, ``y``, each counted ``weight`` times."""
     n = x.shape[1]
-    precision = np.concatenate([np.full(n, BOOT_PRIOR_SD**-2), np.full(2, 1e-2)])
-    centre = np.concatenate([np.zeros(n), _CUT_START])
+    precision, centre = _prior(n)
 
     def objective(params: np.ndarray) -> tuple[float, np.ndarray]:
         loglik, grad = vote_log_likelihood(params, x, y, False, n, "logit")
@@ -122,9 +126,7 @@ def _ridge_all(x: np.ndarray, y: np.ndarray, weight: np.ndarray, start: np.ndarr
     """The ridge fits of all resamples at once (``weight`` (B, C)), by Newton's method from ``start`` with
     step halving; a resample that has not converged after ``_NEWTON_STEPS`` steps, or whose step cannot lower the
     objective, is fitted on its own by :func:`_ridge` (BFGS)."""
-    n = x.shape[1]
-    precision = np.concatenate([np.full(n, BOOT_PRIOR_SD**-2), np.full(2, 1e-2)])
-    centre = np.concatenate([np.zeros(n), _CUT_START])
+    precision, centre = _prior(x.shape[1])
     params = np.tile(start, (len(weight), 1))
     value, grad, hess = _ridge_terms(params, x, y, weight, precision, centre)
     active = np.ones(len(weight), dtype=bool)

@@ -259,11 +259,7 @@ def _threshold_separation(votes: list[GradedComparison], anchor: str) -> dict[st
     g = np.concatenate([np.column_stack([-x[upper], cut_map[k[upper]]]),
                         np.column_stack([x[lower], -cut_map[k[lower] - 1]])])
     # The cut positions stay ordered along d (implied when every level is used; stated for the solver).
-    order = np.zeros((m, len(free) + m))
-    for j in range(m):
-        order[j, len(free) + j] = 1
-        if j:
-            order[j, len(free) + j - 1] = -1
+    order = np.column_stack([np.zeros((m, len(free))), np.eye(m) - np.eye(m, k=-1)])  # t_j - t_(j-1) >= 0
     constraints = np.concatenate([-g, -order])
 
     def most(objective: np.ndarray) -> float:
