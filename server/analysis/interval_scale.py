@@ -144,8 +144,12 @@ def _ridge_all(x: np.ndarray, y: np.ndarray, weight: np.ndarray, start: np.ndarr
         scale = np.ones(len(idx))
         for _ in range(30):  # halve each step until the objective does not rise
             trial = params[idx] + scale[:, None] * step
-            t_value, t_grad, t_hess = _ridge_terms(trial, x, y, weight[idx], precision, centre)
-            ok = t_value <= value[idx] + 1e-12 * np.abs(value[idx])
+            # A step far out can give a vote a probability near 0 (floored at 1e-300), whose squared derivative
+            # overflows: such a step is not taken (halved), never a warning that fails the request.
+            with np.errstate(over="ignore", invalid="ignore"):
+                t_value, t_grad, t_hess = _ridge_terms(trial, x, y, weight[idx], precision, centre)
+            finite = np.isfinite(t_value) & np.isfinite(t_grad).all(axis=1) & np.isfinite(t_hess).all(axis=(1, 2))
+            ok = finite & (t_value <= value[idx] + 1e-12 * np.abs(value[idx]))
             done = idx[ok]
             params[done], value[done], grad[done], hess[done] = trial[ok], t_value[ok], t_grad[ok], t_hess[ok]
             idx, step, scale = idx[~ok], step[~ok], scale[~ok] / 2
