@@ -1,7 +1,6 @@
-"""Planted observers through threshold designs (issue 38): constant stimuli and QUEST+ (the ``questplus``
-package), the psychometric fit of :mod:`server.analysis.psychometric` on what they answered, and the trials
-each design needs for a threshold interval of a given width (``animstudy study plan --thresholds``;
-docs/methods/thresholds.md).
+"""Planted observers through threshold designs (issue 38): constant stimuli and QUEST+ (:mod:`.quest`), the
+psychometric fit of :mod:`server.analysis.psychometric` on what they answered, and the trials each design needs
+for a threshold interval of a given width (``animstudy study plan --thresholds``; docs/methods/thresholds.md).
 
 An observer answers a 2AFC trial at level ``v`` correctly with probability
 ``0.5 + (0.5 - lapse) * Phi(sign * (log10 v - log10 threshold) / s)``, ``s = width / (2 Phi^-1(0.95))``.
@@ -16,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
+from . import quest
 from .psychometric import GUESS_2AFC, Z_WIDTH, Fit, fit
 
 #: the ladder of the issue's example (poses per second) and a planted observer on it
@@ -49,37 +49,22 @@ def constant_stimuli(observer: Observer, levels: Sequence[float], repeats: int,
     return Counts(lv, n, rng.binomial(n, observer.p(lv)))
 
 
-def _quest_domains(levels: Sequence[float], increasing: bool) -> tuple[list[float], dict]:
-    """QUEST+'s stimulus and parameter domains on the log10 scale (signed so that detection grows with x), as
-    the staircase designs use them: thresholds over the ladder's span and a quarter of it either side."""
-    xs = [(1 if increasing else -1) * math.log10(v) for v in levels]
-    lo, hi = min(xs), max(xs)
-    span = hi - lo
-    params = {"mean": list(np.linspace(lo - span / 4, hi + span / 4, 21)),
-              "sd": [f * span for f in (0.05, 0.1, 0.2, 0.4, 0.8)],
-              "lower_asymptote": [GUESS_2AFC], "lapse_rate": [0.01, 0.05]}
-    return xs, params
-
-
 def quest_plus(observer: Observer, levels: Sequence[float], trials: int, rng: np.random.Generator) -> Counts:
-    """One QUEST+ staircase (``questplus``, minimum expected entropy, cumulative normal) of ``trials`` trials
-    over ``levels``; the observer's answers drawn from ``rng``."""
-    import questplus
-
-    xs, params = _quest_domains(levels, observer.increasing)
-    q = questplus.QuestPlus(stim_domain={"intensity": xs}, param_domain=params,
-                            outcome_domain={"response": ["Yes", "No"]}, func="norm_cdf", stim_scale="linear",
-                            stim_selection_method="min_entropy")
-    by_x = {round(x, 12): i for i, x in enumerate(xs)}
+    """One QUEST+ staircase (:mod:`.quest`: minimum expected entropy, cumulative normal on the log10 levels,
+    signed so that detection grows with them; the staircase designs' grid) of ``trials`` trials over ``levels``;
+    the observer's answers drawn from ``rng``."""
+    xs = tuple((1 if observer.increasing else -1) * math.log10(v) for v in levels)
+    detection = quest.Grid(xs, (GUESS_2AFC,)).detection()
     lv = np.asarray(levels, dtype=float)
     n = np.zeros(len(lv), dtype=int)
     k = np.zeros(len(lv), dtype=int)
+    post = quest.posterior(detection, [])
     for _ in range(trials):
-        i = by_x[round(float(q.next_stim["intensity"]), 12)]
+        i = quest.next_index(detection, post)
         ok = bool(rng.random() < observer.p(lv[i : i + 1])[0])
         n[i] += 1
         k[i] += ok
-        q.update(stim={"intensity": xs[i]}, outcome={"response": "Yes" if ok else "No"})
+        post = quest.update(post, detection, i, ok)
     return Counts(lv, n, k)
 
 

@@ -9,38 +9,31 @@ that trial (no preload of an undecided trial: ``router.trial_read``).  The choic
 design and the answers (QUEST+ with the minimum-entropy rule is deterministic), so :func:`replay` recomputes every
 level from the vote log.
 
-The psychometric model (``questplus``' cumulative normal): intensity is the level on a log scale (linear if a
-level is not positive), signed so that it grows towards the ladder's easily detected end; the probability of
-telling the test from the reference has the guess rate of the format as its floor (0.5 for 2AFC; a grid of
-false-alarm rates for same/different) and a small lapse rate.
+The psychometric model (:mod:`server.analysis.quest`: QUEST+'s cumulative normal): intensity is the level on a
+log scale (linear if a level is not positive), signed so that it grows towards the ladder's easily detected end;
+the probability of telling the test from the reference has the guess rate of the format as its floor (0.5 for
+2AFC; a grid of false-alarm rates for same/different) and a small lapse rate.
 """
 
 from __future__ import annotations
 
-import copy
 import math
 import random
-import threading
-from collections import OrderedDict
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Any
 
 import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, aliased
 
+from server.analysis import quest
 from server.studies.design import ComparisonIds, Design, PlannedTrial, arrange
 from server.studies.models import Comparison, ComparisonKind, Stimulus
 from server.studies.scale import detected
 
 from .models import ParticipantSession, Trial, Vote
 
-# Grid sizes of the parameter domain: thresholds, slopes (as a fraction of the ladder's span) and lapse rates.
-THRESHOLDS = 21
-SLOPES = (0.05, 0.1, 0.2, 0.4, 0.8)
-LAPSES = (0.01, 0.05)
 FALSE_ALARMS = (0.0, 0.1, 0.2)  # same/different: "different" said of identical clips
 
 
@@ -52,59 +45,27 @@ def intensities(design: Design) -> dict[str, float]:
     return {c: sign * (math.log10(v) if logged else v) for c, v in levels.items()}
 
 
+def _grid(xs: tuple[float, ...], answer_format: str) -> quest.Grid:
+    return quest.Grid(xs, (0.5,) if answer_format == "2afc" else FALSE_ALARMS)
+
+
 @lru_cache(maxsize=64)
-def _domains(xs: tuple[float, ...], answer_format: str) -> tuple[dict, dict]:
-    lo, hi = min(xs), max(xs)
-    span = hi - lo or 1.0
-    params = {"mean": list(np.linspace(lo - span / 4, hi + span / 4, THRESHOLDS)),
-              "sd": [s * span for s in SLOPES],
-              "lower_asymptote": [0.5] if answer_format == "2afc" else list(FALSE_ALARMS),
-              "lapse_rate": list(LAPSES)}
-    return {"intensity": list(xs)}, params
-
-
-# Staircases after a history, most recently used last: a session's next answer extends its last history by one,
-# so a vote costs one QUEST+ update (~20 ms) instead of a replay of the whole history (a cache miss, e.g. on
-# another server instance, replays it: the same result).
-_STATES: OrderedDict[tuple, Any] = OrderedDict()
-_STATES_MAX = 512
-_LOCK = threading.Lock()
-
-
-def _staircase(xs: tuple[float, ...], answer_format: str, history: tuple[tuple[float, bool], ...]) -> Any:
-    """The QUEST+ state after ``history`` ((intensity, detected) pairs), from the longest cached prefix."""
-    import questplus  # a second or so to import; only staircase studies need it
-
-    with _LOCK:
-        for n in range(len(history), -1, -1):
-            cached = _STATES.get((xs, answer_format, history[:n]))
-            if cached is not None:
-                _STATES.move_to_end((xs, answer_format, history[:n]))
-                q = copy.deepcopy(cached)
-                break
-        else:
-            stim, params = _domains(xs, answer_format)
-            q = questplus.QuestPlus(stim_domain=stim, param_domain=params,
-                                    outcome_domain={"response": ["Yes", "No"]}, func="norm_cdf",
-                                    stim_scale="linear", stim_selection_method="min_entropy")
-            _STATES[(xs, answer_format, ())] = copy.deepcopy(q)
-            n = 0
-    for x, seen in history[n:]:
-        q.update(stim={"intensity": x}, outcome={"response": "Yes" if seen else "No"})
-    with _LOCK:
-        _STATES[(xs, answer_format, history)] = q
-        while len(_STATES) > _STATES_MAX:
-            _STATES.popitem(last=False)
-    return q
+def _detection(xs: tuple[float, ...], answer_format: str) -> np.ndarray:
+    """P(detected) per intensity and parameter (:meth:`server.analysis.quest.Grid.detection`); read-only."""
+    detection = _grid(xs, answer_format).detection()
+    detection.flags.writeable = False
+    return detection
 
 
 def next_condition(design: Design, answer_format: str, history: Iterable[tuple[str, bool]]) -> str:
     """The level (condition id) QUEST+ chooses after ``history``: (condition shown, detected) of one animation's
-    staircase trials so far, in order."""
+    staircase trials so far, in order.  The whole history is replayed each time (microseconds a trial)."""
     levels = intensities(design)
-    by_x = {round(x, 12): c for c, x in levels.items()}
-    q = _staircase(tuple(levels.values()), answer_format, tuple((levels[c], bool(d)) for c, d in history))
-    return by_x[round(float(q.next_stim["intensity"]), 12)]
+    conditions = list(levels)
+    index = {c: i for i, c in enumerate(conditions)}
+    detection = _detection(tuple(levels.values()), answer_format)
+    answers = [(index[c], bool(d)) for c, d in history]
+    return conditions[quest.next_index(detection, quest.posterior(detection, answers))]
 
 
 @dataclass(frozen=True)
@@ -201,8 +162,10 @@ def estimate(design: Design, answer_format: str, history: Iterable[tuple[str, bo
     """The posterior mean of the staircase's parameters after ``history``, the threshold (``mean``) and spread
     (``sd``) also as a ladder level (``threshold_level``: the level at the midpoint between guess rate and 1)."""
     levels = intensities(design)
-    q = _staircase(tuple(levels.values()), answer_format, tuple((levels[c], bool(d)) for c, d in history))
-    params = {k: float(v) for k, v in q.param_estimate.items()}
+    index = {c: i for i, c in enumerate(levels)}
+    detection = _detection(tuple(levels.values()), answer_format)
+    post = quest.posterior(detection, [(index[c], bool(d)) for c, d in history])
+    params = _grid(tuple(levels.values()), answer_format).mean(post)
     logged = all(v > 0 for v in design.level_order().values())
     x = params["mean"] * (-1.0 if design.detectable_at == "low" else 1.0)
     params["threshold_level"] = 10**x if logged else x
