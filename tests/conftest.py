@@ -128,6 +128,21 @@ def data() -> Path:
     return data_dir()
 
 
+@pytest.fixture(scope="session", autouse=True)
+def cheap_password_hashes():
+    """Researcher passwords hashed at argon2's cheapest parameters in the test process: each account and login
+    of a test otherwise costs ~0.1-0.15 s of both cores (64 MiB, 4 lanes), over 100 s a suite.  Same code path,
+    the parameters are stored in each hash; tests/test_security.py checks the production ones in a process of its
+    own, and subprocess servers keep them."""
+    from argon2 import PasswordHasher, profiles
+
+    from server.researchers import service
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(service, "_hasher", PasswordHasher.from_parameters(profiles.CHEAPEST))
+        yield
+
+
 @pytest.fixture(scope="session")
 def bvh_paths(data: Path) -> list[Path]:
     paths = sorted(data.glob("mocap/**/*.bvh*"))

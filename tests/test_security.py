@@ -3,6 +3,7 @@
 import base64
 import re
 from datetime import timedelta
+from pathlib import Path
 
 import jwt
 
@@ -131,3 +132,18 @@ def test_blinding_audit_of_everything_a_participant_reaches(client, study):
     assert not leaks, leaks
     # The audit can fail: the same search does find the words where they belong (the researcher side).
     assert BLIND.search(client.get("/api/v1/data-dictionary").text)
+
+
+def test_passwords_are_hashed_with_argon2id_at_rfc_9106_low_memory_outside_the_tests():
+    """The suite hashes at argon2's cheapest parameters (tests/conftest.py); a process of its own, as a server runs,
+    hashes at RFC 9106's second recommendation: argon2id, 64 MiB, 3 passes, 4 lanes."""
+    import subprocess
+    import sys
+
+    from argon2 import PasswordHasher
+
+    code = "from server.researchers import service; print(service._hasher.hash('correct horse battery'))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=Path(__file__).resolve().parents[1]).stdout.strip()
+    assert out.startswith("$argon2id$v=19$m=65536,t=3,p=4$"), out
+    assert PasswordHasher().verify(out, "correct horse battery")
