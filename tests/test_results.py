@@ -100,9 +100,17 @@ def test_results_match_an_independent_computation_from_the_csv(client, study, db
         votes = [(r["session_id"], r["reference_condition"], r["test_condition"], int(r["score"])) for r in rows
                  if r["animation"] == entry["animation"] and r["practice"] == "false" and r["catch"] == "false"]
         expected = rank_conditions(votes)
-        assert entry["fit"]["n_votes_used"] == len(votes) and entry["fit"]["anchor"] == "keyframe"
+        # Every analysed vote reaches the model; it fits all of them unless a condition is separated: idle's
+        # hybrids never rated on one side of the reference happen in ~3 % of these simulated panels (3,000 run
+        # outside the database: 98 idle, 3 walk), and failed CI once (eac5d76).
+        assert (entry["fit"]["n_votes"], entry["fit"]["anchor"]) == (len(votes), "keyframe")
+        assert (entry["fit"]["status"], entry["fit"]["n_votes_used"]) == (expected.fit.status,
+                                                                         expected.fit.n_votes_used)
+        assert entry["fit"]["status"] == "separated" or entry["fit"]["n_votes_used"] == len(votes)
         assert {c["condition"]: c["value"] for c in entry["conditions"]} == pytest.approx(
             {c.condition: c.value for c in expected.conditions}, abs=1e-9)
+        assert {c["condition"]: c["bound"] for c in entry["conditions"]} == {
+            c.condition: c.bound for c in expected.conditions}
         for c in entry["conditions"]:
             if c["condition"] != "keyframe" and c["value"] is not None:
                 mean = sum(v[3] for v in votes if v[2] == c["condition"]) / sum(v[2] == c["condition"] for v in votes)
