@@ -158,7 +158,7 @@ def test_constant_stimuli_recovers_planted_threshold_in_90_percent() -> None:
 
 @pytest.mark.slow
 def test_quest_plus_recovers_planted_threshold_in_90_percent() -> None:
-    """100 seeds, 60 QUEST+ trials each (questplus, 1-5 s a staircase on a loaded machine: 2-8 min).  The
+    """100 seeds, 60 QUEST+ trials each (server.analysis.quest, 4 ms a staircase; it was 1-5 s through questplus).  The
     profile-likelihood interval: the parametric bootstrap at the observed counts per level ignores that QUEST+
     chose the levels from the answers, and covered 86 % of 100 seeds (measured), below the 90 % asked."""
     assert _coverage("staircase", 60, 100, profile=True) >= 0.9
