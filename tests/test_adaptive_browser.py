@@ -67,7 +67,7 @@ def site(data, tmp_path_factory):
     var = tmp_path_factory.mktemp("var")
     with cli_environment(data, var, "adaptive-test-secret-0123456789abcdef"):
         run("clips", "build", "--config", str(study_clip_set(var)))
-        run("render", "--width", "160", "--height", "120", "--no-shadows", "--study", str(STUDY))
+        run("render", "--width", "160", "--height", "120", "--no-shadows", "--workers", "1", "--study", str(STUDY))
         run("study", "create", str(STUDY), "--open")
         settings = Settings()
     engine = make_engine(settings.sqlalchemy_url)

@@ -415,7 +415,7 @@ def test_a_study_from_a_mixamo_bvh_end_to_end(data, sources, tmp_path, monkeypat
     study.write_text(head.replace('slug = "thesis"', 'slug = "byo"') + STUDY_DESIGN + tail[tail.index("\n["):],
                      encoding="utf-8")
     assert main(["render", "--study", str(study), "--clips", str(var / "clips"), "--out", str(var / "media"),
-                 "--width", "96", "--height", "72", "--no-shadows"]) == 0
+                 "--width", "96", "--height", "72", "--no-shadows", "--workers", "1"]) == 0
     rendered = read_render_manifest(var / "media")
     assert rendered.settings["width"] == 96 and set(rendered.clips) == {
         "walk-keyframe", "walk-hybrid0", "squat-keyframe", "squat-hybrid0"}

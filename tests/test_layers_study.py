@@ -169,7 +169,8 @@ def site(data, tmp_path_factory):
     var = tmp_path_factory.mktemp("var")
     with cli_environment(data, var, "layers-test-secret-0123456789abcdef"):
         logs = {"build": run("clips", "build", "--config", str(CLIP_SET))}
-        logs["render"] = run("render", "--width", "160", "--height", "120", "--no-shadows", "--study", str(STUDY))
+        logs["render"] = run("render", "--width", "160", "--height", "120", "--no-shadows", "--workers", "1",
+                             "--study", str(STUDY))
         logs["create"] = run("study", "create", str(STUDY), "--open")
         settings = Settings()
     engine = make_engine(settings.sqlalchemy_url)

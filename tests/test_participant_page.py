@@ -42,8 +42,10 @@ def site(data, built_clip_set, tmp_path_factory):
     settings = Settings(var_dir=var, data_dir=data, secret_key="browser-test-secret-0123456789abcdef")
     write_clip_set(built_clip_set(), settings.clips_dir)
     study_file = thesis_study()
+    # In this process (workers=1), as the end-to-end tests render: beside the other test worker, a local Dask
+    # cluster's start costs more CPU than its second process saves (the cluster: test_cluster.py, test_media.py).
     manifest = render_media(data, settings.clips_dir, settings.media_dir, settings.secret, VIDEO,
-                            pairs=required_pairs(study_file.design, clip_set_index(settings.clips_dir)))
+                            pairs=required_pairs(study_file.design, clip_set_index(settings.clips_dir)), workers=1)
     engine = _fresh_engine("sqlite", tmp_path_factory)
     migrate(engine)
     factory = session_factory(engine)

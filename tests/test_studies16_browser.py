@@ -73,7 +73,7 @@ def site(data, tmp_path_factory):
     var = tmp_path_factory.mktemp("var")
     with cli_environment(data, var, "studies16-test-secret-0123456789abcdef"):
         logs = {"build": run("clips", "build", "--config", str(CLIP_SET))}
-        logs["render"] = run("render", "--width", "160", "--height", "120", "--no-shadows",
+        logs["render"] = run("render", "--width", "160", "--height", "120", "--no-shadows", "--workers", "1",
                              *[arg for path in STUDIES.values() for arg in ("--study", str(path))])
         for slug, path in STUDIES.items():
             logs[slug] = run("study", "create", str(path), "--open")

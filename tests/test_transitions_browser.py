@@ -58,7 +58,7 @@ def site(data, tmp_path_factory):
     with cli_environment(data, var, "transitions-test-secret-0123456789abcdef"):
         logs = {"build": run("clips", "build", "--config", str(CLIP_SET))}
         logs["render"] = run("render", "--width", str(WIDTH), "--height", str(HEIGHT), "--no-shadows",
-                             "--study", str(STUDY))
+                             "--workers", "1", "--study", str(STUDY))
         logs["create"] = run("study", "create", str(STUDY), "--open")
         settings = Settings()
     engine = make_engine(settings.sqlalchemy_url)

@@ -49,7 +49,7 @@ def test_update_rate_study_end_to_end(data, tmp_path):
     var = tmp_path / "var"
     with cli_environment(data, var, "update-rate-secret-0123456789abcdef"):
         run("clips", "build", "--config", str(pps_clip_set(tmp_path)))
-        run("render", "--width", "160", "--height", "120", "--no-shadows", "--study", str(STUDY))
+        run("render", "--width", "160", "--height", "120", "--no-shadows", "--workers", "1", "--study", str(STUDY))
         assert "62 trials per participant" in run("study", "create", str(STUDY), "--open")
         settings = Settings()
     levels = {(c.animation, c.condition): c.level for c in read_clip_manifest(settings.clips_dir).clips
