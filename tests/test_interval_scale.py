@@ -112,6 +112,22 @@ def test_all_pairs_recovers_the_true_order():
     assert np.mean(np.array(taus) >= 0.9) >= 0.9
 
 
+def _ridge_objective(x, y):
+    """The bootstrap's ridge objective and gradient for cells ``x``, ``y`` with weights ``w``, written from the
+    ranking's per-vote likelihood and the prior the module documents (values around 0 with sd BOOT_PRIOR_SD, the
+    cut log-increments around log 0.5 and log 1.5 with sd 10); and the prior's centre."""
+    n = x.shape[1]
+    precision = np.concatenate([np.full(n, BOOT_PRIOR_SD**-2), np.full(2, 1e-2)])
+    centre = np.concatenate([np.zeros(n), np.log([0.5, 1.5])])
+
+    def objective(params, w):
+        loglik, grad = vote_log_likelihood(params, x, y, False, n, "logit")
+        diff = params - centre
+        return -float(w @ loglik) + 0.5 * float(diff @ (precision * diff)), -w @ grad + precision * diff
+
+    return objective, centre
+
+
 def test_batched_newton_refits_equal_one_fit_per_resample():
     """The bootstrap fits all resamples at once (Newton); each must be the minimum of its own ridge objective,
     found here one resample at a time by scipy's BFGS at a tight tolerance on that objective written from the
@@ -124,14 +140,7 @@ def test_batched_newton_refits_equal_one_fit_per_resample():
     draws = bootstrap_draws(people, 40, 1)
     weight = np.stack([[np.sum(np.bincount(d, minlength=6)[int(v.participant[1:])]) for v in votes] for d in draws])
     n = len(NAMES) - 1
-    precision = np.concatenate([np.full(n, BOOT_PRIOR_SD**-2), np.full(2, 1e-2)])
-    centre = np.concatenate([np.zeros(n), np.log([0.5, 1.5])])
-
-    def objective(params, w):
-        loglik, grad = vote_log_likelihood(params, x, y, False, n, "logit")
-        diff = params - centre
-        return -float(w @ loglik) + 0.5 * float(diff @ (precision * diff)), -w @ grad + precision * diff
-
+    objective, centre = _ridge_objective(x, y)
     expected = np.array([optimize.minimize(objective, centre, args=(w,), jac=True, method="BFGS",
                                            options={"gtol": 1e-10, "maxiter": 5000}).x for w in weight])
     got = _ridge_all(x, y, weight.astype(float), expected.mean(axis=0))
@@ -170,15 +179,7 @@ def test_batched_newton_takes_no_overflowing_step():
     x, y = _design(votes, names)
     draws = bootstrap_draws([f"p{p}" for p in range(people)], 200, 0)
     weight = np.stack([np.bincount(d, minlength=people)[[int(v.participant[1:]) for v in votes]] for d in draws])
-    n = k - 1
-    precision = np.concatenate([np.full(n, BOOT_PRIOR_SD**-2), np.full(2, 1e-2)])
-    centre = np.concatenate([np.zeros(n), np.log([0.5, 1.5])])
-
-    def objective(params, w):
-        loglik, grad = vote_log_likelihood(params, x, y, False, n, "logit")
-        diff = params - centre
-        return -float(w @ loglik) + 0.5 * float(diff @ (precision * diff)), -w @ grad + precision * diff
-
+    objective, centre = _ridge_objective(x, y)
     start = optimize.minimize(objective, centre, args=(np.ones(len(votes)),), jac=True, method="BFGS").x
     got = _ridge_all(x, y, weight.astype(float), start)
     got_value = np.array([objective(g, w)[0] for g, w in zip(got, weight, strict=True)])
