@@ -4,8 +4,8 @@ answers, and the next stimulus by minimum expected entropy.
 The same procedure as the ``questplus`` package's ``QuestPlus(func="norm_cdf", stim_scale="linear",
 stim_selection_method="min_entropy")`` with a uniform prior, which ``tests/test_quest.py`` checks it against
 (the same stimuli, the same posterior); written on numpy arrays because ``questplus`` computes on xarray objects,
-about 5 ms a trial (0.3 s a 60-trial staircase), most of a simulated study's time and ~20 ms of every staircase
-vote, where these arrays take well under 1 ms.
+about 5 ms a trial (0.28 s a 60-trial staircase, 2026-12-05), most of a simulated study's time, where these
+arrays take 4 ms for the whole staircase.
 
 The model: ``P(detected | x) = guess + (1 - guess - lapse) * Phi((x - mean) / sd)``, intensity ``x`` growing
 with detectability; the parameter grid is every combination of the ``mean``, ``sd``, ``guess`` and ``lapse``

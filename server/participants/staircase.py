@@ -45,27 +45,31 @@ def intensities(design: Design) -> dict[str, float]:
     return {c: sign * (math.log10(v) if logged else v) for c, v in levels.items()}
 
 
-def _grid(xs: tuple[float, ...], answer_format: str) -> quest.Grid:
-    return quest.Grid(xs, (0.5,) if answer_format == "2afc" else FALSE_ALARMS)
-
-
 @lru_cache(maxsize=64)
-def _detection(xs: tuple[float, ...], answer_format: str) -> np.ndarray:
-    """P(detected) per intensity and parameter (:meth:`server.analysis.quest.Grid.detection`); read-only."""
-    detection = _grid(xs, answer_format).detection()
+def _model(xs: tuple[float, ...], answer_format: str) -> tuple[quest.Grid, np.ndarray]:
+    """The QUEST+ grid over the intensities ``xs`` and its P(detected) per intensity and parameter (read-only)."""
+    grid = quest.Grid(xs, (0.5,) if answer_format == "2afc" else FALSE_ALARMS)
+    detection = grid.detection()
     detection.flags.writeable = False
-    return detection
+    return grid, detection
 
 
-def next_condition(design: Design, answer_format: str, history: Iterable[tuple[str, bool]]) -> str:
-    """The level (condition id) QUEST+ chooses after ``history``: (condition shown, detected) of one animation's
-    staircase trials so far, in order.  The whole history is replayed each time (microseconds a trial)."""
+def _posterior(design: Design, answer_format: str, history: Iterable[tuple[str, bool]]
+               ) -> tuple[list[str], quest.Grid, np.ndarray, np.ndarray]:
+    """The levels (condition ids, in intensity order), the grid, P(detected) and the posterior after ``history``:
+    (condition shown, detected) of one animation's staircase trials so far, in order.  The whole history is
+    replayed each time (microseconds a trial)."""
     levels = intensities(design)
     conditions = list(levels)
     index = {c: i for i, c in enumerate(conditions)}
-    detection = _detection(tuple(levels.values()), answer_format)
-    answers = [(index[c], bool(d)) for c, d in history]
-    return conditions[quest.next_index(detection, quest.posterior(detection, answers))]
+    grid, detection = _model(tuple(levels.values()), answer_format)
+    return conditions, grid, detection, quest.posterior(detection, [(index[c], bool(d)) for c, d in history])
+
+
+def next_condition(design: Design, answer_format: str, history: Iterable[tuple[str, bool]]) -> str:
+    """The level (condition id) QUEST+ chooses after ``history`` (as :func:`_posterior`)."""
+    conditions, _, detection, post = _posterior(design, answer_format, history)
+    return conditions[quest.next_index(detection, post)]
 
 
 @dataclass(frozen=True)
@@ -161,11 +165,8 @@ def replay(design: Design, answer_format: str,
 def estimate(design: Design, answer_format: str, history: Iterable[tuple[str, bool]]) -> dict[str, float]:
     """The posterior mean of the staircase's parameters after ``history``, the threshold (``mean``) and spread
     (``sd``) also as a ladder level (``threshold_level``: the level at the midpoint between guess rate and 1)."""
-    levels = intensities(design)
-    index = {c: i for i, c in enumerate(levels)}
-    detection = _detection(tuple(levels.values()), answer_format)
-    post = quest.posterior(detection, [(index[c], bool(d)) for c, d in history])
-    params = _grid(tuple(levels.values()), answer_format).mean(post)
+    _, grid, _, post = _posterior(design, answer_format, history)
+    params = grid.mean(post)
     logged = all(v > 0 for v in design.level_order().values())
     x = params["mean"] * (-1.0 if design.detectable_at == "low" else 1.0)
     params["threshold_level"] = 10**x if logged else x
