@@ -143,6 +143,19 @@ def cheap_password_hashes():
         yield
 
 
+@pytest.fixture
+def production_password_hashes(monkeypatch):
+    """The production argon2 parameters back, for a test whose race needs the check to take its real time.  With
+    the login route changed to count failures after the check instead of before (the race the throttle closes),
+    tests/test_hostile_round3.py's two concurrency tests failed in 8 of 12 runs with the cheapest hash and in 10 of
+    12 with this one (2026-12-05, both databases, three rounds each)."""
+    from argon2 import PasswordHasher
+
+    from server.researchers import service
+
+    monkeypatch.setattr(service, "_hasher", PasswordHasher.from_parameters(service.PASSWORD_PROFILE))
+
+
 @pytest.fixture(scope="session")
 def bvh_paths(data: Path) -> list[Path]:
     paths = sorted(data.glob("mocap/**/*.bvh*"))

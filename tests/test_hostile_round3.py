@@ -258,8 +258,9 @@ def test_invisible_characters_before_a_formula_do_not_hide_it_from_the_csv_guard
 # --- 11: the login throttle under real concurrency, two instances on one database -----------------------------
 
 @pytest.fixture(params=DATABASES)
-def two_instances(request, tmp_path_factory, tmp_path):
-    """Two ``serve`` instances (own engines, own apps, live on loopback) on one database, with a researcher."""
+def two_instances(request, tmp_path_factory, tmp_path, production_password_hashes):
+    """Two ``serve`` instances (own engines, own apps, live on loopback) on one database, with a researcher; the
+    password check at its real cost, which the concurrency tests race against."""
     from server.app import create_app
     from server.config import Settings
     from server.db import make_engine, migrate, session_factory
