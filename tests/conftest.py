@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -256,20 +257,50 @@ def cmu_walk(data: Path):
 CONDITIONS16 = REPO / "server" / "clipset" / "conditions16.toml"
 
 
+def _run_directory(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Where a run keeps what it builds once for all its tests: `make test` names one directory for both of its
+    steps (``ANIMSTUDY_TEST_RUN_DIR``, removed at the end), so the serial step reuses the parallel step's work;
+    otherwise the temporary directory the run's workers share."""
+    if os.environ.get("ANIMSTUDY_TEST_RUN_DIR"):
+        return Path(os.environ["ANIMSTUDY_TEST_RUN_DIR"])
+    return tmp_path_factory.getbasetemp().parent if WORKER else tmp_path_factory.getbasetemp()
+
+
+def once_per_run(directory: Path, name: str, make: Callable[[Path], None]) -> Path:
+    """``directory / name``, made by ``make(path)`` by the first test of the run to ask: under a file lock, so a
+    second worker waits instead of making it too, and into a temporary name renamed when complete, so an
+    interrupted ``make`` leaves nothing that looks done.  Callers copy or read it, never change it."""
+    import fcntl
+
+    path = directory / name
+    with open(directory / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not path.exists():
+            partial = directory / f"{name}.partial"
+            if partial.is_dir():
+                shutil.rmtree(partial)
+            else:
+                partial.unlink(missing_ok=True)
+            make(partial)
+            partial.replace(path)
+    return path
+
+
 @pytest.fixture(scope="session")
-def built_clip_set(data: Path, tmp_path_factory: pytest.TempPathFactory):
+def run_directory(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _run_directory(tmp_path_factory)
+
+
+@pytest.fixture(scope="session")
+def built_clip_set(data: Path, run_directory: Path):
     """``build(config=None)``: a copy of ``build_clip_set(data, load_config(config))`` (``config`` a clip-set
     file of the repository: the default set, or :data:`CONDITIONS16`), built once per run and shared.
 
-    The first worker to ask builds it (under a file lock, so the other waits instead of building it too) and
-    pickles it into the run's temporary directory, which all workers share; every call unpickles a copy of its
-    own, so a test that changes its clips changes no other test's.  Keyed by the data directory and the file's
-    bytes; a run never changes either."""
-    import fcntl
+    The first worker to ask builds it (:func:`once_per_run`) and pickles it into the run's directory; every call
+    unpickles a copy of its own, so a test that changes its clips changes no other test's.  Keyed by the data
+    directory and the file's bytes; a run never changes either."""
     import hashlib
     import pickle
-
-    shared = tmp_path_factory.getbasetemp().parent if WORKER else tmp_path_factory.getbasetemp()
 
     def build(config: Path | None = None) -> list:
         from server.clipset.build import build_clip_set
@@ -277,15 +308,12 @@ def built_clip_set(data: Path, tmp_path_factory: pytest.TempPathFactory):
 
         text = config.read_bytes() if config is not None else b"<the default clip set>"
         key = hashlib.sha256(str(data).encode() + b"\0" + text).hexdigest()[:16]
-        path = shared / f"clip-set-{key}.pickle"
-        with open(shared / f"clip-set-{key}.lock", "w") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)
-            if not path.exists():
-                clips = build_clip_set(data, load_config(config) if config is not None else None)
-                partial = path.with_suffix(".partial")
-                partial.write_bytes(pickle.dumps(clips, protocol=pickle.HIGHEST_PROTOCOL))
-                partial.replace(path)
-        return pickle.loads(path.read_bytes())
+
+        def make(path: Path) -> None:
+            clips = build_clip_set(data, load_config(config) if config is not None else None)
+            path.write_bytes(pickle.dumps(clips, protocol=pickle.HIGHEST_PROTOCOL))
+
+        return pickle.loads(once_per_run(run_directory, f"clip-set-{key}.pickle", make).read_bytes())
 
     return build
 
@@ -311,7 +339,7 @@ def playwright():
 # A participant answers after watching a stimulus loop once, counted on the media clock (static/participant.js,
 # measure): at FAST_PLAYBACK times the speed a test's participant waits a fraction of each loop's real time, the
 # gate unchanged.  Tests that measure playback itself (hitches, stalls) are marked ``real_speed``.
-FAST_PLAYBACK = 4
+FAST_PLAYBACK = 8
 _FAST_PLAYBACK_JS = f"document.addEventListener('play', e => {{ e.target.playbackRate = {FAST_PLAYBACK}; }}, true);"
 
 

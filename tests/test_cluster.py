@@ -154,8 +154,9 @@ def test_a_worker_killed_mid_job_and_the_videos_are_byte_identical_to_a_local_re
     assert all(mine[name] == local[name] for name in local), "a video differs from the local render"
 
 
-def test_an_unreachable_scheduler_is_named(data, clips_dir, pairs, tmp_path):
+def test_an_unreachable_scheduler_is_named(data, clips_dir, pairs, tmp_path, monkeypatch):
     address = f"tcp://127.0.0.1:{_port()}"  # nothing listens there
+    monkeypatch.setattr(cluster, "CONNECT_TIMEOUT_S", 1.0)  # Dask retries a refused connection until the timeout
     with pytest.raises(MediaError, match=f"cannot reach the Dask scheduler at {address}"):
         render_media(data, clips_dir, tmp_path / "media", SECRET, TINY, pairs=pairs, scheduler=address)
 

@@ -1,7 +1,9 @@
 """The participant page in a real browser (Debian's Chromium driven by Playwright) against a live server with
 really rendered videos.  Screenshots of every page go to var/test-artifacts/browser/."""
 
+import hashlib
 import json
+import shutil
 import time
 from pathlib import Path
 
@@ -21,7 +23,7 @@ from server.studies.models import StudyState
 from server.studies.page import Chrome
 from server.studies.service import clip_set_index, create_study, required_pairs, set_state
 from server.studies.studyfile import load_study_file, thesis_study
-from tests.conftest import CHROMIUM, CHROMIUM_ARGS, _fresh_engine
+from tests.conftest import CHROMIUM, CHROMIUM_ARGS, _fresh_engine, once_per_run
 from tests.server_fixtures import live_server
 
 REPO_STUDIES = Path(__file__).resolve().parents[1] / "studies"
@@ -34,7 +36,7 @@ SWEDISH = REPO_STUDIES / "thesis-sv.toml"
 
 
 @pytest.fixture(scope="module")
-def site(data, built_clip_set, tmp_path_factory):
+def site(data, built_clip_set, run_directory, tmp_path_factory):
     """A live server on SQLite with the default study over really rendered videos."""
     if not Path(CHROMIUM).exists():
         pytest.fail(f"{CHROMIUM} is missing: `make test` installs Debian's chromium")
@@ -42,16 +44,22 @@ def site(data, built_clip_set, tmp_path_factory):
     settings = Settings(var_dir=var, data_dir=data, secret_key="browser-test-secret-0123456789abcdef")
     write_clip_set(built_clip_set(), settings.clips_dir)
     study_file = thesis_study()
-    # In this process (workers=1), as the end-to-end tests render: beside the other test worker, a local Dask
-    # cluster's start costs more CPU than its second process saves (the cluster: test_cluster.py, test_media.py).
-    manifest = render_media(data, settings.clips_dir, settings.media_dir, settings.secret, VIDEO,
-                            pairs=required_pairs(study_file.design, clip_set_index(settings.clips_dir)), workers=1)
+    pairs = required_pairs(study_file.design, clip_set_index(settings.clips_dir))
+
+    # Rendered once per run (the serial step's test reuses the parallel step's videos: tests/conftest.py), in this
+    # process (workers=1), as the end-to-end tests render: beside the other test worker, a local Dask cluster's
+    # start costs more CPU than its second process saves (the cluster: test_cluster.py, test_media.py).
+    def render(out: Path) -> None:
+        render_media(data, settings.clips_dir, out, settings.secret, VIDEO, pairs=pairs, workers=1)
+
+    key = hashlib.sha256(repr((str(data), settings.secret, VIDEO, sorted(pairs))).encode()).hexdigest()[:16]
+    shutil.copytree(once_per_run(run_directory, f"participant-page-media-{key}", render), settings.media_dir)
     engine = _fresh_engine("sqlite", tmp_path_factory)
     migrate(engine)
     factory = session_factory(engine)
     with factory() as db:
-        set_state(db, create_study(db, read_render_manifest(manifest.parent), study_file), StudyState.open)
-        set_state(db, create_study(db, read_render_manifest(manifest.parent), load_study_file(SWEDISH)),
+        set_state(db, create_study(db, read_render_manifest(settings.media_dir), study_file), StudyState.open)
+        set_state(db, create_study(db, read_render_manifest(settings.media_dir), load_study_file(SWEDISH)),
                   StudyState.open)
     app = create_app(settings, engine, run_migrations=False)
     with live_server(app) as base:
@@ -382,9 +390,14 @@ def test_every_layout_fits_gates_and_has_no_axe_violations(site, sized, axe_sour
     if not in_one_row:
         assert [r["top"] for r in labels] == sorted(r["top"] for r in labels)  # in the scale's order
     pg.wait_for_selector("#vote-submit:not([disabled])", timeout=15000)
+    # Every text the status line shows, recorded as it changes: the next trial's first loop clears it, which at the
+    # tests' fast playback can come before a look after the fact.
+    pg.evaluate("""() => { const s = document.getElementById('status'); window.statusSaid = [];
+        new MutationObserver(() => window.statusSaid.push(s.textContent))
+            .observe(s, {childList: true, characterData: true, subtree: true}); }""")
     pg.keyboard.press("Enter")
     wait_trial(pg, 2)
-    assert "Vote saved" in pg.inner_text("#status")  # the vote is announced (role=status)
+    assert any("Vote saved" in said for said in pg.evaluate("window.statusSaid"))  # announced (role=status)
     creds = credentials(pg)
     with factory() as db:
         vote = db.scalars(select(Vote).where(Vote.session_id == creds["session_id"])).one()

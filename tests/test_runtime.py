@@ -262,3 +262,29 @@ def test_a_foot_lock_or_c2_kernel_off_its_clip_is_refused(clips16):
     c2 = next(c.clip for c in clips16 if c.id == "walk-hybrid_c2_0")
     with pytest.raises(ValueError, match="C2 kernel"):
         R.c2_runtime(c2, tolerance_deg=1e-9)
+
+
+@pytest.mark.parametrize("threads", [2, 3, 8])
+def test_threads_pose_exactly_the_characters_of_first_and_stride(runtimes16, rng, monkeypatch, threads):
+    """``parallel=True`` with any thread count, crowd size, ``first`` and ``stride`` (update-rate LOD): the same
+    bytes as one thread for the characters ``first, first + stride, ...``, and every other character's buffers
+    untouched (seeded: 40 draws per thread count over the four issue-16 kinds)."""
+    from anim_core.runtime import kinds
+
+    monkeypatch.setattr(kinds, "pose_threads", lambda: threads)
+    chosen = [rt for cid, rt in sorted(runtimes16.items()) if cid.startswith("walk-")]
+    for _ in range(40):
+        rt = chosen[rng.integers(len(chosen))]
+        n, stride = int(rng.integers(1, 40)), int(rng.integers(1, 5))
+        first = int(rng.integers(stride))
+        t = rng.uniform(-2.0, 8.0, n)
+        joints = rt.skeleton.parents.shape[0]
+        serial = CrowdBuffers(np.full((n, joints, 4), 7.0, np.float32), np.full((n, joints, 3), 7.0, np.float32))
+        split = CrowdBuffers(np.full((n, joints, 4), 7.0, np.float32), np.full((n, joints, 3), 7.0, np.float32))
+        rt.pose(t, serial, first=first, stride=stride)
+        rt.pose(t, split, parallel=True, first=first, stride=stride)
+        assert np.array_equal(split.rotations, serial.rotations) and np.array_equal(split.positions, serial.positions)
+        posed = np.zeros(n, bool)
+        posed[first::stride] = True
+        assert (split.rotations[~posed] == 7.0).all() and (split.positions[~posed] == 7.0).all()
+        assert (split.rotations[posed] != 7.0).all()

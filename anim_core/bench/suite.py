@@ -56,6 +56,7 @@ from ..runtime import (
     bone_lod_mask,
     exact_global,
     lod_pose,
+    pose_threads,
     runtime_for,
     sample_times,
 )
@@ -262,7 +263,7 @@ def _rounds(stage: str, group: Sequence[BuiltClip], n: int, runtimes: dict[str, 
             rounds.append((1, [_case(c, v, _runtime_step(runtimes[v][c.id], n, clip=c.clip)) for c in group], *full))
     if stage == "pose" and "keys" in variants:
         if n >= PARALLEL_MIN_CHARACTERS:
-            rounds.append((os.cpu_count() or 2, [_case(c, "keys", _runtime_step(keyed[c.id], n, parallel=True,
+            rounds.append((pose_threads(), [_case(c, "keys", _runtime_step(keyed[c.id], n, parallel=True,
                                                                                  clip=c.clip))
                                                  for c in group], *full))
         if n >= LOD_MIN_CHARACTERS:

@@ -33,6 +33,7 @@ from .kinds import (
     bone_lod_mask,
     check_inputs,
     pose_crowd,
+    pose_threads,
 )
 from .offline import (
     C2_TOLERANCE_DEG,
@@ -55,6 +56,6 @@ __all__ = [
     "FootLockRuntime", "HeldCrowd", "HeldRuntime", "QuantizedRuntime", "SplineRuntime", "SpringRuntime", "TableRuntime",
     "angle_error_deg", "animated_joints",
     "bone_lod_mask", "c2_runtime", "check_inputs", "crouch_params", "exact_global", "foot_lock_runtime", "lod_pose",
-    "max_error_deg", "period", "pose_crowd", "quantized_runtime", "runtime_for", "sample_times", "spline_runtime",
-    "spring_runtime",
+    "max_error_deg", "period", "pose_crowd", "pose_threads", "quantized_runtime", "runtime_for", "sample_times",
+    "spline_runtime", "spring_runtime",
 ]

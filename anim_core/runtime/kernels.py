@@ -1,5 +1,6 @@
 """The compiled kernels of the runtimes (:mod:`anim_core.runtime.kinds`): per kind of clip one function that poses
-one character (``_<kind>_one``), made into a serial and a parallel kernel by one factory (:func:`crowd_kernels`);
+one character (``_<kind>_one``), made into the kind's crowd kernel by one factory (:func:`crowd_kernel`; it
+releases the GIL, so that :meth:`~anim_core.runtime.kinds._Runtime.pose` runs it on several threads at once);
 a foot-locked hybrid's runs its base kind's and then the legs' IK (``_foot_lock``, each leg by :func:`solve_leg`,
 which the run-time IK job of :mod:`anim_core.runtime.ik` runs too).  Without numba this module
 defines no kernels (the runtimes refuse to pose; :mod:`anim_core.runtime.crowd` falls back to numpy).
@@ -510,29 +511,25 @@ if numba is not None:
 
 # The arguments every per-character function takes besides the runtime's arrays (its first is the character).
 _SHARED = ("times", "parents", "offsets", "active", "out_rot", "out_pos")
-_KERNELS = """
-def {name}_serial({arrays}, times, parents, offsets, active, first, stride, out_rot, out_pos):
-    for c in range(first, times.shape[0], stride):
-        {calls}
-
-
-def {name}_parallel({arrays}, times, parents, offsets, active, first, stride, out_rot, out_pos):
-    for k in numba.prange((times.shape[0] - first + stride - 1) // stride):
-        c = first + k * stride
+_KERNEL = """
+def {name}({arrays}, times, parents, offsets, active, first, stride, stop, out_rot, out_pos):
+    for c in range(first, min(stop, times.shape[0]), stride):
         {calls}
 """
 
 
-def crowd_kernels(*steps: Any) -> tuple[Any, Any]:
-    """The serial and the parallel kernel of one kind of runtime, which run ``steps`` (per-character functions
-    ``step(c, <its arrays>, <some of _SHARED>)``, e.g. a base kind's, then the foot locking) for characters
-    ``first, first + stride, ...``.
+def crowd_kernel(*steps: Any) -> Any:
+    """The kernel of one kind of runtime, which runs ``steps`` (per-character functions ``step(c, <its arrays>,
+    <some of _SHARED>)``, e.g. a base kind's, then the foot locking) for characters ``first, first + stride, ...``.
 
-    The kernels take the steps' arrays in order (the order of the runtime's :meth:`arrays`), then ``times,
-    parents, offsets, active, first, stride, out_rot, out_pos``.  Their source is written from the steps'
-    signatures, because a numba kernel's arguments must be single arrays: a tuple of them does not pass into a
-    parallel loop.  It is compiled as part of this file, so numba's on-disk cache holds it.
-    """
+    It takes the steps' arrays in order (the order of the runtime's :meth:`arrays`), then ``times, parents,
+    offsets, active, first, stride, out_rot, out_pos``.  Its source is written from the steps' signatures, so that
+    every array is an argument of its own (numba compiles a kernel per combination of argument types).  It is
+    compiled as part of this file, so numba's on-disk cache holds it; without the GIL, so that threads can run it
+    on disjoint characters at once (one kernel, not a serial and a ``prange`` one: a parallel compile cost several
+    times the serial one, 10 s for a foot-locked kind; docs/reference/benchmark.md, *Threads*).  Without reference
+    counting (it allocates nothing) and with numpy's error model (its inputs are validated, so no zero check before
+    each division): together 15-20 % faster than numba's defaults."""
     arrays: list[str] = []
     calls = []
     for step in steps:
@@ -544,17 +541,16 @@ def crowd_kernels(*steps: Any) -> tuple[Any, Any]:
         calls.append(f"{step.__name__}(c, {', '.join(params)})")
     name = "_".join(step.__name__.strip("_") for step in steps)
     namespace = dict(globals())
-    source = _KERNELS.format(name=name, arrays=", ".join(arrays), calls="\n        ".join(calls))
+    source = _KERNEL.format(name=name, arrays=", ".join(arrays), calls="\n        ".join(calls))
     exec(compile(source, __file__, "exec"), namespace)
-    return (numba.njit(cache=True)(namespace[f"{name}_serial"]),
-            numba.njit(cache=True, parallel=True)(namespace[f"{name}_parallel"]))
+    return numba.njit(cache=True, nogil=True, error_model="numpy", _nrt=False)(namespace[name])
 
 
 if numba is not None:
-    TABLE = crowd_kernels(_table_one)
-    QUANTIZED = crowd_kernels(_quantized_one)
-    SPLINE = crowd_kernels(_spline_one)
-    SPRING = crowd_kernels(_spring_one)
-    C2 = crowd_kernels(_c2_one)
-    SPLINE_IK = crowd_kernels(_spline_one, _foot_lock)
-    SPRING_IK = crowd_kernels(_spring_one, _foot_lock)
+    TABLE = crowd_kernel(_table_one)
+    QUANTIZED = crowd_kernel(_quantized_one)
+    SPLINE = crowd_kernel(_spline_one)
+    SPRING = crowd_kernel(_spring_one)
+    C2 = crowd_kernel(_c2_one)
+    SPLINE_IK = crowd_kernel(_spline_one, _foot_lock)
+    SPRING_IK = crowd_kernel(_spring_one, _foot_lock)

@@ -47,6 +47,10 @@ control points, angles, segment times, the few scalars as a float64 array; a qua
 ranges; a foot-locked clip's base runtime, legs, joint lists and tracks); the skeleton (parents, offsets) is
 shared by all clips of a character and the output buffers are per character, so neither counts.
 
+Threads: ``pose(..., parallel=True)`` splits the characters across :func:`pose_threads` threads (interleaved:
+thread ``i`` of ``n`` poses every ``n``-th of them from the ``i``-th), each running the kind's one kernel, which
+releases the GIL; every character is posed by the same code either way, so the results are identical.
+
 LOD: ``active`` (a per-joint mask, :func:`bone_lod_mask`) holds unselected joints at the clip's first key
 without sampling them (bone LOD: a far character's fingers and toes stop moving, its skeleton stays whole);
 ``first``/``stride`` pose only characters ``first, first + stride, ...`` and leave the others' buffers as they
@@ -54,6 +58,9 @@ were (update-rate LOD: each character re-posed every ``stride``-th frame).
 """
 from __future__ import annotations
 
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, fields
 from functools import lru_cache
 from typing import Any
@@ -128,19 +135,49 @@ class _Runtime:
         """Global rotations and positions of ``N`` characters at running times ``t (N,)`` seconds.
 
         ``out``: buffers ``(N, J, 4)`` / ``(N, J, 3)`` float32 to write (allocated when ``None``); ``parallel``:
-        characters split across numba's worker threads; ``active``, ``first``, ``stride``: LOD (module
-        docstring).  Every input is checked before the kernel touches memory (``ValueError`` otherwise).
+        characters split across :func:`pose_threads` threads (module docstring); ``active``, ``first``,
+        ``stride``: LOD (module docstring).  Every input is checked before the kernel touches memory
+        (``ValueError`` otherwise).
         """
         if numba is None:  # pragma: no cover - numba is a dependency
             raise RuntimeError("the keys runtime needs numba")
         t, out, active = check_inputs(self.skeleton, t, out, active, first, stride)
-        kernel = self._kernels()[1 if parallel else 0]
-        kernel(*self.arrays().values(), t, *skeleton_arrays(self.skeleton), active, first, stride, out.rotations,
-               out.positions)
+        kernel, arrays = self._kernel(), (*self.arrays().values(), t, *skeleton_arrays(self.skeleton), active)
+        threads = min(pose_threads(), len(t)) if parallel else 1
+        if threads <= 1:
+            kernel(*arrays, first, stride, len(t), out.rotations, out.positions)
+            return out
+        # The characters first, first + stride, ... in `threads` runs of consecutive ones, one per thread.
+        count = -(-(len(t) - first) // stride)
+        starts = [first + (count * i // threads) * stride for i in range(threads + 1)]
+        pool = _thread_pool(threads - 1)
+        shares = [pool.submit(kernel, *arrays, starts[i], stride, starts[i + 1], out.rotations, out.positions)
+                  for i in range(1, threads)]
+        kernel(*arrays, starts[0], stride, starts[1], out.rotations, out.positions)
+        for share in shares:
+            share.result()
         return out
 
-    def _kernels(self) -> tuple[Any, Any]:
+    def _kernel(self) -> Any:
         raise NotImplementedError
+
+
+def pose_threads() -> int:
+    """How many threads ``pose(..., parallel=True)`` uses: one per core this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+_pools: dict[tuple[int, int], ThreadPoolExecutor] = {}
+_pools_lock = threading.Lock()
+
+
+def _thread_pool(workers: int) -> ThreadPoolExecutor:
+    """The process's pool of ``workers`` threads (per process id: a forked child does not inherit threads)."""
+    key = (os.getpid(), workers)
+    with _pools_lock:
+        if key not in _pools:
+            _pools[key] = ThreadPoolExecutor(workers, thread_name_prefix="anim-pose")
+        return _pools[key]
 
 
 @lru_cache(maxsize=64)
@@ -214,7 +251,7 @@ class TableRuntime(_Runtime):
                    frozen([0.0, clip.duration, PLAYBACK_MODES.index(clip.mode)], np.float64),
                    frozen(clip.times, np.float64))
 
-    def _kernels(self) -> tuple[Any, Any]:
+    def _kernel(self) -> Any:
         return kernels.TABLE
 
 
@@ -244,7 +281,7 @@ class SplineRuntime(_Runtime):
     params: Array
     fit_error_deg: float
 
-    def _kernels(self) -> tuple[Any, Any]:
+    def _kernel(self) -> Any:
         return kernels.SPLINE
 
 
@@ -264,7 +301,7 @@ class SpringRuntime(_Runtime):
     key_root: F32
     params: Array
 
-    def _kernels(self) -> tuple[Any, Any]:
+    def _kernel(self) -> Any:
         return kernels.SPRING
 
 
@@ -283,7 +320,7 @@ class QuantizedRuntime(_Runtime):
     params: Array
     key_times: Array
 
-    def _kernels(self) -> tuple[Any, Any]:
+    def _kernel(self) -> Any:
         return kernels.QUANTIZED
 
 
@@ -306,7 +343,7 @@ class C2Runtime(_Runtime):
     params: Array
     error_deg: float
 
-    def _kernels(self) -> tuple[Any, Any]:
+    def _kernel(self) -> Any:
         return kernels.C2
 
 
@@ -339,7 +376,7 @@ class FootLockRuntime(_Runtime):
         return {**{f"base.{k}": v for k, v in self.base.arrays().items()}, **super().arrays()}
 
 
-    def _kernels(self) -> tuple[Any, Any]:
+    def _kernel(self) -> Any:
         if isinstance(self.base, SplineRuntime):
             return kernels.SPLINE_IK
         return kernels.SPRING_IK
