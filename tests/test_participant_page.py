@@ -30,7 +30,7 @@ REPO_STUDIES = Path(__file__).resolve().parents[1] / "studies"
 
 ARGS = CHROMIUM_ARGS  # the name the other browser test files import
 ARTIFACTS = Path(__file__).resolve().parents[1] / "var" / "test-artifacts" / "browser"
-VIDEO = RenderSettings(width=320, height=240)  # real renders, smaller than the default to keep the suite quick
+VIDEO = RenderSettings(width=320, height=240, shadows=False)  # real renders, cheaper than the default: a quick suite
 LEAKS = ("hybrid", "keyframe", "increment", "mocap")
 SWEDISH = REPO_STUDIES / "thesis-sv.toml"
 
