@@ -59,8 +59,10 @@ test: lint
 	@# (PostgreSQL stopped for everyone) alone, collected from the files that mark any (a test marked `serial` in a
 	@# file that does not say `mark.serial` would be missed: tests/conftest.py stops the collection then); exit
 	@# status 5 there is "none selected" (no TEST_DATABASE_URL).
-	@# Both steps share one directory for what a run builds once (tests/conftest.py, once_per_run).
-	@start=$$(date +%s); rc=0; \
+	@# Both steps share one directory for what a run builds once (tests/conftest.py, once_per_run). Bytecode is
+	@# written even where the environment says not to (PYTHONDONTWRITEBYTECODE, set on these machines): the suite starts
+	@# dozens of Python processes (commands, Dask workers, servers), each of which would compile the project anew.
+	@start=$$(date +%s); rc=0; unset PYTHONDONTWRITEBYTECODE; \
 	export ANIMSTUDY_TEST_RUN_DIR=$$(mktemp -d -t animstudy-test-run-XXXXXX); \
 	trap 'rm -rf "$$ANIMSTUDY_TEST_RUN_DIR"' EXIT; \
 	echo "$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m 'not serial'"; \

@@ -88,7 +88,6 @@ def site(data, tmp_path_factory):
 
 
 @pytest.mark.slow  # tens of seconds (the parallel run's slowest; still run by `make test`)
-@pytest.mark.slow  # tens of seconds (the serial run's slowest; still run by `make test`)
 def test_only_what_the_studies_show_is_rendered_and_the_counts_agree(site):
     _, _, settings, logs = site
     clip_set = tomllib.loads(CLIP_SET.read_text(encoding="utf-8"))
