@@ -169,8 +169,8 @@ def test_full_run_by_keyboard_with_real_videos(site, page):
         assert ps.external == {"PROLIFIC_PID": "pp1", "STUDY_ID": "st", "SESSION_ID": "se"}
         assert ps.answers == {"gamer": "yes", "tech_savvy": "dont_know"}
         reports = [v.extra["playback"] for v in votes]
-    # Every trial really played (at the shared browser's 4x: tests/conftest.py): frames were presented and it
-    # looped at least once before the vote was taken.
+    # Every trial really played (at the shared browser's FAST_PLAYBACK, tests/conftest.py): frames were presented
+    # and it looped at least once before the vote was taken.
     for r in reports:
         assert r["frames_presented"] > 0 and r["loops"] >= 1, r
     # Nothing in the page says which side is which.
@@ -181,8 +181,8 @@ def test_full_run_by_keyboard_with_real_videos(site, page):
 @pytest.mark.serial  # it counts video stalls: with every core busy with another worker, playback stalls (seen once)
 @pytest.mark.real_speed
 def test_videos_play_at_their_own_speed_without_stalls(site, page):
-    # Three trials at real speed (the full run above plays at 4x): each video loops, presents its frames and never
-    # waits for data.
+    # Three trials at real speed (the full run above plays at FAST_PLAYBACK): each video loops, presents its frames
+    # and never waits for data.
     base, factory = site
     _, sid = run_trials(page, base, 3)
     wait_until(page, "document.getElementById('trial-progress').textContent.startsWith('Trial 4 of')")
