@@ -257,15 +257,6 @@ def cmu_walk(data: Path):
 CONDITIONS16 = REPO / "server" / "clipset" / "conditions16.toml"
 
 
-def _run_directory(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Where a run keeps what it builds once for all its tests: `make test` names one directory for both of its
-    steps (``ANIMSTUDY_TEST_RUN_DIR``, removed at the end), so the serial step reuses the parallel step's work;
-    otherwise the temporary directory the run's workers share."""
-    if os.environ.get("ANIMSTUDY_TEST_RUN_DIR"):
-        return Path(os.environ["ANIMSTUDY_TEST_RUN_DIR"])
-    return tmp_path_factory.getbasetemp().parent if WORKER else tmp_path_factory.getbasetemp()
-
-
 def once_per_run(directory: Path, name: str, make: Callable[[Path], None]) -> Path:
     """``directory / name``, made by ``make(path)`` by the first test of the run to ask: under a file lock, so a
     second worker waits instead of making it too, and into a temporary name renamed when complete, so an
@@ -288,7 +279,12 @@ def once_per_run(directory: Path, name: str, make: Callable[[Path], None]) -> Pa
 
 @pytest.fixture(scope="session")
 def run_directory(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return _run_directory(tmp_path_factory)
+    """Where a run keeps what it builds once for all its tests (:func:`once_per_run`): `make test` names one
+    directory for both of its steps (``ANIMSTUDY_TEST_RUN_DIR``, removed at the end), so the serial step reuses the
+    parallel step's work; otherwise the temporary directory the run's workers share."""
+    if os.environ.get("ANIMSTUDY_TEST_RUN_DIR"):
+        return Path(os.environ["ANIMSTUDY_TEST_RUN_DIR"])
+    return tmp_path_factory.getbasetemp().parent if WORKER else tmp_path_factory.getbasetemp()
 
 
 @pytest.fixture(scope="session")
