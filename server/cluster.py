@@ -84,6 +84,29 @@ def share(client: Client, value: object, name: str) -> Future:
     return client.submit(_value, value, pure=False, key=f"{name}-{uuid.uuid4().hex[:8]}")
 
 
+# What a local worker runs (renders, clip builds), imported once by the fork server, not by every worker.
+FORKSERVER_PRELOAD = ("distributed", "server.media.worker", "server.clipset.build")
+
+
+def _fork_local_workers() -> None:
+    """Local workers forked from one server process per process that starts clusters, instead of spawned: a
+    spawned worker starts a new interpreter and imports Dask, numpy, pyrender and the render code (~2 s of a core
+    each, two workers a job); a forked one starts in milliseconds with all of it imported, and every later local
+    cluster of this process (a server's jobs, a test run) forks from the same server.  Dask's own setting is kept
+    when it names another method than its default, ``spawn``."""
+    import multiprocessing
+
+    import dask
+    from distributed.utils import get_mp_context
+
+    key = "distributed.worker.multiprocessing-method"
+    if dask.config.get(key) != "spawn" or "forkserver" not in multiprocessing.get_all_start_methods():
+        return
+    dask.config.set({key: "forkserver"})
+    # distributed sets its own preload list on its first call (once); ours replaces it before the server starts.
+    get_mp_context().set_forkserver_preload(list(FORKSERVER_PRELOAD))
+
+
 @contextmanager
 def dask_client(scheduler: str | None, workers: int | None = None) -> Iterator[Client]:
     """A client of the cluster at ``scheduler``, or of a local cluster of ``workers`` processes (default: one per
@@ -107,6 +130,7 @@ def dask_client(scheduler: str | None, workers: int | None = None) -> Iterator[C
     # their pipes): its ports on 127.0.0.1 are open to every user of the machine, and a Dask scheduler runs any
     # code it is sent.  Without the certificate nobody connects (docs/cluster.md).
     security = Security.temporary()
+    _fork_local_workers()
     # Only critical worker logs: a task's failure ("Compute Failed", logged at ERROR with its traceback) reaches the
     # caller as the task's own exception, which every command reports as one line (issue 37).
     # The scheduler's HTTP server (health and metrics routes) starts even with dashboard_address=None, on port 8787

@@ -344,3 +344,25 @@ def test_the_local_cluster_opens_no_port_beyond_loopback():
                 assert scheduler.http_server is not None
                 hosts = {s.getsockname()[0] for s in scheduler.http_server._sockets.values()}
                 assert hosts == {"127.0.0.1"}, hosts
+
+
+def test_local_workers_start_with_the_render_code_imported_and_a_configured_method_is_kept():
+    """Local workers are forked from a server that imported the render and build code once (a spawned worker
+    imports it anew, ~2 s of a core each, per job); every cluster of this process forks from the same server.  A
+    start method configured in Dask's own settings (other than its default) is used as it is."""
+    import dask
+
+    from server.cluster import dask_client
+
+    parents = set()
+    for _ in range(2):
+        with dask_client(None, workers=2) as client:
+            # eval of a string: a function of this module would make the worker import this module, and with it
+            # the render code
+            found = client.run(eval, "'server.media.worker' in __import__('sys').modules, __import__('os').getppid()")
+        assert len(found) == 2 and all(loaded for loaded, _ in found.values()), found
+        parents |= {parent for _, parent in found.values()}
+    assert len(parents) == 1 and os.getpid() not in parents  # one fork server, not this process
+    with dask.config.set({"distributed.worker.multiprocessing-method": "spawn-by-hand"}):
+        cluster._fork_local_workers()  # a method it does not know: left alone, not replaced
+        assert dask.config.get("distributed.worker.multiprocessing-method") == "spawn-by-hand"
