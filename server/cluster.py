@@ -11,7 +11,6 @@ version is refused) but no shared filesystem: tasks get their inputs as values a
 from __future__ import annotations
 
 import logging
-import os
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -51,11 +50,10 @@ PACKAGE_VERSION = package_version()
 
 
 def machine_workers() -> int:
-    """Worker processes for the local cluster: one per core this process may use."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not Linux
-        return max(1, os.cpu_count() or 1)
+    """Worker processes for the local cluster: one per core this process may use (the runtime's count)."""
+    from anim_core.runtime import pose_threads
+
+    return pose_threads()
 
 
 def check_versions(client: Client, address: str) -> None:
@@ -102,6 +100,7 @@ def _fork_local_workers() -> None:
     key = "distributed.worker.multiprocessing-method"
     if dask.config.get(key) != "spawn" or "forkserver" not in multiprocessing.get_all_start_methods():
         return
+    # For the process, not for one cluster: a nanny restarts a killed worker later, by the method set then.
     dask.config.set({key: "forkserver"})
     # distributed sets its own preload list on its first call (once); ours replaces it before the server starts.
     get_mp_context().set_forkserver_preload(list(FORKSERVER_PRELOAD))

@@ -363,6 +363,6 @@ def test_local_workers_start_with_the_render_code_imported_and_a_configured_meth
         assert len(found) == 2 and all(loaded for loaded, _ in found.values()), found
         parents |= {parent for _, parent in found.values()}
     assert len(parents) == 1 and os.getpid() not in parents  # one fork server, not this process
-    with dask.config.set({"distributed.worker.multiprocessing-method": "spawn-by-hand"}):
-        cluster._fork_local_workers()  # a method it does not know: left alone, not replaced
-        assert dask.config.get("distributed.worker.multiprocessing-method") == "spawn-by-hand"
+    with dask.config.set({"distributed.worker.multiprocessing-method": "fork"}):
+        cluster._fork_local_workers()  # set in Dask's configuration: left alone, not replaced
+        assert dask.config.get("distributed.worker.multiprocessing-method") == "fork"

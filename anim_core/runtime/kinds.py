@@ -47,9 +47,9 @@ control points, angles, segment times, the few scalars as a float64 array; a qua
 ranges; a foot-locked clip's base runtime, legs, joint lists and tracks); the skeleton (parents, offsets) is
 shared by all clips of a character and the output buffers are per character, so neither counts.
 
-Threads: ``pose(..., parallel=True)`` splits the characters across :func:`pose_threads` threads (interleaved:
-thread ``i`` of ``n`` poses every ``n``-th of them from the ``i``-th), each running the kind's one kernel, which
-releases the GIL; every character is posed by the same code either way, so the results are identical.
+Threads: ``pose(..., parallel=True)`` splits the characters it poses into :func:`pose_threads` runs of
+consecutive ones, one per thread, each running the kind's one kernel, which releases the GIL; every character is
+posed by the same code either way, so the results are identical.
 
 LOD: ``active`` (a per-joint mask, :func:`bone_lod_mask`) holds unselected joints at the clip's first key
 without sampling them (bone LOD: a far character's fingers and toes stop moving, its skeleton stays whole);
