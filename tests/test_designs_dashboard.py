@@ -29,7 +29,10 @@ def site(tmp_path_factory):
     engine = _fresh_engine("sqlite", tmp_path_factory)
     migrate(engine)
     rng = random.Random(3)
-    with session_factory(engine)() as db:
+    # Each session's trial order and adaptive choices come from its seed (`secrets.randbits` in the service): seeded
+    # here, so that the votes, and with them which conditions have a finite scale value, are the same every run.
+    with session_factory(engine)() as db, pytest.MonkeyPatch.context() as patch:
+        patch.setattr(service.secrets, "randbits", rng.getrandbits)
         study = make_study(db, Design(mode="adaptive", conditions=CONDITIONS[1:], animations=["walk", "run"]),
                            slug="adaptive")
         for _ in range(PARTICIPANTS):
