@@ -28,6 +28,20 @@ def test_wilcoxon_against_scipy_documentation():
     assert wilcoxon_p([0, 0, 0]) is None and wilcoxon_p([]) is None
 
 
+def test_wilcoxon_with_ties_and_zeros_is_scipys_exact_permutation_p():
+    # Likert means (halves, ties, zeros): scipy's default p is an exhaustive permutation test up to n = 13.
+    rng = np.random.default_rng(7)
+    for n in range(1, 10):
+        for _ in range(6):
+            x = rng.integers(-4, 5, n) / 2
+            if np.any(x != 0):
+                assert wilcoxon_p(x) == pytest.approx(stats.wilcoxon(x, zero_method="pratt").pvalue, rel=1e-12)
+    # At n = 13 (scipy takes seconds) by hand: only the flip that keeps every sign reaches the observed sum.
+    assert wilcoxon_p([0.5] * 13) == pytest.approx(2 / 2**13, rel=1e-12)
+    assert wilcoxon_p([1.0] * 12 + [0.0]) == pytest.approx(2 / 2**12, rel=1e-12)  # the zero is never signed
+    assert wilcoxon_p([1.0, -1.0] * 6 + [0.0]) == pytest.approx(1.0)
+
+
 def test_rank_biserial_of_the_corn_data():
     # (T+ - T-) / (T+ + T-) = (96 - 24) / 120, the value pingouin and R's effectsize report.
     assert rank_biserial(CORN) == pytest.approx(0.6, abs=1e-12)
