@@ -104,15 +104,22 @@ class SkinnedMesh:
         s = np.asarray(skinning_matrices, dtype=np.float64)
         batch = s.shape[:-3]
         n_joints = s.shape[-3]
-        # (J, N*12) -> sparse (V, J) @ -> (V, N*12): per-vertex blended matrices for every character at once.
+        # (J, N*12) -> sparse (V, J) @ -> (V, N*12): per-vertex blended matrices for every character at once,
+        # then one contiguous (N, V) row per matrix entry: the arithmetic below on strided (V, 3, 4) views
+        # (einsum, np.cross) took twice as long, and the renderer skins every frame.
         flat = np.moveaxis(s.reshape(-1, n_joints, 12), 1, 0).reshape(n_joints, -1)
-        blended = np.asarray(self._w @ flat).reshape(self.n_vertices, -1, 3, 4)
-        blended = np.moveaxis(blended, 1, 0)  # (N, V, 3, 4)
-        lin = blended[..., :3]
-        pos = np.einsum("nvij,vj->nvi", lin, self.vertices) + blended[..., 3]
+        m = np.ascontiguousarray(np.asarray(self._w @ flat).reshape(self.n_vertices, -1, 12).transpose(2, 1, 0))
+        x, y, z = np.asarray(self.vertices, np.float64).T
+        pos = np.empty((*m.shape[1:], 3))
+        for i in range(3):
+            pos[..., i] = m[4 * i] * x + m[4 * i + 1] * y + m[4 * i + 2] * z + m[4 * i + 3]
         # Normals take the cofactor matrix (inverse transpose up to scale): correct for blended, non-rigid matrices.
-        r0, r1, r2 = lin[..., 0, :], lin[..., 1, :], lin[..., 2, :]
-        cof = np.stack([np.cross(r1, r2), np.cross(r2, r0), np.cross(r0, r1)], axis=-2)
-        nrm = np.einsum("nvij,vj->nvi", cof, self.normals)
+        # Its rows are r1 x r2, r2 x r0, r0 x r1 for the rows r0, r1, r2 of the blended 3x3 part.
+        (a, b, c), (d, e, f), (g, h, k) = m[0:3], m[4:7], m[8:11]
+        nx, ny, nz = np.asarray(self.normals, np.float64).T
+        nrm = np.empty_like(pos)
+        nrm[..., 0] = (e * k - f * h) * nx + (f * g - d * k) * ny + (d * h - e * g) * nz
+        nrm[..., 1] = (h * c - k * b) * nx + (k * a - g * c) * ny + (g * b - h * a) * nz
+        nrm[..., 2] = (b * f - c * e) * nx + (c * d - a * f) * ny + (a * e - b * d) * nz
         nrm /= np.maximum(np.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
         return pos.reshape(*batch, self.n_vertices, 3), nrm.reshape(*batch, self.n_vertices, 3)
