@@ -105,6 +105,7 @@ def copy_character(data, tmp_path):
 
 
 def test_corrupt_or_altered_character_files_give_clear_errors(data, tmp_path):
+    load_character(data)  # a character already loaded in the process does not let an altered copy through
     root, folder = copy_character(data, tmp_path)
     weights = folder / "weights.cmu_mb.json.gz"
     weights.write_bytes(weights.read_bytes()[:1000])  # truncated archive
@@ -118,6 +119,14 @@ def test_corrupt_or_altered_character_files_give_clear_errors(data, tmp_path):
     rig.unlink()
     with pytest.raises(AssetError, match=r"missing file .*rig\.cmu_mb\.json"):
         load_character(root)
+
+
+def test_one_character_is_shared_and_read_only(data, tmp_path):
+    shared = load_character(data)
+    assert load_character(copy_character(data, tmp_path)[0]) is shared  # verified files have one content
+    for name in ("vertices", "normals", "faces", "joints", "weights", "heads", "tails", "parents"):
+        with pytest.raises(ValueError, match="read-only"):
+            getattr(shared, name)[0] = 0
 
 
 def test_uncompressed_copies_are_accepted(data, tmp_path):

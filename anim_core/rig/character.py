@@ -79,6 +79,13 @@ class Character:
     joints: NDArray[np.intp]
     weights: Array
 
+    def __post_init__(self) -> None:
+        # Read-only, as Skeleton's: one loaded character is shared (server/assets.py loads it once per process).
+        for name in ("parents", "heads", "tails", "vertices", "normals", "faces", "joints", "weights"):
+            value = getattr(self, name)
+            if isinstance(value, np.ndarray):
+                value.flags.writeable = False
+
     def index(self, name: str) -> int:
         return self.names.index(name)
 
