@@ -32,7 +32,7 @@ def live(request, tmp_path_factory, tmp_path):
 
 def test_simultaneous_identical_and_conflicting_votes(live):
     base, factory = live
-    with httpx.Client(base_url=base, timeout=30) as client:
+    with httpx.Client(base_url=base, timeout=30, verify=False) as client:  # plain HTTP: no CA bundle to load
         s = client.post("/api/v1/studies/thesis/sessions", json={"consent": True}).json()
         headers = {"Authorization": f"Bearer {s['token']}"}
         url = f"/api/v1/sessions/{s['session_id']}"
@@ -40,7 +40,7 @@ def test_simultaneous_identical_and_conflicting_votes(live):
         body = {"choice": "left_much", "rt_ms": 900, "idempotency_key": "same"}
 
         def post(b: dict) -> int:
-            with httpx.Client(base_url=base, timeout=30) as c:
+            with httpx.Client(base_url=base, timeout=30, verify=False) as c:
                 return c.post(f"{url}/trials/{trial}/vote", json=b, headers=headers).status_code
 
         with ThreadPoolExecutor(8) as pool:

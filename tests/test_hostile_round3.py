@@ -285,7 +285,7 @@ def guesses(urls: list[str], accounts: list[str]) -> list[int]:
     import httpx
 
     def post(i: int) -> int:
-        with httpx.Client(base_url=urls[i % 2], timeout=60) as c:
+        with httpx.Client(base_url=urls[i % 2], timeout=60, verify=False) as c:  # plain HTTP: no CA bundle (50 ms)
             return c.post("/api/v1/auth/token", data={"username": accounts[i], "password": f"guess {i}"}).status_code
 
     with ThreadPoolExecutor(8) as pool:
