@@ -4,6 +4,7 @@ The whole clip set is rendered once at 160x120 (the pipeline is the same as at 6
 a few frames are saved under var/test-artifacts/ for a person to look at.
 """
 
+import gc
 import json
 import os
 import re
@@ -79,21 +80,23 @@ def body_mask(frames, background):
     return np.abs(frames.astype(int) - background.astype(int)).max(axis=-1) > 24
 
 
+def clip_renderer(character, clips: list, animation: str) -> ClipRenderer:
+    """A ClipRenderer for ``animation``, set up like the pipeline's (same framing and bounds)."""
+    files = [c for c in clips if c.animation == animation]
+    group = [np.load(c.path) for c in files]
+    pos = np.concatenate([g["world_positions"] for g in group])
+    mesh = bind_mesh(character, [str(n) for n in group[0]["joint_names"]], group[0]["bind_rotations"],
+                     group[0]["bind_positions"])
+    bounds = np.array([pos.reshape(-1, 3).min(axis=0) - 0.3, pos.reshape(-1, 3).max(axis=0) + 0.3])
+    return ClipRenderer(mesh, character.faces, frame_motion(pos, SMALL, BODY_PADDING_M), SMALL, bounds,
+                        grid_spacing(files[0], SMALL))
+
+
 @pytest.fixture(scope="module")
 def renderers(data, clips_dir):
-    """A ClipRenderer per animation, set up like the pipeline's (same framing and bounds)."""
-    character = load_character(data)
-    clips = read_clip_set(clips_dir)
-    made = {}
-    for animation in ("walk", "run", "crouch", "idle"):
-        files = [c for c in clips if c.animation == animation]
-        group = [np.load(c.path) for c in files]
-        pos = np.concatenate([g["world_positions"] for g in group])
-        mesh = bind_mesh(character, [str(n) for n in group[0]["joint_names"]], group[0]["bind_rotations"],
-                         group[0]["bind_positions"])
-        bounds = np.array([pos.reshape(-1, 3).min(axis=0) - 0.3, pos.reshape(-1, 3).max(axis=0) + 0.3])
-        made[animation] = ClipRenderer(mesh, character.faces, frame_motion(pos, SMALL, BODY_PADDING_M), SMALL,
-                                       bounds, grid_spacing(files[0], SMALL))
+    """A ClipRenderer per animation."""
+    character, clips = load_character(data), read_clip_set(clips_dir)
+    made = {animation: clip_renderer(character, clips, animation) for animation in ("walk", "run", "crouch", "idle")}
     yield made
     for r in made.values():
         r.close()
@@ -227,6 +230,30 @@ def test_without_every_clip_only_the_clips_of_the_pairs_get_a_video(media, data,
     names = {o.name for j in p.jobs for o in j.outputs}
     assert len(names) == 2 and sum(len(j.outputs) for j in p.jobs) == 2  # one clip video, one pair video
     assert all("walk-copy" not in o.clips for j in p.jobs for o in j.outputs)  # never rendered itself
+
+
+def test_a_closed_renderer_leaves_the_next_one_in_the_thread_alone(data, clips_dir):
+    # close() frees the GL objects and the context without pyrender's full gc.collect(): the renderers made after
+    # it in the same thread (one open while the closed one is collected) render the same pixels (shadows on).
+    character, clips = load_character(data), read_clip_set(clips_dir)
+    clip = np.load(next(c.path for c in clips if c.id == "walk-keyframe"))
+
+    def frames(renderer: ClipRenderer) -> list:
+        return list(renderer.render(clip["world_rotations"][:3], clip["world_positions"][:3]))
+
+    first = clip_renderer(character, clips, "walk")
+    reference = frames(first)
+    second = clip_renderer(character, clips, "walk")
+    first.close()
+    del first
+    gc.collect()
+    assert all(np.array_equal(x, y) for x, y in zip(frames(second), reference, strict=True))
+    second.close()
+    third = clip_renderer(character, clips, "walk")
+    del second
+    gc.collect()
+    assert all(np.array_equal(x, y) for x, y in zip(frames(third), reference, strict=True))
+    third.close()
 
 
 def test_rendering_is_deterministic(renderers, clips_dir, pairs, data, tmp_path):
