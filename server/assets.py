@@ -101,8 +101,7 @@ def character(data_dir: Path) -> Character:
     """The character of the data directory, its files verified against :data:`CHARACTER_FILES`' checksums (loaded
     once per process: verified files have one content)."""
     paths = tuple(verify(data_dir, name) for name in CHARACTER_FILES)
-    key = tuple(sha256_content(path) if name not in CHECKSUMS else CHECKSUMS[name]
-                for name, path in zip(CHARACTER_FILES, paths, strict=True))
+    key = tuple(CHECKSUMS[name] for name in CHARACTER_FILES)  # what verify() just checked each file against
     if key not in _CHARACTERS:
         try:
             _CHARACTERS[key] = load_character(*paths)

@@ -51,9 +51,10 @@ def wilcoxon_p(x: Sequence[float]) -> float | None:
             return None
     doubled = np.rint(2 * stats.rankdata(np.abs(x))).astype(np.int64)
     observed = int(doubled[x > 0].sum())
-    counts = np.zeros(int(doubled[x != 0].sum()) + 1, dtype=np.int64)  # counts[s]: sign flips with sum s
+    signed = doubled[x != 0]
+    counts = np.zeros(int(signed.sum()) + 1, dtype=np.int64)  # counts[s]: sign flips with sum s
     counts[0] = 1
-    for r in doubled[x != 0]:
+    for r in signed:
         counts[r:] = counts[r:] + counts[:-r]
     total = counts.sum()
     return min(1.0, 2 * min(counts[:observed + 1].sum() / total, counts[observed:].sum() / total))
