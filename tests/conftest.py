@@ -209,15 +209,32 @@ def _fresh_engine(kind: str, tmp_path_factory: pytest.TempPathFactory, database:
     return engine
 
 
-@pytest.fixture(scope="session", params=DATABASES)
-def engine(request, tmp_path_factory):
-    """A migrated database of each kind, shared by the tests (each test rolls back what it did)."""
+@pytest.fixture(scope="session")
+def _shared_engines(tmp_path_factory):
+    """``get(kind)``: the run's one migrated database of that kind, made at its first use and kept to the end.
+
+    Not the parametrized ``engine`` itself: pytest keeps one instance of a parametrized session fixture at a time,
+    and with the tests in file order (:func:`pytest_collection_modifyitems`) the kinds alternate file by file, so
+    each switch dropped and migrated a database anew (about 60 migrations a worker, 22 s of a run's CPU)."""
     from server.db import migrate
 
-    eng = _fresh_engine(request.param, tmp_path_factory)
-    migrate(eng)
-    yield eng
-    eng.dispose()
+    made: dict = {}
+
+    def get(kind: str):
+        if kind not in made:
+            made[kind] = _fresh_engine(kind, tmp_path_factory)
+            migrate(made[kind])
+        return made[kind]
+
+    yield get
+    for eng in made.values():
+        eng.dispose()
+
+
+@pytest.fixture(scope="session", params=DATABASES)
+def engine(request, _shared_engines):
+    """A migrated database of each kind, shared by the tests (each test rolls back what it did)."""
+    return _shared_engines(request.param)
 
 
 @pytest.fixture

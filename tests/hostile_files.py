@@ -11,10 +11,12 @@ gigabytes.  Used by the upload tests and by ``python -m tests.hostile_files`` (p
 
 from __future__ import annotations
 
+import functools
 import gzip
 import json
 import struct
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -59,18 +61,39 @@ def _chain_gltf(path: Path, joints: int, times: list[float]) -> None:
                                                              np.zeros((n, 3))),))
 
 
+@functools.lru_cache(maxsize=2)
+def _chain_glb(joints: int, times: tuple[float, ...]) -> bytes:
+    """The bytes of :func:`_chain_gltf`'s file, made once per process (pygltflib takes about a second to write
+    1000 joints)."""
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "chain.glb"
+        _chain_gltf(path, joints, list(times))
+        return path.read_bytes()
+
+
+def _glb(document: dict, blob: bytes) -> bytes:
+    """A ``.glb``: the 12-byte header, the JSON chunk (space-padded) and the binary chunk (zero-padded)."""
+    text = json.dumps(document, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)
+    blob += b"\0" * (-len(blob) % 4)
+    return (struct.pack("<4sII", b"glTF", 2, 28 + len(text) + len(blob)) + struct.pack("<I4s", len(text), b"JSON")
+            + text + struct.pack("<I4s", len(blob), b"BIN\0") + blob)
+
+
 def gltf_key_bomb(path: Path, last_key: float = 16666.0, joints: int = 1000) -> Path:
-    """The key-time bomb as ``.glb`` at ``path``: keys at 0, 1 and ``last_key`` seconds."""
-    _chain_gltf(path, joints, [0.0, 1.0, 2.0])
-    g = pygltflib.GLTF2().load(str(path))
-    blob = bytearray(g.binary_blob())
-    acc = g.accessors[g.animations[0].samplers[0].input]
-    view = g.bufferViews[acc.bufferView]
-    start = (view.byteOffset or 0) + (acc.byteOffset or 0)
+    """The key-time bomb as ``.glb`` at ``path``: keys at 0, 1 and ``last_key`` seconds (the last key time of the
+    chain's animation rewritten in its binary chunk, and the accessor's ``max`` with it)."""
+    data = _chain_glb(joints, (0.0, 1.0, 2.0))
+    (json_length,) = struct.unpack_from("<I", data, 12)
+    document = json.loads(data[20:20 + json_length])
+    (blob_length,) = struct.unpack_from("<I", data, 20 + json_length)
+    blob = bytearray(data[28 + json_length:28 + json_length + blob_length])
+    acc = document["accessors"][document["animations"][0]["samplers"][0]["input"]]
+    view = document["bufferViews"][acc["bufferView"]]
+    start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
     blob[start: start + 12] = struct.pack("<3f", 0.0, 1.0, last_key)
-    acc.max = [last_key]
-    g.set_binary_blob(bytes(blob))
-    g.save_binary(str(path))
+    acc["max"] = [last_key]
+    path.write_bytes(_glb(document, bytes(blob)))
     return path
 
 

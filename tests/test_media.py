@@ -9,6 +9,9 @@ import json
 import os
 import re
 import shutil
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +22,7 @@ from anim_core.rig.character import bind_mesh
 from server.assets import character as load_character
 from server.clipset.manifest import write_clip_set
 from server.errors import MediaError
-from server.media.build import render_media
+from server.media.build import PeakMemory, render_media
 from server.media.manifest import MANIFEST
 from server.media.plan import BODY_PADDING_M, MEDIA_NAME, grid_spacing, read_clip_set
 from server.media.renderer import ClipRenderer
@@ -361,3 +364,21 @@ def test_a_render_is_cut_per_video_only_where_the_workers_outnumber_what_per_ani
     per_video = render_tasks(p, 64)
     assert len(per_video) == videos and all(len(t.outputs) == 1 for t in per_video)
     assert sum(t.n_frames for t in per_video) > 2 * sum(j.n_frames for j in p.jobs)  # the price of cutting finer
+
+
+def test_peak_memory_counts_a_child_started_after_it_began():
+    """The render's "peak memory (all processes)": a child that touches 300 MiB after the sampler started (the
+    members are looked up again every ``rescan`` seconds) is counted, and nothing is counted after the exit."""
+    child_mib = 300
+    with PeakMemory(interval=0.05, rescan=0.2) as memory:
+        time.sleep(0.1)
+        before = memory.peak_bytes
+        child = subprocess.Popen([sys.executable, "-c", f"b = bytearray({child_mib} * 2**20); print(1, flush=True); "
+                                  "import sys; sys.stdin.read()"], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        try:
+            assert child.stdout.readline() == b"1\n"
+            time.sleep(0.6)  # past a rescan and several samples
+        finally:
+            child.communicate(b"")
+    assert before > 0
+    assert memory.peak_bytes >= before + child_mib * 2**20 * 0.95, (before / 2**20, memory.peak_bytes / 2**20)
