@@ -22,7 +22,7 @@ from server.stimuli.service import content_digest
 from server.studies.archive import ArchiveError, import_archive
 from server.studies.models import Study
 from tests import test_study_archive
-from tests.conftest import DATABASES, _fresh_engine
+from tests.conftest import DATABASES
 from tests.server_fixtures import make_study, start
 
 # The archive fixtures: an archived study with votes, and a second, empty server.
@@ -258,17 +258,16 @@ def test_invisible_characters_before_a_formula_do_not_hide_it_from_the_csv_guard
 # --- 11: the login throttle under real concurrency, two instances on one database -----------------------------
 
 @pytest.fixture(params=DATABASES)
-def two_instances(request, tmp_path_factory, tmp_path, production_password_hashes):
+def two_instances(request, migrated_copy, tmp_path, production_password_hashes):
     """Two ``serve`` instances (own engines, own apps, live on loopback) on one database, with a researcher; the
     password check at its real cost, which the concurrency tests race against."""
     from server.app import create_app
     from server.config import Settings
-    from server.db import make_engine, migrate, session_factory
+    from server.db import make_engine, session_factory
     from server.researchers.service import create_researcher
     from tests.server_fixtures import live_server
 
-    first = _fresh_engine(request.param, tmp_path_factory, database="test_animstudy_throttle")
-    migrate(first)
+    first = migrated_copy(request.param, "test_animstudy_throttle")
     other = make_engine(first.url.render_as_string(hide_password=False))
     with session_factory(first)() as db:
         create_researcher(db, "owner@example.org", "the right password 123")

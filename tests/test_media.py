@@ -27,7 +27,7 @@ from server.media.manifest import MANIFEST
 from server.media.plan import BODY_PADDING_M, MEDIA_NAME, grid_spacing, read_clip_set
 from server.media.renderer import ClipRenderer
 from server.media.scene import RenderSettings, frame_motion
-from server.media.video import FILE_TIME, decode, probe
+from server.media.video import FILE_TIME, decode, probe, yuv420
 from server.studies.service import clip_set_index, required_pairs
 from server.studies.studyfile import thesis_study
 
@@ -382,3 +382,16 @@ def test_peak_memory_counts_a_child_started_after_it_began():
             child.communicate(b"")
     assert before > 0
     assert memory.peak_bytes >= before + child_mib * 2**20 * 0.95, (before / 2**20, memory.peak_bytes / 2**20)
+
+
+def test_yuv420_with_a_kept_reformatter_is_a_fresh_conversion_at_every_size(rng):
+    """yuv420 keeps one swscale context per thread: frames of other sizes in between still convert as a new
+    context converts them."""
+    import av
+
+    for h, w in [(120, 160), (240, 320), (120, 160), (2, 4), (480, 640), (120, 160)]:
+        rgb = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+        packed = av.VideoFrame.from_ndarray(rgb, format="rgb24").reformat(format="yuv420p").to_ndarray()
+        y, u, v = yuv420(rgb)
+        assert y.shape == (h, w) and u.shape == v.shape == (h // 2, w // 2)
+        np.testing.assert_array_equal(np.concatenate([y.ravel(), u.ravel(), v.ravel()]), packed.ravel())

@@ -17,12 +17,11 @@ from sqlalchemy.orm import Session
 from server import cli
 from server.app import create_app
 from server.config import Settings
-from server.db import migrate
 from server.research.export import export_rows
 from server.studies import service
 from server.studies.archive import ArchiveError, export_archive, import_archive
 from server.studies.models import Study
-from tests.conftest import DATABASES, _fresh_engine
+from tests.conftest import DATABASES
 from tests.server_fixtures import answer_all, start, study_file, write_fake_media
 
 
@@ -48,10 +47,9 @@ def archived(db, tmp_path):
 
 
 @pytest.fixture(params=DATABASES)
-def second(request, tmp_path, tmp_path_factory):
+def second(request, tmp_path, migrated_copy):
     """Server 2: an empty database and var directory."""
-    engine = _fresh_engine(request.param, tmp_path_factory, database="test_animstudy_archive")
-    migrate(engine)
+    engine = migrated_copy(request.param, "test_animstudy_archive")
     settings = Settings(var_dir=tmp_path / "server2", secret_key="archive-test-secret-0123456789abcdef")
     yield engine, settings
     engine.dispose()
