@@ -252,7 +252,7 @@ def _shared_engines(tmp_path_factory):
 
     Not the parametrized ``engine`` itself: pytest keeps one instance of a parametrized session fixture at a time,
     and with the tests in file order (:func:`pytest_collection_modifyitems`) the kinds alternate file by file, so
-    each switch dropped and migrated a database anew (about 60 migrations a worker, 22 s of a run's CPU)."""
+    each switch dropped and migrated a database anew (about 60 migrations in a run of three workers, 22 s sampled)."""
     from server.db import migrate
 
     made: dict = {}
