@@ -215,8 +215,6 @@ def migrated_copy(tmp_path_factory):
     fixture that needs one per test: a copy of one the worker migrated once (SQLite: the file; PostgreSQL:
     ``CREATE DATABASE ... TEMPLATE``, ``database`` named as in :func:`_fresh_engine`).  A migration of an empty
     database takes 0.3-1 s."""
-    import shutil
-
     from sqlalchemy import make_url, text
 
     from server.config import normalize_database_url
