@@ -76,7 +76,10 @@ def site(data, tmp_path_factory):
     design = tomllib.loads(STUDY.read_text(encoding="utf-8"))["design"]
     # Simulated participants: the keyframe best, the others worse in the order listed, with noise.
     quality = {c: -0.6 * i for i, c in enumerate([design["reference"], *design["conditions"]])}
-    with factory() as db:
+    # Each session's pairs and sides come from its seed (`secrets.randbits` in the service): seeded with the votes, so
+    # that which conditions the simulated rounds leave with an interval is the same every run.
+    with factory() as db, pytest.MonkeyPatch.context() as patch:
+        patch.setattr(service.secrets, "randbits", random.Random(28).getrandbits)
         create_researcher(db, *RESEARCHER, admin=True)
         study = db.scalar(select(Study).where(Study.slug == "adaptive-walk"))
         for _ in range(SIMULATED):
