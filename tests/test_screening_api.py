@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+import random
 from collections import defaultdict
 
 import pytest
@@ -19,14 +20,21 @@ from tests.server_fixtures import make_study
 RULES = {"rules": ["catch", "straight_lining", "fast"], "thresholds": "fixed"}
 
 
-def run_panel(db, study, kinds: dict[str, str]) -> dict[str, str]:
+def run_panel(db, study, kinds: dict[str, str], seeds: list[int] | None = None) -> dict[str, str]:
     """Sessions answering every trial: ``good`` (varied answers, slow enough), ``straight`` (always 'equal'),
     ``fast`` (varied, 200 ms: before the 1.33 s clips end), ``careless`` (always 'left much': fails catch trials).
-    Returns session id -> kind."""
+    Returns session id -> kind.
+
+    Each session's trial order and sides come from its seed (`secrets.randbits` in the service): ``seeds`` in
+    order, or drawn from a seeded generator.  Left to chance, the good participants' data made the subject model
+    stop short of converging or run off (test_subject_model) in about 1 panel in 370 (a simulation of 3,000)."""
     out = {}
     varied = ["left_slightly", "equal", "right_slightly", "right_much", "left_much", "equal"]
+    given, drawn = iter(seeds or ()), random.Random("screening/sessions")
     for name, kind in kinds.items():
-        ps = service.start_session(db, study, None).session
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(service.secrets, "randbits", lambda bits: next(given, None) or drawn.getrandbits(bits))
+            ps = service.start_session(db, study, None).session
         out[ps.id] = kind
         for trial in ps.trials:
             if trial.comparison.kind == "catch":
@@ -73,10 +81,9 @@ def test_rules_flag_in_the_export_and_the_results_with_and_without_screening(cli
     assert results["without_screening"]["participants"]["screened_out"] == 0
     model = results["subject_model"]
     assert len(model["participants"]) == 3 and len(model["comparisons"]) == 8
-    # Three simulated whole-number panels: sometimes one answers an animation exactly as modelled (no maximum
-    # likelihood, docs/screening.md); the trial orders, hence the data, differ from run to run.
-    assert model["status"] == ("degenerate" if model["degenerate"] else "ok")
-    assert (model["note"] is not None) == bool(model["degenerate"])
+    # The seeded panel has a maximum likelihood fit (others may not: docs/screening.md, test_subject_model).
+    assert model["status"] == "ok" and model["note"] is None and model["degenerate"] == []
+    assert model["diverged"] == {"session_ids": [], "animations": []}
 
 
 def test_the_default_is_the_catch_rule_and_a_study_without_catch_rule_keeps_careless_answers(client, db,
@@ -138,15 +145,12 @@ def test_sureal_export_reads_into_sureal_and_gives_the_dashboards_subject_model(
     dataset = json.loads(r.text)
     assert len(dataset["dis_videos"]) == 8 and all(len(v["os"]) == 3 for v in dataset["dis_videos"])  # 3 kept
     by_key = {(c["animation"], c["condition"]): c["score"] for c in ours["comparisons"]}
-    # A degenerate fit (subject_model.fit: the likelihood has no maximum) reports where the solver stopped, not
-    # estimates, and names its pairs; only a fit with a maximum must equal sureal's.  (Failed once in CI on
-    # PostgreSQL, 981cdd7, by 0.24, sureal's scores there -2/3 and 4/3; 60 local runs did not repeat it, so its
-    # status is printed if it comes again.)
-    assert ours["status"] in ("ok", "degenerate") and (ours["status"] == "degenerate") == bool(ours["degenerate"])
-    if ours["status"] == "ok":
-        np.testing.assert_allclose([by_key[(v["animation"], v["test_condition"])] for v in dataset["dis_videos"]],
-                                   theirs["quality_scores"], atol=1e-9,
-                                   err_msg=f"status {ours['status']}, {ours['iterations']} iterations")
+    # A fit with a maximum (run_panel's seeded panel) equals sureal's.  Left to chance, the panel's fit had none
+    # or the solver ran off about once in 370 panels, and this failed once in CI by 0.24 (981cdd7): those report
+    # where the solver stopped, not estimates (test_a_subject_model_that_ran_off_is_not_called_ok).
+    assert ours["status"] == "ok", ours["note"]
+    np.testing.assert_allclose([by_key[(v["animation"], v["test_condition"])] for v in dataset["dis_videos"]],
+                               theirs["quality_scores"], atol=1e-9, err_msg=f"{ours['iterations']} iterations")
 
     rows = list(csv.reader(io.StringIO(client.get("/api/v1/studies/thesis/export.pwcmp.csv",
                                                   headers=researcher_headers).text)))
@@ -159,3 +163,18 @@ def test_sureal_export_reads_into_sureal_and_gives_the_dashboards_subject_model(
         right = v["test_condition"] if v["reference_side"] == "left" else v["reference_condition"]
         selection = "1" if v["choice"].startswith("left") else "2"
         assert row == [v["session_id"], "1", v["animation"], left, right, selection]
+
+
+def test_a_subject_model_that_ran_off_is_not_called_ok(client, db, researcher_headers):
+    """Session seeds that made sureal's solver run off with a participant's inconsistency (1e18, "converged"):
+    the results say not_converged, name the participant and say why, instead of reporting the numbers as a fit."""
+    study = make_study(db, Design(catch_trials=2), screening=RULES)
+    kinds = run_panel(db, study, {"g1": "good", "g2": "good", "g3": "good"},
+                      seeds=[105965761475679314, 8217689449242577302, 4522096967830459489])
+    model = client.get("/api/v1/studies/thesis/results", headers=researcher_headers).json()["subject_model"]
+    assert model["status"] == "not_converged" and model["degenerate"] == []
+    (ran_off,) = model["diverged"]["session_ids"]
+    assert kinds[ran_off] == "good" and model["diverged"]["animations"] == []
+    assert f"participant {ran_off[:8]}'s inconsistency" in model["note"] and "not estimates" in model["note"]
+    inconsistency = {p["session_id"]: p["inconsistency"] for p in model["participants"]}
+    assert inconsistency[ran_off] > 1e6

@@ -8,8 +8,6 @@ little data" in every panel.  The tests here run a few seeded panels to stay qui
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -61,13 +59,10 @@ def test_calibration_shows_power_and_is_seeded_and_cached():
     rows, _ = design_panel(0)
     screening_design._calibrate.cache_clear()
     screening_design._fitted.cache_clear()
-    start = time.perf_counter()
     first = calibration(rows, ALL, THESIS_PLAYBACK)
-    cold = time.perf_counter() - start
-    start = time.perf_counter()
     again = calibration(rows, ALL, THESIS_PLAYBACK)
-    warm = time.perf_counter() - start
-    assert again is first and warm < cold / 10, (cold, warm)
+    # Cached: the same object, from the cache (not timed: a 2 ms call against 84 ms left a 4-fold margin to preemption).
+    assert again is first and screening_design._calibrate.cache_info().hits == 1
     screening_design._calibrate.cache_clear()
     screening_design._fitted.cache_clear()
     assert calibration(rows, ALL, THESIS_PLAYBACK).as_dict() | {"seconds": 0} == first.as_dict() | {"seconds": 0}

@@ -159,3 +159,37 @@ def test_a_fit_without_maximum_is_named_degenerate():
     rng = np.random.default_rng(3)
     varied = np.linspace(-1.5, 1.5, 12)[:, None, None] + rng.normal(0, 0.5, (12, 20, 2))
     assert fit(varied, [e % 4 for e in range(12)]).degenerate == ()
+
+
+# Three participants' answers to 8 comparisons (4 animations, 2 showings): a simulated panel of the screening test's
+# kind on which the solver ran off (26 of 1,000 such panels did, docs/screening.md).
+RAN_OFF_PANEL = [[[0, 0], [-1, 0], [0, -1]], [[1, 2], [0, 2], [2, 0]], [[0, 2], [0, 0], [1, 2]],
+                 [[1, -1], [-1, -1], [1, 0]], [[-2, 0], [-1, -2], [-2, 1]], [[2, 0], [-2, 0], [2, 2]],
+                 [[1, -1], [1, -2], [-2, 0]], [[-2, 2], [1, -2], [0, 0]]]
+
+
+def test_a_fit_that_ran_off_is_named_diverged():
+    """sureal's Newton steps take participant 1's inconsistency to 1e18 while the scores settle, and call it
+    converged.  No maximum is there: the likelihood (scipy's normal density, not the module's) rises as that
+    inconsistency comes down to the largest residual of the participant's answers."""
+    x = np.array(RAN_OFF_PANEL, dtype=float)
+    content = [0, 0, 1, 1, 2, 2, 3, 3]
+    m = fit(x, content)
+    assert m.converged and not m.degenerate  # what the solver says
+    assert m.diverged and m.diverged_subjects == (1,) and m.diverged_contents == ()
+    assert m.inconsistency[1] > 1e6
+    mean = m.quality[:, None, None] + m.bias[None, :, None]
+    reach = np.max(np.abs(x[:, 1] - mean[:, 0]))
+
+    def loglik(v1: float) -> float:
+        v = m.inconsistency.copy()
+        v[1] = v1
+        sd = np.sqrt(v[None, :] ** 2 + m.ambiguity[content][:, None] ** 2)
+        return stats.norm.logpdf(x, mean, sd[:, :, None]).sum()
+
+    assert loglik(m.inconsistency[1]) < loglik(100 * reach) < loglik(reach)
+    # Fits at a maximum are not named: sureal's datasets and a planted panel.
+    assert not fit(*dataset("VQEGHD3_dataset_raw")).diverged
+    rng = np.random.default_rng(3)
+    varied = np.linspace(-1.5, 1.5, 12)[:, None, None] + rng.normal(0, 0.5, (12, 20, 2))
+    assert not fit(varied, [e % 4 for e in range(12)]).diverged

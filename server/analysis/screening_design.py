@@ -124,11 +124,11 @@ def _fitted(data: bytes, shape: tuple[int, ...], content: tuple[int, ...]) -> Go
     x = np.frombuffer(data).reshape(shape)
     content_index = list(content)
     model = fit(x, content_index)
-    if model.converged and np.isfinite(model.quality).all() and np.isfinite(model.bias).all():
+    if model.converged and not model.diverged and np.isfinite(model.quality).all() and np.isfinite(model.bias).all():
         quality, bias, v = model.quality, model.bias, model.inconsistency
         ambiguity = np.nan_to_num(model.ambiguity)[content_index]
     else:
-        # sureal's solver can diverge (an observer with no spread at all); the moments it starts from instead
+        # sureal's solver can fail to converge or run off (subject_model.fit); the moments it starts from instead
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             quality = np.nanmean(x, axis=(1, 2))

@@ -39,6 +39,9 @@ DELTA = 1e-8
 # it ends at 1e-7 or far less; between participants who do vary it stays above 0.2 (seeded random studies of 2 to 20
 # participants, 2026-12-05).
 DEGENERATE_SD = 1e-6
+# A spread over this many times the largest residual it explains is not at a maximum of the likelihood (fit()): a
+# stationary one is at most that residual.
+RAN_OFF = 1.001
 
 
 @dataclass(frozen=True)
@@ -71,6 +74,14 @@ class SubjectModel:
     # (subject, content) pairs with scores whose modelled spread sqrt(v_s^2 + a_c^2) fell to 0 (below
     # DEGENERATE_SD): the likelihood has no maximum there (see fit()), so the estimates are where the solver stopped.
     degenerate: tuple[tuple[int, int], ...] = ()
+    # Subjects whose inconsistency, and contents whose ambiguity, the solver ran off with (see fit()): no maximum of
+    # the likelihood is there, whatever ``converged`` says.
+    diverged_subjects: tuple[int, ...] = ()
+    diverged_contents: tuple[int, ...] = ()
+
+    @property
+    def diverged(self) -> bool:
+        return bool(self.diverged_subjects or self.diverged_contents)
 
 
 _jit = numba.njit(cache=True, error_model="numpy")  # IEEE division: 1/0 is inf, 0/0 NaN, as numpy's
@@ -208,7 +219,14 @@ def fit(x: np.ndarray, content: np.ndarray | list[int], force_bias_zero_mean: bo
     inconsistency and the content's ambiguity go to 0 raises it without end.  sureal's solver then stops near 0
     and reports converged; so does this port (its numbers stay sureal's), and ``degenerate`` names those pairs.
     It is common with whole-number answers: of 200 seeded studies of 8 comparisons (4 contents) answered at
-    random, 90 to 130 were so at every panel size tried from 2 to 20 participants (2026-12-05)."""
+    random, 90 to 130 were so at every panel size tried from 2 to 20 participants (2026-12-05).
+
+    The solver can also run off: its Newton step on a spread goes the wrong way where the likelihood is not concave
+    in it, and the spread grows to 1e18 or beyond while the scores settle (the subject's weight 1/var goes to 0), so
+    it "converges" (sureal too; on such data sureal's own run fails or stops elsewhere).  No maximum is there: where a
+    subject's inconsistency exceeds every residual of its scores, each score's term of the log-likelihood's
+    derivative in it, (r^2 - var) / var^2, is negative, so a smaller inconsistency is more likely; the same holds for
+    a content's ambiguity.  ``diverged_subjects`` and ``diverged_contents`` name those."""
     x = np.asarray(x, dtype=float)
     if x.ndim != 3:
         raise ValueError(f"scores must have shape (stimuli, subjects, repetitions), got {x.shape}")
@@ -248,7 +266,14 @@ def _fit(x: np.ndarray, content: np.ndarray, present: np.ndarray, n_e: int, n_s:
     scored = present.any(axis=2)
     degenerate = sorted({(int(s), int(content[e])) for e, s in zip(*np.nonzero(scored & (spread < DEGENERATE_SD)),
                                                                       strict=True)})
+    residual = np.abs(x - mean)
+    reach_s = np.nanmax(residual, axis=(0, 2))
+    reach_c = np.array([np.nanmax(residual[content == c]) if np.any(content == c) else np.inf for c in range(n_c)])
+    # (a spread the solver left at DEGENERATE_SD or below is the degenerate case's, not this)
+    ran_off_s = ~(v <= RAN_OFF * reach_s + DEGENERATE_SD)  # NaN counts as run off
+    ran_off_c = ~(a <= RAN_OFF * reach_c + DEGENERATE_SD)
     return SubjectModel(quality=q, quality_std=q_std, bias=b, bias_std=b_std, inconsistency=v,
                         inconsistency_std=v_std, ambiguity=a, ambiguity_std=a_std, iterations=iterations,
                         converged=converged, loglikelihood=loglik, inconsistency_ci95=v_ci,
-                        degenerate=tuple(degenerate))
+                        degenerate=tuple(degenerate), diverged_subjects=tuple(np.flatnonzero(ran_off_s).tolist()),
+                        diverged_contents=tuple(np.flatnonzero(ran_off_c).tolist()))

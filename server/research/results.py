@@ -67,8 +67,15 @@ def _subject_model_cached(votes: tuple[tuple[tuple[str, Any], ...], ...]) -> dic
         return {"status": "too_few", "note": "needs at least two participants and two comparisons"}
     animations = sorted({a for a, _, _ in comparisons})
     model = fit(x, [animations.index(a) for a, _, _ in comparisons])
-    status = "degenerate" if model.degenerate else "ok" if model.converged else "not_converged"
+    status = "degenerate" if model.degenerate else "ok" if model.converged and not model.diverged else "not_converged"
     note = None
+    if status == "not_converged" and model.diverged:
+        who = [f"participant {subjects[s][:8]}'s inconsistency ({model.inconsistency[s]:.3g})"
+               for s in model.diverged_subjects]
+        who += [f"{animations[c]}'s ambiguity ({model.ambiguity[c]:.3g})" for c in model.diverged_contents]
+        note = (f"No maximum likelihood fit: the solver ran off with {'; '.join(who)}, beyond every difference "
+                "between the answers it explains and the model, where a smaller value is more likely. The numbers are "
+                "where the solver stopped (as sureal's), not estimates.")
     if model.degenerate:
         on: dict[int, list[str]] = {}
         for s, c in model.degenerate:
@@ -81,6 +88,8 @@ def _subject_model_cached(votes: tuple[tuple[tuple[str, Any], ...], ...]) -> dic
     return {
         "status": status, "note": note, "iterations": model.iterations,
         "degenerate": [{"session_id": subjects[s], "animation": animations[c]} for s, c in model.degenerate],
+        "diverged": {"session_ids": [subjects[s] for s in model.diverged_subjects],
+                     "animations": [animations[c] for c in model.diverged_contents]},
         "comparisons": [{"animation": a, "reference": r, "condition": t, "score": finite_or_none(model.quality[e]),
                          "ci95": [finite_or_none(v) for v in model.quality_ci95[e]]}
                         for e, (a, r, t) in enumerate(comparisons)],
