@@ -43,15 +43,23 @@ if WORKER and os.environ.get("TEST_DATABASE_URL"):  # before any test module rea
     os.environ["TEST_DATABASE_URL"] = _worker_database_url(os.environ["TEST_BASE_DATABASE_URL"], WORKER)
 
 
-def _admin_engine():
-    """An AUTOCOMMIT engine on the server's maintenance database (to create and drop the workers' databases)."""
+@contextmanager
+def _admin_connection():
+    """An AUTOCOMMIT connection to the PostgreSQL server's maintenance database (to create and drop databases: the
+    workers' and the tests' own), closed with its engine."""
     from sqlalchemy import make_url
 
     from server.config import normalize_database_url
     from server.db import make_engine
 
-    url = make_url(normalize_database_url(os.environ["TEST_BASE_DATABASE_URL"])).set(database="postgres")
-    return make_engine(url.render_as_string(hide_password=False)).execution_options(isolation_level="AUTOCOMMIT")
+    base = os.environ.get("TEST_BASE_DATABASE_URL") or os.environ["TEST_DATABASE_URL"]
+    url = make_url(normalize_database_url(base)).set(database="postgres")
+    admin = make_engine(url.render_as_string(hide_password=False)).execution_options(isolation_level="AUTOCOMMIT")
+    try:
+        with admin.connect() as conn:
+            yield conn
+    finally:
+        admin.dispose()
 
 
 def _worker_databases(conn, name: str) -> list[str]:
@@ -71,12 +79,10 @@ def pytest_sessionstart(session):
     from sqlalchemy import make_url, text
 
     name = make_url(os.environ["TEST_DATABASE_URL"]).database
-    admin = _admin_engine()
-    with admin.connect() as conn:
+    with _admin_connection() as conn:
         for stale in _worker_databases(conn, name):  # left by an interrupted run
             conn.execute(text(f'DROP DATABASE IF EXISTS "{stale}" WITH (FORCE)'))
         conn.execute(text(f'CREATE DATABASE "{name}"'))
-    admin.dispose()
 
 
 def pytest_sessionfinish(session, exitstatus):
@@ -85,13 +91,9 @@ def pytest_sessionfinish(session, exitstatus):
     from sqlalchemy import make_url, text
 
     name = make_url(os.environ["TEST_DATABASE_URL"]).database
-    admin = _admin_engine()
-    try:
-        with admin.connect() as conn:
-            for database in _worker_databases(conn, name):
-                conn.execute(text(f'DROP DATABASE IF EXISTS "{database}" WITH (FORCE)'))
-    finally:
-        admin.dispose()
+    with _admin_connection() as conn:
+        for database in _worker_databases(conn, name):
+            conn.execute(text(f'DROP DATABASE IF EXISTS "{database}" WITH (FORCE)'))
 
 
 def pytest_collection_modifyitems(session, config, items):
@@ -195,12 +197,9 @@ def _fresh_engine(kind: str, tmp_path_factory: pytest.TempPathFactory, database:
     url = make_url(normalize_database_url(os.environ["TEST_DATABASE_URL"]))
     if database:
         database = own_database(url, database)
-        admin = make_engine(url.render_as_string(hide_password=False)).execution_options(
-            isolation_level="AUTOCOMMIT")
-        with admin.connect() as conn:
+        with _admin_connection() as conn:
             if not conn.scalar(text("SELECT 1 FROM pg_database WHERE datname = :n"), {"n": database}):
                 conn.execute(text(f'CREATE DATABASE "{database}"'))
-        admin.dispose()
         url = url.set(database=database)
     engine = make_engine(url.render_as_string(hide_password=False))
     with engine.begin() as conn:  # the test database belongs to the tests: start from nothing
@@ -234,11 +233,9 @@ def migrated_copy(tmp_path_factory):
             return make_engine(f"sqlite:///{path}")
         url = make_url(normalize_database_url(os.environ["TEST_DATABASE_URL"]))
         name = own_database(url, database)
-        admin = make_engine(url.render_as_string(hide_password=False)).execution_options(isolation_level="AUTOCOMMIT")
-        with admin.connect() as conn:
+        with _admin_connection() as conn:
             conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
             conn.execute(text(f'CREATE DATABASE "{name}" TEMPLATE "{templates[kind]}"'))
-        admin.dispose()
         return make_engine(url.set(database=name).render_as_string(hide_password=False))
 
     return make

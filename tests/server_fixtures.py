@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import random
 import socket
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -22,6 +23,7 @@ from server.clipset.config import ClipSetConfig, load_config
 from server.config import Settings
 from server.deps import get_session
 from server.media.manifest import RenderedClip, RenderedPair, RenderManifest
+from server.participants import service as participant_service
 from server.researchers.service import create_researcher
 from server.studies.design import Design
 from server.studies.models import Study, StudyState
@@ -31,6 +33,21 @@ from server.studies.studyfile import StudyFile, thesis_study
 ANIMATIONS = ("walk", "run", "crouch", "idle")
 CONDITIONS = ("keyframe", "hybrid0", "hybrid1", "hybrid2")
 RESEARCHER = ("lead@example.org", "correct horse battery")
+
+
+@contextmanager
+def seeded_sessions(rng: random.Random, given: Sequence[int] = ()) -> Iterator[None]:
+    """New participant sessions' seeds (``secrets.randbits`` in the participants' service: a session's trial order,
+    sides and adaptive pairs) from ``rng``, after the ``given`` ones in order: a simulated study's votes, and what
+    they add up to, are the same every run."""
+    pending = list(given)
+
+    def randbits(bits: int) -> int:
+        return pending.pop(0) if pending else rng.getrandbits(bits)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(participant_service.secrets, "randbits", randbits)
+        yield
 
 
 def small_clip_config() -> ClipSetConfig:

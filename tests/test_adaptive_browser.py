@@ -28,7 +28,7 @@ from server.researchers.service import create_researcher
 from server.studies.models import Study
 from server.studies.scale import CHOICES
 from tests.conftest import own_contexts
-from tests.server_fixtures import live_server
+from tests.server_fixtures import live_server, seeded_sessions
 from tests.test_participant_page import ARTIFACTS, CHROMIUM, wait_until
 from tests.test_studies16_browser import CLIP_SET, RESEARCHER, cli_environment, run, walk_through
 
@@ -78,8 +78,7 @@ def site(data, tmp_path_factory):
     quality = {c: -0.6 * i for i, c in enumerate([design["reference"], *design["conditions"]])}
     # Each session's pairs and sides come from its seed (`secrets.randbits` in the service): seeded with the votes, so
     # that which conditions the simulated rounds leave with an interval is the same every run.
-    with factory() as db, pytest.MonkeyPatch.context() as patch:
-        patch.setattr(service.secrets, "randbits", random.Random(28).getrandbits)
+    with factory() as db, seeded_sessions(random.Random(28)):
         create_researcher(db, *RESEARCHER, admin=True)
         study = db.scalar(select(Study).where(Study.slug == "adaptive-walk"))
         for _ in range(SIMULATED):

@@ -15,7 +15,7 @@ from server.researchers.service import create_researcher
 from server.studies.design import Design
 from server.studies.scale import CHOICES
 from tests.conftest import _fresh_engine, own_contexts
-from tests.server_fixtures import live_server, make_study
+from tests.server_fixtures import live_server, make_study, seeded_sessions
 from tests.test_participant_page import ARTIFACTS, wait_until
 
 CONDITIONS = ["keyframe", "hybrid0", "hybrid1", "hybrid2"]
@@ -31,8 +31,7 @@ def site(tmp_path_factory):
     rng = random.Random(3)
     # Each session's trial order and adaptive choices come from its seed (`secrets.randbits` in the service): seeded
     # here, so that the votes, and with them which conditions have a finite scale value, are the same every run.
-    with session_factory(engine)() as db, pytest.MonkeyPatch.context() as patch:
-        patch.setattr(service.secrets, "randbits", rng.getrandbits)
+    with session_factory(engine)() as db, seeded_sessions(rng):
         study = make_study(db, Design(mode="adaptive", conditions=CONDITIONS[1:], animations=["walk", "run"]),
                            slug="adaptive")
         for _ in range(PARTICIPANTS):

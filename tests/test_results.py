@@ -11,6 +11,7 @@ from scipy import stats
 
 from server.analysis.ranking import rank_conditions
 from server.participants import service
+from tests.server_fixtures import seeded_sessions
 
 CHOICES = ["right_much", "right_slightly", "equal", "left_slightly", "left_much"]  # raw -2 .. +2 (left view)
 
@@ -25,8 +26,7 @@ def simulate(db, study, n=17, seed=7):
     """
     rng = random.Random(seed)
     taste = {"walk": 0.6, "run": -0.4, "crouch": 0.0, "idle": 1.0}
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(service.secrets, "randbits", random.Random(f"{seed}/sessions").getrandbits)
+    with seeded_sessions(random.Random(f"{seed}/sessions")):
         for p in range(n):
             ps = service.start_session(db, study, None).session
             if p % 3:

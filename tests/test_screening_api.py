@@ -13,7 +13,7 @@ from server.participants import service
 from server.studies.design import Design
 from server.studies.service import EXPORT_COLUMNS
 from server.studies.studyfile import StudyFileError, parse_study_text
-from tests.server_fixtures import make_study
+from tests.server_fixtures import make_study, seeded_sessions
 
 # The standards' fixed thresholds: six participants are too few for design-calibrated ones (then the rules say
 # "too little data"; tests/test_screening_design.py).
@@ -30,18 +30,17 @@ def run_panel(db, study, kinds: dict[str, str], seeds: list[int] | None = None) 
     stop short of converging or run off (test_subject_model) in about 1 panel in 370 (a simulation of 3,000)."""
     out = {}
     varied = ["left_slightly", "equal", "right_slightly", "right_much", "left_much", "equal"]
-    given, drawn = iter(seeds or ()), random.Random("screening/sessions")
-    for name, kind in kinds.items():
-        with pytest.MonkeyPatch.context() as patch:
-            patch.setattr(service.secrets, "randbits", lambda bits: next(given, None) or drawn.getrandbits(bits))
+    with seeded_sessions(random.Random("screening/sessions"), seeds or ()):
+        for name, kind in kinds.items():
             ps = service.start_session(db, study, None).session
-        out[ps.id] = kind
-        for trial in ps.trials:
-            if trial.comparison.kind == "catch":
-                choice = "left_much" if kind == "careless" else "equal"
-            else:
-                choice = {"straight": "equal", "careless": "left_much"}.get(kind, varied[trial.index % len(varied)])
-            service.cast_vote(db, ps, trial, choice, 200 if kind == "fast" else 2500, f"{name}-{trial.id}", {})
+            out[ps.id] = kind
+            for trial in ps.trials:
+                if trial.comparison.kind == "catch":
+                    choice = "left_much" if kind == "careless" else "equal"
+                else:
+                    choice = {"straight": "equal", "careless": "left_much"}.get(kind,
+                                                                              varied[trial.index % len(varied)])
+                service.cast_vote(db, ps, trial, choice, 200 if kind == "fast" else 2500, f"{name}-{trial.id}", {})
     return out
 
 
