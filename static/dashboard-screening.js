@@ -5,7 +5,7 @@
 
 window.DashboardScreening = (() => {
   const $ = (id) => document.getElementById(id);
-  const fmt = (v, digits = 2) => (v === null || v === undefined ? "–" : Number(v).toFixed(digits));
+  const fmt = (v, digits = 2) => Researcher.number(v, digits);
   const p = (v) => (v === null || v === undefined ? "–" : v < 0.001 ? "< 0.001" : v.toFixed(3));
   const interval = (ci) => (ci && ci[0] !== null ? `${fmt(ci[0])} … ${fmt(ci[1])}` : "–");
   const short = (sid) => sid.slice(0, 8);

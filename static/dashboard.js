@@ -21,8 +21,7 @@
   let timer = null;
 
   const label = (c) => `${c.animation}, ${c.condition}`;
-  // -0.00 reads as a sign where there is none: toFixed keeps the sign of a value that rounds to 0.
-  const fmt = (v, digits = 3) => (v === null || v === undefined ? "–" : (Number(v).toFixed(digits)).replace(/^-(0\.?0*)$/, "$1"));
+  const fmt = (v, digits = 3) => Researcher.number(v, digits);
   // A condition without a finite scale value (ranking status "separated"): which way it runs off, if known.
   const unbounded = (bound) => (bound ? `no finite value (${bound} the reference)` : "–");
   const p = (v) => (v === null || v === undefined ? "–" : v < 0.001 ? "< 0.001" : v.toFixed(3));

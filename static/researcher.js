@@ -62,5 +62,15 @@ window.Researcher = (() => {
     container.replaceChildren(table);
   }
 
-  return { api, start, newTable, fillTable };
+  // A number as the dashboards show it: ``digits`` decimals (a value that rounds to 0 without toFixed's "-"), a
+  // dash for none, and three significant digits from 1e9 up, far beyond any figure the dashboards show, where a
+  // fit that ran off reaches 1e18-1e28 (toFixed would print every digit, past 1e21 all seventeen significant ones).
+  function number(v, digits) {
+    if (v === null || v === undefined) return "–";
+    const x = Number(v);
+    if (Math.abs(x) >= 1e9) return x.toPrecision(3);
+    return x.toFixed(digits).replace(/^-(0\.?0*)$/, "$1");
+  }
+
+  return { api, start, newTable, fillTable, number };
 })();

@@ -89,3 +89,15 @@ def test_screening_panel(browser, site):
         wait_until(page, "document.getElementById('pilot-message').textContent.startsWith('Deleted 1 pilot')")
         wait_until(page, "document.getElementById('pilot-count').textContent.startsWith('0 pilot')")
         assert not errors, errors
+
+
+def test_numbers_from_a_fit_that_ran_off_are_shown_short(browser, site):
+    """A subject model that ran off (1e18-1e28, docs/screening.md) fills its table with three significant digits,
+    not toFixed's every digit; ordinary figures keep their decimals, and a value rounding to 0 shows no sign."""
+    base, _ids = site
+    with own_contexts(browser):
+        page = browser.new_page()
+        page.goto(f"{base}/dashboard")
+        shown = page.evaluate("[1.8469828831034031e28, 1.3e18, -8.227301299016695e27, 3.14159, -0.001, null]"
+                              ".map((v) => Researcher.number(v, 2))")
+    assert shown == ["1.85e+28", "1.30e+18", "-8.23e+27", "3.14", "0.00", "–"]
